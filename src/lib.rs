@@ -1,0 +1,14 @@
+//! rangegan-mcap: LiDAR range images and a range-image GAN for MCAP recordings.
+//!
+//! One scan's path through the crate:
+//!
+//! 1. [`io`] streams records out of an MCAP file and decodes point-cloud messages
+//!    (ROS 1/ROS 2 `PointCloud2`, `foxglove.PointCloud`) into a [`lidar::Scan`];
+//! 2. [`lidar`] projects the scan onto a sensor's angle grid, giving a
+//!    [`lidar::RangeImage`] (and back to points, or resampled to another grid);
+//! 3. later stages (the GAN model, auto-decoding, physics) work on range images;
+//! 4. [`io`] encodes the results as new channels and writes them beside every
+//!    copied input record, atomically.
+
+pub mod error;
+pub mod lidar;

@@ -1,0 +1,265 @@
+//! Sensor profiles: which beams a LiDAR has (elevation table, optional per-beam
+//! azimuth offsets), how many columns a revolution has, and the valid range.
+//! Built-in profiles, JSON profile files (`schemas/sensor_profile.schema.json`)
+//! and Ouster metadata JSON all give the same [`SensorProfile`].
+
+use std::f32::consts::PI;
+use std::path::Path;
+
+use serde::{Deserialize, Serialize};
+
+use super::AngleGrid;
+
+/// A LiDAR's angular layout and range limits. Row 0 is the top beam.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct SensorProfile {
+    pub name: String,
+    /// Beam elevations in degrees, row 0 (top) first, decreasing.
+    pub elevation_deg: Vec<f32>,
+    /// Per-beam azimuth offsets in degrees (Ouster `beam_azimuth_angles`), if any.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub azimuth_offset_deg: Option<Vec<f32>>,
+    /// Columns per revolution.
+    pub columns: usize,
+    pub min_range_m: f32,
+    pub max_range_m: f32,
+}
+
+/// Errors loading a profile; each names the file.
+#[derive(Debug, thiserror::Error)]
+pub enum ProfileError {
+    #[error("unknown sensor profile '{0}' (built in: {names}); or give a profile JSON file", names = SensorProfile::BUILTIN.join(", "))]
+    Unknown(String),
+    #[error("{path}: {source}")]
+    Io { path: String, source: std::io::Error },
+    #[error("{path}: {source}")]
+    Json { path: String, source: serde_json::Error },
+    #[error("{path}: {reason}")]
+    Invalid { path: String, reason: String },
+}
+
+/// KITTI's Velodyne HDL-64E: median elevation of each ring over six real KITTI
+/// scans (sequence 00, frames 0-5), ring order split at the forward azimuth.
+const HDL64E_ELEVATION_DEG: [f32; 64] = [
+    2.613, 2.227, 1.995, 1.544, 1.263, 0.833, 0.572, 0.176, -0.161, -0.569, -0.876, -1.219, -1.566,
+    -1.868, -2.169, -2.524, -2.836, -3.245, -3.518, -3.912, -4.217, -4.582, -4.894, -5.181, -5.542,
+    -5.851, -6.147, -6.411, -6.778, -7.144, -7.382, -7.766, -8.396, -8.911, -9.371, -9.763, -10.221,
+    -10.824, -11.321, -11.746, -12.2, -12.625, -13.154, -13.672, -14.241, -14.676, -15.173, -15.545,
+    -16.169, -16.694, -17.256, -17.715, -18.211, -18.631, -19.07, -19.627, -20.126, -20.786,
+    -21.261, -21.682, -22.109, -22.755, -23.211, -23.742,
+];
+
+/// Velodyne VLP-32C beam elevations (datasheet), sorted top first.
+const VLP32C_ELEVATION_DEG: [f32; 32] = [
+    15.0, 10.333, 7.0, 4.667, 3.333, 2.333, 1.667, 1.333, 1.0, 0.667, 0.333, 0.0, -0.333, -0.667,
+    -1.0, -1.333, -1.667, -2.0, -2.333, -2.667, -3.0, -3.333, -3.667, -4.0, -4.667, -5.333, -6.148,
+    -7.254, -8.843, -11.31, -15.639, -25.0,
+];
+
+fn uniform(top_deg: f32, bottom_deg: f32, beams: usize) -> Vec<f32> {
+    let step = (top_deg - bottom_deg) / (beams - 1) as f32;
+    (0..beams).map(|i| top_deg - step * i as f32).collect()
+}
+
+impl SensorProfile {
+    /// Names accepted by [`SensorProfile::builtin`].
+    pub const BUILTIN: [&'static str; 7] =
+        ["hdl64e", "hdl32e", "vlp16", "vlp32c", "os1-32", "os1-64", "os1-128"];
+
+    /// KITTI's HDL-64E at its native ~2048 columns per revolution, 1.45-80 m as in
+    /// the reference preprocessing.
+    pub fn kitti_hdl64e() -> Self {
+        SensorProfile {
+            name: "hdl64e".into(),
+            elevation_deg: HDL64E_ELEVATION_DEG.to_vec(),
+            azimuth_offset_deg: None,
+            columns: 2048,
+            min_range_m: 1.45,
+            max_range_m: 80.0,
+        }
+    }
+
+    /// A built-in profile by name (case-insensitive; `kitti` is an alias of `hdl64e`).
+    pub fn builtin(name: &str) -> Result<Self, ProfileError> {
+        let lower = name.to_ascii_lowercase();
+        let make = |elevation_deg: Vec<f32>, columns, min_range_m, max_range_m| SensorProfile {
+            name: lower.clone(),
+            elevation_deg,
+            azimuth_offset_deg: None,
+            columns,
+            min_range_m,
+            max_range_m,
+        };
+        Ok(match lower.as_str() {
+            "hdl64e" | "kitti" => Self::kitti_hdl64e(),
+            // nuScenes' HDL-32E: +10.67 to -30.67 deg, 1.33 deg apart.
+            "hdl32e" => make(uniform(10.67, -30.67, 32), 1084, 0.5, 70.0),
+            "vlp16" => make(uniform(15.0, -15.0, 16), 1800, 0.4, 100.0),
+            "vlp32c" => make(VLP32C_ELEVATION_DEG.to_vec(), 1800, 0.5, 200.0),
+            // Ouster OS1 (gen 2): 45 deg vertical field of view, uniform spacing.
+            "os1-32" => make(uniform(22.5, -22.5, 32), 1024, 0.3, 120.0),
+            "os1-64" => make(uniform(22.5, -22.5, 64), 2048, 0.3, 120.0),
+            "os1-128" => make(uniform(22.5, -22.5, 128), 2048, 0.3, 120.0),
+            _ => return Err(ProfileError::Unknown(name.to_string())),
+        })
+    }
+
+    /// A built-in name, or else a path to a profile JSON or Ouster metadata JSON.
+    pub fn resolve(name_or_path: &str) -> Result<Self, ProfileError> {
+        match Self::builtin(name_or_path) {
+            Ok(p) => Ok(p),
+            Err(e) if !Path::new(name_or_path).exists() => Err(e),
+            Err(_) => Self::load(Path::new(name_or_path)),
+        }
+    }
+
+    /// Loads a profile JSON file, or an Ouster sensor metadata JSON
+    /// (`beam_altitude_angles`, `beam_azimuth_angles`, optional `lidar_mode`).
+    pub fn load(path: &Path) -> Result<Self, ProfileError> {
+        let p = path.display().to_string();
+        let text = std::fs::read_to_string(path).map_err(|source| ProfileError::Io { path: p.clone(), source })?;
+        let value: serde_json::Value =
+            serde_json::from_str(&text).map_err(|source| ProfileError::Json { path: p.clone(), source })?;
+        let profile = if let Some(ouster) = find_key(&value, "beam_altitude_angles") {
+            Self::from_ouster(&value, ouster, &p)?
+        } else {
+            serde_json::from_value(value).map_err(|source| ProfileError::Json { path: p.clone(), source })?
+        };
+        profile.validate().map_err(|reason| ProfileError::Invalid { path: p, reason })?;
+        Ok(profile)
+    }
+
+    fn from_ouster(root: &serde_json::Value, altitudes: &serde_json::Value, path: &str) -> Result<Self, ProfileError> {
+        let floats = |v: &serde_json::Value| -> Option<Vec<f32>> {
+            v.as_array()?.iter().map(|x| x.as_f64().map(|f| f as f32)).collect()
+        };
+        let invalid = |reason: &str| ProfileError::Invalid { path: path.into(), reason: reason.into() };
+        let elevation_deg = floats(altitudes).ok_or_else(|| invalid("beam_altitude_angles is not a list of numbers"))?;
+        let azimuth_offset_deg = match find_key(root, "beam_azimuth_angles") {
+            Some(v) => Some(floats(v).ok_or_else(|| invalid("beam_azimuth_angles is not a list of numbers"))?),
+            None => None,
+        };
+        // lidar_mode looks like "1024x10": columns x frequency.
+        let columns = find_key(root, "lidar_mode")
+            .and_then(|m| m.as_str())
+            .and_then(|m| m.split('x').next())
+            .and_then(|c| c.parse().ok())
+            .unwrap_or(1024);
+        let prod = find_key(root, "prod_line").and_then(|v| v.as_str()).unwrap_or("ouster");
+        Ok(SensorProfile {
+            name: prod.to_ascii_lowercase(),
+            elevation_deg,
+            azimuth_offset_deg,
+            columns,
+            min_range_m: 0.3,
+            max_range_m: 120.0,
+        })
+    }
+
+    /// Checks the invariants the projection relies on.
+    pub fn validate(&self) -> Result<(), String> {
+        if self.elevation_deg.is_empty() {
+            return Err("no beams".into());
+        }
+        if self.columns == 0 {
+            return Err("columns must be > 0".into());
+        }
+        if let Some(off) = &self.azimuth_offset_deg {
+            if off.len() != self.elevation_deg.len() {
+                return Err(format!("{} azimuth offsets for {} beams", off.len(), self.elevation_deg.len()));
+            }
+        }
+        if !(self.min_range_m >= 0.0 && self.max_range_m > self.min_range_m) {
+            return Err(format!("range {}..{} m is empty", self.min_range_m, self.max_range_m));
+        }
+        if self.elevation_deg.iter().any(|e| !e.is_finite()) {
+            return Err("non-finite elevation".into());
+        }
+        Ok(())
+    }
+
+    /// The same sensor with another number of columns per revolution.
+    pub fn with_columns(mut self, columns: usize) -> Self {
+        self.columns = columns;
+        self
+    }
+
+    /// Beams (rows of the range image).
+    pub fn beams(&self) -> usize {
+        self.elevation_deg.len()
+    }
+
+    /// The per-pixel angle grid of this profile (see [`AngleGrid`]): rows at the beam
+    /// elevations, columns at `pi - (j + 0.5) * 2 pi / W`. Points are binned by their
+    /// measured azimuth, so per-beam azimuth offsets do not move a pixel's direction.
+    pub fn angle_grid(&self) -> AngleGrid {
+        AngleGrid::regular_columns(self.beams(), self.columns, |i| self.elevation_deg[i].to_radians())
+    }
+}
+
+/// Wraps an angle to (-pi, pi].
+pub fn wrap_pi(a: f32) -> f32 {
+    let mut a = (a + PI).rem_euclid(2.0 * PI) - PI;
+    if a <= -PI {
+        a += 2.0 * PI;
+    }
+    a
+}
+
+/// Looks for `key` at the top level or one object down (Ouster nests it under
+/// `beam_intrinsics` in newer metadata).
+fn find_key<'a>(v: &'a serde_json::Value, key: &str) -> Option<&'a serde_json::Value> {
+    let obj = v.as_object()?;
+    obj.get(key).or_else(|| obj.values().find_map(|child| child.as_object()?.get(key)))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn builtins_are_valid_and_ordered_top_down() {
+        for name in SensorProfile::BUILTIN {
+            let p = SensorProfile::builtin(name).unwrap();
+            p.validate().unwrap();
+            assert!(p.elevation_deg.windows(2).all(|w| w[0] > w[1]), "{name} not sorted top-down");
+        }
+        assert_eq!(SensorProfile::builtin("KITTI").unwrap().beams(), 64);
+        let err = SensorProfile::builtin("hdl65").unwrap_err().to_string();
+        assert!(err.contains("hdl65") && err.contains("vlp16"), "{err}");
+    }
+
+    #[test]
+    fn profile_json_round_trips() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("p.json");
+        let p = SensorProfile::builtin("vlp16").unwrap().with_columns(900);
+        std::fs::write(&path, serde_json::to_string(&p).unwrap()).unwrap();
+        assert_eq!(SensorProfile::resolve(path.to_str().unwrap()).unwrap(), p);
+    }
+
+    #[test]
+    fn loads_real_ouster_metadata() {
+        let path = Path::new("../shared/real_lidar/ouster/OS-1-32-G_v2.1.1_1024x10.json");
+        if !path.exists() {
+            eprintln!("skipped: {} is absent (real data lives beside the repo)", path.display());
+            return;
+        }
+        let p = SensorProfile::load(path).unwrap();
+        assert_eq!(p.beams(), 32);
+        assert_eq!(p.columns, 1024);
+        assert_eq!(p.azimuth_offset_deg.as_ref().map(Vec::len), Some(32));
+        assert!(p.elevation_deg[0] > p.elevation_deg[31]);
+    }
+
+    #[test]
+    fn column_azimuths_follow_the_reference_convention() {
+        let g = SensorProfile::kitti_hdl64e().with_columns(4).angle_grid();
+        // Column 0 at the rear (just below +pi), clockwise.
+        let expect = [0.75 * PI, 0.25 * PI, -0.25 * PI, -0.75 * PI];
+        for (j, e) in expect.iter().enumerate() {
+            assert!((g.azimuth_rad[j] - e).abs() < 1e-6);
+        }
+        assert!((wrap_pi(3.0 * PI / 2.0) + PI / 2.0).abs() < 1e-6);
+    }
+}

@@ -1,0 +1,320 @@
+//! Projection of a [`Scan`] onto a [`SensorProfile`]'s grid: one routine whose only
+//! variable part is how a point's row (beam) is found ([`Strategy`]). The column
+//! always comes from the point's azimuth, and the nearest return wins a pixel.
+
+use super::range_image::azimuth_column;
+use super::{RangeImage, Scan, SensorProfile};
+
+/// How a point's row (beam) is found.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum Strategy {
+    /// Pick one of the others from the data (see [`choose_strategy`]).
+    Auto,
+    /// A `ring` / `channel` / `laser_id` field; rings ordered by their median elevation.
+    RingField,
+    /// Points in raw ring order, each ring a sweep starting straight ahead (KITTI
+    /// `.bin`): a new ring starts where the azimuth crosses from below 0 to >= 0
+    /// with x > 0. (Splitting at "azimuth jump > pi" is wrong on real KITTI.)
+    RingOrder,
+    /// Column-major firing order: the beam index cycles fastest (Ouster, nuScenes),
+    /// so point `i` is on beam `i % beams`. Needs every cell kept (organized data).
+    ColumnMajor,
+    /// Row-major organized cloud: point `i` is on row `i / width`.
+    RowMajor,
+    /// Nearest beam elevation of the profile.
+    Spherical,
+}
+
+impl Strategy {
+    pub fn name(self) -> &'static str {
+        match self {
+            Strategy::Auto => "auto",
+            Strategy::RingField => "ring-field",
+            Strategy::RingOrder => "ring-order",
+            Strategy::ColumnMajor => "column-major",
+            Strategy::RowMajor => "row-major",
+            Strategy::Spherical => "spherical",
+        }
+    }
+}
+
+/// Why a scan could not be projected with the chosen strategy.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum ProjectionError {
+    #[error("strategy {strategy} needs a ring field, and the cloud has none")]
+    NoRingField { strategy: &'static str },
+    #[error("found {found} rings, but the sensor profile '{profile}' has {beams} beams; try --sensor auto or --projection spherical")]
+    RingCount { found: usize, beams: usize, profile: String },
+    #[error("{points} points are not a whole number of {beams}-beam columns; column-major order needs an organized cloud")]
+    ColumnMajorLength { points: usize, beams: usize },
+    #[error("invalid sensor profile: {0}")]
+    Profile(String),
+}
+
+fn elevation(p: [f32; 3]) -> f32 {
+    p[2].atan2(p[0].hypot(p[1]))
+}
+
+fn azimuth(p: [f32; 3]) -> f32 {
+    p[1].atan2(p[0])
+}
+
+/// Ring id of every point in KITTI raw ring order (see [`Strategy::RingOrder`]).
+/// Points without a return keep the current ring.
+pub fn ring_order_ids(scan: &Scan) -> Vec<u32> {
+    let mut ring = 0u32;
+    let mut prev_az: Option<f32> = None;
+    let mut ids = Vec::with_capacity(scan.len());
+    for i in 0..scan.len() {
+        if scan.is_return(i) {
+            let p = scan.xyz[i];
+            let az = azimuth(p);
+            if let Some(prev) = prev_az {
+                if prev < 0.0 && az >= 0.0 && p[0] > 0.0 {
+                    ring += 1;
+                }
+            }
+            prev_az = Some(az);
+        }
+        ids.push(ring);
+    }
+    ids
+}
+
+/// Maps arbitrary group ids (rings, laser ids) to rows 0.. ordered by each group's
+/// median elevation, top first. Returns the row per point and the number of rows.
+fn rows_by_median_elevation(scan: &Scan, group: &[u32]) -> (Vec<u32>, usize) {
+    let mut elevations: std::collections::BTreeMap<u32, Vec<f32>> = Default::default();
+    for (i, &g) in group.iter().enumerate() {
+        if scan.is_return(i) {
+            elevations.entry(g).or_default().push(elevation(scan.xyz[i]));
+        }
+    }
+    let mut medians: Vec<(u32, f32)> = elevations
+        .into_iter()
+        .map(|(g, mut e)| {
+            e.sort_by(f32::total_cmp);
+            (g, e[e.len() / 2])
+        })
+        .collect();
+    medians.sort_by(|a, b| b.1.total_cmp(&a.1));
+    let row_of: std::collections::HashMap<u32, u32> =
+        medians.iter().enumerate().map(|(row, (g, _))| (*g, row as u32)).collect();
+    let rows = group.iter().map(|g| row_of.get(g).copied().unwrap_or(u32::MAX)).collect();
+    (rows, medians.len())
+}
+
+/// Median absolute deviation of elevation within rows: small when a row assignment
+/// matches the sensor's beams.
+fn row_spread(scan: &Scan, rows: impl Fn(usize) -> usize, nrows: usize) -> f32 {
+    let mut per_row = vec![Vec::new(); nrows];
+    for i in (0..scan.len()).filter(|&i| scan.is_return(i)) {
+        per_row[rows(i) % nrows].push(elevation(scan.xyz[i]));
+    }
+    let mut devs = Vec::new();
+    for mut e in per_row.into_iter().filter(|e| !e.is_empty()) {
+        e.sort_by(f32::total_cmp);
+        let m = e[e.len() / 2];
+        devs.extend(e.iter().map(|x| (x - m).abs()));
+    }
+    if devs.is_empty() {
+        return f32::INFINITY;
+    }
+    devs.sort_by(f32::total_cmp);
+    devs[devs.len() / 2]
+}
+
+/// Picks the row strategy from the data: a ring field if present; for organized
+/// clouds whichever of row-/column-major order gives tighter rings; KITTI ring
+/// order when it yields the profile's number of rings; else nearest elevation.
+pub fn choose_strategy(scan: &Scan, profile: &SensorProfile) -> Strategy {
+    if scan.ring.is_some() {
+        return Strategy::RingField;
+    }
+    let beams = profile.beams();
+    if scan.is_organized() {
+        let (h, w) = (scan.height, scan.width);
+        let row_major = row_spread(scan, |i| i / w, h);
+        let col_major = if scan.len() % beams == 0 { row_spread(scan, |i| i % beams, beams) } else { f32::INFINITY };
+        return if col_major < row_major { Strategy::ColumnMajor } else { Strategy::RowMajor };
+    }
+    let rings = ring_order_ids(scan).last().map_or(0, |r| *r as usize + 1);
+    if rings == beams {
+        return Strategy::RingOrder;
+    }
+    Strategy::Spherical
+}
+
+/// Row of every point under `strategy` (`u32::MAX` = no row).
+fn rows(scan: &Scan, profile: &SensorProfile, strategy: Strategy) -> Result<Vec<u32>, ProjectionError> {
+    let beams = profile.beams();
+    let check = |found: usize| {
+        if found > beams {
+            Err(ProjectionError::RingCount { found, beams, profile: profile.name.clone() })
+        } else {
+            Ok(())
+        }
+    };
+    Ok(match strategy {
+        Strategy::Auto => return rows(scan, profile, choose_strategy(scan, profile)),
+        Strategy::RingField => {
+            let ring = scan.ring.as_ref().ok_or(ProjectionError::NoRingField { strategy: strategy.name() })?;
+            let ids: Vec<u32> = ring.iter().map(|&r| r as u32).collect();
+            let (rows, n) = rows_by_median_elevation(scan, &ids);
+            check(n)?;
+            rows
+        }
+        Strategy::RingOrder => {
+            let ids = ring_order_ids(scan);
+            check(ids.last().map_or(0, |r| *r as usize + 1))?;
+            ids
+        }
+        Strategy::ColumnMajor => {
+            if scan.len() % beams != 0 {
+                return Err(ProjectionError::ColumnMajorLength { points: scan.len(), beams });
+            }
+            let ids: Vec<u32> = (0..scan.len()).map(|i| (i % beams) as u32).collect();
+            rows_by_median_elevation(scan, &ids).0
+        }
+        Strategy::RowMajor => {
+            let ids: Vec<u32> = (0..scan.len()).map(|i| (i / scan.width.max(1)) as u32).collect();
+            let (rows, n) = rows_by_median_elevation(scan, &ids);
+            check(n)?;
+            rows
+        }
+        Strategy::Spherical => {
+            let table: Vec<f32> = profile.elevation_deg.iter().map(|e| e.to_radians()).collect();
+            scan.xyz
+                .iter()
+                .map(|&p| {
+                    let e = elevation(p);
+                    let nearest = table
+                        .iter()
+                        .enumerate()
+                        .min_by(|a, b| (a.1 - e).abs().total_cmp(&(b.1 - e).abs()))
+                        .map_or(u32::MAX, |(row, _)| row as u32);
+                    nearest
+                })
+                .collect()
+        }
+    })
+}
+
+/// Projects `scan` onto `profile`'s grid. Returns with a range in
+/// `[min_range_m, max_range_m]` compete for their pixel; the nearest wins and keeps
+/// its exact xyz, intensity and label.
+pub fn project(scan: &Scan, profile: &SensorProfile, strategy: Strategy) -> Result<RangeImage, ProjectionError> {
+    profile.validate().map_err(ProjectionError::Profile)?;
+    let rows = rows(scan, profile, strategy)?;
+    let (h, w) = (profile.beams(), profile.columns);
+    let mut image = RangeImage::empty(profile.angle_grid());
+    for (i, &row) in rows.iter().enumerate() {
+        if row as usize >= h || !scan.is_return(i) {
+            continue;
+        }
+        let p = scan.xyz[i];
+        let range = (p[0] * p[0] + p[1] * p[1] + p[2] * p[2]).sqrt();
+        if range < profile.min_range_m || range > profile.max_range_m {
+            continue;
+        }
+        let col = (azimuth_column(azimuth(p), w).round() as usize) % w;
+        let k = row as usize * w + col;
+        if image.range_m[k] == 0.0 || range < image.range_m[k] {
+            image.range_m[k] = range;
+            image.xyz[k] = p;
+            image.intensity[k] = scan.intensity.as_ref().map_or(0.0, |v| v[i]);
+            image.label[k] = scan.label.as_ref().map_or(0, |v| v[i]);
+            image.point_index[k] = i as u32;
+        }
+    }
+    Ok(image)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A synthetic 4-beam sensor: each ring a full sweep starting straight ahead,
+    /// counter-clockwise, as KITTI stores it.
+    fn ring_order_scan(beams: usize, per_ring: usize, range: f32) -> (Scan, SensorProfile) {
+        let elev = [2.0f32, 0.0, -2.0, -4.0];
+        let mut xyz = Vec::new();
+        for e in elev.iter().take(beams) {
+            for k in 0..per_ring {
+                // Start slightly right of ahead (azimuth < 0), sweep counter-clockwise.
+                let az = -0.01 + k as f32 * 2.0 * std::f32::consts::PI / per_ring as f32;
+                let (e, az) = (e.to_radians(), az);
+                xyz.push([range * e.cos() * az.cos(), range * e.cos() * az.sin(), range * e.sin()]);
+            }
+        }
+        let profile = SensorProfile {
+            name: "test4".into(),
+            elevation_deg: elev[..beams].to_vec(),
+            azimuth_offset_deg: None,
+            columns: per_ring,
+            min_range_m: 1.0,
+            max_range_m: 100.0,
+        };
+        (Scan::from_xyz(xyz), profile)
+    }
+
+    #[test]
+    fn ring_order_projection_keeps_every_point_and_round_trips() {
+        let (scan, profile) = ring_order_scan(4, 64, 10.0);
+        assert_eq!(choose_strategy(&scan, &profile), Strategy::RingOrder);
+        let img = project(&scan, &profile, Strategy::Auto).unwrap();
+        assert_eq!(img.valid_count(), scan.len());
+        let mut back = img.to_points();
+        let mut orig = scan.xyz.clone();
+        let key = |p: &[f32; 3]| (p[0].to_bits(), p[1].to_bits(), p[2].to_bits());
+        back.sort_by_key(key);
+        orig.sort_by_key(key);
+        assert_eq!(back, orig);
+        // Row 3 holds the -4 deg ring.
+        let k = 3 * 64 + 10;
+        assert!((img.xyz[k][2] / img.range_m[k] - (-4f32).to_radians().sin()).abs() < 1e-4);
+    }
+
+    #[test]
+    fn nearest_return_wins_and_range_limits_apply() {
+        let profile = SensorProfile { columns: 8, ..SensorProfile::builtin("vlp16").unwrap() };
+        let scan = Scan::from_xyz(vec![[10.0, 0.0, 0.0], [5.0, 0.0, 0.0], [0.1, 0.0, 0.0], [500.0, 0.0, 0.0]]);
+        let img = project(&scan, &profile, Strategy::Spherical).unwrap();
+        assert_eq!(img.valid_count(), 1);
+        let k = img.point_index.iter().position(|&p| p != super::super::range_image::NO_POINT).unwrap();
+        assert_eq!(img.range_m[k], 5.0);
+        assert_eq!(img.point_index[k], 1);
+    }
+
+    #[test]
+    fn column_major_organized_clouds_are_detected() {
+        // Organized header 4 x 64 but the beam index cycles fastest, as Ouster writes it.
+        let (rm, profile) = ring_order_scan(4, 64, 10.0);
+        let mut xyz = Vec::new();
+        for col in 0..64 {
+            for beam in 0..4 {
+                xyz.push(rm.xyz[beam * 64 + col]);
+            }
+        }
+        let scan = Scan { xyz, height: 4, width: 64, ..Default::default() };
+        assert_eq!(choose_strategy(&scan, &profile), Strategy::ColumnMajor);
+        let img = project(&scan, &profile, Strategy::Auto).unwrap();
+        assert_eq!(img.valid_count(), 256);
+        // Read as row-major, the same data smears beams across rows.
+        let rows_wrong = project(&scan, &profile, Strategy::RowMajor).unwrap();
+        assert!(rows_wrong.valid_count() < 256);
+    }
+
+    #[test]
+    fn ring_field_rows_follow_elevation_not_id() {
+        let (mut scan, profile) = ring_order_scan(4, 16, 10.0);
+        // Velodyne numbers rings bottom-up: ring 0 is the lowest beam.
+        scan.ring = Some((0..scan.len()).map(|i| 3 - (i / 16) as u16).collect());
+        let img = project(&scan, &profile, Strategy::Auto).unwrap();
+        assert_eq!(img.valid_count(), 64);
+        assert!(img.xyz[0][2] > 0.0, "row 0 must be the top beam");
+        let too_many = SensorProfile { elevation_deg: vec![1.0, 0.0], ..profile };
+        assert!(matches!(project(&scan, &too_many, Strategy::RingField), Err(ProjectionError::RingCount { found: 4, .. })));
+    }
+}
