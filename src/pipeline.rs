@@ -286,6 +286,8 @@ pub fn guess_profile(scan: &crate::lidar::Scan) -> SensorProfile {
         crate::lidar::projection::ring_order_ids(scan).last().map_or(0, |r| *r as usize + 1)
     };
     let name = match beams {
+        // Organized clouds with many beams come from Ouster drivers; Velodyne's are unorganized.
+        64 if scan.is_organized() => "os1-64",
         16 => "vlp16",
         32 => "hdl32e",
         128 => "os1-128",

@@ -85,6 +85,9 @@ pub fn read_records(
     let mut report = ReadReport { bytes_read: 8, ..Default::default() };
     let mut topics: HashMap<u16, String> = HashMap::new();
     let mut seen_any = false;
+    // A broken chunk is completed from the message indexes that follow it (they
+    // list its messages per channel) before it is reported or fails the read.
+    let mut pending_bad: Option<(BadChunk, BTreeSet<u16>, u64)> = None;
     while let Some(event) = reader.next_event() {
         let (opcode, data) = match event {
             Ok(LinearReadEvent::ReadRequest(n)) => {
@@ -102,6 +105,7 @@ pub fn read_records(
             Ok(LinearReadEvent::Record { opcode, data }) => (opcode, data),
             Err(e) if !seen_any => return Err(ReadError::NotMcap(e)),
             Err(e) => {
+                settle_bad_chunk(&mut pending_bad, &topics, on_error, &mut report)?;
                 report.stopped = Some(match e {
                     mcap::McapError::UnexpectedEof => "the file ends in the middle of a record (truncated recording)".into(),
                     other => format!("unreadable record: {other}"),
@@ -112,6 +116,16 @@ pub fn read_records(
         };
         seen_any = true;
         report.bytes_read += 9 + data.len() as u64;
+        if opcode == op::MESSAGE_INDEX {
+            if let Some((_, channels, indexed)) = pending_bad.as_mut() {
+                if let Ok(Record::MessageIndex(index)) = mcap::parse_record(opcode, data) {
+                    channels.insert(index.channel_id);
+                    *indexed += index.records.len() as u64;
+                }
+            }
+        } else {
+            settle_bad_chunk(&mut pending_bad, &topics, on_error, &mut report)?;
+        }
         if opcode == op::FOOTER {
             report.complete = true;
             report.bytes_read += 8;
@@ -132,10 +146,7 @@ pub fn read_records(
                     }
                     Err(reason) => {
                         let bad = describe_bad_chunk(reason, &header, &data, &topics);
-                        if on_error == OnError::Fail {
-                            return Err(ReadError::BadChunk(bad));
-                        }
-                        report.bad_chunks.push(bad);
+                        pending_bad = Some((bad, BTreeSet::new(), 0));
                     }
                 }
             }
@@ -146,7 +157,33 @@ pub fn read_records(
         }
         progress(report.bytes_read);
     }
+    settle_bad_chunk(&mut pending_bad, &topics, on_error, &mut report)?;
     Ok(report)
+}
+
+/// Reports (or, with [`OnError::Fail`], raises) a broken chunk once the message
+/// indexes after it have been counted in.
+fn settle_bad_chunk(
+    pending: &mut Option<(BadChunk, BTreeSet<u16>, u64)>,
+    topics: &HashMap<u16, String>,
+    on_error: OnError,
+    report: &mut ReadReport,
+) -> Result<(), ReadError> {
+    let Some((mut bad, channels, indexed)) = pending.take() else {
+        return Ok(());
+    };
+    bad.messages = bad.messages.max(indexed);
+    for id in channels {
+        let topic = topics.get(&id).cloned().unwrap_or_else(|| format!("channel {id}"));
+        if !bad.topics.contains(&topic) {
+            bad.topics.push(topic);
+        }
+    }
+    if on_error == OnError::Fail {
+        return Err(ReadError::BadChunk(bad));
+    }
+    report.bad_chunks.push(bad);
+    Ok(())
 }
 
 fn note_channel(topics: &mut HashMap<u16, String>, rec: &Record<'_>) {
