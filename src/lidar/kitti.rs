@@ -1,11 +1,12 @@
 //! KITTI / SemanticKITTI files on disk: `velodyne/*.bin` (float32 x, y, z,
-//! reflectance) and `labels/*.label` (uint32, class in the low 16 bits).
+//! reflectance) and `labels/*.label` (uint32, class in the low 16 bits). Its
+//! error type is shared by the other dataset readers (nuScenes, PCD).
 
 use std::path::Path;
 
 use super::Scan;
 
-/// Errors reading a dataset file; each names the file.
+/// Errors reading a dataset file (KITTI, nuScenes, PCD); each names the file.
 #[derive(Debug, thiserror::Error)]
 pub enum KittiError {
     #[error("{path}: {source}")]
@@ -14,7 +15,14 @@ pub enum KittiError {
     Length { path: String, len: usize, record: usize },
     #[error("{path}: {labels} labels for {points} points")]
     LabelCount { path: String, labels: usize, points: usize },
+    #[error("{path}: point {index}: {reason}")]
+    Value { path: String, index: usize, reason: String },
+    #[error("{path}: {reason}")]
+    Format { path: String, reason: String },
 }
+
+/// The dataset-reader error under a format-neutral name.
+pub type DatasetError = KittiError;
 
 fn read(path: &Path) -> Result<Vec<u8>, KittiError> {
     std::fs::read(path).map_err(|source| KittiError::Io { path: path.display().to_string(), source })

@@ -50,13 +50,33 @@ pub enum ProjectionError {
     ColumnMajorLength { points: usize, beams: usize },
     #[error("invalid sensor profile: {0}")]
     Profile(String),
+    #[error("the {field} field has {len} values for {points} points")]
+    FieldLength { field: &'static str, len: usize, points: usize },
 }
 
-fn elevation(p: [f32; 3]) -> f32 {
+/// Checks that every optional per-point field has one value per point, so the
+/// projection can index them by point.
+fn check_fields(scan: &Scan) -> Result<(), ProjectionError> {
+    let points = scan.len();
+    let lens = [
+        ("intensity", scan.intensity.as_ref().map(Vec::len)),
+        ("ring", scan.ring.as_ref().map(Vec::len)),
+        ("time", scan.time_s.as_ref().map(Vec::len)),
+        ("label", scan.label.as_ref().map(Vec::len)),
+    ];
+    for (field, len) in lens {
+        if let Some(len) = len.filter(|&l| l != points) {
+            return Err(ProjectionError::FieldLength { field, len, points });
+        }
+    }
+    Ok(())
+}
+
+pub(crate) fn elevation(p: [f32; 3]) -> f32 {
     p[2].atan2(p[0].hypot(p[1]))
 }
 
-fn azimuth(p: [f32; 3]) -> f32 {
+pub(crate) fn azimuth(p: [f32; 3]) -> f32 {
     p[1].atan2(p[0])
 }
 
@@ -82,11 +102,15 @@ pub fn ring_order_ids(scan: &Scan) -> Vec<u32> {
     ids
 }
 
-/// Maps arbitrary group ids (rings, laser ids) to rows 0.. ordered by each group's
-/// median elevation, top first. Returns the row per point and the number of rows.
-fn rows_by_median_elevation(scan: &Scan, group: &[u32]) -> (Vec<u32>, usize) {
+/// Maps arbitrary group ids (rings, laser ids) to rows of `profile`, ordered by
+/// each group's median elevation, top first. With as many groups as beams, the
+/// k-th highest group is row k; with fewer (beams without a single return), each
+/// group goes to the row whose elevation fits best, keeping the order (see
+/// [`match_rows`]), so one missing beam does not shift every row below it.
+/// Returns the row per point (`u32::MAX` for no row) and the number of groups.
+fn rows_by_median_elevation(scan: &Scan, group: &[u32], profile: &SensorProfile) -> (Vec<u32>, usize) {
     let mut elevations: std::collections::BTreeMap<u32, Vec<f32>> = Default::default();
-    for (i, &g) in group.iter().enumerate() {
+    for (i, &g) in group.iter().enumerate().take(scan.len()) {
         if scan.is_return(i) {
             elevations.entry(g).or_default().push(elevation(scan.xyz[i]));
         }
@@ -99,15 +123,54 @@ fn rows_by_median_elevation(scan: &Scan, group: &[u32]) -> (Vec<u32>, usize) {
         })
         .collect();
     medians.sort_by(|a, b| b.1.total_cmp(&a.1));
+    let table: Vec<f32> = profile.elevation_deg.iter().map(|e| e.to_radians()).collect();
+    let sorted: Vec<f32> = medians.iter().map(|m| m.1).collect();
+    let assigned = match_rows(&sorted, &table);
     let row_of: std::collections::HashMap<u32, u32> =
-        medians.iter().enumerate().map(|(row, (g, _))| (*g, row as u32)).collect();
+        medians.iter().zip(&assigned).map(|((g, _), &row)| (*g, row as u32)).collect();
     let rows = group.iter().map(|g| row_of.get(g).copied().unwrap_or(u32::MAX)).collect();
     (rows, medians.len())
 }
 
+/// Order-preserving assignment of `medians` (decreasing) to rows of `table`
+/// (decreasing) minimising the total elevation mismatch: identity when the counts
+/// are equal, dynamic programming (O(n m)) when there are fewer medians than rows.
+/// More medians than rows cannot be matched: the extra ones get `usize::MAX`.
+pub(crate) fn match_rows(medians: &[f32], table: &[f32]) -> Vec<usize> {
+    let (n, m) = (medians.len(), table.len());
+    if n >= m {
+        return (0..n).map(|k| if k < m { k } else { usize::MAX }).collect();
+    }
+    // cost[k][r]: best total for medians 0..=k with median k on row r.
+    let mut cost = vec![vec![f32::INFINITY; m]; n];
+    let mut from = vec![vec![0usize; m]; n];
+    for r in 0..m {
+        cost[0][r] = (medians[0] - table[r]).abs();
+    }
+    for k in 1..n {
+        let (mut best, mut arg) = (f32::INFINITY, 0usize);
+        for r in k..m {
+            // Best predecessor on rows < r.
+            if cost[k - 1][r - 1] < best {
+                best = cost[k - 1][r - 1];
+                arg = r - 1;
+            }
+            cost[k][r] = best + (medians[k] - table[r]).abs();
+            from[k][r] = arg;
+        }
+    }
+    let mut rows = vec![0usize; n];
+    let mut r = (0..m).min_by(|&a, &b| cost[n - 1][a].total_cmp(&cost[n - 1][b])).unwrap_or(0);
+    for k in (0..n).rev() {
+        rows[k] = r;
+        r = from[k][r];
+    }
+    rows
+}
+
 /// Median absolute deviation of elevation within rows: small when a row assignment
 /// matches the sensor's beams.
-fn row_spread(scan: &Scan, rows: impl Fn(usize) -> usize, nrows: usize) -> f32 {
+pub(crate) fn row_spread(scan: &Scan, rows: impl Fn(usize) -> usize, nrows: usize) -> f32 {
     let mut per_row = vec![Vec::new(); nrows];
     for i in (0..scan.len()).filter(|&i| scan.is_return(i)) {
         per_row[rows(i) % nrows].push(elevation(scan.xyz[i]));
@@ -133,6 +196,9 @@ pub fn choose_strategy(scan: &Scan, profile: &SensorProfile) -> Strategy {
         return Strategy::RingField;
     }
     let beams = profile.beams();
+    if beams == 0 {
+        return Strategy::Spherical;
+    }
     if scan.is_organized() {
         let (h, w) = (scan.height, scan.width);
         let row_major = row_spread(scan, |i| i / w, h);
@@ -161,7 +227,7 @@ fn rows(scan: &Scan, profile: &SensorProfile, strategy: Strategy) -> Result<Vec<
         Strategy::RingField => {
             let ring = scan.ring.as_ref().ok_or(ProjectionError::NoRingField { strategy: strategy.name() })?;
             let ids: Vec<u32> = ring.iter().map(|&r| r as u32).collect();
-            let (rows, n) = rows_by_median_elevation(scan, &ids);
+            let (rows, n) = rows_by_median_elevation(scan, &ids, profile);
             check(n)?;
             rows
         }
@@ -175,11 +241,11 @@ fn rows(scan: &Scan, profile: &SensorProfile, strategy: Strategy) -> Result<Vec<
                 return Err(ProjectionError::ColumnMajorLength { points: scan.len(), beams });
             }
             let ids: Vec<u32> = (0..scan.len()).map(|i| (i % beams) as u32).collect();
-            rows_by_median_elevation(scan, &ids).0
+            rows_by_median_elevation(scan, &ids, profile).0
         }
         Strategy::RowMajor => {
             let ids: Vec<u32> = (0..scan.len()).map(|i| (i / scan.width.max(1)) as u32).collect();
-            let (rows, n) = rows_by_median_elevation(scan, &ids);
+            let (rows, n) = rows_by_median_elevation(scan, &ids, profile);
             check(n)?;
             rows
         }
@@ -206,6 +272,7 @@ fn rows(scan: &Scan, profile: &SensorProfile, strategy: Strategy) -> Result<Vec<
 /// its exact xyz, intensity and label.
 pub fn project(scan: &Scan, profile: &SensorProfile, strategy: Strategy) -> Result<RangeImage, ProjectionError> {
     profile.validate().map_err(ProjectionError::Profile)?;
+    check_fields(scan)?;
     let rows = rows(scan, profile, strategy)?;
     let (h, w) = (profile.beams(), profile.columns);
     let mut image = RangeImage::empty(profile.angle_grid());
@@ -223,8 +290,8 @@ pub fn project(scan: &Scan, profile: &SensorProfile, strategy: Strategy) -> Resu
         if image.range_m[k] == 0.0 || range < image.range_m[k] {
             image.range_m[k] = range;
             image.xyz[k] = p;
-            image.intensity[k] = scan.intensity.as_ref().map_or(0.0, |v| v[i]);
-            image.label[k] = scan.label.as_ref().map_or(0, |v| v[i]);
+            image.intensity[k] = scan.intensity.as_ref().and_then(|v| v.get(i).copied()).unwrap_or(0.0);
+            image.label[k] = scan.label.as_ref().and_then(|v| v.get(i).copied()).unwrap_or(0);
             image.point_index[k] = i as u32;
         }
     }
@@ -242,8 +309,9 @@ mod tests {
         let mut xyz = Vec::new();
         for e in elev.iter().take(beams) {
             for k in 0..per_ring {
-                // Start slightly right of ahead (azimuth < 0), sweep counter-clockwise.
-                let az = -0.01 + k as f32 * 2.0 * std::f32::consts::PI / per_ring as f32;
+                // Start just left of ahead (azimuth >= 0, as real KITTI rings do) and
+                // sweep counter-clockwise, ending just right of ahead.
+                let az = 0.01 + k as f32 * 2.0 * std::f32::consts::PI / per_ring as f32;
                 let (e, az) = (e.to_radians(), az);
                 xyz.push([range * e.cos() * az.cos(), range * e.cos() * az.sin(), range * e.sin()]);
             }
@@ -316,5 +384,44 @@ mod tests {
         assert!(img.xyz[0][2] > 0.0, "row 0 must be the top beam");
         let too_many = SensorProfile { elevation_deg: vec![1.0, 0.0], ..profile };
         assert!(matches!(project(&scan, &too_many, Strategy::RingField), Err(ProjectionError::RingCount { found: 4, .. })));
+    }
+
+    #[test]
+    fn a_beam_without_returns_does_not_shift_the_rows_below() {
+        // Column-major 4-beam data with beam 1 (0 deg) entirely dropped.
+        let (rm, profile) = ring_order_scan(4, 32, 10.0);
+        let mut xyz = Vec::new();
+        for col in 0..32 {
+            for beam in 0..4 {
+                xyz.push(if beam == 1 { [0.0; 3] } else { rm.xyz[beam * 32 + col] });
+            }
+        }
+        let scan = Scan { xyz, height: 4, width: 32, ..Default::default() };
+        let img = project(&scan, &profile, Strategy::ColumnMajor).unwrap();
+        assert_eq!(img.valid_count(), 96);
+        for (row, expect_deg) in [(0usize, Some(2.0f32)), (1, None), (2, Some(-2.0)), (3, Some(-4.0))] {
+            let k = row * 32 + 5;
+            match expect_deg {
+                Some(e) => assert!((img.xyz[k][2] / img.range_m[k] - e.to_radians().sin()).abs() < 1e-4, "row {row}"),
+                None => assert!(!img.is_valid(k), "row {row} must stay empty"),
+            }
+        }
+        assert_eq!(match_rows(&[0.3, 0.1, -0.3], &[0.3, 0.2, 0.1, 0.0, -0.3]), vec![0, 2, 4]);
+        assert_eq!(match_rows(&[0.3, 0.1], &[0.3, 0.1]), vec![0, 1]);
+    }
+
+    #[test]
+    fn fields_of_the_wrong_length_are_an_error_not_a_panic() {
+        let (mut scan, profile) = ring_order_scan(4, 16, 10.0);
+        scan.ring = Some(vec![0; scan.len() + 3]);
+        let err = project(&scan, &profile, Strategy::Auto).unwrap_err();
+        assert_eq!(err, ProjectionError::FieldLength { field: "ring", len: 67, points: 64 });
+        scan.ring = None;
+        scan.intensity = Some(vec![1.0; 2]);
+        assert!(err_text(project(&scan, &profile, Strategy::RingOrder)).contains("intensity field has 2 values for 64 points"));
+    }
+
+    fn err_text(r: Result<RangeImage, ProjectionError>) -> String {
+        r.err().map(|e| e.to_string()).unwrap_or_default()
     }
 }
