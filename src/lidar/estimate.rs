@@ -268,6 +268,9 @@ const CLUSTER_BIN_DEG: f32 = 0.01;
 /// range, narrow enough to split beams 1/3 deg apart (VLP-32C).
 const CLUSTER_SIGMA_DEG: f32 = 0.04;
 
+/// Returns nearer than this stay out of the clustering (see [`cluster_groups`]).
+const CLUSTER_MIN_RANGE_M: f32 = 2.5;
+
 /// 1-D clustering of point elevations over all scans: peaks of a smoothed,
 /// range-weighted histogram, refined by a few rounds of "assign to the nearest
 /// centre, move the centre to the median". Near returns weigh less, because a
@@ -275,13 +278,20 @@ const CLUSTER_SIGMA_DEG: f32 = 0.04;
 /// Returns the cluster id of every point (`u32::MAX` for none).
 fn cluster_groups(scans: &[Scan]) -> Vec<Vec<u32>> {
     let mut samples: Vec<(f32, f32)> = Vec::new(); // (elevation deg, weight)
+    let mut near: Vec<(f32, f32)> = Vec::new();
     for scan in scans {
         for (i, p) in scan.xyz.iter().enumerate() {
             if scan.is_return(i) {
                 let r = (p[0] * p[0] + p[1] * p[1] + p[2] * p[2]).sqrt();
-                samples.push((elevation(*p).to_degrees(), (r / 20.0).clamp(0.05, 1.0)));
+                let sample = (elevation(*p).to_degrees(), (r / 20.0).clamp(0.05, 1.0));
+                if r >= CLUSTER_MIN_RANGE_M { samples.push(sample) } else { near.push(sample) }
             }
         }
+    }
+    // Returns this near are often the vehicle's own body (nuScenes), not a beam's
+    // sweep; use them only when they are most of the cloud (a small room).
+    if near.len() > samples.len() {
+        samples.append(&mut near);
     }
     let centres = refine_centres(&samples, histogram_peaks(&samples));
     scans
@@ -299,7 +309,7 @@ fn cluster_groups(scans: &[Scan]) -> Vec<Vec<u32>> {
         .collect()
 }
 
-/// Local maxima of the smoothed weighted histogram, above 2 % of the highest and
+/// Local maxima of the smoothed weighted histogram, above 0.5 % of the highest and
 /// separated from the previous kept peak by a valley below 80 % of the lower one.
 fn histogram_peaks(samples: &[(f32, f32)]) -> Vec<f32> {
     let (lo, hi) = samples.iter().fold((f32::INFINITY, f32::NEG_INFINITY), |(lo, hi), &(e, _)| (lo.min(e), hi.max(e)));
@@ -327,7 +337,7 @@ fn histogram_peaks(samples: &[(f32, f32)]) -> Vec<f32> {
     let top = smooth.iter().copied().fold(0.0f32, f32::max);
     let mut peaks: Vec<usize> = Vec::new();
     for b in 1..bins.saturating_sub(1) {
-        if smooth[b] > smooth[b - 1] && smooth[b] >= smooth[b + 1] && smooth[b] >= 0.02 * top {
+        if smooth[b] > smooth[b - 1] && smooth[b] >= smooth[b + 1] && smooth[b] >= 0.005 * top {
             if let Some(&prev) = peaks.last() {
                 let valley = smooth[prev..=b].iter().copied().fold(f32::INFINITY, f32::min);
                 if valley >= 0.8 * smooth[prev].min(smooth[b]) {

@@ -8,13 +8,13 @@ use std::path::Path;
 use super::Scan;
 use super::kitti::DatasetError;
 
-/// One PCD field: its name, byte size, type letter (`F`, `U`, `I`) and count.
+/// One PCD field: its name, byte size and type letter (`F`, `U`, `I`). Fields
+/// with COUNT > 1 are read at their first value.
 #[derive(Debug, Clone)]
 struct Field {
     name: String,
     size: usize,
     kind: u8,
-    count: usize,
     /// Byte offset inside a binary record.
     offset: usize,
     /// Index of the first value inside an ASCII line.
@@ -101,7 +101,7 @@ fn parse(bytes: &[u8]) -> Result<Scan, String> {
     let mut fields = Vec::with_capacity(names.len());
     let (mut offset, mut column) = (0usize, 0usize);
     for (((name, &size), &kind), &count) in names.iter().zip(&sizes).zip(&kinds).zip(&counts) {
-        fields.push(Field { name: name.to_ascii_lowercase(), size, kind, count, offset, column });
+        fields.push(Field { name: name.to_ascii_lowercase(), size, kind, offset, column });
         offset += size.saturating_mul(count);
         column += count;
     }

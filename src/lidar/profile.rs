@@ -262,4 +262,25 @@ mod tests {
         }
         assert!((wrap_pi(3.0 * PI / 2.0) + PI / 2.0).abs() < 1e-6);
     }
+
+    #[test]
+    fn profile_json_matches_its_schema() {
+        let schema: serde_json::Value =
+            serde_json::from_str(include_str!("../../schemas/sensor_profile.schema.json")).unwrap();
+        let props = schema["properties"].as_object().unwrap();
+        let required: Vec<&str> = schema["required"].as_array().unwrap().iter().map(|v| v.as_str().unwrap()).collect();
+        let ouster = SensorProfile { azimuth_offset_deg: Some(vec![0.0; 64]), ..SensorProfile::builtin("os1-64").unwrap() };
+        for p in SensorProfile::BUILTIN.iter().map(|n| SensorProfile::builtin(n).unwrap()).chain([ouster]) {
+            let v = serde_json::to_value(&p).unwrap();
+            let obj = v.as_object().unwrap();
+            for key in obj.keys() {
+                assert!(props.contains_key(key), "{key} is written but not in the schema");
+            }
+            for key in &required {
+                assert!(obj.contains_key(*key), "{key} is required by the schema but not written");
+            }
+        }
+        let example: SensorProfile = serde_json::from_value(schema["examples"][0].clone()).unwrap();
+        assert_eq!(example, SensorProfile { name: "vlp16".into(), ..SensorProfile::builtin("vlp16").unwrap() });
+    }
 }
