@@ -212,6 +212,27 @@ pub fn choose_strategy(scan: &Scan, profile: &SensorProfile) -> Strategy {
     Strategy::Spherical
 }
 
+/// Row of the beam in `table` (radians) nearest to elevation `e`: a binary search
+/// when the table is top-down as profiles are, a scan of every beam otherwise.
+fn nearest_beam(table: &[f32], e: f32) -> u32 {
+    if table.windows(2).all(|w| w[0] >= w[1]) {
+        let k = table.partition_point(|&t| t > e);
+        let below = table.get(k).map(|t| (t - e).abs());
+        let above = k.checked_sub(1).map(|a| (table[a] - e).abs());
+        return match (above, below) {
+            (Some(a), Some(b)) if a <= b => k as u32 - 1,
+            (Some(_), None) => k as u32 - 1,
+            (_, Some(_)) => k as u32,
+            (None, None) => u32::MAX,
+        };
+    }
+    table
+        .iter()
+        .enumerate()
+        .min_by(|a, b| (a.1 - e).abs().total_cmp(&(b.1 - e).abs()))
+        .map_or(u32::MAX, |(row, _)| row as u32)
+}
+
 /// Row of every point under `strategy` (`u32::MAX` = no row).
 fn rows(scan: &Scan, profile: &SensorProfile, strategy: Strategy) -> Result<Vec<u32>, ProjectionError> {
     let beams = profile.beams();
@@ -251,18 +272,7 @@ fn rows(scan: &Scan, profile: &SensorProfile, strategy: Strategy) -> Result<Vec<
         }
         Strategy::Spherical => {
             let table: Vec<f32> = profile.elevation_deg.iter().map(|e| e.to_radians()).collect();
-            scan.xyz
-                .iter()
-                .map(|&p| {
-                    let e = elevation(p);
-                    let nearest = table
-                        .iter()
-                        .enumerate()
-                        .min_by(|a, b| (a.1 - e).abs().total_cmp(&(b.1 - e).abs()))
-                        .map_or(u32::MAX, |(row, _)| row as u32);
-                    nearest
-                })
-                .collect()
+            scan.xyz.iter().map(|&p| nearest_beam(&table, elevation(p))).collect()
         }
     })
 }
@@ -423,5 +433,19 @@ mod tests {
 
     fn err_text(r: Result<RangeImage, ProjectionError>) -> String {
         r.err().map(|e| e.to_string()).unwrap_or_default()
+    }
+
+    #[test]
+    fn nearest_beam_search_agrees_with_a_full_scan() {
+        let table: Vec<f32> = SensorProfile::builtin("vlp32c").unwrap().elevation_deg.iter().map(|e| e.to_radians()).collect();
+        let mut reversed = table.clone();
+        reversed.reverse();
+        for k in 0..=400 {
+            let e = (-30.0 + 0.15 * k as f32).to_radians();
+            let full = table.iter().enumerate().min_by(|a, b| (a.1 - e).abs().total_cmp(&(b.1 - e).abs())).unwrap().0;
+            assert_eq!(nearest_beam(&table, e), full as u32, "elevation {} deg", e.to_degrees());
+            assert_eq!(nearest_beam(&reversed, e), (table.len() - 1 - full) as u32);
+        }
+        assert_eq!(nearest_beam(&[], 0.1), u32::MAX);
     }
 }

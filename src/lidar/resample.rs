@@ -40,15 +40,16 @@ fn source_coord(k: usize, n_out: usize, n_in: usize) -> f32 {
     (k as f32 + 0.5) * n_in as f32 / n_out as f32 - 0.5
 }
 
-/// Bilinear interpolation of the unit vector `(cos a, sin a)` of an angle field,
-/// returning the angle. `a00` is the top-left corner; `t` runs along rows, `s`
-/// along columns. Weights may fall outside [0, 1] (row extrapolation).
-fn lerp_angle(a: [f32; 4], t: f32, s: f32) -> f32 {
+/// Bilinear interpolation of unit vectors `(cos a, sin a)` of an angle field given
+/// at four corners (top-left, top-right, bottom-left, bottom-right), returning the
+/// angle. `t` runs along rows, `s` along columns; weights may fall outside [0, 1]
+/// (row extrapolation).
+fn lerp_angle(a: [(f32, f32); 4], t: f32, s: f32) -> f32 {
     let w = [(1.0 - t) * (1.0 - s), (1.0 - t) * s, t * (1.0 - s), t * s];
     let (mut c, mut si) = (0.0f32, 0.0f32);
-    for (ak, wk) in a.iter().zip(w) {
-        c += wk * ak.cos();
-        si += wk * ak.sin();
+    for ((ck, sk), wk) in a.iter().zip(w) {
+        c += wk * ck;
+        si += wk * sk;
     }
     si.atan2(c)
 }
@@ -68,6 +69,9 @@ impl AngleGrid {
         if h == 0 || w == 0 || self.elevation_rad.len() < h * w || self.azimuth_rad.len() < h * w {
             return AngleGrid { height: 0, width: 0, elevation_rad, azimuth_rad };
         }
+        // (cos, sin) of every source angle, computed once.
+        let unit = |field: &[f32]| -> Vec<(f32, f32)> { field[..h * w].iter().map(|a| (a.cos(), a.sin())).collect() };
+        let (elevation_unit, azimuth_unit) = (unit(&self.elevation_rad), unit(&self.azimuth_rad));
         for i in 0..height {
             let u = source_coord(i, height, h);
             // Two rows that bracket u (or the two outermost ones), t relative to r0.
@@ -79,9 +83,9 @@ impl AngleGrid {
                 let c0 = (v.floor() as usize).min(w - 1);
                 let c1 = (c0 + 1) % w;
                 let s = v - c0 as f32;
-                let at = |field: &[f32]| [field[r0 * w + c0], field[r0 * w + c1], field[r1 * w + c0], field[r1 * w + c1]];
-                elevation_rad.push(lerp_angle(at(&self.elevation_rad), t, s));
-                azimuth_rad.push(lerp_angle(at(&self.azimuth_rad), t, s));
+                let at = |field: &[(f32, f32)]| [field[r0 * w + c0], field[r0 * w + c1], field[r1 * w + c0], field[r1 * w + c1]];
+                elevation_rad.push(lerp_angle(at(&elevation_unit), t, s));
+                azimuth_rad.push(lerp_angle(at(&azimuth_unit), t, s));
             }
         }
         AngleGrid { height, width, elevation_rad, azimuth_rad }
