@@ -39,15 +39,28 @@ fn benches(c: &mut Criterion) {
     eprintln!("input: {what}, {} points", scan.len());
     let profile = SensorProfile::kitti_hdl64e().with_columns(2048);
     let mut g = c.benchmark_group("lidar");
-    for (name, strategy) in [("ring-order", Strategy::RingOrder), ("auto", Strategy::Auto), ("spherical", Strategy::Spherical)] {
+    for (name, strategy) in [
+        ("ring-order", Strategy::RingOrder),
+        ("auto", Strategy::Auto),
+        ("spherical", Strategy::Spherical),
+    ] {
         g.bench_function(format!("project/{name}/64x2048"), |b| {
             b.iter(|| project(black_box(&scan), &profile, strategy).unwrap())
         });
     }
-    g.bench_function("estimate/ring-order/1-scan", |b| b.iter(|| estimate_profile(std::slice::from_ref(black_box(&scan))).unwrap()));
-    let small = project(&scan, &SensorProfile::kitti_hdl64e().with_columns(512), Strategy::RingOrder).unwrap();
+    g.bench_function("estimate/ring-order/1-scan", |b| {
+        b.iter(|| estimate_profile(std::slice::from_ref(black_box(&scan))).unwrap())
+    });
+    let small = project(
+        &scan,
+        &SensorProfile::kitti_hdl64e().with_columns(512),
+        Strategy::RingOrder,
+    )
+    .unwrap();
     let fine = small.angles.resized(64, 2048);
-    g.bench_function("grid-resize/64x512-to-128x2048", |b| b.iter(|| black_box(&small.angles).resized(128, 2048)));
+    g.bench_function("grid-resize/64x512-to-128x2048", |b| {
+        b.iter(|| black_box(&small.angles).resized(128, 2048))
+    });
     for m in [Interpolation::Nearest, Interpolation::Bilinear] {
         g.bench_function(format!("resample/{}/64x512-to-64x2048", m.name()), |b| {
             b.iter(|| resample_image(black_box(&small), &fine, m))

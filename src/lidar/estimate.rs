@@ -86,7 +86,11 @@ pub enum EstimateError {
     #[error("found {found} beam(s), too few for a range image; pick a profile with --sensor")]
     TooFewBeams { found: usize },
     #[error("the {field} field has {len} values for {points} points")]
-    FieldLength { field: &'static str, len: usize, points: usize },
+    FieldLength {
+        field: &'static str,
+        len: usize,
+        points: usize,
+    },
 }
 
 /// Fewest beams accepted as a sensor.
@@ -102,7 +106,11 @@ pub fn estimate_profile(scans: &[Scan]) -> Result<SensorEstimate, EstimateError>
         if let Some(ring) = &scan.ring
             && ring.len() != scan.len()
         {
-            return Err(EstimateError::FieldLength { field: "ring", len: ring.len(), points: scan.len() });
+            return Err(EstimateError::FieldLength {
+                field: "ring",
+                len: ring.len(),
+                points: scan.len(),
+            });
         }
     }
     let returns: usize = scans.iter().map(Scan::returns).sum();
@@ -111,7 +119,10 @@ pub fn estimate_profile(scans: &[Scan]) -> Result<SensorEstimate, EstimateError>
     }
 
     let (method, groups) = if scans.iter().all(|s| s.ring.is_some()) {
-        let ids = scans.iter().map(|s| s.ring.iter().flatten().map(|&r| u32::from(r)).collect()).collect();
+        let ids = scans
+            .iter()
+            .map(|s| s.ring.iter().flatten().map(|&r| u32::from(r)).collect())
+            .collect();
         (EstimateMethod::RingField, ids)
     } else if let Some(found) = organized_groups(scans) {
         found
@@ -128,7 +139,10 @@ pub fn estimate_profile(scans: &[Scan]) -> Result<SensorEstimate, EstimateError>
         let mut azimuths: BTreeMap<u32, Vec<f32>> = BTreeMap::new();
         for (i, &g) in ids.iter().enumerate().take(scan.len()) {
             if g != u32::MAX && scan.is_return(i) {
-                elevations.entry(g).or_default().push(elevation(scan.xyz[i]));
+                elevations
+                    .entry(g)
+                    .or_default()
+                    .push(elevation(scan.xyz[i]));
                 azimuths.entry(g).or_default().push(azimuth(scan.xyz[i]));
             }
         }
@@ -143,7 +157,11 @@ pub fn estimate_profile(scans: &[Scan]) -> Result<SensorEstimate, EstimateError>
         .map(|mut e| {
             let median = median_in_place(&mut e);
             let mut dev: Vec<f32> = e.iter().map(|x| (x - median).abs()).collect();
-            BeamStats { elevation_deg: median.to_degrees(), spread_deg: median_in_place(&mut dev).to_degrees(), points: e.len() }
+            BeamStats {
+                elevation_deg: median.to_degrees(),
+                spread_deg: median_in_place(&mut dev).to_degrees(),
+                points: e.len(),
+            }
         })
         .collect();
     beams.sort_by(|a, b| b.elevation_deg.total_cmp(&a.elevation_deg));
@@ -167,7 +185,10 @@ pub fn estimate_profile(scans: &[Scan]) -> Result<SensorEstimate, EstimateError>
         }
     }
     // Round outwards to centimetres so every seen return stays inside the profile.
-    let (min_range_m, max_range_m) = ((min_range_m * 100.0).floor() / 100.0, (max_range_m * 100.0).ceil() / 100.0);
+    let (min_range_m, max_range_m) = (
+        (min_range_m * 100.0).floor() / 100.0,
+        (max_range_m * 100.0).ceil() / 100.0,
+    );
     let profile = SensorProfile {
         name: "auto".into(),
         elevation_deg: beams.iter().map(|b| b.elevation_deg).collect(),
@@ -203,7 +224,11 @@ fn median_azimuth_step(azimuths: &mut [f32]) -> Option<f32> {
         return None;
     }
     azimuths.sort_by(f32::total_cmp);
-    let mut gaps: Vec<f32> = azimuths.windows(2).map(|w| w[1] - w[0]).filter(|&g| g > 1e-5).collect();
+    let mut gaps: Vec<f32> = azimuths
+        .windows(2)
+        .map(|w| w[1] - w[0])
+        .filter(|&g| g > 1e-5)
+        .collect();
     if gaps.len() < 16 {
         return None;
     }
@@ -215,17 +240,28 @@ fn median_azimuth_step(azimuths: &mut [f32]) -> Option<f32> {
 fn organized_groups(scans: &[Scan]) -> Option<(EstimateMethod, Vec<Vec<u32>>)> {
     let first = scans.first()?;
     let (h, w) = (first.height, first.width);
-    if h < MIN_BEAMS || scans.iter().any(|s| s.height != h || s.width != w || s.len() != h * w) {
+    if h < MIN_BEAMS
+        || scans
+            .iter()
+            .any(|s| s.height != h || s.width != w || s.len() != h * w)
+    {
         return None;
     }
     let row_major = row_spread(first, |i| i / w, h);
     let col_major = row_spread(first, |i| i % h, h);
-    let (method, group): (EstimateMethod, fn(usize, usize, usize) -> u32) = if col_major < row_major {
+    let (method, group): (EstimateMethod, fn(usize, usize, usize) -> u32) = if col_major < row_major
+    {
         (EstimateMethod::ColumnMajor, |i, h, _| (i % h) as u32)
     } else {
         (EstimateMethod::RowMajor, |i, _, w| (i / w) as u32)
     };
-    Some((method, scans.iter().map(|s| (0..s.len()).map(|i| group(i, h, w)).collect()).collect()))
+    Some((
+        method,
+        scans
+            .iter()
+            .map(|s| (0..s.len()).map(|i| group(i, h, w)).collect())
+            .collect(),
+    ))
 }
 
 /// KITTI ring order, accepted only when it looks like a sensor: every scan splits
@@ -284,7 +320,11 @@ fn cluster_groups(scans: &[Scan]) -> Vec<Vec<u32>> {
             if scan.is_return(i) {
                 let r = (p[0] * p[0] + p[1] * p[1] + p[2] * p[2]).sqrt();
                 let sample = (elevation(*p).to_degrees(), (r / 20.0).clamp(0.05, 1.0));
-                if r >= CLUSTER_MIN_RANGE_M { samples.push(sample) } else { near.push(sample) }
+                if r >= CLUSTER_MIN_RANGE_M {
+                    samples.push(sample)
+                } else {
+                    near.push(sample)
+                }
             }
         }
     }
@@ -302,7 +342,8 @@ fn cluster_groups(scans: &[Scan]) -> Vec<Vec<u32>> {
                     if !scan.is_return(i) {
                         return u32::MAX;
                     }
-                    nearest_centre(&centres, elevation(scan.xyz[i]).to_degrees()).map_or(u32::MAX, |c| c as u32)
+                    nearest_centre(&centres, elevation(scan.xyz[i]).to_degrees())
+                        .map_or(u32::MAX, |c| c as u32)
                 })
                 .collect()
         })
@@ -312,7 +353,11 @@ fn cluster_groups(scans: &[Scan]) -> Vec<Vec<u32>> {
 /// Local maxima of the smoothed weighted histogram, above 0.5 % of the highest and
 /// separated from the previous kept peak by a valley below 80 % of the lower one.
 fn histogram_peaks(samples: &[(f32, f32)]) -> Vec<f32> {
-    let (lo, hi) = samples.iter().fold((f32::INFINITY, f32::NEG_INFINITY), |(lo, hi), &(e, _)| (lo.min(e), hi.max(e)));
+    let (lo, hi) = samples
+        .iter()
+        .fold((f32::INFINITY, f32::NEG_INFINITY), |(lo, hi), &(e, _)| {
+            (lo.min(e), hi.max(e))
+        });
     if !(lo.is_finite() && hi.is_finite()) {
         return Vec::new();
     }
@@ -326,11 +371,16 @@ fn histogram_peaks(samples: &[(f32, f32)]) -> Vec<f32> {
     }
     let sigma = CLUSTER_SIGMA_DEG / CLUSTER_BIN_DEG;
     let half = (4.0 * sigma).ceil() as isize;
-    let kernel: Vec<f32> = (-half..=half).map(|k| (-0.5 * (k as f32 / sigma).powi(2)).exp()).collect();
+    let kernel: Vec<f32> = (-half..=half)
+        .map(|k| (-0.5 * (k as f32 / sigma).powi(2)).exp())
+        .collect();
     let smooth: Vec<f32> = (0..bins as isize)
         .map(|b| {
             (-half..=half)
-                .filter_map(|k| hist.get(usize::try_from(b + k).ok()?).map(|h| h * kernel[(k + half) as usize]))
+                .filter_map(|k| {
+                    hist.get(usize::try_from(b + k).ok()?)
+                        .map(|h| h * kernel[(k + half) as usize])
+                })
                 .sum()
         })
         .collect();
@@ -339,7 +389,10 @@ fn histogram_peaks(samples: &[(f32, f32)]) -> Vec<f32> {
     for b in 1..bins.saturating_sub(1) {
         if smooth[b] > smooth[b - 1] && smooth[b] >= smooth[b + 1] && smooth[b] >= 0.005 * top {
             if let Some(&prev) = peaks.last() {
-                let valley = smooth[prev..=b].iter().copied().fold(f32::INFINITY, f32::min);
+                let valley = smooth[prev..=b]
+                    .iter()
+                    .copied()
+                    .fold(f32::INFINITY, f32::min);
                 if valley >= 0.8 * smooth[prev].min(smooth[b]) {
                     // Not separated: keep the higher of the two.
                     if smooth[b] > smooth[prev] {
@@ -352,7 +405,10 @@ fn histogram_peaks(samples: &[(f32, f32)]) -> Vec<f32> {
             peaks.push(b);
         }
     }
-    peaks.into_iter().map(|b| lo + (b as f32 + 0.5) * CLUSTER_BIN_DEG).collect()
+    peaks
+        .into_iter()
+        .map(|b| lo + (b as f32 + 0.5) * CLUSTER_BIN_DEG)
+        .collect()
 }
 
 /// Moves each centre to the weighted median of the samples nearest to it, and
@@ -393,24 +449,60 @@ impl fmt::Display for SensorEstimate {
     /// A short report; the alternate form (`{:#}`) adds one line per beam.
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         let spreads: Vec<f32> = self.beams.iter().map(|b| b.spread_deg).collect();
-        let (lo, hi) = spreads.iter().fold((f32::INFINITY, 0.0f32), |(lo, hi), &s| (lo.min(s), hi.max(s)));
+        let (lo, hi) = spreads
+            .iter()
+            .fold((f32::INFINITY, 0.0f32), |(lo, hi), &s| {
+                (lo.min(s), hi.max(s))
+            });
         let mut sorted = spreads.clone();
         let median_spread = median_in_place(&mut sorted);
-        writeln!(f, "sensor estimate ({}), {} scan(s), {} returns", self.method.name(), self.scans, self.returns)?;
-        let (top, bottom) = (self.profile.elevation_deg.first(), self.profile.elevation_deg.last());
+        writeln!(
+            f,
+            "sensor estimate ({}), {} scan(s), {} returns",
+            self.method.name(),
+            self.scans,
+            self.returns
+        )?;
+        let (top, bottom) = (
+            self.profile.elevation_deg.first(),
+            self.profile.elevation_deg.last(),
+        );
         if let (Some(top), Some(bottom)) = (top, bottom) {
-            writeln!(f, "  beams: {}, elevation {top:+.3} .. {bottom:+.3} deg", self.beams.len())?;
+            writeln!(
+                f,
+                "  beams: {}, elevation {top:+.3} .. {bottom:+.3} deg",
+                self.beams.len()
+            )?;
         }
-        writeln!(f, "  spread per beam (median abs. deviation): {lo:.3} .. {hi:.3} deg, median {median_spread:.3} deg")?;
+        writeln!(
+            f,
+            "  spread per beam (median abs. deviation): {lo:.3} .. {hi:.3} deg, median {median_spread:.3} deg"
+        )?;
         match self.azimuth_step_deg {
-            Some(step) => writeln!(f, "  columns: {} (azimuth step {step:.4} deg)", self.columns)?,
-            None => writeln!(f, "  columns: {} (organized width; no azimuth step measured)", self.columns)?,
+            Some(step) => writeln!(
+                f,
+                "  columns: {} (azimuth step {step:.4} deg)",
+                self.columns
+            )?,
+            None => writeln!(
+                f,
+                "  columns: {} (organized width; no azimuth step measured)",
+                self.columns
+            )?,
         }
-        write!(f, "  range: {:.2} .. {:.2} m", self.min_range_m, self.max_range_m)?;
+        write!(
+            f,
+            "  range: {:.2} .. {:.2} m",
+            self.min_range_m, self.max_range_m
+        )?;
         if f.alternate() {
             write!(f, "\n  beam  elevation_deg  spread_deg  points")?;
             for (k, b) in self.beams.iter().enumerate() {
-                write!(f, "\n  {k:>4}  {:>+13.3}  {:>10.3}  {:>6}", b.elevation_deg, b.spread_deg, b.points)?;
+                write!(
+                    f,
+                    "\n  {k:>4}  {:>+13.3}  {:>10.3}  {:>6}",
+                    b.elevation_deg, b.spread_deg, b.points
+                )?;
             }
         }
         Ok(())
@@ -440,7 +532,12 @@ mod tests {
     /// and sweeps counter-clockwise), with elevation noise, random ranges and 10 %
     /// of returns dropped (kept as zero points so layouts can be rearranged).
     /// Returns the points, beam of each point, and the columns.
-    fn synthetic(table_deg: &[f32], columns: usize, noise_deg: f32, seed: u64) -> (Vec<[f32; 3]>, Vec<u16>) {
+    fn synthetic(
+        table_deg: &[f32],
+        columns: usize,
+        noise_deg: f32,
+        seed: u64,
+    ) -> (Vec<[f32; 3]>, Vec<u16>) {
         let mut rng = Rng(seed);
         let (mut xyz, mut beam) = (Vec::new(), Vec::new());
         for (b, e) in table_deg.iter().enumerate() {
@@ -464,14 +561,22 @@ mod tests {
     fn assert_table(est: &SensorEstimate, truth: &[f32], tol_deg: f32) {
         assert_eq!(est.beams.len(), truth.len(), "{est:#}");
         for (b, t) in est.beams.iter().zip(truth) {
-            assert!((b.elevation_deg - t).abs() < tol_deg, "{} vs {t}\n{est:#}", b.elevation_deg);
+            assert!(
+                (b.elevation_deg - t).abs() < tol_deg,
+                "{} vs {t}\n{est:#}",
+                b.elevation_deg
+            );
         }
         est.profile.validate().unwrap();
     }
 
     /// Drops the zero placeholders, as an unorganized cloud would.
     fn compact(xyz: &[[f32; 3]], beam: &[u16]) -> (Vec<[f32; 3]>, Vec<u16>) {
-        xyz.iter().zip(beam).filter(|(p, _)| **p != [0.0; 3]).map(|(p, b)| (*p, *b)).unzip()
+        xyz.iter()
+            .zip(beam)
+            .filter(|(p, _)| **p != [0.0; 3])
+            .map(|(p, b)| (*p, *b))
+            .unzip()
     }
 
     #[test]
@@ -487,7 +592,12 @@ mod tests {
         assert_eq!(est.method, EstimateMethod::RingField);
         assert_table(&est, &table, 0.01);
         assert_eq!(est.columns, 900);
-        assert!(est.beams.iter().all(|b| b.spread_deg > 0.005 && b.spread_deg < 0.03), "{est:#}");
+        assert!(
+            est.beams
+                .iter()
+                .all(|b| b.spread_deg > 0.005 && b.spread_deg < 0.03),
+            "{est:#}"
+        );
     }
 
     #[test]
@@ -511,14 +621,27 @@ mod tests {
     fn column_major_organized_clouds_are_told_from_row_major() {
         let table = vec![15.0, 5.0, 1.0, -1.0, -5.0, -15.0];
         let (xyz, beam) = synthetic(&table, 512, 0.02, 3);
-        let cm: Vec<[f32; 3]> = (0..512).flat_map(|c| (0..6).map(move |b| b * 512 + c)).map(|i| xyz[i]).collect();
-        let scan = Scan { xyz: cm, height: 6, width: 512, ..Default::default() };
+        let cm: Vec<[f32; 3]> = (0..512)
+            .flat_map(|c| (0..6).map(move |b| b * 512 + c))
+            .map(|i| xyz[i])
+            .collect();
+        let scan = Scan {
+            xyz: cm,
+            height: 6,
+            width: 512,
+            ..Default::default()
+        };
         let est = estimate_profile(&[scan]).unwrap();
         assert_eq!(est.method, EstimateMethod::ColumnMajor);
         assert_table(&est, &table, 0.01);
         assert_eq!(est.columns, 512);
         // The same data stored row-major is read row by row.
-        let scan = Scan { xyz, height: 6, width: 512, ..Default::default() };
+        let scan = Scan {
+            xyz,
+            height: 6,
+            width: 512,
+            ..Default::default()
+        };
         let est = estimate_profile(&[scan]).unwrap();
         assert_eq!(est.method, EstimateMethod::RowMajor);
         assert_table(&est, &table, 0.01);
@@ -540,7 +663,10 @@ mod tests {
         assert_table(&est, &table, 0.02);
         assert_eq!(est.columns, 1800);
         let text = format!("{est:#}");
-        assert!(text.contains("elevation clustering") && text.contains("columns: 1800"), "{text}");
+        assert!(
+            text.contains("elevation clustering") && text.contains("columns: 1800"),
+            "{text}"
+        );
         assert_eq!(text.lines().count(), 5 + 1 + 32, "{text}");
     }
 
@@ -548,13 +674,26 @@ mod tests {
     fn empty_and_degenerate_input_is_an_error() {
         assert_eq!(estimate_profile(&[]).unwrap_err(), EstimateError::NoScans);
         let scan = Scan::from_xyz(vec![[0.0; 3], [f32::NAN, 0.0, 0.0]]);
-        assert_eq!(estimate_profile(&[scan]).unwrap_err(), EstimateError::NoReturns);
+        assert_eq!(
+            estimate_profile(&[scan]).unwrap_err(),
+            EstimateError::NoReturns
+        );
         // One flat ring is not a sensor.
         let (xyz, beam) = synthetic(&[0.0], 360, 0.01, 5);
         let scan = Scan::from_xyz(compact(&xyz, &beam).0);
-        assert_eq!(estimate_profile(&[scan]).unwrap_err(), EstimateError::TooFewBeams { found: 1 });
+        assert_eq!(
+            estimate_profile(&[scan]).unwrap_err(),
+            EstimateError::TooFewBeams { found: 1 }
+        );
         let mut scan = Scan::from_xyz(vec![[1.0, 0.0, 0.0]; 4]);
         scan.ring = Some(vec![0; 3]);
-        assert!(matches!(estimate_profile(&[scan]), Err(EstimateError::FieldLength { field: "ring", len: 3, points: 4 })));
+        assert!(matches!(
+            estimate_profile(&[scan]),
+            Err(EstimateError::FieldLength {
+                field: "ring",
+                len: 3,
+                points: 4
+            })
+        ));
     }
 }

@@ -15,17 +15,34 @@ const RECORD: usize = 20;
 /// so [`super::Strategy::Auto`] projects it by ring field.
 pub fn read_bin(path: &Path) -> Result<Scan, KittiError> {
     let name = || path.display().to_string();
-    let bytes = std::fs::read(path).map_err(|source| KittiError::Io { path: name(), source })?;
+    let bytes = std::fs::read(path).map_err(|source| KittiError::Io {
+        path: name(),
+        source,
+    })?;
     if bytes.len() % RECORD != 0 {
-        return Err(KittiError::Length { path: name(), len: bytes.len(), record: RECORD });
+        return Err(KittiError::Length {
+            path: name(),
+            len: bytes.len(),
+            record: RECORD,
+        });
     }
     let n = bytes.len() / RECORD;
-    let (mut xyz, mut intensity, mut ring) = (Vec::with_capacity(n), Vec::with_capacity(n), Vec::with_capacity(n));
+    let (mut xyz, mut intensity, mut ring) = (
+        Vec::with_capacity(n),
+        Vec::with_capacity(n),
+        Vec::with_capacity(n),
+    );
     for (i, rec) in bytes.chunks_exact(RECORD).enumerate() {
-        let f = |k: usize| f32::from_le_bytes([rec[4 * k], rec[4 * k + 1], rec[4 * k + 2], rec[4 * k + 3]]);
+        let f = |k: usize| {
+            f32::from_le_bytes([rec[4 * k], rec[4 * k + 1], rec[4 * k + 2], rec[4 * k + 3]])
+        };
         let r = f(4);
         if !(r.is_finite() && r >= 0.0 && r <= f32::from(u16::MAX) && r.fract() == 0.0) {
-            return Err(KittiError::Value { path: name(), index: i, reason: format!("ring {r} is not a small whole number") });
+            return Err(KittiError::Value {
+                path: name(),
+                index: i,
+                reason: format!("ring {r} is not a small whole number"),
+            });
         }
         xyz.push([f(0), f(1), f(2)]);
         intensity.push(f(3));
@@ -50,14 +67,22 @@ mod tests {
     fn reads_points_and_rings_and_rejects_bad_files() {
         let dir = tempfile::tempdir().unwrap();
         let path = dir.path().join("a.pcd.bin");
-        write(&path, &[1.0, 2.0, 3.0, 40.0, 0.0, -1.0, 0.5, -2.0, 7.0, 31.0]);
+        write(
+            &path,
+            &[1.0, 2.0, 3.0, 40.0, 0.0, -1.0, 0.5, -2.0, 7.0, 31.0],
+        );
         let scan = read_bin(&path).unwrap();
         assert_eq!(scan.xyz, vec![[1.0, 2.0, 3.0], [-1.0, 0.5, -2.0]]);
         assert_eq!(scan.intensity, Some(vec![40.0, 7.0]));
         assert_eq!(scan.ring, Some(vec![0, 31]));
 
         write(&path, &[1.0, 2.0, 3.0, 40.0]);
-        assert!(read_bin(&path).unwrap_err().to_string().contains("16 bytes is not a whole number of 20-byte records"));
+        assert!(
+            read_bin(&path)
+                .unwrap_err()
+                .to_string()
+                .contains("16 bytes is not a whole number of 20-byte records")
+        );
         write(&path, &[1.0, 2.0, 3.0, 40.0, 2.5]);
         let err = read_bin(&path).unwrap_err().to_string();
         assert!(err.contains("point 0") && err.contains("ring 2.5"), "{err}");

@@ -44,14 +44,26 @@ impl Strategy {
 pub enum ProjectionError {
     #[error("strategy {strategy} needs a ring field, and the cloud has none")]
     NoRingField { strategy: &'static str },
-    #[error("found {found} rings, but the sensor profile '{profile}' has {beams} beams; try --sensor auto or --projection spherical")]
-    RingCount { found: usize, beams: usize, profile: String },
-    #[error("{points} points are not a whole number of {beams}-beam columns; column-major order needs an organized cloud")]
+    #[error(
+        "found {found} rings, but the sensor profile '{profile}' has {beams} beams; try --sensor auto or --projection spherical"
+    )]
+    RingCount {
+        found: usize,
+        beams: usize,
+        profile: String,
+    },
+    #[error(
+        "{points} points are not a whole number of {beams}-beam columns; column-major order needs an organized cloud"
+    )]
     ColumnMajorLength { points: usize, beams: usize },
     #[error("invalid sensor profile: {0}")]
     Profile(String),
     #[error("the {field} field has {len} values for {points} points")]
-    FieldLength { field: &'static str, len: usize, points: usize },
+    FieldLength {
+        field: &'static str,
+        len: usize,
+        points: usize,
+    },
 }
 
 /// Checks that every optional per-point field has one value per point, so the
@@ -90,10 +102,8 @@ pub fn ring_order_ids(scan: &Scan) -> Vec<u32> {
         if scan.is_return(i) {
             let p = scan.xyz[i];
             let az = azimuth(p);
-            if let Some(prev) = prev_az {
-                if prev < 0.0 && az >= 0.0 && p[0] > 0.0 {
-                    ring += 1;
-                }
+            if prev_az.is_some_and(|prev| prev < 0.0 && az >= 0.0 && p[0] > 0.0) {
+                ring += 1;
             }
             prev_az = Some(az);
         }
@@ -108,11 +118,18 @@ pub fn ring_order_ids(scan: &Scan) -> Vec<u32> {
 /// group goes to the row whose elevation fits best, keeping the order (see
 /// [`match_rows`]), so one missing beam does not shift every row below it.
 /// Returns the row per point (`u32::MAX` for no row) and the number of groups.
-fn rows_by_median_elevation(scan: &Scan, group: &[u32], profile: &SensorProfile) -> (Vec<u32>, usize) {
+fn rows_by_median_elevation(
+    scan: &Scan,
+    group: &[u32],
+    profile: &SensorProfile,
+) -> (Vec<u32>, usize) {
     let mut elevations: std::collections::BTreeMap<u32, Vec<f32>> = Default::default();
     for (i, &g) in group.iter().enumerate().take(scan.len()) {
         if scan.is_return(i) {
-            elevations.entry(g).or_default().push(elevation(scan.xyz[i]));
+            elevations
+                .entry(g)
+                .or_default()
+                .push(elevation(scan.xyz[i]));
         }
     }
     let mut medians: Vec<(u32, f32)> = elevations
@@ -123,12 +140,22 @@ fn rows_by_median_elevation(scan: &Scan, group: &[u32], profile: &SensorProfile)
         })
         .collect();
     medians.sort_by(|a, b| b.1.total_cmp(&a.1));
-    let table: Vec<f32> = profile.elevation_deg.iter().map(|e| e.to_radians()).collect();
+    let table: Vec<f32> = profile
+        .elevation_deg
+        .iter()
+        .map(|e| e.to_radians())
+        .collect();
     let sorted: Vec<f32> = medians.iter().map(|m| m.1).collect();
     let assigned = match_rows(&sorted, &table);
-    let row_of: std::collections::HashMap<u32, u32> =
-        medians.iter().zip(&assigned).map(|((g, _), &row)| (*g, row as u32)).collect();
-    let rows = group.iter().map(|g| row_of.get(g).copied().unwrap_or(u32::MAX)).collect();
+    let row_of: std::collections::HashMap<u32, u32> = medians
+        .iter()
+        .zip(&assigned)
+        .map(|((g, _), &row)| (*g, row as u32))
+        .collect();
+    let rows = group
+        .iter()
+        .map(|g| row_of.get(g).copied().unwrap_or(u32::MAX))
+        .collect();
     (rows, medians.len())
 }
 
@@ -160,7 +187,9 @@ pub(crate) fn match_rows(medians: &[f32], table: &[f32]) -> Vec<usize> {
         }
     }
     let mut rows = vec![0usize; n];
-    let mut r = (0..m).min_by(|&a, &b| cost[n - 1][a].total_cmp(&cost[n - 1][b])).unwrap_or(0);
+    let mut r = (0..m)
+        .min_by(|&a, &b| cost[n - 1][a].total_cmp(&cost[n - 1][b]))
+        .unwrap_or(0);
     for k in (0..n).rev() {
         rows[k] = r;
         r = from[k][r];
@@ -202,8 +231,16 @@ pub fn choose_strategy(scan: &Scan, profile: &SensorProfile) -> Strategy {
     if scan.is_organized() {
         let (h, w) = (scan.height, scan.width);
         let row_major = row_spread(scan, |i| i / w, h);
-        let col_major = if scan.len() % beams == 0 { row_spread(scan, |i| i % beams, beams) } else { f32::INFINITY };
-        return if col_major < row_major { Strategy::ColumnMajor } else { Strategy::RowMajor };
+        let col_major = if scan.len().is_multiple_of(beams) {
+            row_spread(scan, |i| i % beams, beams)
+        } else {
+            f32::INFINITY
+        };
+        return if col_major < row_major {
+            Strategy::ColumnMajor
+        } else {
+            Strategy::RowMajor
+        };
     }
     let rings = ring_order_ids(scan).last().map_or(0, |r| *r as usize + 1);
     if rings == beams {
@@ -234,11 +271,19 @@ fn nearest_beam(table: &[f32], e: f32) -> u32 {
 }
 
 /// Row of every point under `strategy` (`u32::MAX` = no row).
-fn rows(scan: &Scan, profile: &SensorProfile, strategy: Strategy) -> Result<Vec<u32>, ProjectionError> {
+fn rows(
+    scan: &Scan,
+    profile: &SensorProfile,
+    strategy: Strategy,
+) -> Result<Vec<u32>, ProjectionError> {
     let beams = profile.beams();
     let check = |found: usize| {
         if found > beams {
-            Err(ProjectionError::RingCount { found, beams, profile: profile.name.clone() })
+            Err(ProjectionError::RingCount {
+                found,
+                beams,
+                profile: profile.name.clone(),
+            })
         } else {
             Ok(())
         }
@@ -246,7 +291,9 @@ fn rows(scan: &Scan, profile: &SensorProfile, strategy: Strategy) -> Result<Vec<
     Ok(match strategy {
         Strategy::Auto => return rows(scan, profile, choose_strategy(scan, profile)),
         Strategy::RingField => {
-            let ring = scan.ring.as_ref().ok_or(ProjectionError::NoRingField { strategy: strategy.name() })?;
+            let ring = scan.ring.as_ref().ok_or(ProjectionError::NoRingField {
+                strategy: strategy.name(),
+            })?;
             let ids: Vec<u32> = ring.iter().map(|&r| r as u32).collect();
             let (rows, n) = rows_by_median_elevation(scan, &ids, profile);
             check(n)?;
@@ -258,21 +305,33 @@ fn rows(scan: &Scan, profile: &SensorProfile, strategy: Strategy) -> Result<Vec<
             ids
         }
         Strategy::ColumnMajor => {
-            if scan.len() % beams != 0 {
-                return Err(ProjectionError::ColumnMajorLength { points: scan.len(), beams });
+            if !scan.len().is_multiple_of(beams) {
+                return Err(ProjectionError::ColumnMajorLength {
+                    points: scan.len(),
+                    beams,
+                });
             }
             let ids: Vec<u32> = (0..scan.len()).map(|i| (i % beams) as u32).collect();
             rows_by_median_elevation(scan, &ids, profile).0
         }
         Strategy::RowMajor => {
-            let ids: Vec<u32> = (0..scan.len()).map(|i| (i / scan.width.max(1)) as u32).collect();
+            let ids: Vec<u32> = (0..scan.len())
+                .map(|i| (i / scan.width.max(1)) as u32)
+                .collect();
             let (rows, n) = rows_by_median_elevation(scan, &ids, profile);
             check(n)?;
             rows
         }
         Strategy::Spherical => {
-            let table: Vec<f32> = profile.elevation_deg.iter().map(|e| e.to_radians()).collect();
-            scan.xyz.iter().map(|&p| nearest_beam(&table, elevation(p))).collect()
+            let table: Vec<f32> = profile
+                .elevation_deg
+                .iter()
+                .map(|e| e.to_radians())
+                .collect();
+            scan.xyz
+                .iter()
+                .map(|&p| nearest_beam(&table, elevation(p)))
+                .collect()
         }
     })
 }
@@ -280,7 +339,11 @@ fn rows(scan: &Scan, profile: &SensorProfile, strategy: Strategy) -> Result<Vec<
 /// Projects `scan` onto `profile`'s grid. Returns with a range in
 /// `[min_range_m, max_range_m]` compete for their pixel; the nearest wins and keeps
 /// its exact xyz, intensity and label.
-pub fn project(scan: &Scan, profile: &SensorProfile, strategy: Strategy) -> Result<RangeImage, ProjectionError> {
+pub fn project(
+    scan: &Scan,
+    profile: &SensorProfile,
+    strategy: Strategy,
+) -> Result<RangeImage, ProjectionError> {
     profile.validate().map_err(ProjectionError::Profile)?;
     check_fields(scan)?;
     let rows = rows(scan, profile, strategy)?;
@@ -300,8 +363,16 @@ pub fn project(scan: &Scan, profile: &SensorProfile, strategy: Strategy) -> Resu
         if image.range_m[k] == 0.0 || range < image.range_m[k] {
             image.range_m[k] = range;
             image.xyz[k] = p;
-            image.intensity[k] = scan.intensity.as_ref().and_then(|v| v.get(i).copied()).unwrap_or(0.0);
-            image.label[k] = scan.label.as_ref().and_then(|v| v.get(i).copied()).unwrap_or(0);
+            image.intensity[k] = scan
+                .intensity
+                .as_ref()
+                .and_then(|v| v.get(i).copied())
+                .unwrap_or(0.0);
+            image.label[k] = scan
+                .label
+                .as_ref()
+                .and_then(|v| v.get(i).copied())
+                .unwrap_or(0);
             image.point_index[k] = i as u32;
         }
     }
@@ -323,7 +394,11 @@ mod tests {
                 // sweep counter-clockwise, ending just right of ahead.
                 let az = 0.01 + k as f32 * 2.0 * std::f32::consts::PI / per_ring as f32;
                 let (e, az) = (e.to_radians(), az);
-                xyz.push([range * e.cos() * az.cos(), range * e.cos() * az.sin(), range * e.sin()]);
+                xyz.push([
+                    range * e.cos() * az.cos(),
+                    range * e.cos() * az.sin(),
+                    range * e.sin(),
+                ]);
             }
         }
         let profile = SensorProfile {
@@ -356,11 +431,23 @@ mod tests {
 
     #[test]
     fn nearest_return_wins_and_range_limits_apply() {
-        let profile = SensorProfile { columns: 8, ..SensorProfile::builtin("vlp16").unwrap() };
-        let scan = Scan::from_xyz(vec![[10.0, 0.0, 0.0], [5.0, 0.0, 0.0], [0.1, 0.0, 0.0], [500.0, 0.0, 0.0]]);
+        let profile = SensorProfile {
+            columns: 8,
+            ..SensorProfile::builtin("vlp16").unwrap()
+        };
+        let scan = Scan::from_xyz(vec![
+            [10.0, 0.0, 0.0],
+            [5.0, 0.0, 0.0],
+            [0.1, 0.0, 0.0],
+            [500.0, 0.0, 0.0],
+        ]);
         let img = project(&scan, &profile, Strategy::Spherical).unwrap();
         assert_eq!(img.valid_count(), 1);
-        let k = img.point_index.iter().position(|&p| p != super::super::range_image::NO_POINT).unwrap();
+        let k = img
+            .point_index
+            .iter()
+            .position(|&p| p != super::super::range_image::NO_POINT)
+            .unwrap();
         assert_eq!(img.range_m[k], 5.0);
         assert_eq!(img.point_index[k], 1);
     }
@@ -375,7 +462,12 @@ mod tests {
                 xyz.push(rm.xyz[beam * 64 + col]);
             }
         }
-        let scan = Scan { xyz, height: 4, width: 64, ..Default::default() };
+        let scan = Scan {
+            xyz,
+            height: 4,
+            width: 64,
+            ..Default::default()
+        };
         assert_eq!(choose_strategy(&scan, &profile), Strategy::ColumnMajor);
         let img = project(&scan, &profile, Strategy::Auto).unwrap();
         assert_eq!(img.valid_count(), 256);
@@ -392,8 +484,14 @@ mod tests {
         let img = project(&scan, &profile, Strategy::Auto).unwrap();
         assert_eq!(img.valid_count(), 64);
         assert!(img.xyz[0][2] > 0.0, "row 0 must be the top beam");
-        let too_many = SensorProfile { elevation_deg: vec![1.0, 0.0], ..profile };
-        assert!(matches!(project(&scan, &too_many, Strategy::RingField), Err(ProjectionError::RingCount { found: 4, .. })));
+        let too_many = SensorProfile {
+            elevation_deg: vec![1.0, 0.0],
+            ..profile
+        };
+        assert!(matches!(
+            project(&scan, &too_many, Strategy::RingField),
+            Err(ProjectionError::RingCount { found: 4, .. })
+        ));
     }
 
     #[test]
@@ -403,20 +501,40 @@ mod tests {
         let mut xyz = Vec::new();
         for col in 0..32 {
             for beam in 0..4 {
-                xyz.push(if beam == 1 { [0.0; 3] } else { rm.xyz[beam * 32 + col] });
+                xyz.push(if beam == 1 {
+                    [0.0; 3]
+                } else {
+                    rm.xyz[beam * 32 + col]
+                });
             }
         }
-        let scan = Scan { xyz, height: 4, width: 32, ..Default::default() };
+        let scan = Scan {
+            xyz,
+            height: 4,
+            width: 32,
+            ..Default::default()
+        };
         let img = project(&scan, &profile, Strategy::ColumnMajor).unwrap();
         assert_eq!(img.valid_count(), 96);
-        for (row, expect_deg) in [(0usize, Some(2.0f32)), (1, None), (2, Some(-2.0)), (3, Some(-4.0))] {
+        for (row, expect_deg) in [
+            (0usize, Some(2.0f32)),
+            (1, None),
+            (2, Some(-2.0)),
+            (3, Some(-4.0)),
+        ] {
             let k = row * 32 + 5;
             match expect_deg {
-                Some(e) => assert!((img.xyz[k][2] / img.range_m[k] - e.to_radians().sin()).abs() < 1e-4, "row {row}"),
+                Some(e) => assert!(
+                    (img.xyz[k][2] / img.range_m[k] - e.to_radians().sin()).abs() < 1e-4,
+                    "row {row}"
+                ),
                 None => assert!(!img.is_valid(k), "row {row} must stay empty"),
             }
         }
-        assert_eq!(match_rows(&[0.3, 0.1, -0.3], &[0.3, 0.2, 0.1, 0.0, -0.3]), vec![0, 2, 4]);
+        assert_eq!(
+            match_rows(&[0.3, 0.1, -0.3], &[0.3, 0.2, 0.1, 0.0, -0.3]),
+            vec![0, 2, 4]
+        );
         assert_eq!(match_rows(&[0.3, 0.1], &[0.3, 0.1]), vec![0, 1]);
     }
 
@@ -425,10 +543,20 @@ mod tests {
         let (mut scan, profile) = ring_order_scan(4, 16, 10.0);
         scan.ring = Some(vec![0; scan.len() + 3]);
         let err = project(&scan, &profile, Strategy::Auto).unwrap_err();
-        assert_eq!(err, ProjectionError::FieldLength { field: "ring", len: 67, points: 64 });
+        assert_eq!(
+            err,
+            ProjectionError::FieldLength {
+                field: "ring",
+                len: 67,
+                points: 64
+            }
+        );
         scan.ring = None;
         scan.intensity = Some(vec![1.0; 2]);
-        assert!(err_text(project(&scan, &profile, Strategy::RingOrder)).contains("intensity field has 2 values for 64 points"));
+        assert!(
+            err_text(project(&scan, &profile, Strategy::RingOrder))
+                .contains("intensity field has 2 values for 64 points")
+        );
     }
 
     fn err_text(r: Result<RangeImage, ProjectionError>) -> String {
@@ -437,13 +565,28 @@ mod tests {
 
     #[test]
     fn nearest_beam_search_agrees_with_a_full_scan() {
-        let table: Vec<f32> = SensorProfile::builtin("vlp32c").unwrap().elevation_deg.iter().map(|e| e.to_radians()).collect();
+        let table: Vec<f32> = SensorProfile::builtin("vlp32c")
+            .unwrap()
+            .elevation_deg
+            .iter()
+            .map(|e| e.to_radians())
+            .collect();
         let mut reversed = table.clone();
         reversed.reverse();
         for k in 0..=400 {
             let e = (-30.0 + 0.15 * k as f32).to_radians();
-            let full = table.iter().enumerate().min_by(|a, b| (a.1 - e).abs().total_cmp(&(b.1 - e).abs())).unwrap().0;
-            assert_eq!(nearest_beam(&table, e), full as u32, "elevation {} deg", e.to_degrees());
+            let full = table
+                .iter()
+                .enumerate()
+                .min_by(|a, b| (a.1 - e).abs().total_cmp(&(b.1 - e).abs()))
+                .unwrap()
+                .0;
+            assert_eq!(
+                nearest_beam(&table, e),
+                full as u32,
+                "elevation {} deg",
+                e.to_degrees()
+            );
             assert_eq!(nearest_beam(&reversed, e), (table.len() - 1 - full) as u32);
         }
         assert_eq!(nearest_beam(&[], 0.1), u32::MAX);

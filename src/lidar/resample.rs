@@ -67,15 +67,26 @@ impl AngleGrid {
         let mut elevation_rad = Vec::with_capacity(height * width);
         let mut azimuth_rad = Vec::with_capacity(height * width);
         if h == 0 || w == 0 || self.elevation_rad.len() < h * w || self.azimuth_rad.len() < h * w {
-            return AngleGrid { height: 0, width: 0, elevation_rad, azimuth_rad };
+            return AngleGrid {
+                height: 0,
+                width: 0,
+                elevation_rad,
+                azimuth_rad,
+            };
         }
         // (cos, sin) of every source angle, computed once.
-        let unit = |field: &[f32]| -> Vec<(f32, f32)> { field[..h * w].iter().map(|a| (a.cos(), a.sin())).collect() };
+        let unit = |field: &[f32]| -> Vec<(f32, f32)> {
+            field[..h * w].iter().map(|a| (a.cos(), a.sin())).collect()
+        };
         let (elevation_unit, azimuth_unit) = (unit(&self.elevation_rad), unit(&self.azimuth_rad));
         for i in 0..height {
             let u = source_coord(i, height, h);
             // Two rows that bracket u (or the two outermost ones), t relative to r0.
-            let r0 = if h == 1 { 0 } else { (u.floor().max(0.0) as usize).min(h - 2) };
+            let r0 = if h == 1 {
+                0
+            } else {
+                (u.floor().max(0.0) as usize).min(h - 2)
+            };
             let r1 = (r0 + 1).min(h - 1);
             let t = if r1 == r0 { 0.0 } else { u - r0 as f32 };
             for j in 0..width {
@@ -83,12 +94,24 @@ impl AngleGrid {
                 let c0 = (v.floor() as usize).min(w - 1);
                 let c1 = (c0 + 1) % w;
                 let s = v - c0 as f32;
-                let at = |field: &[(f32, f32)]| [field[r0 * w + c0], field[r0 * w + c1], field[r1 * w + c0], field[r1 * w + c1]];
+                let at = |field: &[(f32, f32)]| {
+                    [
+                        field[r0 * w + c0],
+                        field[r0 * w + c1],
+                        field[r1 * w + c0],
+                        field[r1 * w + c1],
+                    ]
+                };
                 elevation_rad.push(lerp_angle(at(&elevation_unit), t, s));
                 azimuth_rad.push(lerp_angle(at(&azimuth_unit), t, s));
             }
         }
-        AngleGrid { height, width, elevation_rad, azimuth_rad }
+        AngleGrid {
+            height,
+            width,
+            elevation_rad,
+            azimuth_rad,
+        }
     }
 
     /// Circular mean elevation of each row (exact for the separable grids that
@@ -113,7 +136,8 @@ impl SensorProfile {
     /// equals `profile.angle_grid().resized(h, w)`), range limits are kept. Per-beam
     /// azimuth offsets are dropped, as resampled beams are not physical lasers.
     pub fn resampled(&self, beams: usize, columns: usize) -> SensorProfile {
-        let grid = AngleGrid::regular_columns(self.beams(), 1, |i| self.elevation_deg[i].to_radians());
+        let grid =
+            AngleGrid::regular_columns(self.beams(), 1, |i| self.elevation_deg[i].to_radians());
         let rows = grid.resized(beams, 1).row_elevations();
         SensorProfile {
             name: format!("{}@{}x{}", self.name, beams, columns),
@@ -153,9 +177,16 @@ impl Locator {
         let azimuth0 = azimuths.first().copied().unwrap_or(0.0);
         let tau = std::f32::consts::TAU;
         // Columns run clockwise (decreasing azimuth): offset = azimuth0 - azimuth.
-        let mut col_offsets: Vec<f32> = azimuths.iter().map(|a| (azimuth0 - a).rem_euclid(tau)).collect();
+        let mut col_offsets: Vec<f32> = azimuths
+            .iter()
+            .map(|a| (azimuth0 - a).rem_euclid(tau))
+            .collect();
         col_offsets.push(tau);
-        Locator { rows, col_offsets, azimuth0 }
+        Locator {
+            rows,
+            col_offsets,
+            azimuth0,
+        }
     }
 
     /// Fractional row of elevation `phi`; rows are pixel-sized, so anything beyond
@@ -206,9 +237,15 @@ pub fn resample_image(image: &RangeImage, target: &AngleGrid, method: Interpolat
     let mut out = RangeImage::empty(target.clone());
     let (h, w) = (image.height, image.width);
     let n = h * w;
-    let consistent = [image.range_m.len(), image.xyz.len(), image.intensity.len(), image.label.len(), image.point_index.len()]
-        .iter()
-        .all(|&l| l == n)
+    let consistent = [
+        image.range_m.len(),
+        image.xyz.len(),
+        image.intensity.len(),
+        image.label.len(),
+        image.point_index.len(),
+    ]
+    .iter()
+    .all(|&l| l == n)
         && image.angles.height == h
         && image.angles.width == w
         && image.angles.len() == n
@@ -219,7 +256,9 @@ pub fn resample_image(image: &RangeImage, target: &AngleGrid, method: Interpolat
     }
     let locate = Locator::new(&image.angles);
     for k in 0..target.len() {
-        let Some(u) = locate.row(target.elevation_rad[k]) else { continue };
+        let Some(u) = locate.row(target.elevation_rad[k]) else {
+            continue;
+        };
         let v = locate.column(target.azimuth_rad[k]);
         let u = u.clamp(0.0, (h - 1) as f32);
         let nearest = (u.round() as usize).min(h - 1) * w + (v.round() as usize) % w;
@@ -278,7 +317,11 @@ pub fn resample_image(image: &RangeImage, target: &AngleGrid, method: Interpolat
 
 /// `image` resampled onto `profile`'s grid (another sensor, or the same sensor at
 /// another resolution).
-pub fn resample_to_profile(image: &RangeImage, profile: &SensorProfile, method: Interpolation) -> RangeImage {
+pub fn resample_to_profile(
+    image: &RangeImage,
+    profile: &SensorProfile,
+    method: Interpolation,
+) -> RangeImage {
     resample_image(image, &profile.angle_grid(), method)
 }
 
@@ -310,13 +353,20 @@ mod tests {
         let g = p.angle_grid().resized(32, 1024);
         assert_eq!((g.height, g.width), (32, 1024));
         for j in [0usize, 1, 511, 512, 1023] {
-            assert!(angle_diff(g.azimuth_rad[5 * 1024 + j], column_azimuth(j, 1024)) < 1e-5, "column {j}");
+            assert!(
+                angle_diff(g.azimuth_rad[5 * 1024 + j], column_azimuth(j, 1024)) < 1e-5,
+                "column {j}"
+            );
         }
         // Pixel-centre alignment: new rows at source coordinates i/2 - 0.25, i.e.
         // 1 deg apart starting half a new row above the old top row.
         for i in 0..32 {
             let expect = (15.0 + 0.5 - i as f32).to_radians();
-            assert!((g.elevation_rad[i * 1024 + 7] - expect).abs() < 1e-5, "row {i}: {} vs {expect}", g.elevation_rad[i * 1024 + 7]);
+            assert!(
+                (g.elevation_rad[i * 1024 + 7] - expect).abs() < 1e-5,
+                "row {i}: {} vs {expect}",
+                g.elevation_rad[i * 1024 + 7]
+            );
         }
         // Downsampling back gives the original grid.
         let back = g.resized(16, 256);
@@ -341,12 +391,24 @@ mod tests {
         // Output column 1 reads source column 0.25 (from +170 towards -170 across
         // +-180); column 3 reads 1.25, i.e. from -170 back towards +170.
         for a in &r.azimuth_rad {
-            assert!(a.abs() > 160f32.to_radians(), "azimuth {} deg leaked to the front", a.to_degrees());
+            assert!(
+                a.abs() > 160f32.to_radians(),
+                "azimuth {} deg leaked to the front",
+                a.to_degrees()
+            );
         }
         // A quarter of the way along the 20 deg arc (interpolating the chord, then
         // atan2, lands within 0.05 deg of the arc's quarter point).
-        assert!(angle_diff(r.azimuth_rad[1], 175f32.to_radians()) < 0.05f32.to_radians(), "{}", r.azimuth_rad[1].to_degrees());
-        assert!(angle_diff(r.azimuth_rad[3], (-175f32).to_radians()) < 0.05f32.to_radians(), "{}", r.azimuth_rad[3].to_degrees());
+        assert!(
+            angle_diff(r.azimuth_rad[1], 175f32.to_radians()) < 0.05f32.to_radians(),
+            "{}",
+            r.azimuth_rad[1].to_degrees()
+        );
+        assert!(
+            angle_diff(r.azimuth_rad[3], (-175f32).to_radians()) < 0.05f32.to_radians(),
+            "{}",
+            r.azimuth_rad[3].to_degrees()
+        );
     }
 
     #[test]
@@ -363,7 +425,10 @@ mod tests {
         }
         // Each new row pair brackets its old row: rows 2i and 2i+1 straddle row i.
         for i in 1..63 {
-            assert!(q.elevation_deg[2 * i] > p.elevation_deg[i] && q.elevation_deg[2 * i + 1] < p.elevation_deg[i]);
+            assert!(
+                q.elevation_deg[2 * i] > p.elevation_deg[i]
+                    && q.elevation_deg[2 * i + 1] < p.elevation_deg[i]
+            );
         }
     }
 
@@ -391,7 +456,11 @@ mod tests {
         for m in [Interpolation::Nearest, Interpolation::Bilinear] {
             let out = resample_to_profile(&img, &p, m);
             for k in 0..img.len() {
-                assert!((out.range_m[k] - img.range_m[k]).abs() < 1e-3, "{} pixel {k}", m.name());
+                assert!(
+                    (out.range_m[k] - img.range_m[k]).abs() < 1e-3,
+                    "{} pixel {k}",
+                    m.name()
+                );
             }
         }
         let nearest = resample_to_profile(&img, &p, Interpolation::Nearest);
@@ -403,14 +472,20 @@ mod tests {
         let p = uniform_profile(8, 64, 10.0, -10.0);
         let img = smooth_image(&p);
         let fine = p.angle_grid().resized(8, 256);
-        let truth = |k: usize| 20.0 + 5.0 * fine.azimuth_rad[k].cos() + 30.0 * fine.elevation_rad[k];
+        let truth =
+            |k: usize| 20.0 + 5.0 * fine.azimuth_rad[k].cos() + 30.0 * fine.elevation_rad[k];
         let err = |m| {
             let out = resample_image(&img, &fine, m);
             assert_eq!(out.valid_count(), fine.len());
-            (0..fine.len()).map(|k| (out.range_m[k] - truth(k)).abs()).fold(0.0f32, f32::max)
+            (0..fine.len())
+                .map(|k| (out.range_m[k] - truth(k)).abs())
+                .fold(0.0f32, f32::max)
         };
         let (near, bil) = (err(Interpolation::Nearest), err(Interpolation::Bilinear));
-        assert!(bil < 0.05 && bil < near / 5.0, "bilinear {bil} nearest {near}");
+        assert!(
+            bil < 0.05 && bil < near / 5.0,
+            "bilinear {bil} nearest {near}"
+        );
     }
 
     #[test]
@@ -424,14 +499,24 @@ mod tests {
             }
         }
         img.range_m[16 + 3] = 30.0;
-        let out = resample_image(&img, &p.angle_grid().resized(8, 64), Interpolation::Bilinear);
+        let out = resample_image(
+            &img,
+            &p.angle_grid().resized(8, 64),
+            Interpolation::Bilinear,
+        );
         let mut seen_blend = false;
         for k in 0..out.len() {
             let r = out.range_m[k];
-            assert!(r == 0.0 || (10.0 - 1e-4..=30.0 + 1e-4).contains(&r), "pixel {k}: {r}");
+            assert!(
+                r == 0.0 || (10.0 - 1e-4..=30.0 + 1e-4).contains(&r),
+                "pixel {k}: {r}"
+            );
             seen_blend |= r > 10.5 && r < 29.5;
         }
-        assert!(seen_blend, "the 30 m pixel is blended with its valid neighbours");
+        assert!(
+            seen_blend,
+            "the 30 m pixel is blended with its valid neighbours"
+        );
         // Validity follows the nearest source pixel: half the columns are valid.
         assert_eq!(out.valid_count(), out.len() / 2);
         let near = resample_image(&img, &p.angle_grid().resized(8, 64), Interpolation::Nearest);
@@ -448,7 +533,8 @@ mod tests {
         let out = resample_to_profile(&img, &dst, Interpolation::Bilinear);
         assert_eq!(out.valid_count(), out.len());
         for k in 0..out.len() {
-            let truth = 20.0 + 5.0 * out.angles.azimuth_rad[k].cos() + 30.0 * out.angles.elevation_rad[k];
+            let truth =
+                20.0 + 5.0 * out.angles.azimuth_rad[k].cos() + 30.0 * out.angles.elevation_rad[k];
             assert!((out.range_m[k] - truth).abs() < 0.01, "pixel {k}");
             let n = out.xyz[k].iter().map(|c| c * c).sum::<f32>().sqrt();
             assert!((n - out.range_m[k]).abs() < 1e-3);
@@ -459,7 +545,12 @@ mod tests {
         for i in 0..9 {
             let inside = wide.elevation_deg[i].abs() <= 15.25;
             let valid = (0..64).filter(|&j| out.is_valid(i * 64 + j)).count();
-            assert_eq!(valid, if inside { 64 } else { 0 }, "row {i} at {} deg", wide.elevation_deg[i]);
+            assert_eq!(
+                valid,
+                if inside { 64 } else { 0 },
+                "row {i} at {} deg",
+                wide.elevation_deg[i]
+            );
         }
     }
 }
