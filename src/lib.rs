@@ -12,3 +12,5 @@
 
 pub mod error;
 pub mod lidar;
+pub mod physics;
+pub mod sim;
