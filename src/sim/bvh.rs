@@ -62,47 +62,65 @@ impl Bvh {
             return None;
         }
         let mut best: Option<BvhHit> = None;
-        let mut stack = [0u32; 64];
+        if self.nodes[0].bounds.hit(ray, t_max).is_none() {
+            return None;
+        }
+        // Stack of (node, entry distance); children are tested at their parent so
+        // the nearer one is visited first and a missed box is never pushed.
+        let mut stack = [(0u32, 0f32); 64];
         let mut sp = 0usize;
         let mut node_idx = 0u32;
-        let neg = [ray.dir.x < 0.0, ray.dir.y < 0.0, ray.dir.z < 0.0];
         loop {
             let node = &self.nodes[node_idx as usize];
-            if node.bounds.hit(ray, t_max).is_some() {
-                if node.count > 0 {
-                    let first = node.offset as usize;
-                    for i in first..first + node.count as usize {
-                        if let Some(h) = self.prims[i].shape.intersect(ray, t_min, t_max) {
-                            if let Some(t) = accept(i as u32, &h) {
-                                if t < t_max {
-                                    t_max = t;
-                                    best = Some(BvhHit { prim: i as u32, hit: ShapeHit { t, ..h } });
-                                }
+            if node.count > 0 {
+                let first = node.offset as usize;
+                for i in first..first + node.count as usize {
+                    if let Some(h) = self.prims[i].shape.intersect(ray, t_min, t_max) {
+                        if let Some(t) = accept(i as u32, &h) {
+                            if t < t_max {
+                                t_max = t;
+                                best = Some(BvhHit { prim: i as u32, hit: ShapeHit { t, ..h } });
                             }
                         }
                     }
-                } else {
-                    // Visit the child on the ray's near side first.
-                    let (near, far) = if neg[node.axis as usize] {
-                        (node.offset, node_idx + 1)
-                    } else {
-                        (node_idx + 1, node.offset)
-                    };
-                    if sp < stack.len() {
-                        stack[sp] = far;
-                        sp += 1;
+                }
+            } else {
+                let (l, r) = (node_idx + 1, node.offset);
+                let tl = self.nodes[l as usize].bounds.hit(ray, t_max);
+                let tr = self.nodes[r as usize].bounds.hit(ray, t_max);
+                match (tl, tr) {
+                    (Some(a), Some(b)) => {
+                        let (near, far, t_far) = if a <= b { (l, r, b) } else { (r, l, a) };
+                        if sp < stack.len() {
+                            stack[sp] = (far, t_far);
+                            sp += 1;
+                        }
+                        node_idx = near;
+                        continue;
                     }
-                    node_idx = near;
-                    continue;
+                    (Some(_), None) => {
+                        node_idx = l;
+                        continue;
+                    }
+                    (None, Some(_)) => {
+                        node_idx = r;
+                        continue;
+                    }
+                    (None, None) => {}
                 }
             }
-            if sp == 0 {
-                break;
+            // Pop the next node still nearer than the best hit so far.
+            loop {
+                if sp == 0 {
+                    return best;
+                }
+                sp -= 1;
+                if stack[sp].1 < t_max {
+                    break;
+                }
             }
-            sp -= 1;
-            node_idx = stack[sp];
+            node_idx = stack[sp].0;
         }
-        best
     }
 }
 

@@ -191,9 +191,11 @@ pub fn cast_scan(scene: &Scene, profile: &SensorProfile, pose: &SensorPose, timi
     let mut reflectivity = vec![0.0f32; n];
     let mut true_label = vec![0u32; n];
     let time_s: Vec<f32> = (0..n).map(|k| timing.time_at(image.angles.azimuth_rad[k])).collect();
+    // Pixel directions from per-row and per-column sines (rows share an elevation).
+    let elevation: Vec<(f32, f32)> = (0..h).map(|i| image.angles.elevation_rad[i * w].sin_cos()).collect();
+    let azimuth: Vec<(f32, f32)> = (0..w).map(|j| image.angles.azimuth_rad[j].sin_cos()).collect();
     let (min_r, max_r) = (profile.min_range_m, profile.max_range_m);
     {
-        let angles = &image.angles;
         let rows = image
             .range_m
             .par_chunks_mut(w)
@@ -207,10 +209,11 @@ pub fn cast_scan(scene: &Scene, profile: &SensorProfile, pose: &SensorPose, timi
             .zip(true_label.par_chunks_mut(w))
             .enumerate();
         rows.for_each(|(row, ((((((((range, xyz), inten), label), pidx), mat), inc), refl), tlabel))| {
+            let (sin_e, cos_e) = elevation[row];
             for j in 0..w {
                 let k = row * w + j;
-                let d = angles.direction(k);
-                let d_sensor = v3(d[0], d[1], d[2]);
+                let (sin_a, cos_a) = azimuth[j];
+                let d_sensor = v3(cos_e * cos_a, cos_e * sin_a, sin_e);
                 let ray = Ray::new(pose.origin, pose.to_world(d_sensor));
                 let key = key_hash(&[seed, index as u64, k as u64]);
                 let Some(hit) = scene.cast(&dynamic, &ray, max_r, key) else { continue };
