@@ -7,10 +7,13 @@ use std::path::Path;
 
 use serde::{Deserialize, Serialize};
 
-use super::dropout::{BeamDropout, IncidenceDropout, IntensityDropout, MaterialDropout, RangeDropout, SelfOcclusion, UniformDropout};
+use super::dropout::{
+    BeamDropout, IncidenceDropout, IntensityDropout, MaterialDropout, OcclusionSector, RangeDropout, SelfOcclusion, UniformDropout,
+};
 use super::perturb::{Atmosphere, IntensityNoise, MixedPixels, MotionDistortion, RangeNoise, RangeQuantization};
 use super::{Effect, Physics};
 use crate::sim::Material;
+use crate::sim::rng::gaussian;
 
 /// Errors loading or checking physics; each names the file or the parameter.
 #[derive(Debug, thiserror::Error)]
@@ -102,18 +105,41 @@ impl Preset {
 /// The `realistic` preset: KITTI HDL-64E-like values (tuning in docs/simulator.md).
 fn realistic() -> PhysicsConfig {
     let mut material = BTreeMap::new();
-    material.insert(Material::Glass, 0.7);
-    material.insert(Material::DarkPaint, 0.25);
-    material.insert(Material::Rubber, 0.3);
+    material.insert(Material::Glass, 0.35);
+    material.insert(Material::DarkPaint, 0.1);
+    material.insert(Material::Rubber, 0.2);
     PhysicsConfig {
         description: Some("realistic: every catalogue effect at typical real HDL-64E values, tuned against KITTI".into()),
-        // The KITTI car body below and around the roof-mounted sensor.
-        self_occlusion: Some(SelfOcclusion { enabled: true, box_min_m: [-2.6, -0.95, -1.8], box_max_m: [1.3, 0.95, -0.3], prob: 1.0 }),
-        beam_dropout: Some(BeamDropout { enabled: true, rates: None, mean_rate: 0.03, spread: 0.8, beam_seed: 64, dead_beams: vec![] }),
-        range_dropout: Some(RangeDropout { enabled: true, range_50_m: 110.0, softness: 0.5 }),
-        incidence_dropout: Some(IncidenceDropout { enabled: true, cos_50: 0.1, softness: 0.3 }),
+        // KITTI's blind spots below the roof-mounted HDL-64E, read off the keep
+        // map of 254 real scans (docs/simulator.md): rear, front (bonnet), right
+        // (roof-rack mount) and both rear quarters.
+        self_occlusion: Some(SelfOcclusion {
+            enabled: true,
+            sectors: vec![
+                sector(156.0, -156.0, -18.0, 1.0),
+                sector(150.0, -150.0, -13.0, 0.3),
+                sector(-80.0, -57.0, -15.3, 1.0),
+                sector(-13.0, 13.0, -20.5, 0.6),
+                sector(126.0, 142.0, -19.3, 0.7),
+                sector(-146.0, -126.0, -19.3, 0.7),
+            ],
+            boxes: vec![],
+        }),
+        // Upper-block lasers (rows 0-31) drop more than lower-block ones.
+        beam_dropout: Some(BeamDropout {
+            enabled: true,
+            rates: Some((0..64).map(|row| if row < 32 { 0.025 } else { 0.008 } * (1.0 + 0.5 * gaussian(&[64, row as u64]).clamp(-1.8, 1.8))).collect()),
+            mean_rate: 0.0,
+            spread: 0.0,
+            beam_seed: 0,
+            dead_beams: vec![],
+        }),
+        range_dropout: Some(RangeDropout { enabled: true, range_50_m: 130.0, softness: 0.6 }),
+        incidence_dropout: Some(IncidenceDropout { enabled: true, cos_50: 0.03, softness: 0.3 }),
         material_dropout: Some(MaterialDropout { enabled: true, drop_prob: material }),
-        uniform_dropout: None,
+        // KITTI's HDL-64E fires ~2010 times per turn: at 512 columns ~2 % of the
+        // pixels stay empty whatever the scene.
+        uniform_dropout: Some(UniformDropout { enabled: true, prob: 0.02 }),
         intensity_dropout: None,
         atmosphere: None,
         mixed_pixels: Some(MixedPixels { enabled: true, prob: 0.3, min_gap_m: 1.0 }),
@@ -122,6 +148,10 @@ fn realistic() -> PhysicsConfig {
         motion_distortion: Some(MotionDistortion { enabled: true, scale: 1.0 }),
         intensity_noise: Some(IntensityNoise { enabled: true, sigma_rel: 0.1 }),
     }
+}
+
+fn sector(azimuth_min_deg: f32, azimuth_max_deg: f32, elevation_max_deg: f32, prob: f32) -> OcclusionSector {
+    OcclusionSector { azimuth_min_deg, azimuth_max_deg, elevation_max_deg, prob }
 }
 
 fn check(ok: bool, path: &str, parameter: &str, value: impl std::fmt::Debug, reason: &str) -> Result<(), PhysicsError> {
@@ -163,8 +193,15 @@ impl PhysicsConfig {
     pub fn validate(&self, origin: &str, beams: Option<usize>) -> Result<(), PhysicsError> {
         let o = origin;
         if let Some(e) = &self.self_occlusion {
-            check(prob(e.prob), o, "self_occlusion.prob", e.prob, "must be in [0, 1]")?;
-            check((0..3).all(|a| e.box_min_m[a] <= e.box_max_m[a]), o, "self_occlusion.box_min_m", e.box_min_m, "must be <= box_max_m on every axis")?;
+            for (i, s) in e.sectors.iter().enumerate() {
+                check(prob(s.prob), o, &format!("self_occlusion.sectors[{i}].prob"), s.prob, "must be in [0, 1]")?;
+                let az = |a: f32| (-180.0..=180.0).contains(&a);
+                check(az(s.azimuth_min_deg) && az(s.azimuth_max_deg), o, &format!("self_occlusion.sectors[{i}].azimuth"), (s.azimuth_min_deg, s.azimuth_max_deg), "azimuths are in [-180, 180] deg")?;
+            }
+            for (i, b) in e.boxes.iter().enumerate() {
+                check(prob(b.prob), o, &format!("self_occlusion.boxes[{i}].prob"), b.prob, "must be in [0, 1]")?;
+                check((0..3).all(|a| b.min_m[a] <= b.max_m[a]), o, &format!("self_occlusion.boxes[{i}].min_m"), b.min_m, "must be <= max_m on every axis")?;
+            }
         }
         if let Some(e) = &self.beam_dropout {
             check(prob(e.mean_rate), o, "beam_dropout.mean_rate", e.mean_rate, "must be in [0, 1]")?;

@@ -139,16 +139,41 @@ impl Effect for BeamDropout {
     }
 }
 
-/// `self_occlusion`: the ego vehicle blocks a fixed set of directions. Rays whose
-/// direction (sensor frame) passes through the box `box_min_m`..`box_max_m` drop
-/// with probability `prob`, whatever the scene.
+/// `self_occlusion`: the ego vehicle blocks a fixed set of directions, whatever
+/// the scene. The region is a union of angular `sectors` (azimuth interval, below
+/// an elevation) and `boxes` (sensor-frame boxes a ray passes through); a ray in
+/// it drops with the region's `prob`.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct SelfOcclusion {
     #[serde(default = "yes")]
     pub enabled: bool,
-    pub box_min_m: [f32; 3],
-    pub box_max_m: [f32; 3],
+    #[serde(default)]
+    pub sectors: Vec<OcclusionSector>,
+    #[serde(default)]
+    pub boxes: Vec<OcclusionBox>,
+}
+
+/// Rays with azimuth in [`azimuth_min_deg`, `azimuth_max_deg`] (through +-180 when
+/// min > max; 0 = ahead, counter-clockwise) and elevation at or below
+/// `elevation_max_deg` drop with `prob`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct OcclusionSector {
+    pub azimuth_min_deg: f32,
+    pub azimuth_max_deg: f32,
+    pub elevation_max_deg: f32,
+    #[serde(default = "one")]
+    pub prob: f32,
+}
+
+/// Rays from the sensor origin that pass through `min_m`..`max_m` (sensor frame:
+/// x forward, y left, z up) drop with `prob`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct OcclusionBox {
+    pub min_m: [f32; 3],
+    pub max_m: [f32; 3],
     #[serde(default = "one")]
     pub prob: f32,
 }
@@ -157,13 +182,26 @@ fn one() -> f32 {
     1.0
 }
 
-impl SelfOcclusion {
+impl OcclusionSector {
+    pub fn contains(&self, d: [f32; 3]) -> bool {
+        let az = d[1].atan2(d[0]).to_degrees();
+        let el = d[2].atan2(d[0].hypot(d[1])).to_degrees();
+        let in_az = if self.azimuth_min_deg <= self.azimuth_max_deg {
+            (self.azimuth_min_deg..=self.azimuth_max_deg).contains(&az)
+        } else {
+            az >= self.azimuth_min_deg || az <= self.azimuth_max_deg
+        };
+        in_az && el <= self.elevation_max_deg
+    }
+}
+
+impl OcclusionBox {
     /// Whether a ray from the sensor origin along `d` passes through the box.
     pub fn blocks(&self, d: [f32; 3]) -> bool {
         let (mut t0, mut t1) = (0.0f32, f32::INFINITY);
         for a in 0..3 {
             let inv = 1.0 / d[a];
-            let (mut ta, mut tb) = (self.box_min_m[a] * inv, self.box_max_m[a] * inv);
+            let (mut ta, mut tb) = (self.min_m[a] * inv, self.max_m[a] * inv);
             if ta > tb {
                 std::mem::swap(&mut ta, &mut tb);
             }
@@ -171,6 +209,15 @@ impl SelfOcclusion {
             t1 = t1.min(tb);
         }
         t0 <= t1
+    }
+}
+
+impl SelfOcclusion {
+    /// Drop probability of a ray along `d`: the largest over the regions it is in.
+    pub fn block_prob(&self, d: [f32; 3]) -> f32 {
+        let s = self.sectors.iter().filter(|s| s.contains(d)).map(|s| s.prob);
+        let b = self.boxes.iter().filter(|b| b.blocks(d)).map(|b| b.prob);
+        s.chain(b).fold(0.0, f32::max)
     }
 }
 
@@ -182,7 +229,7 @@ impl Effect for SelfOcclusion {
         true
     }
     fn drop_prob(&self, f: &RayFeatures) -> f32 {
-        if self.blocks(f.direction) { self.prob } else { 0.0 }
+        self.block_prob(f.direction)
     }
 }
 
@@ -329,8 +376,21 @@ pub(crate) mod tests {
 
     #[test]
     fn self_occlusion_blocks_the_same_pixels_in_every_scene() {
-        let e = SelfOcclusion { enabled: true, box_min_m: [-2.5, -0.9, -1.8], box_max_m: [1.0, 0.9, -0.4], prob: 1.0 };
-        assert!(e.blocks([0.0, 0.0, -1.0]) && !e.blocks([1.0, 0.0, 0.0]) && !e.blocks([0.0, 0.0, 1.0]));
+        let e = SelfOcclusion {
+            enabled: true,
+            sectors: vec![OcclusionSector { azimuth_min_deg: 150.0, azimuth_max_deg: -150.0, elevation_max_deg: -18.0, prob: 1.0 }],
+            boxes: vec![OcclusionBox { min_m: [-0.5, -2.0, -3.0], max_m: [0.5, 2.0, -0.5], prob: 1.0 }],
+        };
+        let dir = |az: f32, el: f32| {
+            let (a, e) = (az.to_radians(), el.to_radians());
+            [e.cos() * a.cos(), e.cos() * a.sin(), e.sin()]
+        };
+        assert_eq!(e.block_prob(dir(180.0, -20.0)), 1.0);
+        assert_eq!(e.block_prob(dir(-170.0, -20.0)), 1.0);
+        assert_eq!(e.block_prob(dir(180.0, -10.0)), 0.0);
+        assert_eq!(e.block_prob(dir(0.0, -20.0)), 0.0);
+        assert_eq!(e.block_prob(dir(90.0, -20.0)), 1.0, "the box beside the sensor");
+        assert_eq!(e.block_prob(dir(0.0, 0.0)), 0.0);
         let blocked = |seed| {
             let (ideal, real) = before_after(Box::new(e.clone()), seed);
             (0..ideal.len()).filter(|&k| ideal.is_return(k) && !real.is_return(k)).collect::<Vec<_>>()

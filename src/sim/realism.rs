@@ -45,6 +45,7 @@ pub struct RealismStats {
     pub scans: usize,
     row_kept: Vec<u64>,
     col_kept: Vec<u64>,
+    pixel_kept: Vec<u32>,
     /// Per context-range bin: (pixels, dropped); the last bin holds pixels with no
     /// return anywhere around them (sky).
     context: Vec<(u64, u64)>,
@@ -63,6 +64,7 @@ impl RealismStats {
             scans: 0,
             row_kept: vec![0; height],
             col_kept: vec![0; width],
+            pixel_kept: vec![0; height * width],
             context: vec![(0, 0); RANGE_BINS + 1],
             range_hist: vec![0; RANGE_BINS],
             classes: BTreeMap::new(),
@@ -93,6 +95,7 @@ impl RealismStats {
             }
             self.row_kept[row] += 1;
             self.col_kept[col] += 1;
+            self.pixel_kept[k] += 1;
             self.returns += 1;
             self.range_hist[((image.range_m[k] / RANGE_BIN_M) as usize).min(RANGE_BINS - 1)] += 1;
             if labelled {
@@ -117,6 +120,12 @@ impl RealismStats {
     pub fn column_keep(&self, group: usize) -> Vec<f64> {
         let n = (self.scans * self.height * group).max(1) as f64;
         self.col_kept.chunks(group.max(1)).map(|c| c.iter().sum::<u64>() as f64 / n).collect()
+    }
+
+    /// Keep frequency of every pixel (row-major), the paper's per-pixel ray-drop prior.
+    pub fn pixel_keep(&self) -> Vec<f64> {
+        let n = self.scans.max(1) as f64;
+        self.pixel_kept.iter().map(|&c| c as f64 / n).collect()
     }
 
     /// Mean keep rate of rows `rows`.

@@ -251,7 +251,7 @@ impl Scene {
     pub fn generate(config: SceneConfig) -> Scene {
         let seed = config.seed;
         let mut rng = Rng::new(seed, 1);
-        let road_half_width_m = rng.range(4.5, 7.0);
+        let road_half_width_m = rng.range(3.6, 6.2);
         let layout = Layout {
             block_m: [rng.range(70.0, 130.0), rng.range(60.0, 110.0)],
             road_half_width_m,
@@ -260,7 +260,7 @@ impl Scene {
             camber: rng.range(0.01, 0.025),
             slope: [rng.range(-0.03, 0.03), rng.range(-0.03, 0.03)],
             lane_offset_m: 1.7,
-            parking: road_half_width_m >= 5.5,
+            parking: road_half_width_m >= 5.0,
         };
         let length = config.speed_mps.max(0.0) * config.duration_s.max(0.0);
         let trajectory = Trajectory::on_grid(&mut Rng::new(seed, 2), layout.block_m, layout.lane_offset_m, 8.0, length, config.speed_mps);
@@ -361,7 +361,7 @@ impl Scene {
                         });
                     }
                 }
-                if srng.chance(0.35) {
+                if !ego_uses(horizontal, line, positive) && srng.chance(0.35) {
                     let offset = if layout.parking { hw - 2.6 } else { hw - 0.8 };
                     let mut tb = Builder::new([0.0; 2]);
                     let inst = b.instance();
@@ -514,11 +514,18 @@ fn block(b: &mut Builder, rng: &mut Rng, layout: &Layout, r: [f32; 4], actors: &
             let p = side.at(s, u);
             v3(p[0], p[1], z)
         };
+        // Half the streets have a grass verge between curb and sidewalk.
+        let verge = if rng.chance(0.5) { rng.range(1.2, 3.0) } else { 0.0 };
+        if verge > 0.0 {
+            b.tiled_quad(at3(0.0, 0.0, curb), at3(side.len, 0.0, curb), at3(side.len, verge, curb), at3(0.0, verge, curb), 5.0, S::TERRAIN, 0);
+        }
         // Sidewalk strip (corners overlap the neighbouring strip: harmless) and curb face.
-        b.tiled_quad(at3(0.0, 0.0, curb), at3(side.len, 0.0, curb), at3(side.len, sw, curb), at3(0.0, sw, curb), 5.0, S::SIDEWALK, 0);
+        let (u0, u1) = (verge, verge + sw);
+        b.tiled_quad(at3(0.0, u0, curb), at3(side.len, u0, curb), at3(side.len, u1, curb), at3(0.0, u1, curb), 5.0, S::SIDEWALK, 0);
         b.tiled_quad(at3(0.0, 0.0, 0.0), at3(side.len, 0.0, 0.0), at3(side.len, 0.0, curb), at3(0.0, 0.0, curb), 5.0, S::CURB, 0);
-        side_furniture(b, rng, layout, side, actors);
-        frontage(b, rng, layout, side);
+        let wide = Layout { sidewalk_m: u1, ..layout.clone() };
+        side_furniture(b, rng, &wide, side, actors);
+        frontage(b, rng, &wide, side);
         if layout.parking {
             parked_cars(b, rng, side);
         }
@@ -528,7 +535,7 @@ fn block(b: &mut Builder, rng: &mut Rng, layout: &Layout, r: [f32; 4], actors: &
 fn side_furniture(b: &mut Builder, rng: &mut Rng, layout: &Layout, side: &BlockSide, actors: &mut Vec<Actor>) {
     let (curb, sw) = (layout.curb_m, layout.sidewalk_m);
     // Street trees.
-    if rng.chance(0.55) {
+    if rng.chance(0.85) {
         let mut s = rng.range(3.0, 8.0);
         while s < side.len - 3.0 {
             let p = side.at(s, 0.9);
@@ -537,7 +544,7 @@ fn side_furniture(b: &mut Builder, rng: &mut Rng, layout: &Layout, side: &BlockS
             b.cylinder(p[0], p[1], curb, rng.range(0.1, 0.22), trunk_h + 0.5, S::TRUNK, inst);
             let r = rng.range(1.4, 3.0);
             b.ellipsoid(v3(p[0], p[1], curb + trunk_h + r * 0.9), v3(r, r, r * rng.range(0.9, 1.4)), S::FOLIAGE, inst);
-            s += rng.range(7.0, 14.0);
+            s += rng.range(6.0, 12.0);
         }
     }
     // Street lights.
@@ -625,7 +632,7 @@ fn frontage(b: &mut Builder, rng: &mut Rng, layout: &Layout, side: &BlockSide) {
             let u = sw + setback + extra + depth / 2.0;
             let centre = side.at(s + w / 2.0, u);
             let yaw = side.yaw() + angle;
-            let height = rng.range(4.0, 22.0);
+            let height = rng.range(4.0, 16.0);
             let facade = facades[rng.index(3)];
             let inst = b.instance();
             b.oriented_box(centre, [w / 2.0, depth / 2.0], yaw, [0.0, curb + height], [facade; 5], inst);
@@ -633,19 +640,19 @@ fn frontage(b: &mut Builder, rng: &mut Rng, layout: &Layout, side: &BlockSide) {
             let (sn, cs) = yaw.sin_cos();
             let local = |lx: f32, ly: f32, z: f32| v3(centre[0] + cs * lx - sn * ly, centre[1] + sn * lx + cs * ly, z);
             let ly = -depth / 2.0 - 0.03;
-            let hx = w / 2.0 * rng.range(0.6, 0.9);
+            let hx = w / 2.0 * rng.range(0.4, 0.7);
             let mut floor = 0.0;
             while floor + 3.0 <= height {
-                let (za, zb) = (curb + floor + 1.0, curb + floor + 2.4);
+                let (za, zb) = (curb + floor + 1.0, curb + floor + 2.2);
                 b.quad(local(-hx, ly, za), local(hx, ly, za), local(hx, ly, zb), local(-hx, ly, zb), S::WINDOW, inst);
                 floor += 3.0;
             }
             s += w + if rng.chance(0.5) { rng.range(1.5, 8.0) } else { 0.0 };
         }
     };
-    if style < 0.55 {
-        buildings(b, rng, [0.0, 6.0]);
-    } else if style < 0.85 {
+    if style < 0.25 {
+        buildings(b, rng, [1.0, 8.0]);
+    } else if style < 0.65 {
         // Wall or fence along the property line, gardens and houses behind.
         let wall = rng.chance(0.4);
         let h = if wall { rng.range(0.8, 2.0) } else { rng.range(1.0, 1.8) };
@@ -666,7 +673,7 @@ fn frontage(b: &mut Builder, rng: &mut Rng, layout: &Layout, side: &BlockSide) {
             b.ellipsoid(v3(p[0], p[1], curb + r * 0.6), v3(r, r, r * 0.8), S::BUSH, inst);
             s += rng.range(3.0, 9.0);
         }
-        buildings(b, rng, [6.0, 14.0]);
+        buildings(b, rng, [8.0, 18.0]);
     } else {
         // Open green: hedges, bushes and trees.
         if rng.chance(0.5) {
@@ -677,7 +684,7 @@ fn frontage(b: &mut Builder, rng: &mut Rng, layout: &Layout, side: &BlockSide) {
             let radii = v3((along[0].abs() * half).max(0.6), (along[1].abs() * half).max(0.6), 0.9);
             b.ellipsoid(v3(p[0], p[1], curb + 0.6), radii, S::HEDGE, inst);
         }
-        let n = (side.len * max_depth / 150.0) as usize;
+        let n = (side.len * max_depth / 50.0) as usize;
         for _ in 0..n {
             let p = side.at(rng.range(2.0, side.len - 2.0), sw + rng.range(2.5, max_depth));
             let inst = b.instance();
@@ -698,7 +705,7 @@ fn frontage(b: &mut Builder, rng: &mut Rng, layout: &Layout, side: &BlockSide) {
 fn parked_cars(b: &mut Builder, rng: &mut Rng, side: &BlockSide) {
     let mut s = rng.range(2.0, 8.0);
     while s < side.len - 5.0 {
-        if rng.chance(0.65) {
+        if rng.chance(0.3) {
             let mut tb = Builder::new([0.0; 2]);
             let inst = b.instance();
             car_template(rng, &mut tb, inst);
