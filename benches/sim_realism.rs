@@ -189,20 +189,16 @@ fn classes_png(path: &Path, sets: &[(&RealismStats, RGBColor)]) -> Res<()> {
         let mut chart = ChartBuilder::on(&root)
             .caption("share of returns per class (SemanticKITTI ids)", ("sans-serif", 20))
             .margin(10)
-            .x_label_area_size(90)
+            .x_label_area_size(150)
             .y_label_area_size(50)
             .build_cartesian_2d(0.0..classes.len() as f64, 0.0..0.5)?;
-        chart
-            .configure_mesh()
-            .disable_x_mesh()
-            .x_labels(classes.len() * 2)
-            .x_label_formatter(&|x| {
-                let i = x.floor() as usize;
-                if (x - i as f64 - 0.5).abs() < 0.01 { classes.get(i).map_or(String::new(), |c| c.to_string()) } else { String::new() }
-            })
-            .x_label_style(("sans-serif", 12).into_font().transform(FontTransform::Rotate90))
-            .y_desc("share of returns")
-            .draw()?;
+        chart.configure_mesh().disable_x_mesh().x_labels(0).y_desc("share of returns").label_style(("sans-serif", 13)).draw()?;
+        // Class names under the bar groups, turned 90 degrees.
+        let style = ("sans-serif", 14).into_font().transform(FontTransform::Rotate90).color(&BLACK);
+        for (i, name) in classes.iter().enumerate() {
+            let (x, y) = chart.backend_coord(&(i as f64 + 0.45, 0.0));
+            root.draw(&Text::new(name.to_string(), (x, y + 6), style.clone()))?;
+        }
         let n = labelled.len() as f64;
         for (k, (s, color)) in labelled.iter().enumerate() {
             let share = s.class_share();
