@@ -134,7 +134,7 @@ fn realistic() -> PhysicsConfig {
             beam_seed: 0,
             dead_beams: vec![],
         }),
-        range_dropout: Some(RangeDropout { enabled: true, range_50_m: 130.0, softness: 0.6 }),
+        range_dropout: Some(RangeDropout { enabled: true, range_50_m: 150.0, softness: 0.6 }),
         incidence_dropout: Some(IncidenceDropout { enabled: true, cos_50: 0.03, softness: 0.3 }),
         material_dropout: Some(MaterialDropout { enabled: true, drop_prob: material }),
         // KITTI's HDL-64E fires ~2010 times per turn: at 512 columns ~2 % of the

@@ -540,7 +540,7 @@ fn side_furniture(b: &mut Builder, rng: &mut Rng, layout: &Layout, side: &BlockS
         while s < side.len - 3.0 {
             let p = side.at(s, 0.9);
             let inst = b.instance();
-            let trunk_h = rng.range(1.8, 3.2);
+            let trunk_h = rng.range(1.2, 2.4);
             b.cylinder(p[0], p[1], curb, rng.range(0.1, 0.22), trunk_h + 0.5, S::TRUNK, inst);
             let r = rng.range(1.4, 3.0);
             b.ellipsoid(v3(p[0], p[1], curb + trunk_h + r * 0.9), v3(r, r, r * rng.range(0.9, 1.4)), S::FOLIAGE, inst);
@@ -650,9 +650,9 @@ fn frontage(b: &mut Builder, rng: &mut Rng, layout: &Layout, side: &BlockSide) {
             s += w + if rng.chance(0.5) { rng.range(1.5, 8.0) } else { 0.0 };
         }
     };
-    if style < 0.25 {
+    if style < 0.2 {
         buildings(b, rng, [1.0, 8.0]);
-    } else if style < 0.65 {
+    } else if style < 0.6 {
         // Wall or fence along the property line, gardens and houses behind.
         let wall = rng.chance(0.4);
         let h = if wall { rng.range(0.8, 2.0) } else { rng.range(1.0, 1.8) };
@@ -671,7 +671,7 @@ fn frontage(b: &mut Builder, rng: &mut Rng, layout: &Layout, side: &BlockSide) {
             let inst = b.instance();
             let r = rng.range(0.6, 1.6);
             b.ellipsoid(v3(p[0], p[1], curb + r * 0.6), v3(r, r, r * 0.8), S::BUSH, inst);
-            s += rng.range(3.0, 9.0);
+            s += rng.range(2.0, 6.0);
         }
         buildings(b, rng, [8.0, 18.0]);
     } else {
@@ -705,7 +705,7 @@ fn frontage(b: &mut Builder, rng: &mut Rng, layout: &Layout, side: &BlockSide) {
 fn parked_cars(b: &mut Builder, rng: &mut Rng, side: &BlockSide) {
     let mut s = rng.range(2.0, 8.0);
     while s < side.len - 5.0 {
-        if rng.chance(0.3) {
+        if rng.chance(0.18) {
             let mut tb = Builder::new([0.0; 2]);
             let inst = b.instance();
             car_template(rng, &mut tb, inst);
