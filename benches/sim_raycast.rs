@@ -32,25 +32,46 @@ fn time_scans(label: &str, scans: u32, mut f: impl FnMut(u32)) {
             t.elapsed().as_secs_f64() * 1e3
         })
         .collect();
-    let cpu = cpu0.zip(cpu_seconds()).map(|(a, b)| (b - a) * 1e3 / scans as f64);
+    let cpu = cpu0
+        .zip(cpu_seconds())
+        .map(|(a, b)| (b - a) * 1e3 / scans as f64);
     ms.sort_by(f64::total_cmp);
     let cpu = cpu.map_or(String::new(), |c| format!("; CPU {c:.1} ms/scan"));
-    println!("{label}: wall median {:.1} ms (min {:.1} .. max {:.1}) over {scans} scans{cpu}", ms[ms.len() / 2], ms[0], ms[ms.len() - 1]);
+    println!(
+        "{label}: wall median {:.1} ms (min {:.1} .. max {:.1}) over {scans} scans{cpu}",
+        ms[ms.len() / 2],
+        ms[0],
+        ms[ms.len() - 1]
+    );
 }
 
 fn main() {
     let t = Instant::now();
-    let sim = Simulator::new(SceneConfig { seed: 1, duration_s: 3.0, ..Default::default() }, SensorProfile::kitti_hdl64e());
+    let sim = Simulator::new(
+        SceneConfig {
+            seed: 1,
+            duration_s: 3.0,
+            ..Default::default()
+        },
+        SensorProfile::kitti_hdl64e(),
+    );
     println!(
         "sim/scene/seed1: generated in {:.0} ms ({} static primitives, {} actors)",
         t.elapsed().as_secs_f64() * 1e3,
         sim.scene.static_primitives(),
         sim.scene.actor_count()
     );
-    let one = rayon::ThreadPoolBuilder::new().num_threads(1).build().expect("a one-thread pool");
+    let one = rayon::ThreadPoolBuilder::new()
+        .num_threads(1)
+        .build()
+        .expect("a one-thread pool");
     let scans = 40;
     one.install(|| time_scans("sim/raycast-1core/64x2048", scans, |i| drop(sim.scan(i))));
-    time_scans(&format!("sim/raycast-{}cores/64x2048", rayon::current_num_threads()), scans, |i| drop(sim.scan(i)));
+    time_scans(
+        &format!("sim/raycast-{}cores/64x2048", rayon::current_num_threads()),
+        scans,
+        |i| drop(sim.scan(i)),
+    );
     let physics = Preset::Realistic.config().effects();
     let base = sim.scan(0);
     one.install(|| {

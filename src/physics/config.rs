@@ -8,9 +8,12 @@ use std::path::Path;
 use serde::{Deserialize, Serialize};
 
 use super::dropout::{
-    BeamDropout, IncidenceDropout, IntensityDropout, MaterialDropout, OcclusionSector, RangeDropout, SelfOcclusion, UniformDropout,
+    BeamDropout, IncidenceDropout, IntensityDropout, MaterialDropout, OcclusionSector,
+    RangeDropout, SelfOcclusion, UniformDropout,
 };
-use super::perturb::{Atmosphere, IntensityNoise, MixedPixels, MotionDistortion, RangeNoise, RangeQuantization};
+use super::perturb::{
+    Atmosphere, IntensityNoise, MixedPixels, MotionDistortion, RangeNoise, RangeQuantization,
+};
 use super::{Effect, Physics};
 use crate::sim::Material;
 use crate::sim::rng::gaussian;
@@ -18,14 +21,27 @@ use crate::sim::rng::gaussian;
 /// Errors loading or checking physics; each names the file or the parameter.
 #[derive(Debug, thiserror::Error)]
 pub enum PhysicsError {
-    #[error("unknown physics preset '{0}' (presets: ideal, carla-like, realistic); or give a physics JSON file")]
+    #[error(
+        "unknown physics preset '{0}' (presets: ideal, carla-like, realistic); or give a physics JSON file"
+    )]
     UnknownPreset(String),
     #[error("{path}: {source}")]
-    Io { path: String, source: std::io::Error },
+    Io {
+        path: String,
+        source: std::io::Error,
+    },
     #[error("{path}: {source} (schema: schemas/physics.schema.json)")]
-    Json { path: String, source: serde_json::Error },
+    Json {
+        path: String,
+        source: serde_json::Error,
+    },
     #[error("{path}: parameter {parameter} = {value}: {reason}")]
-    Invalid { path: String, parameter: String, value: String, reason: String },
+    Invalid {
+        path: String,
+        parameter: String,
+        value: String,
+        reason: String,
+    },
 }
 
 /// The effect parameters, one optional entry per catalogue id. A missing entry or
@@ -90,11 +106,25 @@ impl Preset {
 
     pub fn config(self) -> PhysicsConfig {
         match self {
-            Preset::Ideal => PhysicsConfig { description: Some("ideal: no sensor physics".into()), ..Default::default() },
+            Preset::Ideal => PhysicsConfig {
+                description: Some("ideal: no sensor physics".into()),
+                ..Default::default()
+            },
             Preset::CarlaLike => PhysicsConfig {
-                description: Some("carla-like: uniform + intensity-threshold drop, as CARLA's ray-cast lidar".into()),
-                uniform_dropout: Some(UniformDropout { enabled: true, prob: 0.45 }),
-                intensity_dropout: Some(IntensityDropout { enabled: true, attenuation_per_m: 0.004, intensity_limit: 0.8, prob: 0.4 }),
+                description: Some(
+                    "carla-like: uniform + intensity-threshold drop, as CARLA's ray-cast lidar"
+                        .into(),
+                ),
+                uniform_dropout: Some(UniformDropout {
+                    enabled: true,
+                    prob: 0.45,
+                }),
+                intensity_dropout: Some(IntensityDropout {
+                    enabled: true,
+                    attenuation_per_m: 0.004,
+                    intensity_limit: 0.8,
+                    prob: 0.4,
+                }),
                 ..Default::default()
             },
             Preset::Realistic => realistic(),
@@ -150,15 +180,36 @@ fn realistic() -> PhysicsConfig {
     }
 }
 
-fn sector(azimuth_min_deg: f32, azimuth_max_deg: f32, elevation_max_deg: f32, prob: f32) -> OcclusionSector {
-    OcclusionSector { azimuth_min_deg, azimuth_max_deg, elevation_max_deg, prob }
+fn sector(
+    azimuth_min_deg: f32,
+    azimuth_max_deg: f32,
+    elevation_max_deg: f32,
+    prob: f32,
+) -> OcclusionSector {
+    OcclusionSector {
+        azimuth_min_deg,
+        azimuth_max_deg,
+        elevation_max_deg,
+        prob,
+    }
 }
 
-fn check(ok: bool, path: &str, parameter: &str, value: impl std::fmt::Debug, reason: &str) -> Result<(), PhysicsError> {
+fn check(
+    ok: bool,
+    path: &str,
+    parameter: &str,
+    value: impl std::fmt::Debug,
+    reason: &str,
+) -> Result<(), PhysicsError> {
     if ok {
         Ok(())
     } else {
-        Err(PhysicsError::Invalid { path: path.into(), parameter: parameter.into(), value: format!("{value:?}"), reason: reason.into() })
+        Err(PhysicsError::Invalid {
+            path: path.into(),
+            parameter: parameter.into(),
+            value: format!("{value:?}"),
+            reason: reason.into(),
+        })
     }
 }
 
@@ -178,8 +229,15 @@ impl PhysicsConfig {
 
     pub fn load(path: &Path) -> Result<Self, PhysicsError> {
         let p = path.display().to_string();
-        let text = std::fs::read_to_string(path).map_err(|source| PhysicsError::Io { path: p.clone(), source })?;
-        let config: PhysicsConfig = serde_json::from_str(&text).map_err(|source| PhysicsError::Json { path: p.clone(), source })?;
+        let text = std::fs::read_to_string(path).map_err(|source| PhysicsError::Io {
+            path: p.clone(),
+            source,
+        })?;
+        let config: PhysicsConfig =
+            serde_json::from_str(&text).map_err(|source| PhysicsError::Json {
+                path: p.clone(),
+                source,
+            })?;
         config.validate(&p, None)?;
         Ok(config)
     }
@@ -194,68 +252,224 @@ impl PhysicsConfig {
         let o = origin;
         if let Some(e) = &self.self_occlusion {
             for (i, s) in e.sectors.iter().enumerate() {
-                check(prob(s.prob), o, &format!("self_occlusion.sectors[{i}].prob"), s.prob, "must be in [0, 1]")?;
+                check(
+                    prob(s.prob),
+                    o,
+                    &format!("self_occlusion.sectors[{i}].prob"),
+                    s.prob,
+                    "must be in [0, 1]",
+                )?;
                 let az = |a: f32| (-180.0..=180.0).contains(&a);
-                check(az(s.azimuth_min_deg) && az(s.azimuth_max_deg), o, &format!("self_occlusion.sectors[{i}].azimuth"), (s.azimuth_min_deg, s.azimuth_max_deg), "azimuths are in [-180, 180] deg")?;
+                check(
+                    az(s.azimuth_min_deg) && az(s.azimuth_max_deg),
+                    o,
+                    &format!("self_occlusion.sectors[{i}].azimuth"),
+                    (s.azimuth_min_deg, s.azimuth_max_deg),
+                    "azimuths are in [-180, 180] deg",
+                )?;
             }
             for (i, b) in e.boxes.iter().enumerate() {
-                check(prob(b.prob), o, &format!("self_occlusion.boxes[{i}].prob"), b.prob, "must be in [0, 1]")?;
-                check((0..3).all(|a| b.min_m[a] <= b.max_m[a]), o, &format!("self_occlusion.boxes[{i}].min_m"), b.min_m, "must be <= max_m on every axis")?;
+                check(
+                    prob(b.prob),
+                    o,
+                    &format!("self_occlusion.boxes[{i}].prob"),
+                    b.prob,
+                    "must be in [0, 1]",
+                )?;
+                check(
+                    (0..3).all(|a| b.min_m[a] <= b.max_m[a]),
+                    o,
+                    &format!("self_occlusion.boxes[{i}].min_m"),
+                    b.min_m,
+                    "must be <= max_m on every axis",
+                )?;
             }
         }
         if let Some(e) = &self.beam_dropout {
-            check(prob(e.mean_rate), o, "beam_dropout.mean_rate", e.mean_rate, "must be in [0, 1]")?;
-            check(e.spread >= 0.0 && e.spread.is_finite(), o, "beam_dropout.spread", e.spread, "must be >= 0")?;
+            check(
+                prob(e.mean_rate),
+                o,
+                "beam_dropout.mean_rate",
+                e.mean_rate,
+                "must be in [0, 1]",
+            )?;
+            check(
+                e.spread >= 0.0 && e.spread.is_finite(),
+                o,
+                "beam_dropout.spread",
+                e.spread,
+                "must be >= 0",
+            )?;
             if let Some(r) = &e.rates {
-                check(r.iter().all(|x| prob(*x)), o, "beam_dropout.rates", r, "every rate must be in [0, 1]")?;
+                check(
+                    r.iter().all(|x| prob(*x)),
+                    o,
+                    "beam_dropout.rates",
+                    r,
+                    "every rate must be in [0, 1]",
+                )?;
                 if let Some(b) = beams {
-                    check(r.len() == b, o, "beam_dropout.rates", r.len(), &format!("needs one rate per beam ({b})"))?;
+                    check(
+                        r.len() == b,
+                        o,
+                        "beam_dropout.rates",
+                        r.len(),
+                        &format!("needs one rate per beam ({b})"),
+                    )?;
                 }
             }
             if let Some(b) = beams {
-                check(e.dead_beams.iter().all(|&d| d < b), o, "beam_dropout.dead_beams", &e.dead_beams, &format!("beams are 0..{b}"))?;
+                check(
+                    e.dead_beams.iter().all(|&d| d < b),
+                    o,
+                    "beam_dropout.dead_beams",
+                    &e.dead_beams,
+                    &format!("beams are 0..{b}"),
+                )?;
             }
         }
         if let Some(e) = &self.range_dropout {
-            check(e.range_50_m > 0.0, o, "range_dropout.range_50_m", e.range_50_m, "must be > 0")?;
-            check(e.softness > 0.0, o, "range_dropout.softness", e.softness, "must be > 0")?;
+            check(
+                e.range_50_m > 0.0,
+                o,
+                "range_dropout.range_50_m",
+                e.range_50_m,
+                "must be > 0",
+            )?;
+            check(
+                e.softness > 0.0,
+                o,
+                "range_dropout.softness",
+                e.softness,
+                "must be > 0",
+            )?;
         }
         if let Some(e) = &self.incidence_dropout {
-            check(e.cos_50 > 0.0 && e.cos_50 < 1.0, o, "incidence_dropout.cos_50", e.cos_50, "must be in (0, 1)")?;
-            check(e.softness > 0.0, o, "incidence_dropout.softness", e.softness, "must be > 0")?;
+            check(
+                e.cos_50 > 0.0 && e.cos_50 < 1.0,
+                o,
+                "incidence_dropout.cos_50",
+                e.cos_50,
+                "must be in (0, 1)",
+            )?;
+            check(
+                e.softness > 0.0,
+                o,
+                "incidence_dropout.softness",
+                e.softness,
+                "must be > 0",
+            )?;
         }
         if let Some(e) = &self.material_dropout {
             for (m, p) in &e.drop_prob {
-                check(prob(*p), o, &format!("material_dropout.drop_prob.{}", m.name()), p, "must be in [0, 1]")?;
+                check(
+                    prob(*p),
+                    o,
+                    &format!("material_dropout.drop_prob.{}", m.name()),
+                    p,
+                    "must be in [0, 1]",
+                )?;
             }
         }
         if let Some(e) = &self.uniform_dropout {
-            check(prob(e.prob), o, "uniform_dropout.prob", e.prob, "must be in [0, 1]")?;
+            check(
+                prob(e.prob),
+                o,
+                "uniform_dropout.prob",
+                e.prob,
+                "must be in [0, 1]",
+            )?;
         }
         if let Some(e) = &self.intensity_dropout {
-            check(prob(e.prob), o, "intensity_dropout.prob", e.prob, "must be in [0, 1]")?;
-            check(e.attenuation_per_m >= 0.0, o, "intensity_dropout.attenuation_per_m", e.attenuation_per_m, "must be >= 0")?;
+            check(
+                prob(e.prob),
+                o,
+                "intensity_dropout.prob",
+                e.prob,
+                "must be in [0, 1]",
+            )?;
+            check(
+                e.attenuation_per_m >= 0.0,
+                o,
+                "intensity_dropout.attenuation_per_m",
+                e.attenuation_per_m,
+                "must be >= 0",
+            )?;
         }
         if let Some(e) = &self.atmosphere {
-            check(e.extinction_per_m >= 0.0, o, "atmosphere.extinction_per_m", e.extinction_per_m, "must be >= 0")?;
-            check(prob(e.clutter_prob), o, "atmosphere.clutter_prob", e.clutter_prob, "must be in [0, 1]")?;
-            check(e.clutter_mean_range_m > 0.0, o, "atmosphere.clutter_mean_range_m", e.clutter_mean_range_m, "must be > 0")?;
+            check(
+                e.extinction_per_m >= 0.0,
+                o,
+                "atmosphere.extinction_per_m",
+                e.extinction_per_m,
+                "must be >= 0",
+            )?;
+            check(
+                prob(e.clutter_prob),
+                o,
+                "atmosphere.clutter_prob",
+                e.clutter_prob,
+                "must be in [0, 1]",
+            )?;
+            check(
+                e.clutter_mean_range_m > 0.0,
+                o,
+                "atmosphere.clutter_mean_range_m",
+                e.clutter_mean_range_m,
+                "must be > 0",
+            )?;
         }
         if let Some(e) = &self.mixed_pixels {
-            check(prob(e.prob), o, "mixed_pixels.prob", e.prob, "must be in [0, 1]")?;
-            check(e.min_gap_m >= 0.0, o, "mixed_pixels.min_gap_m", e.min_gap_m, "must be >= 0")?;
+            check(
+                prob(e.prob),
+                o,
+                "mixed_pixels.prob",
+                e.prob,
+                "must be in [0, 1]",
+            )?;
+            check(
+                e.min_gap_m >= 0.0,
+                o,
+                "mixed_pixels.min_gap_m",
+                e.min_gap_m,
+                "must be >= 0",
+            )?;
         }
         if let Some(e) = &self.range_noise {
-            check(e.sigma0_m >= 0.0 && e.k >= 0.0, o, "range_noise.sigma0_m/k", (e.sigma0_m, e.k), "must be >= 0")?;
+            check(
+                e.sigma0_m >= 0.0 && e.k >= 0.0,
+                o,
+                "range_noise.sigma0_m/k",
+                (e.sigma0_m, e.k),
+                "must be >= 0",
+            )?;
         }
         if let Some(e) = &self.range_quantization {
-            check(e.step_m >= 0.0, o, "range_quantization.step_m", e.step_m, "must be >= 0")?;
+            check(
+                e.step_m >= 0.0,
+                o,
+                "range_quantization.step_m",
+                e.step_m,
+                "must be >= 0",
+            )?;
         }
         if let Some(e) = &self.motion_distortion {
-            check(e.scale.is_finite(), o, "motion_distortion.scale", e.scale, "must be finite")?;
+            check(
+                e.scale.is_finite(),
+                o,
+                "motion_distortion.scale",
+                e.scale,
+                "must be finite",
+            )?;
         }
         if let Some(e) = &self.intensity_noise {
-            check(e.sigma_rel >= 0.0, o, "intensity_noise.sigma_rel", e.sigma_rel, "must be >= 0")?;
+            check(
+                e.sigma_rel >= 0.0,
+                o,
+                "intensity_noise.sigma_rel",
+                e.sigma_rel,
+                "must be >= 0",
+            )?;
         }
         Ok(())
     }
@@ -306,9 +520,21 @@ mod tests {
             assert_eq!(back, c);
         }
         assert!(Preset::Ideal.config().effects().is_ideal());
-        assert_eq!(Preset::CarlaLike.config().effects().ids(), ["uniform_dropout", "intensity_dropout"]);
+        assert_eq!(
+            Preset::CarlaLike.config().effects().ids(),
+            ["uniform_dropout", "intensity_dropout"]
+        );
         let ids = Preset::Realistic.config().effects().ids();
-        for id in ["self_occlusion", "beam_dropout", "range_dropout", "incidence_dropout", "material_dropout", "range_noise", "mixed_pixels", "motion_distortion"] {
+        for id in [
+            "self_occlusion",
+            "beam_dropout",
+            "range_dropout",
+            "incidence_dropout",
+            "material_dropout",
+            "range_noise",
+            "mixed_pixels",
+            "motion_distortion",
+        ] {
             assert!(ids.contains(&id), "realistic lacks {id}");
         }
     }
@@ -317,17 +543,49 @@ mod tests {
     fn bad_files_and_parameters_are_named() {
         let dir = tempfile::tempdir().unwrap();
         let path = dir.path().join("p.json");
-        std::fs::write(&path, r#"{"range_dropout": {"range_50_m": -3, "softness": 0.5}}"#).unwrap();
+        std::fs::write(
+            &path,
+            r#"{"range_dropout": {"range_50_m": -3, "softness": 0.5}}"#,
+        )
+        .unwrap();
         let err = PhysicsConfig::load(&path).unwrap_err().to_string();
-        assert!(err.contains("p.json") && err.contains("range_dropout.range_50_m"), "{err}");
-        std::fs::write(&path, r#"{"range_dropout": {"range_50": 3, "softness": 0.5}}"#).unwrap();
+        assert!(
+            err.contains("p.json") && err.contains("range_dropout.range_50_m"),
+            "{err}"
+        );
+        std::fs::write(
+            &path,
+            r#"{"range_dropout": {"range_50": 3, "softness": 0.5}}"#,
+        )
+        .unwrap();
         let err = PhysicsConfig::load(&path).unwrap_err().to_string();
         assert!(err.contains("p.json") && err.contains("range_50"), "{err}");
         std::fs::write(&path, r#"{"uniform_dropout": {"prob": 0.2, "enabled": false}, "material_dropout": {"drop_prob": {"glass": 0.5}}}"#).unwrap();
         let c = PhysicsConfig::load(&path).unwrap();
         assert_eq!(c.effects().ids(), ["material_dropout"]);
-        let beams = PhysicsConfig { beam_dropout: Some(BeamDropout { enabled: true, rates: Some(vec![0.1; 32]), mean_rate: 0.0, spread: 0.0, beam_seed: 0, dead_beams: vec![] }), ..Default::default() };
-        assert!(beams.validate("x", Some(64)).unwrap_err().to_string().contains("beam_dropout.rates"));
-        assert!(PhysicsConfig::resolve("foggy").unwrap_err().to_string().contains("carla-like"));
+        let beams = PhysicsConfig {
+            beam_dropout: Some(BeamDropout {
+                enabled: true,
+                rates: Some(vec![0.1; 32]),
+                mean_rate: 0.0,
+                spread: 0.0,
+                beam_seed: 0,
+                dead_beams: vec![],
+            }),
+            ..Default::default()
+        };
+        assert!(
+            beams
+                .validate("x", Some(64))
+                .unwrap_err()
+                .to_string()
+                .contains("beam_dropout.rates")
+        );
+        assert!(
+            PhysicsConfig::resolve("foggy")
+                .unwrap_err()
+                .to_string()
+                .contains("carla-like")
+        );
     }
 }

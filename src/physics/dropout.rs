@@ -122,7 +122,9 @@ impl BeamDropout {
         }
         match self.rates.as_ref().and_then(|r| r.get(row)) {
             Some(&r) => r,
-            None => (self.mean_rate * (self.spread * gaussian(&[self.beam_seed, row as u64, 0xbea])).exp()).clamp(0.0, 1.0),
+            None => (self.mean_rate
+                * (self.spread * gaussian(&[self.beam_seed, row as u64, 0xbea])).exp())
+            .clamp(0.0, 1.0),
         }
     }
 }
@@ -199,8 +201,8 @@ impl OcclusionBox {
     /// Whether a ray from the sensor origin along `d` passes through the box.
     pub fn blocks(&self, d: [f32; 3]) -> bool {
         let (mut t0, mut t1) = (0.0f32, f32::INFINITY);
-        for a in 0..3 {
-            let inv = 1.0 / d[a];
+        for (a, &da) in d.iter().enumerate() {
+            let inv = 1.0 / da;
             let (mut ta, mut tb) = (self.min_m[a] * inv, self.max_m[a] * inv);
             if ta > tb {
                 std::mem::swap(&mut ta, &mut tb);
@@ -215,7 +217,11 @@ impl OcclusionBox {
 impl SelfOcclusion {
     /// Drop probability of a ray along `d`: the largest over the regions it is in.
     pub fn block_prob(&self, d: [f32; 3]) -> f32 {
-        let s = self.sectors.iter().filter(|s| s.contains(d)).map(|s| s.prob);
+        let s = self
+            .sectors
+            .iter()
+            .filter(|s| s.contains(d))
+            .map(|s| s.prob);
         let b = self.boxes.iter().filter(|b| b.blocks(d)).map(|b| b.prob);
         s.chain(b).fold(0.0, f32::max)
     }
@@ -275,7 +281,11 @@ impl Effect for IntensityDropout {
         true
     }
     fn drop_prob(&self, f: &RayFeatures) -> f32 {
-        if (-self.attenuation_per_m * f.range_m).exp() < self.intensity_limit { self.prob } else { 0.0 }
+        if (-self.attenuation_per_m * f.range_m).exp() < self.intensity_limit {
+            self.prob
+        } else {
+            0.0
+        }
     }
 }
 
@@ -301,23 +311,39 @@ pub(crate) mod tests {
 
     /// An ideal scan, and the same scan after `effect` (drop rates per pixel set).
     pub(crate) fn before_after(effect: Box<dyn Effect>, seed: u64) -> (SimScan, SimScan) {
-        let sim = Simulator::new(SceneConfig { seed, duration_s: 0.5, ..Default::default() }, SensorProfile::kitti_hdl64e().with_columns(1024));
+        let sim = Simulator::new(
+            SceneConfig {
+                seed,
+                duration_s: 0.5,
+                ..Default::default()
+            },
+            SensorProfile::kitti_hdl64e().with_columns(1024),
+        );
         let ideal = sim.scan(2);
         let mut real = ideal.clone();
-        Physics { effects: vec![effect] }.apply(&mut real, seed);
+        Physics {
+            effects: vec![effect],
+        }
+        .apply(&mut real, seed);
         (ideal, real)
     }
 
     /// Share of ideal returns dropped among pixels selected by `pick`.
     fn drop_rate(ideal: &SimScan, real: &SimScan, pick: impl Fn(usize) -> bool) -> (f32, usize) {
-        let sel: Vec<usize> = (0..ideal.len()).filter(|&k| ideal.is_return(k) && pick(k)).collect();
+        let sel: Vec<usize> = (0..ideal.len())
+            .filter(|&k| ideal.is_return(k) && pick(k))
+            .collect();
         let dropped = sel.iter().filter(|&&k| !real.is_return(k)).count();
         (dropped as f32 / sel.len().max(1) as f32, sel.len())
     }
 
     #[test]
     fn range_dropout_grows_with_range() {
-        let e = RangeDropout { enabled: true, range_50_m: 40.0, softness: 0.5 };
+        let e = RangeDropout {
+            enabled: true,
+            range_50_m: 40.0,
+            softness: 0.5,
+        };
         assert!((e.drop_prob(&features(40.0, 0.0, Material::Concrete, 0)) - 0.5).abs() < 1e-5);
         let (ideal, real) = before_after(Box::new(e), 1);
         let r = |k: usize| ideal.true_range_m[k];
@@ -325,18 +351,28 @@ pub(crate) mod tests {
         let (mid, n2) = drop_rate(&ideal, &real, |k| (30.0..50.0).contains(&r(k)));
         let (far, n3) = drop_rate(&ideal, &real, |k| r(k) > 60.0);
         assert!(n1 > 1000 && n2 > 300 && n3 > 100, "{n1} {n2} {n3}");
-        assert!(near < 0.05 && (mid - 0.5).abs() < 0.15 && far > 0.75, "near {near} mid {mid} far {far}");
+        assert!(
+            near < 0.05 && (mid - 0.5).abs() < 0.15 && far > 0.75,
+            "near {near} mid {mid} far {far}"
+        );
     }
 
     #[test]
     fn incidence_dropout_hits_grazing_rays_and_spares_head_on_ones() {
-        let e = IncidenceDropout { enabled: true, cos_50: 0.15, softness: 0.25 };
+        let e = IncidenceDropout {
+            enabled: true,
+            cos_50: 0.15,
+            softness: 0.25,
+        };
         let (ideal, real) = before_after(Box::new(e), 2);
         let inc = |k: usize| ideal.incidence_rad[k].to_degrees();
         let (normal, n1) = drop_rate(&ideal, &real, |k| inc(k) < 45.0);
         let (grazing, n2) = drop_rate(&ideal, &real, |k| inc(k) > 85.0);
         assert!(n1 > 1000 && n2 > 100, "{n1} {n2}");
-        assert!(normal < 0.01 && grazing > 0.6, "normal {normal} grazing {grazing}");
+        assert!(
+            normal < 0.01 && grazing > 0.6,
+            "normal {normal} grazing {grazing}"
+        );
     }
 
     #[test]
@@ -344,18 +380,34 @@ pub(crate) mod tests {
         let mut drop_prob = BTreeMap::new();
         drop_prob.insert(Material::Glass, 0.9);
         drop_prob.insert(Material::DarkPaint, 0.5);
-        let (ideal, real) = before_after(Box::new(MaterialDropout { enabled: true, drop_prob }), 3);
+        let (ideal, real) = before_after(
+            Box::new(MaterialDropout {
+                enabled: true,
+                drop_prob,
+            }),
+            3,
+        );
         let (glass, n1) = drop_rate(&ideal, &real, |k| ideal.material[k] == Material::Glass);
         let (asphalt, n2) = drop_rate(&ideal, &real, |k| ideal.material[k] == Material::Asphalt);
         assert!(n1 > 50 && n2 > 1000, "{n1} {n2}");
-        assert!((glass - 0.9).abs() < 0.1 && asphalt == 0.0, "glass {glass} asphalt {asphalt}");
+        assert!(
+            (glass - 0.9).abs() < 0.1 && asphalt == 0.0,
+            "glass {glass} asphalt {asphalt}"
+        );
     }
 
     #[test]
     fn beam_dropout_gives_row_wise_rates() {
         let mut rates = vec![0.0; 64];
         rates[10] = 0.5;
-        let e = BeamDropout { enabled: true, rates: Some(rates), mean_rate: 0.0, spread: 0.0, beam_seed: 0, dead_beams: vec![40] };
+        let e = BeamDropout {
+            enabled: true,
+            rates: Some(rates),
+            mean_rate: 0.0,
+            spread: 0.0,
+            beam_seed: 0,
+            dead_beams: vec![40],
+        };
         let (ideal, real) = before_after(Box::new(e), 4);
         let w = ideal.width();
         for row in [5usize, 10, 40, 50] {
@@ -365,21 +417,42 @@ pub(crate) mod tests {
                 40 => 1.0,
                 _ => 0.0,
             };
-            assert!(n > 100 && (rate - expect).abs() < 0.08, "row {row}: {rate} of {n}");
+            assert!(
+                n > 100 && (rate - expect).abs() < 0.08,
+                "row {row}: {rate} of {n}"
+            );
         }
         // Drawn rates are fixed per sensor, vary by beam, stay in [0, 1].
-        let drawn = BeamDropout { enabled: true, rates: None, mean_rate: 0.05, spread: 0.8, beam_seed: 9, dead_beams: vec![] };
+        let drawn = BeamDropout {
+            enabled: true,
+            rates: None,
+            mean_rate: 0.05,
+            spread: 0.8,
+            beam_seed: 9,
+            dead_beams: vec![],
+        };
         let r: Vec<f32> = (0..64).map(|row| drawn.rate(row)).collect();
         assert!(r.iter().all(|x| (0.0..=1.0).contains(x)));
-        assert!(r.iter().cloned().fold(0.0, f32::max) > 2.0 * r.iter().cloned().fold(1.0, f32::min));
+        assert!(
+            r.iter().cloned().fold(0.0, f32::max) > 2.0 * r.iter().cloned().fold(1.0, f32::min)
+        );
     }
 
     #[test]
     fn self_occlusion_blocks_the_same_pixels_in_every_scene() {
         let e = SelfOcclusion {
             enabled: true,
-            sectors: vec![OcclusionSector { azimuth_min_deg: 150.0, azimuth_max_deg: -150.0, elevation_max_deg: -18.0, prob: 1.0 }],
-            boxes: vec![OcclusionBox { min_m: [-0.5, -2.0, -3.0], max_m: [0.5, 2.0, -0.5], prob: 1.0 }],
+            sectors: vec![OcclusionSector {
+                azimuth_min_deg: 150.0,
+                azimuth_max_deg: -150.0,
+                elevation_max_deg: -18.0,
+                prob: 1.0,
+            }],
+            boxes: vec![OcclusionBox {
+                min_m: [-0.5, -2.0, -3.0],
+                max_m: [0.5, 2.0, -0.5],
+                prob: 1.0,
+            }],
         };
         let dir = |az: f32, el: f32| {
             let (a, e) = (az.to_radians(), el.to_radians());
@@ -389,41 +462,72 @@ pub(crate) mod tests {
         assert_eq!(e.block_prob(dir(-170.0, -20.0)), 1.0);
         assert_eq!(e.block_prob(dir(180.0, -10.0)), 0.0);
         assert_eq!(e.block_prob(dir(0.0, -20.0)), 0.0);
-        assert_eq!(e.block_prob(dir(90.0, -20.0)), 1.0, "the box beside the sensor");
+        assert_eq!(
+            e.block_prob(dir(90.0, -20.0)),
+            1.0,
+            "the box beside the sensor"
+        );
         assert_eq!(e.block_prob(dir(0.0, 0.0)), 0.0);
         let blocked = |seed| {
             let (ideal, real) = before_after(Box::new(e.clone()), seed);
-            (0..ideal.len()).filter(|&k| ideal.is_return(k) && !real.is_return(k)).collect::<Vec<_>>()
+            (0..ideal.len())
+                .filter(|&k| ideal.is_return(k) && !real.is_return(k))
+                .collect::<Vec<_>>()
         };
         let (a, b) = (blocked(5), blocked(6));
         assert!(a.len() > 100, "{}", a.len());
         // Blocked pixels sit in the lower half only and are the same set in both scenes
         // (up to pixels that had no ideal return in one of them).
         let w = 1024;
-        assert!(a.iter().all(|k| k / w >= 32), "blocked pixels outside the lower half");
+        assert!(
+            a.iter().all(|k| k / w >= 32),
+            "blocked pixels outside the lower half"
+        );
         let common = a.iter().filter(|k| b.binary_search(k).is_ok()).count();
-        assert!(common as f32 > 0.9 * a.len().min(b.len()) as f32, "{common} of {} / {}", a.len(), b.len());
+        assert!(
+            common as f32 > 0.9 * a.len().min(b.len()) as f32,
+            "{common} of {} / {}",
+            a.len(),
+            b.len()
+        );
     }
 
     #[test]
     fn uniform_dropout_drops_at_its_rate_everywhere() {
-        let (ideal, real) = before_after(Box::new(UniformDropout { enabled: true, prob: 0.3 }), 7);
+        let (ideal, real) = before_after(
+            Box::new(UniformDropout {
+                enabled: true,
+                prob: 0.3,
+            }),
+            7,
+        );
         let w = ideal.width();
         let (all, _) = drop_rate(&ideal, &real, |_| true);
         let (top, _) = drop_rate(&ideal, &real, |k| k / w < 32);
         let (bottom, _) = drop_rate(&ideal, &real, |k| k / w >= 32);
-        assert!((all - 0.3).abs() < 0.01 && (top - bottom).abs() < 0.03, "{all} {top} {bottom}");
+        assert!(
+            (all - 0.3).abs() < 0.01 && (top - bottom).abs() < 0.03,
+            "{all} {top} {bottom}"
+        );
     }
 
     #[test]
     fn intensity_dropout_only_drops_far_rays() {
-        let e = IntensityDropout { enabled: true, attenuation_per_m: 0.004, intensity_limit: 0.8, prob: 0.4 };
+        let e = IntensityDropout {
+            enabled: true,
+            attenuation_per_m: 0.004,
+            intensity_limit: 0.8,
+            prob: 0.4,
+        };
         // exp(-0.004 d) < 0.8  <=>  d > 55.8 m
         assert_eq!(e.drop_prob(&features(50.0, 0.0, Material::Brick, 0)), 0.0);
         assert_eq!(e.drop_prob(&features(60.0, 0.0, Material::Brick, 0)), 0.4);
         let (ideal, real) = before_after(Box::new(e), 8);
         let (near, _) = drop_rate(&ideal, &real, |k| ideal.true_range_m[k] < 55.0);
         let (far, n) = drop_rate(&ideal, &real, |k| ideal.true_range_m[k] > 57.0);
-        assert!(near == 0.0 && n > 50 && (far - 0.4).abs() < 0.12, "{near} {far} {n}");
+        assert!(
+            near == 0.0 && n > 50 && (far - 0.4).abs() < 0.12,
+            "{near} {far} {n}"
+        );
     }
 }

@@ -124,14 +124,25 @@ impl Physics {
 
     /// Keep probability of a ray under all drop models (1 - p multiplied).
     pub fn keep_prob(&self, features: &RayFeatures) -> f32 {
-        self.effects.iter().filter(|e| e.drops()).map(|e| 1.0 - e.drop_prob(features).clamp(0.0, 1.0)).product()
+        self.effects
+            .iter()
+            .filter(|e| e.drops())
+            .map(|e| 1.0 - e.drop_prob(features).clamp(0.0, 1.0))
+            .product()
     }
 
     /// Applies every enabled effect to an ideal scan, in place. `seed` is the scene seed.
     pub fn apply(&self, scan: &mut SimScan, seed: u64) {
-        let ctx = EffectContext { seed, scan_index: scan.index };
-        let drops: Vec<(&dyn Effect, u64)> =
-            self.effects.iter().filter(|e| e.drops()).map(|e| (e.as_ref(), salt(e.id()))).collect();
+        let ctx = EffectContext {
+            seed,
+            scan_index: scan.index,
+        };
+        let drops: Vec<(&dyn Effect, u64)> = self
+            .effects
+            .iter()
+            .filter(|e| e.drops())
+            .map(|e| (e.as_ref(), salt(e.id())))
+            .collect();
         if !drops.is_empty() {
             for k in 0..scan.len() {
                 if !scan.is_return(k) {

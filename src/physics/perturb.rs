@@ -57,7 +57,10 @@ impl Effect for RangeQuantization {
         for k in 0..scan.len() {
             if scan.is_return(k) {
                 let d = scan.image.range_m[k];
-                scan.set_range(k, ((d / self.step_m).round() * self.step_m).max(self.step_m));
+                scan.set_range(
+                    k,
+                    ((d / self.step_m).round() * self.step_m).max(self.step_m),
+                );
             }
         }
     }
@@ -221,10 +224,12 @@ impl Effect for Atmosphere {
         let s = salt(self.id()) ^ 0xc1u64;
         for k in 0..scan.len() {
             if scan.is_return(k) {
-                scan.image.intensity[k] *= (-2.0 * self.extinction_per_m * scan.image.range_m[k]).exp();
+                scan.image.intensity[k] *=
+                    (-2.0 * self.extinction_per_m * scan.image.range_m[k]).exp();
             }
             if self.clutter_prob > 0.0 && ctx.uniform(s, k) < self.clutter_prob {
-                let r = scan.min_range_m - self.clutter_mean_range_m * ctx.uniform(s ^ 1, k).max(1e-7).ln();
+                let r = scan.min_range_m
+                    - self.clutter_mean_range_m * ctx.uniform(s ^ 1, k).max(1e-7).ln();
                 let current = scan.image.range_m[k];
                 if r < scan.max_range_m && (current <= 0.0 || r < current) {
                     let d = scan.image.angles.direction(k);
@@ -253,28 +258,55 @@ mod tests {
 
     #[test]
     fn range_noise_sigma_grows_linearly_with_range() {
-        let (ideal, real) = before_after(Box::new(RangeNoise { enabled: true, sigma0_m: 0.02, k: 0.002 }), 1);
+        let (ideal, real) = before_after(
+            Box::new(RangeNoise {
+                enabled: true,
+                sigma0_m: 0.02,
+                k: 0.002,
+            }),
+            1,
+        );
         let res = residuals(&ideal, &real);
         let std_in = |lo: f32, hi: f32| {
-            let v: Vec<f32> = res.iter().filter(|(k, _)| (lo..hi).contains(&ideal.true_range_m[*k])).map(|r| r.1).collect();
+            let v: Vec<f32> = res
+                .iter()
+                .filter(|(k, _)| (lo..hi).contains(&ideal.true_range_m[*k]))
+                .map(|r| r.1)
+                .collect();
             let m = v.iter().sum::<f32>() / v.len() as f32;
-            ((v.iter().map(|x| (x - m) * (x - m)).sum::<f32>() / v.len() as f32).sqrt(), m)
+            (
+                (v.iter().map(|x| (x - m) * (x - m)).sum::<f32>() / v.len() as f32).sqrt(),
+                m,
+            )
         };
         let (near, m_near) = std_in(2.0, 8.0);
         let (far, _) = std_in(40.0, 60.0);
         // sigma(5 m) ~ 0.03, sigma(50 m) ~ 0.12
-        assert!((near - 0.03).abs() < 0.006 && (far - 0.12).abs() < 0.025, "near {near} far {far}");
+        assert!(
+            (near - 0.03).abs() < 0.006 && (far - 0.12).abs() < 0.025,
+            "near {near} far {far}"
+        );
         assert!(m_near.abs() < 0.003);
         // Directions stay on the pixel ray.
         let k = res[0].0;
         let (p, q) = (ideal.image.xyz[k], real.image.xyz[k]);
-        let cross = [p[1] * q[2] - p[2] * q[1], p[2] * q[0] - p[0] * q[2], p[0] * q[1] - p[1] * q[0]];
+        let cross = [
+            p[1] * q[2] - p[2] * q[1],
+            p[2] * q[0] - p[0] * q[2],
+            p[0] * q[1] - p[1] * q[0],
+        ];
         assert!(cross.iter().map(|c| c.abs()).sum::<f32>() < 1e-2);
     }
 
     #[test]
     fn range_quantization_snaps_to_steps() {
-        let (ideal, real) = before_after(Box::new(RangeQuantization { enabled: true, step_m: 0.05 }), 2);
+        let (ideal, real) = before_after(
+            Box::new(RangeQuantization {
+                enabled: true,
+                step_m: 0.05,
+            }),
+            2,
+        );
         let res = residuals(&ideal, &real);
         assert!(res.iter().all(|(_, r)| r.abs() <= 0.0251));
         assert!(res.iter().any(|(_, r)| r.abs() > 0.01));
@@ -287,7 +319,11 @@ mod tests {
 
     #[test]
     fn mixed_pixels_appear_between_surfaces_at_depth_edges_only() {
-        let e = MixedPixels { enabled: true, prob: 0.5, min_gap_m: 1.0 };
+        let e = MixedPixels {
+            enabled: true,
+            prob: 0.5,
+            min_gap_m: 1.0,
+        };
         let (ideal, real) = before_after(Box::new(e.clone()), 3);
         let mut at_edge = 0;
         let mut moved_at_edge = 0;
@@ -305,12 +341,21 @@ mod tests {
             }
         }
         let share = moved_at_edge as f32 / at_edge as f32;
-        assert!(at_edge > 500 && (share - 0.5).abs() < 0.06, "{moved_at_edge} of {at_edge}");
+        assert!(
+            at_edge > 500 && (share - 0.5).abs() < 0.06,
+            "{moved_at_edge} of {at_edge}"
+        );
     }
 
     #[test]
     fn motion_distortion_opens_a_seam_at_the_scan_start() {
-        let (ideal, real) = before_after(Box::new(MotionDistortion { enabled: true, scale: 1.0 }), 4);
+        let (ideal, real) = before_after(
+            Box::new(MotionDistortion {
+                enabled: true,
+                scale: 1.0,
+            }),
+            4,
+        );
         let v = ideal.pose.velocity_mps[0];
         assert!(v > 5.0);
         let w = ideal.width();
@@ -327,34 +372,64 @@ mod tests {
         let after_start = shift(w / 2 - 1); // azimuth just above 0
         let before_end = shift(w / 2); // azimuth just below 0: measured last
         assert!(after_start.abs() < 0.05, "{after_start}");
-        assert!((before_end + v * 0.1).abs() < 0.1, "{before_end} vs {}", -v * 0.1);
+        assert!(
+            (before_end + v * 0.1).abs() < 0.1,
+            "{before_end} vs {}",
+            -v * 0.1
+        );
         // The rear (column 0, half a sweep) moved half as far.
         assert!((shift(0) + v * 0.05).abs() < 0.1, "{}", shift(0));
     }
 
     #[test]
     fn intensity_noise_keeps_the_mean_and_adds_spread() {
-        let (ideal, real) = before_after(Box::new(IntensityNoise { enabled: true, sigma_rel: 0.2 }), 5);
+        let (ideal, real) = before_after(
+            Box::new(IntensityNoise {
+                enabled: true,
+                sigma_rel: 0.2,
+            }),
+            5,
+        );
         let ratios: Vec<f32> = (0..ideal.len())
             .filter(|&k| ideal.is_return(k) && ideal.image.intensity[k] > 0.05)
             .map(|k| real.image.intensity[k] / ideal.image.intensity[k])
             .collect();
         let m = ratios.iter().sum::<f32>() / ratios.len() as f32;
-        let sd = (ratios.iter().map(|x| (x - m) * (x - m)).sum::<f32>() / ratios.len() as f32).sqrt();
-        assert!((m - 1.0).abs() < 0.02 && (sd - 0.2).abs() < 0.03, "mean {m} sd {sd}");
+        let sd =
+            (ratios.iter().map(|x| (x - m) * (x - m)).sum::<f32>() / ratios.len() as f32).sqrt();
+        assert!(
+            (m - 1.0).abs() < 0.02 && (sd - 0.2).abs() < 0.03,
+            "mean {m} sd {sd}"
+        );
         assert_eq!(ideal.image.range_m, real.image.range_m);
     }
 
     #[test]
     fn atmosphere_drops_far_rays_and_adds_near_clutter() {
-        let e = Atmosphere { enabled: true, extinction_per_m: 0.01, clutter_prob: 0.02, clutter_mean_range_m: 3.0 };
+        let e = Atmosphere {
+            enabled: true,
+            extinction_per_m: 0.01,
+            clutter_prob: 0.02,
+            clutter_mean_range_m: 3.0,
+        };
         let (ideal, real) = before_after(Box::new(e), 6);
         let drop = |lo: f32, hi: f32| {
-            let sel: Vec<usize> = (0..ideal.len()).filter(|&k| (lo..hi).contains(&ideal.true_range_m[k])).collect();
+            let sel: Vec<usize> = (0..ideal.len())
+                .filter(|&k| (lo..hi).contains(&ideal.true_range_m[k]))
+                .collect();
             sel.iter().filter(|&&k| !real.is_return(k)).count() as f32 / sel.len() as f32
         };
-        assert!(drop(2.0, 6.0) < 0.15 && drop(40.0, 60.0) > 0.5, "{} {}", drop(2.0, 6.0), drop(40.0, 60.0));
-        let clutter = (0..ideal.len()).filter(|&k| real.is_return(k) && real.image.label[k] == 0 && real.image.range_m[k] < 10.0).count();
+        assert!(
+            drop(2.0, 6.0) < 0.15 && drop(40.0, 60.0) > 0.5,
+            "{} {}",
+            drop(2.0, 6.0),
+            drop(40.0, 60.0)
+        );
+        let clutter = (0..ideal.len())
+            .filter(|&k| {
+                real.is_return(k) && real.image.label[k] == 0 && real.image.range_m[k] < 10.0
+            })
+            .count();
         let rate = clutter as f32 / ideal.len() as f32;
         assert!(rate > 0.005 && rate < 0.03, "{rate}");
     }

@@ -62,9 +62,7 @@ impl Bvh {
             return None;
         }
         let mut best: Option<BvhHit> = None;
-        if self.nodes[0].bounds.hit(ray, t_max).is_none() {
-            return None;
-        }
+        self.nodes[0].bounds.hit(ray, t_max)?;
         // Stack of (node, entry distance); children are tested at their parent so
         // the nearer one is visited first and a missed box is never pushed.
         let mut stack = [(0u32, 0f32); 64];
@@ -75,13 +73,15 @@ impl Bvh {
             if node.count > 0 {
                 let first = node.offset as usize;
                 for i in first..first + node.count as usize {
-                    if let Some(h) = self.prims[i].shape.intersect(ray, t_min, t_max) {
-                        if let Some(t) = accept(i as u32, &h) {
-                            if t < t_max {
-                                t_max = t;
-                                best = Some(BvhHit { prim: i as u32, hit: ShapeHit { t, ..h } });
-                            }
-                        }
+                    let Some(h) = self.prims[i].shape.intersect(ray, t_min, t_max) else {
+                        continue;
+                    };
+                    if let Some(t) = accept(i as u32, &h).filter(|&t| t < t_max) {
+                        t_max = t;
+                        best = Some(BvhHit {
+                            prim: i as u32,
+                            hit: ShapeHit { t, ..h },
+                        });
                     }
                 }
             } else {
@@ -124,14 +124,29 @@ impl Bvh {
     }
 }
 
-fn build_node(nodes: &mut Vec<Node>, order: &mut [u32], first: usize, bounds: &[Aabb], centres: &[Vec3]) -> usize {
-    let node_bounds = order.iter().fold(Aabb::EMPTY, |b, &i| b.union(bounds[i as usize]));
+fn build_node(
+    nodes: &mut Vec<Node>,
+    order: &mut [u32],
+    first: usize,
+    bounds: &[Aabb],
+    centres: &[Vec3],
+) -> usize {
+    let node_bounds = order
+        .iter()
+        .fold(Aabb::EMPTY, |b, &i| b.union(bounds[i as usize]));
     let idx = nodes.len();
-    nodes.push(Node { bounds: node_bounds, offset: first as u32, count: order.len() as u16, axis: 0 });
+    nodes.push(Node {
+        bounds: node_bounds,
+        offset: first as u32,
+        count: order.len() as u16,
+        axis: 0,
+    });
     if order.len() <= LEAF_SIZE {
         return idx;
     }
-    let cb = order.iter().fold(Aabb::EMPTY, |b, &i| b.grow(centres[i as usize]));
+    let cb = order
+        .iter()
+        .fold(Aabb::EMPTY, |b, &i| b.grow(centres[i as usize]));
     let extent = cb.max - cb.min;
     let axis = if extent.x >= extent.y && extent.x >= extent.z {
         0
@@ -145,7 +160,9 @@ fn build_node(nodes: &mut Vec<Node>, order: &mut [u32], first: usize, bounds: &[
         order.len() / 2
     } else {
         // Binned SAH along the widest centroid axis.
-        let bin_of = |i: u32| (((centres[i as usize].axis(axis) - lo) / span * BINS as f32) as usize).min(BINS - 1);
+        let bin_of = |i: u32| {
+            (((centres[i as usize].axis(axis) - lo) / span * BINS as f32) as usize).min(BINS - 1)
+        };
         let mut bin_bounds = [Aabb::EMPTY; BINS];
         let mut bin_count = [0usize; BINS];
         for &i in order.iter() {
@@ -187,7 +204,11 @@ fn build_node(nodes: &mut Vec<Node>, order: &mut [u32], first: usize, bounds: &[
         }
     };
     let mid = if mid == 0 || mid == order.len() {
-        order.sort_by(|&a, &b| centres[a as usize].axis(axis).total_cmp(&centres[b as usize].axis(axis)));
+        order.sort_by(|&a, &b| {
+            centres[a as usize]
+                .axis(axis)
+                .total_cmp(&centres[b as usize].axis(axis))
+        });
         order.len() / 2
     } else {
         mid
@@ -212,24 +233,52 @@ mod tests {
         let mut rng = Rng::new(1, 0);
         let prims: Vec<Primitive> = (0..2000)
             .map(|k| {
-                let c = v3(rng.range(-50.0, 50.0), rng.range(-50.0, 50.0), rng.range(-5.0, 5.0));
+                let c = v3(
+                    rng.range(-50.0, 50.0),
+                    rng.range(-50.0, 50.0),
+                    rng.range(-5.0, 5.0),
+                );
                 let shape = match k % 3 {
-                    0 => Shape::triangle(c, c + v3(rng.range(-2.0, 2.0), 1.0, 0.0), c + v3(0.0, rng.range(-2.0, 2.0), 2.0)),
-                    1 => Shape::Ellipsoid { centre: c, radii: v3(1.0, 0.5, 2.0) },
-                    _ => Shape::Cylinder { base: c, radius: 0.3, height: 3.0 },
+                    0 => Shape::triangle(
+                        c,
+                        c + v3(rng.range(-2.0, 2.0), 1.0, 0.0),
+                        c + v3(0.0, rng.range(-2.0, 2.0), 2.0),
+                    ),
+                    1 => Shape::Ellipsoid {
+                        centre: c,
+                        radii: v3(1.0, 0.5, 2.0),
+                    },
+                    _ => Shape::Cylinder {
+                        base: c,
+                        radius: 0.3,
+                        height: 3.0,
+                    },
                 };
-                Primitive { shape, surface: 0, instance: k as u16 }
+                Primitive {
+                    shape,
+                    surface: 0,
+                    instance: k as u16,
+                }
             })
             .collect();
         let bvh = Bvh::build(prims.clone());
         for k in 0..500 {
             let a = k as f32 * 0.0127;
-            let ray = Ray::new(v3(0.0, 0.0, 0.5), v3(a.cos(), a.sin(), rng.range(-0.1, 0.1)).normalized());
+            let ray = Ray::new(
+                v3(0.0, 0.0, 0.5),
+                v3(a.cos(), a.sin(), rng.range(-0.1, 0.1)).normalized(),
+            );
             let brute = prims
                 .iter()
-                .filter_map(|p| p.shape.intersect(&ray, 0.0, 200.0).map(|h| (h.t, p.instance)))
+                .filter_map(|p| {
+                    p.shape
+                        .intersect(&ray, 0.0, 200.0)
+                        .map(|h| (h.t, p.instance))
+                })
                 .min_by(|a, b| a.0.total_cmp(&b.0));
-            let fast = bvh.nearest(&ray, 0.0, 200.0, |_, h| Some(h.t)).map(|h| (h.hit.t, bvh.prims[h.prim as usize].instance));
+            let fast = bvh
+                .nearest(&ray, 0.0, 200.0, |_, h| Some(h.t))
+                .map(|h| (h.hit.t, bvh.prims[h.prim as usize].instance));
             assert_eq!(brute, fast, "ray {k}");
         }
     }

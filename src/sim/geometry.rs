@@ -25,7 +25,11 @@ impl Vec3 {
     }
     #[inline]
     pub fn cross(self, o: Vec3) -> Vec3 {
-        v3(self.y * o.z - self.z * o.y, self.z * o.x - self.x * o.z, self.x * o.y - self.y * o.x)
+        v3(
+            self.y * o.z - self.z * o.y,
+            self.z * o.x - self.x * o.z,
+            self.x * o.y - self.y * o.x,
+        )
     }
     #[inline]
     pub fn length(self) -> f32 {
@@ -100,7 +104,11 @@ pub struct Ray {
 
 impl Ray {
     pub fn new(origin: Vec3, dir: Vec3) -> Self {
-        Ray { origin, dir, inv_dir: v3(1.0 / dir.x, 1.0 / dir.y, 1.0 / dir.z) }
+        Ray {
+            origin,
+            dir,
+            inv_dir: v3(1.0 / dir.x, 1.0 / dir.y, 1.0 / dir.z),
+        }
     }
     #[inline]
     pub fn at(&self, t: f32) -> Vec3 {
@@ -116,30 +124,51 @@ pub struct Aabb {
 }
 
 impl Aabb {
-    pub const EMPTY: Aabb = Aabb { min: v3(f32::INFINITY, f32::INFINITY, f32::INFINITY), max: v3(f32::NEG_INFINITY, f32::NEG_INFINITY, f32::NEG_INFINITY) };
+    pub const EMPTY: Aabb = Aabb {
+        min: v3(f32::INFINITY, f32::INFINITY, f32::INFINITY),
+        max: v3(f32::NEG_INFINITY, f32::NEG_INFINITY, f32::NEG_INFINITY),
+    };
 
     #[inline]
     pub fn union(self, o: Aabb) -> Aabb {
-        Aabb { min: self.min.min(o.min), max: self.max.max(o.max) }
+        Aabb {
+            min: self.min.min(o.min),
+            max: self.max.max(o.max),
+        }
     }
     #[inline]
     pub fn grow(self, p: Vec3) -> Aabb {
-        Aabb { min: self.min.min(p), max: self.max.max(p) }
+        Aabb {
+            min: self.min.min(p),
+            max: self.max.max(p),
+        }
     }
     pub fn centre(&self) -> Vec3 {
         (self.min + self.max) * 0.5
     }
     pub fn surface_area(&self) -> f32 {
         let d = self.max - self.min;
-        if d.x < 0.0 { 0.0 } else { 2.0 * (d.x * d.y + d.y * d.z + d.z * d.x) }
+        if d.x < 0.0 {
+            0.0
+        } else {
+            2.0 * (d.x * d.y + d.y * d.z + d.z * d.x)
+        }
     }
     /// Entry distance of `ray` into the box if it enters before `t_max`.
     #[inline]
     pub fn hit(&self, ray: &Ray, t_max: f32) -> Option<f32> {
         let t1 = (self.min - ray.origin).mul_elem(ray.inv_dir);
         let t2 = (self.max - ray.origin).mul_elem(ray.inv_dir);
-        let tmin = t1.x.min(t2.x).max(t1.y.min(t2.y)).max(t1.z.min(t2.z)).max(0.0);
-        let tmax = t1.x.max(t2.x).min(t1.y.max(t2.y)).min(t1.z.max(t2.z)).min(t_max);
+        let tmin =
+            t1.x.min(t2.x)
+                .max(t1.y.min(t2.y))
+                .max(t1.z.min(t2.z))
+                .max(0.0);
+        let tmax =
+            t1.x.max(t2.x)
+                .min(t1.y.max(t2.y))
+                .min(t1.z.max(t2.z))
+                .min(t_max);
         (tmin <= tmax).then_some(tmin)
     }
 }
@@ -152,7 +181,11 @@ pub enum Shape {
     /// Axis-aligned ellipsoid (tree crowns, bushes, heads).
     Ellipsoid { centre: Vec3, radii: Vec3 },
     /// Vertical capped cylinder (poles, trunks, bodies).
-    Cylinder { base: Vec3, radius: f32, height: f32 },
+    Cylinder {
+        base: Vec3,
+        radius: f32,
+        height: f32,
+    },
 }
 
 /// One primitive of a scene: a shape, the surface it shows, and its instance.
@@ -177,16 +210,28 @@ pub struct ShapeHit {
 
 impl Shape {
     pub fn triangle(a: Vec3, b: Vec3, c: Vec3) -> Shape {
-        Shape::Triangle { p0: a, e1: b - a, e2: c - a }
+        Shape::Triangle {
+            p0: a,
+            e1: b - a,
+            e2: c - a,
+        }
     }
 
     pub fn bounds(&self) -> Aabb {
         match *self {
             Shape::Triangle { p0, e1, e2 } => Aabb::EMPTY.grow(p0).grow(p0 + e1).grow(p0 + e2),
-            Shape::Ellipsoid { centre, radii } => Aabb { min: centre - radii, max: centre + radii },
-            Shape::Cylinder { base, radius, height } => {
-                Aabb { min: base - v3(radius, radius, 0.0), max: base + v3(radius, radius, height) }
-            }
+            Shape::Ellipsoid { centre, radii } => Aabb {
+                min: centre - radii,
+                max: centre + radii,
+            },
+            Shape::Cylinder {
+                base,
+                radius,
+                height,
+            } => Aabb {
+                min: base - v3(radius, radius, 0.0),
+                max: base + v3(radius, radius, height),
+            },
         }
     }
 
@@ -212,7 +257,11 @@ impl Shape {
                     return None;
                 }
                 let t = e2.dot(q) * inv;
-                (t > t_min && t < t_max).then(|| ShapeHit { t, t_exit: t, normal: e1.cross(e2).normalized() })
+                (t > t_min && t < t_max).then(|| ShapeHit {
+                    t,
+                    t_exit: t,
+                    normal: e1.cross(e2).normalized(),
+                })
             }
             Shape::Ellipsoid { centre, radii } => {
                 // Scale space so the ellipsoid is a unit sphere.
@@ -234,15 +283,27 @@ impl Shape {
                 }
                 let p = o + d * t;
                 let normal = p.mul_elem(inv_r).normalized();
-                Some(ShapeHit { t, t_exit: t1, normal })
+                Some(ShapeHit {
+                    t,
+                    t_exit: t1,
+                    normal,
+                })
             }
-            Shape::Cylinder { base, radius, height } => {
+            Shape::Cylinder {
+                base,
+                radius,
+                height,
+            } => {
                 let o = ray.origin - base;
                 let d = ray.dir;
                 let mut best: Option<ShapeHit> = None;
                 let mut consider = |t: f32, normal: Vec3| {
                     if t > t_min && t < t_max && best.is_none_or(|b| t < b.t) {
-                        best = Some(ShapeHit { t, t_exit: t, normal });
+                        best = Some(ShapeHit {
+                            t,
+                            t_exit: t,
+                            normal,
+                        });
                     }
                 };
                 let a = d.x * d.x + d.y * d.y;
@@ -288,12 +349,19 @@ mod tests {
         assert!((h.t - 5.0).abs() < 1e-5 && h.normal.x.abs() > 0.99);
         assert!(tri.intersect(&ray, 0.0, 4.0).is_none());
 
-        let ell = Shape::Ellipsoid { centre: v3(10.0, 0.0, 1.0), radii: v3(2.0, 1.0, 1.0) };
+        let ell = Shape::Ellipsoid {
+            centre: v3(10.0, 0.0, 1.0),
+            radii: v3(2.0, 1.0, 1.0),
+        };
         let h = ell.intersect(&ray, 0.0, 100.0).unwrap();
         assert!((h.t - 8.0).abs() < 1e-4 && (h.t_exit - 12.0).abs() < 1e-4);
         assert!((h.normal.x + 1.0).abs() < 1e-4);
 
-        let cyl = Shape::Cylinder { base: v3(3.0, 0.0, 0.0), radius: 0.5, height: 2.0 };
+        let cyl = Shape::Cylinder {
+            base: v3(3.0, 0.0, 0.0),
+            radius: 0.5,
+            height: 2.0,
+        };
         let h = cyl.intersect(&ray, 0.0, 100.0).unwrap();
         assert!((h.t - 2.5).abs() < 1e-5);
         let above = Ray::new(v3(0.0, 0.0, 3.0), v3(1.0, 0.0, 0.0));

@@ -127,7 +127,12 @@ pub struct Surface {
 }
 
 const fn solid(label: u32, material: Material, reflectivity: f32) -> Surface {
-    Surface { label, material, reflectivity, mean_free_path_m: 0.0 }
+    Surface {
+        label,
+        material,
+        reflectivity,
+        mean_free_path_m: 0.0,
+    }
 }
 
 /// Indices into [`SURFACES`].
@@ -182,11 +187,26 @@ pub const SURFACES: [Surface; 26] = [
     solid(label::POLE, Material::Metal, 0.35),
     solid(label::TRAFFIC_SIGN, Material::RetroReflector, 0.95),
     solid(label::TRAFFIC_SIGN, Material::Metal, 0.3),
-    Surface { label: label::VEGETATION, material: Material::Foliage, reflectivity: 0.5, mean_free_path_m: 0.6 },
-    Surface { label: label::VEGETATION, material: Material::Foliage, reflectivity: 0.45, mean_free_path_m: 0.3 },
+    Surface {
+        label: label::VEGETATION,
+        material: Material::Foliage,
+        reflectivity: 0.5,
+        mean_free_path_m: 0.6,
+    },
+    Surface {
+        label: label::VEGETATION,
+        material: Material::Foliage,
+        reflectivity: 0.45,
+        mean_free_path_m: 0.3,
+    },
     solid(label::TRUNK, Material::Bark, 0.3),
     solid(label::FENCE, Material::Wood, 0.3),
     solid(label::FENCE, Material::Concrete, 0.4),
-    Surface { label: label::VEGETATION, material: Material::Foliage, reflectivity: 0.45, mean_free_path_m: 0.15 },
+    Surface {
+        label: label::VEGETATION,
+        material: Material::Foliage,
+        reflectivity: 0.45,
+        mean_free_path_m: 0.15,
+    },
     solid(label::CAR, Material::RetroReflector, 0.9),
 ];

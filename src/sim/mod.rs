@@ -49,7 +49,11 @@ impl Simulator {
     /// profile's) and pairs it with `profile`, sweeping at 10 Hz.
     pub fn new(mut config: SceneConfig, profile: SensorProfile) -> Self {
         config.max_range_m = config.max_range_m.max(profile.max_range_m);
-        Simulator { scene: Scene::generate(config), profile, timing: SweepTiming::default() }
+        Simulator {
+            scene: Scene::generate(config),
+            profile,
+            timing: SweepTiming::default(),
+        }
     }
 
     /// Start time of scan `index` from the start of the drive.
@@ -80,7 +84,14 @@ impl Simulator {
     /// The ideal scan `index` (no sensor physics).
     pub fn scan(&self, index: u32) -> SimScan {
         let t = self.scan_time(index);
-        raycast::cast_scan(&self.scene, &self.profile, &self.sensor_pose(t), &self.timing, t, index)
+        raycast::cast_scan(
+            &self.scene,
+            &self.profile,
+            &self.sensor_pose(t),
+            &self.timing,
+            t,
+            index,
+        )
     }
 }
 
@@ -89,7 +100,14 @@ mod tests {
     use super::*;
 
     fn small() -> Simulator {
-        Simulator::new(SceneConfig { seed: 11, duration_s: 1.0, ..Default::default() }, SensorProfile::kitti_hdl64e().with_columns(512))
+        Simulator::new(
+            SceneConfig {
+                seed: 11,
+                duration_s: 1.0,
+                ..Default::default()
+            },
+            SensorProfile::kitti_hdl64e().with_columns(512),
+        )
     }
 
     #[test]
@@ -105,7 +123,7 @@ mod tests {
                 continue;
             }
             let r = scan.image.range_m[k];
-            assert!(r >= 1.45 && r <= 80.0);
+            assert!((1.45..=80.0).contains(&r));
             let p = scan.image.xyz[k];
             assert!(((p[0] * p[0] + p[1] * p[1] + p[2] * p[2]).sqrt() - r).abs() < 1e-3);
             assert_ne!(scan.material[k], Material::None);
@@ -117,9 +135,16 @@ mod tests {
         }
         // Sky: top rows lose far more rays than the lower-middle rows (ground).
         let row_keep = |r: usize| (0..512).filter(|&j| scan.is_return(r * 512 + j)).count();
-        assert!(row_keep(0) < row_keep(40), "{} vs {}", row_keep(0), row_keep(40));
+        assert!(
+            row_keep(0) < row_keep(40),
+            "{} vs {}",
+            row_keep(0),
+            row_keep(40)
+        );
         // The lowest rows see the road close by.
-        let near_road = (0..512).filter(|&j| scan.image.label[63 * 512 + j] & 0xffff == label::ROAD).count();
+        let near_road = (0..512)
+            .filter(|&j| scan.image.label[63 * 512 + j] & 0xffff == label::ROAD)
+            .count();
         assert!(near_road > 100, "{near_road}");
     }
 

@@ -26,7 +26,11 @@ pub struct SweepTiming {
 
 impl Default for SweepTiming {
     fn default() -> Self {
-        SweepTiming { period_s: 0.1, start_azimuth_rad: 0.0, counter_clockwise: true }
+        SweepTiming {
+            period_s: 0.1,
+            start_azimuth_rad: 0.0,
+            counter_clockwise: true,
+        }
     }
 }
 
@@ -34,7 +38,11 @@ impl SweepTiming {
     /// Time offset from the sweep start at which azimuth `theta` is measured.
     pub fn time_at(&self, theta: f32) -> f32 {
         let tau = std::f32::consts::TAU;
-        let delta = if self.counter_clockwise { theta - self.start_azimuth_rad } else { self.start_azimuth_rad - theta };
+        let delta = if self.counter_clockwise {
+            theta - self.start_azimuth_rad
+        } else {
+            self.start_azimuth_rad - theta
+        };
         delta.rem_euclid(tau) / tau * self.period_s
     }
 }
@@ -59,7 +67,11 @@ impl SensorPose {
         self.axes[0] * v.x + self.axes[1] * v.y + self.axes[2] * v.z
     }
     pub fn to_sensor(&self, v: Vec3) -> Vec3 {
-        v3(v.dot(self.axes[0]), v.dot(self.axes[1]), v.dot(self.axes[2]))
+        v3(
+            v.dot(self.axes[0]),
+            v.dot(self.axes[1]),
+            v.dot(self.axes[2]),
+        )
     }
     /// Rotation world_from_sensor as a unit quaternion [x, y, z, w].
     pub fn quaternion(&self) -> [f64; 4] {
@@ -68,16 +80,36 @@ impl SensorPose {
         let tr = m[0][0] + m[1][1] + m[2][2];
         let q = if tr > 0.0 {
             let s = (tr + 1.0).sqrt() * 2.0;
-            [(m[2][1] - m[1][2]) / s, (m[0][2] - m[2][0]) / s, (m[1][0] - m[0][1]) / s, 0.25 * s]
+            [
+                (m[2][1] - m[1][2]) / s,
+                (m[0][2] - m[2][0]) / s,
+                (m[1][0] - m[0][1]) / s,
+                0.25 * s,
+            ]
         } else if m[0][0] > m[1][1] && m[0][0] > m[2][2] {
             let s = (1.0 + m[0][0] - m[1][1] - m[2][2]).sqrt() * 2.0;
-            [0.25 * s, (m[0][1] + m[1][0]) / s, (m[0][2] + m[2][0]) / s, (m[2][1] - m[1][2]) / s]
+            [
+                0.25 * s,
+                (m[0][1] + m[1][0]) / s,
+                (m[0][2] + m[2][0]) / s,
+                (m[2][1] - m[1][2]) / s,
+            ]
         } else if m[1][1] > m[2][2] {
             let s = (1.0 + m[1][1] - m[0][0] - m[2][2]).sqrt() * 2.0;
-            [(m[0][1] + m[1][0]) / s, 0.25 * s, (m[1][2] + m[2][1]) / s, (m[0][2] - m[2][0]) / s]
+            [
+                (m[0][1] + m[1][0]) / s,
+                0.25 * s,
+                (m[1][2] + m[2][1]) / s,
+                (m[0][2] - m[2][0]) / s,
+            ]
         } else {
             let s = (1.0 + m[2][2] - m[0][0] - m[1][1]).sqrt() * 2.0;
-            [(m[0][2] + m[2][0]) / s, (m[1][2] + m[2][1]) / s, 0.25 * s, (m[1][0] - m[0][1]) / s]
+            [
+                (m[0][2] + m[2][0]) / s,
+                (m[1][2] + m[2][1]) / s,
+                0.25 * s,
+                (m[1][0] - m[0][1]) / s,
+            ]
         };
         let n = q.iter().map(|c| c * c).sum::<f64>().sqrt();
         q.map(|c| c / n)
@@ -163,9 +195,22 @@ impl SimScan {
     pub fn to_scan(&self, organized: bool) -> Scan {
         let n = self.len();
         let w = self.width();
-        let keep: Vec<usize> = if organized { (0..n).collect() } else { (0..n).filter(|&k| self.is_return(k)).collect() };
+        let keep: Vec<usize> = if organized {
+            (0..n).collect()
+        } else {
+            (0..n).filter(|&k| self.is_return(k)).collect()
+        };
         let nan = [f32::NAN; 3];
-        let xyz = keep.iter().map(|&k| if self.is_return(k) { self.image.xyz[k] } else { nan }).collect();
+        let xyz = keep
+            .iter()
+            .map(|&k| {
+                if self.is_return(k) {
+                    self.image.xyz[k]
+                } else {
+                    nan
+                }
+            })
+            .collect();
         Scan {
             xyz,
             intensity: Some(keep.iter().map(|&k| self.image.intensity[k]).collect()),
@@ -179,21 +224,38 @@ impl SimScan {
 }
 
 /// Casts every pixel ray of `profile` from `pose` in `scene` at time `t_s`.
-pub fn cast_scan(scene: &Scene, profile: &SensorProfile, pose: &SensorPose, timing: &SweepTiming, t_s: f64, index: u32) -> SimScan {
+pub fn cast_scan(
+    scene: &Scene,
+    profile: &SensorProfile,
+    pose: &SensorPose,
+    timing: &SweepTiming,
+    t_s: f64,
+    index: u32,
+) -> SimScan {
     let angles = profile.angle_grid();
     let (h, w) = (angles.height, angles.width);
     let n = h * w;
-    let dynamic = scene.dynamic_bvh(t_s as f32, [pose.origin.x, pose.origin.y], profile.max_range_m);
+    let dynamic = scene.dynamic_bvh(
+        t_s as f32,
+        [pose.origin.x, pose.origin.y],
+        profile.max_range_m,
+    );
     let seed = scene.config.seed;
     let mut image = RangeImage::empty(angles);
     let mut material = vec![Material::None; n];
     let mut incidence_rad = vec![0.0f32; n];
     let mut reflectivity = vec![0.0f32; n];
     let mut true_label = vec![0u32; n];
-    let time_s: Vec<f32> = (0..n).map(|k| timing.time_at(image.angles.azimuth_rad[k])).collect();
+    let time_s: Vec<f32> = (0..n)
+        .map(|k| timing.time_at(image.angles.azimuth_rad[k]))
+        .collect();
     // Pixel directions from per-row and per-column sines (rows share an elevation).
-    let elevation: Vec<(f32, f32)> = (0..h).map(|i| image.angles.elevation_rad[i * w].sin_cos()).collect();
-    let azimuth: Vec<(f32, f32)> = (0..w).map(|j| image.angles.azimuth_rad[j].sin_cos()).collect();
+    let elevation: Vec<(f32, f32)> = (0..h)
+        .map(|i| image.angles.elevation_rad[i * w].sin_cos())
+        .collect();
+    let azimuth: Vec<(f32, f32)> = (0..w)
+        .map(|j| image.angles.azimuth_rad[j].sin_cos())
+        .collect();
     let (min_r, max_r) = (profile.min_range_m, profile.max_range_m);
     {
         let rows = image
@@ -208,31 +270,35 @@ pub fn cast_scan(scene: &Scene, profile: &SensorProfile, pose: &SensorPose, timi
             .zip(reflectivity.par_chunks_mut(w))
             .zip(true_label.par_chunks_mut(w))
             .enumerate();
-        rows.for_each(|(row, ((((((((range, xyz), inten), label), pidx), mat), inc), refl), tlabel))| {
-            let (sin_e, cos_e) = elevation[row];
-            for j in 0..w {
-                let k = row * w + j;
-                let (sin_a, cos_a) = azimuth[j];
-                let d_sensor = v3(cos_e * cos_a, cos_e * sin_a, sin_e);
-                let ray = Ray::new(pose.origin, pose.to_world(d_sensor));
-                let key = key_hash(&[seed, index as u64, k as u64]);
-                let Some(hit) = scene.cast(&dynamic, &ray, max_r, key) else { continue };
-                let cos_inc = (-hit.normal.dot(ray.dir)).clamp(0.0, 1.0);
-                let class = hit.surface.label | ((hit.instance as u32) << 16);
-                mat[j] = hit.surface.material;
-                inc[j] = cos_inc.acos();
-                refl[j] = hit.surface.reflectivity;
-                tlabel[j] = class;
-                if hit.t < min_r {
-                    continue;
+        rows.for_each(
+            |(row, ((((((((range, xyz), inten), label), pidx), mat), inc), refl), tlabel))| {
+                let (sin_e, cos_e) = elevation[row];
+                for j in 0..w {
+                    let k = row * w + j;
+                    let (sin_a, cos_a) = azimuth[j];
+                    let d_sensor = v3(cos_e * cos_a, cos_e * sin_a, sin_e);
+                    let ray = Ray::new(pose.origin, pose.to_world(d_sensor));
+                    let key = key_hash(&[seed, index as u64, k as u64]);
+                    let Some(hit) = scene.cast(&dynamic, &ray, max_r, key) else {
+                        continue;
+                    };
+                    let cos_inc = (-hit.normal.dot(ray.dir)).clamp(0.0, 1.0);
+                    let class = hit.surface.label | ((hit.instance as u32) << 16);
+                    mat[j] = hit.surface.material;
+                    inc[j] = cos_inc.acos();
+                    refl[j] = hit.surface.reflectivity;
+                    tlabel[j] = class;
+                    if hit.t < min_r {
+                        continue;
+                    }
+                    range[j] = hit.t;
+                    xyz[j] = (d_sensor * hit.t).to_array();
+                    inten[j] = intensity(hit.surface.reflectivity, cos_inc, hit.t);
+                    label[j] = class;
+                    pidx[j] = k as u32;
                 }
-                range[j] = hit.t;
-                xyz[j] = (d_sensor * hit.t).to_array();
-                inten[j] = intensity(hit.surface.reflectivity, cos_inc, hit.t);
-                label[j] = class;
-                pidx[j] = k as u32;
-            }
-        });
+            },
+        );
     }
     let true_range_m = image.range_m.clone();
     SimScan {

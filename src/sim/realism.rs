@@ -119,7 +119,10 @@ impl RealismStats {
     /// Keep rate of each column, averaged over `group` adjacent columns.
     pub fn column_keep(&self, group: usize) -> Vec<f64> {
         let n = (self.scans * self.height * group).max(1) as f64;
-        self.col_kept.chunks(group.max(1)).map(|c| c.iter().sum::<u64>() as f64 / n).collect()
+        self.col_kept
+            .chunks(group.max(1))
+            .map(|c| c.iter().sum::<u64>() as f64 / n)
+            .collect()
     }
 
     /// Keep frequency of every pixel (row-major), the paper's per-pixel ray-drop prior.
@@ -137,7 +140,16 @@ impl RealismStats {
 
     /// Drop rate per context-range bin (NaN where a bin is empty), then the sky bin.
     pub fn drop_vs_range(&self) -> Vec<f64> {
-        self.context.iter().map(|&(n, d)| if n == 0 { f64::NAN } else { d as f64 / n as f64 }).collect()
+        self.context
+            .iter()
+            .map(|&(n, d)| {
+                if n == 0 {
+                    f64::NAN
+                } else {
+                    d as f64 / n as f64
+                }
+            })
+            .collect()
     }
 
     /// Share of pixels per context-range bin (how often each range occurs).
@@ -155,7 +167,10 @@ impl RealismStats {
     /// Share of labelled returns per class group (empty without labels).
     pub fn class_share(&self) -> BTreeMap<&'static str, f64> {
         let n = self.labelled_returns.max(1) as f64;
-        self.classes.iter().map(|(k, &v)| (*k, v as f64 / n)).collect()
+        self.classes
+            .iter()
+            .map(|(k, &v)| (*k, v as f64 / n))
+            .collect()
     }
 }
 
@@ -196,7 +211,9 @@ pub fn find_kitti_scans(dir: &Path) -> Vec<(PathBuf, Option<PathBuf>)> {
     let mut out = Vec::new();
     let mut stack = vec![dir.to_path_buf()];
     while let Some(d) = stack.pop() {
-        let Ok(entries) = std::fs::read_dir(&d) else { continue };
+        let Ok(entries) = std::fs::read_dir(&d) else {
+            continue;
+        };
         for e in entries.flatten() {
             let p = e.path();
             if p.is_dir() {
@@ -217,7 +234,11 @@ pub fn find_kitti_scans(dir: &Path) -> Vec<(PathBuf, Option<PathBuf>)> {
 }
 
 /// Reads and projects one real KITTI scan onto `profile` (KITTI ring order).
-pub fn real_range_image(bin: &Path, labels: Option<&Path>, profile: &SensorProfile) -> Result<RangeImage, String> {
+pub fn real_range_image(
+    bin: &Path,
+    labels: Option<&Path>,
+    profile: &SensorProfile,
+) -> Result<RangeImage, String> {
     let scan = kitti::read_scan(bin, labels).map_err(|e| e.to_string())?;
     project(&scan, profile, Strategy::Auto).map_err(|e| format!("{}: {e}", bin.display()))
 }
@@ -244,12 +265,18 @@ mod tests {
         let hist = s.range_histogram();
         assert!((hist[1] - 10.0 / 11.0).abs() < 1e-9 && (hist[7] - 1.0 / 11.0).abs() < 1e-9);
         let classes = s.class_share();
-        assert!((classes["road"] - 5.0 / 11.0).abs() < 1e-9 && (classes["car"] - 5.0 / 11.0).abs() < 1e-9);
+        assert!(
+            (classes["road"] - 5.0 / 11.0).abs() < 1e-9
+                && (classes["car"] - 5.0 / 11.0).abs() < 1e-9
+        );
         // Top-row pixels see the 6 m row below them: they count as dropped at 4-8 m.
         let d = s.drop_vs_range();
         assert!(d[1] > 0.4 && d[1] < 0.6, "{d:?}");
         // A wrong-sized image is ignored.
-        s.add(&RangeImage::empty(AngleGrid::regular_columns(3, 10, |_| 0.0)), true);
+        s.add(
+            &RangeImage::empty(AngleGrid::regular_columns(3, 10, |_| 0.0)),
+            true,
+        );
         assert_eq!(s.scans, 1);
     }
 
@@ -257,16 +284,26 @@ mod tests {
     fn real_kitti_scans_keep_most_rays_and_lose_the_top_rows() {
         let dir = Path::new("../shared/real_lidar/semantickitti_mini");
         if !dir.exists() {
-            eprintln!("skipped: {} is absent (real data lives beside the repo)", dir.display());
+            eprintln!(
+                "skipped: {} is absent (real data lives beside the repo)",
+                dir.display()
+            );
             return;
         }
         let profile = SensorProfile::kitti_hdl64e().with_columns(512);
         let mut s = RealismStats::new("real", 64, 512);
         for (bin, labels) in find_kitti_scans(dir).into_iter().step_by(10) {
-            s.add(&real_range_image(&bin, labels.as_deref(), &profile).unwrap(), labels.is_some());
+            s.add(
+                &real_range_image(&bin, labels.as_deref(), &profile).unwrap(),
+                labels.is_some(),
+            );
         }
         assert!(s.scans >= 5);
-        assert!(s.keep_rate() > 0.7 && s.keep_rate() < 0.95, "{}", s.keep_rate());
+        assert!(
+            s.keep_rate() > 0.7 && s.keep_rate() < 0.95,
+            "{}",
+            s.keep_rate()
+        );
         assert!(s.rows_keep(0..4) < s.rows_keep(20..40));
         assert!(s.class_share().get("road").copied().unwrap_or(0.0) > 0.05);
     }

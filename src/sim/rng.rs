@@ -53,7 +53,9 @@ pub struct Rng {
 
 impl Rng {
     pub fn new(seed: u64, stream: u64) -> Self {
-        Rng { state: key_hash(&[seed, stream]) }
+        Rng {
+            state: key_hash(&[seed, stream]),
+        }
     }
 
     pub fn next_u64(&mut self) -> u64 {
@@ -78,7 +80,11 @@ impl Rng {
 
     /// Uniform integer in [0, n); 0 when n is 0.
     pub fn index(&mut self, n: usize) -> usize {
-        if n == 0 { 0 } else { (self.next_u64() % n as u64) as usize }
+        if n == 0 {
+            0
+        } else {
+            (self.next_u64() % n as u64) as usize
+        }
     }
 }
 
@@ -107,6 +113,9 @@ mod tests {
         let g: Vec<f32> = (0..n).map(|i| gaussian(&[42, i])).collect();
         let m = g.iter().sum::<f32>() / n as f32;
         let var = g.iter().map(|x| (x - m) * (x - m)).sum::<f32>() / n as f32;
-        assert!(m.abs() < 0.02 && (var - 1.0).abs() < 0.03, "mean {m} var {var}");
+        assert!(
+            m.abs() < 0.02 && (var - 1.0).abs() < 0.03,
+            "mean {m} var {var}"
+        );
     }
 }

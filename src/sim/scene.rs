@@ -29,7 +29,13 @@ pub struct SceneConfig {
 
 impl Default for SceneConfig {
     fn default() -> Self {
-        SceneConfig { seed: 0, speed_mps: 10.0, duration_s: 10.0, max_range_m: 80.0, sensor_height_m: 1.73 }
+        SceneConfig {
+            seed: 0,
+            speed_mps: 10.0,
+            duration_s: 10.0,
+            max_range_m: 80.0,
+            sensor_height_m: 1.73,
+        }
     }
 }
 
@@ -72,8 +78,15 @@ pub struct Actor {
 
 impl Actor {
     fn position(&self, t_s: f32) -> [f32; 2] {
-        let s = if self.span_m > 0.0 { (self.phase_m + self.speed_mps * t_s).rem_euclid(self.span_m) } else { 0.0 };
-        [self.start[0] + self.dir[0] * s, self.start[1] + self.dir[1] * s]
+        let s = if self.span_m > 0.0 {
+            (self.phase_m + self.speed_mps * t_s).rem_euclid(self.span_m)
+        } else {
+            0.0
+        };
+        [
+            self.start[0] + self.dir[0] * s,
+            self.start[1] + self.dir[1] * s,
+        ]
     }
 }
 
@@ -106,7 +119,11 @@ struct Builder {
 
 impl Builder {
     fn new(slope: [f32; 2]) -> Self {
-        Builder { prims: Vec::new(), slope, next_instance: 1 }
+        Builder {
+            prims: Vec::new(),
+            slope,
+            next_instance: 1,
+        }
     }
     fn instance(&mut self) -> u16 {
         let id = self.next_instance;
@@ -118,19 +135,42 @@ impl Builder {
     }
     fn tri(&mut self, a: Vec3, b: Vec3, c: Vec3, surface: u16, instance: u16) {
         let (a, b, c) = (self.lift(a), self.lift(b), self.lift(c));
-        self.prims.push(Primitive { shape: Shape::triangle(a, b, c), surface, instance });
+        self.prims.push(Primitive {
+            shape: Shape::triangle(a, b, c),
+            surface,
+            instance,
+        });
     }
     fn quad(&mut self, a: Vec3, b: Vec3, c: Vec3, d: Vec3, surface: u16, instance: u16) {
         self.tri(a, b, c, surface, instance);
         self.tri(a, c, d, surface, instance);
     }
     /// A quad tiled into pieces at most `step` long along a-b, so BVH boxes stay tight.
-    fn tiled_quad(&mut self, a: Vec3, b: Vec3, c: Vec3, d: Vec3, step: f32, surface: u16, instance: u16) {
-        let n = (((b - a).length().max((c - d).length())) / step).ceil().max(1.0) as usize;
+    #[allow(clippy::too_many_arguments)]
+    fn tiled_quad(
+        &mut self,
+        a: Vec3,
+        b: Vec3,
+        c: Vec3,
+        d: Vec3,
+        step: f32,
+        surface: u16,
+        instance: u16,
+    ) {
+        let n = (((b - a).length().max((c - d).length())) / step)
+            .ceil()
+            .max(1.0) as usize;
         for k in 0..n {
             let (u0, u1) = (k as f32 / n as f32, (k + 1) as f32 / n as f32);
             let p = |u: f32, from: Vec3, to: Vec3| from + (to - from) * u;
-            self.quad(p(u0, a, b), p(u1, a, b), p(u1, d, c), p(u0, d, c), surface, instance);
+            self.quad(
+                p(u0, a, b),
+                p(u1, a, b),
+                p(u1, d, c),
+                p(u0, d, c),
+                surface,
+                instance,
+            );
         }
     }
     /// Eight corners (bottom 0-3, top 4-7, counter-clockwise) with a surface per
@@ -144,9 +184,23 @@ impl Builder {
     }
     /// An upright box: footprint centre, half length/width along `yaw`, z range.
     #[allow(clippy::too_many_arguments)]
-    fn oriented_box(&mut self, centre: [f32; 2], half: [f32; 2], yaw: f32, z: [f32; 2], faces: [u16; 5], instance: u16) {
+    fn oriented_box(
+        &mut self,
+        centre: [f32; 2],
+        half: [f32; 2],
+        yaw: f32,
+        z: [f32; 2],
+        faces: [u16; 5],
+        instance: u16,
+    ) {
         let (s, co) = yaw.sin_cos();
-        let corner = |lx: f32, ly: f32, z: f32| v3(centre[0] + co * lx - s * ly, centre[1] + s * lx + co * ly, z);
+        let corner = |lx: f32, ly: f32, z: f32| {
+            v3(
+                centre[0] + co * lx - s * ly,
+                centre[1] + s * lx + co * ly,
+                z,
+            )
+        };
         let (hx, hy) = (half[0], half[1]);
         let c = [
             corner(-hx, -hy, z[0]),
@@ -160,13 +214,35 @@ impl Builder {
         ];
         self.hexahedron(c, faces, instance);
     }
-    fn cylinder(&mut self, x: f32, y: f32, z0: f32, radius: f32, height: f32, surface: u16, instance: u16) {
+    #[allow(clippy::too_many_arguments)]
+    fn cylinder(
+        &mut self,
+        x: f32,
+        y: f32,
+        z0: f32,
+        radius: f32,
+        height: f32,
+        surface: u16,
+        instance: u16,
+    ) {
         let base = self.lift(v3(x, y, z0));
-        self.prims.push(Primitive { shape: Shape::Cylinder { base, radius, height }, surface, instance });
+        self.prims.push(Primitive {
+            shape: Shape::Cylinder {
+                base,
+                radius,
+                height,
+            },
+            surface,
+            instance,
+        });
     }
     fn ellipsoid(&mut self, centre: Vec3, radii: Vec3, surface: u16, instance: u16) {
         let centre = self.lift(centre);
-        self.prims.push(Primitive { shape: Shape::Ellipsoid { centre, radii }, surface, instance });
+        self.prims.push(Primitive {
+            shape: Shape::Ellipsoid { centre, radii },
+            surface,
+            instance,
+        });
     }
 }
 
@@ -187,7 +263,14 @@ fn car_template(rng: &mut Rng, b: &mut Builder, instance: u16) {
         let c = [sx * (hl - 0.75), sy * (hw - 0.12)];
         b.oriented_box(c, [0.31, 0.12], 0.0, [0.0, 0.64], [S::TYRE; 5], instance);
     }
-    b.oriented_box([0.0, 0.0], [hl, hw], 0.0, [0.3, body_top], [paint; 5], instance);
+    b.oriented_box(
+        [0.0, 0.0],
+        [hl, hw],
+        0.0,
+        [0.3, body_top],
+        [paint; 5],
+        instance,
+    );
     // Cabin: a trapezoid prism; sides, windscreen and rear window are glass.
     let (front_lo, front_hi) = (hl - 1.1, hl - 1.8);
     let (rear_lo, rear_hi) = (-hl + 0.35, -hl + if tall { 0.45 } else { 0.9 });
@@ -202,30 +285,94 @@ fn car_template(rng: &mut Rng, b: &mut Builder, instance: u16) {
         v3(front_hi, w_hi, roof),
         v3(rear_hi, w_hi, roof),
     ];
-    b.hexahedron(c, [S::CAR_GLASS, S::CAR_GLASS, S::CAR_GLASS, S::CAR_GLASS, paint], instance);
+    b.hexahedron(
+        c,
+        [
+            S::CAR_GLASS,
+            S::CAR_GLASS,
+            S::CAR_GLASS,
+            S::CAR_GLASS,
+            paint,
+        ],
+        instance,
+    );
     // Number plates (retro-reflective), just proud of the body.
     for sx in [1.0f32, -1.0] {
         let x = sx * (hl + 0.01);
-        b.quad(v3(x, -0.26, 0.38), v3(x, 0.26, 0.38), v3(x, 0.26, 0.5), v3(x, -0.26, 0.5), S::PLATE, instance);
+        b.quad(
+            v3(x, -0.26, 0.38),
+            v3(x, 0.26, 0.38),
+            v3(x, 0.26, 0.5),
+            v3(x, -0.26, 0.5),
+            S::PLATE,
+            instance,
+        );
     }
 }
 
 fn pedestrian_template(rng: &mut Rng, b: &mut Builder, instance: u16) {
     let h = rng.range(1.55, 1.9);
-    b.cylinder(0.0, 0.0, 0.0, rng.range(0.17, 0.24), h - 0.24, S::PERSON, instance);
-    b.ellipsoid(v3(0.0, 0.0, h - 0.12), v3(0.11, 0.11, 0.12), S::PERSON, instance);
+    b.cylinder(
+        0.0,
+        0.0,
+        0.0,
+        rng.range(0.17, 0.24),
+        h - 0.24,
+        S::PERSON,
+        instance,
+    );
+    b.ellipsoid(
+        v3(0.0, 0.0, h - 0.12),
+        v3(0.11, 0.11, 0.12),
+        S::PERSON,
+        instance,
+    );
 }
 
 fn cyclist_template(rng: &mut Rng, b: &mut Builder, instance: u16) {
     for x in [-0.55f32, 0.55] {
-        b.oriented_box([x, 0.0], [0.33, 0.03], 0.0, [0.02, 0.68], [S::BICYCLE; 5], instance);
+        b.oriented_box(
+            [x, 0.0],
+            [0.33, 0.03],
+            0.0,
+            [0.02, 0.68],
+            [S::BICYCLE; 5],
+            instance,
+        );
     }
-    b.oriented_box([0.0, 0.0], [0.5, 0.03], 0.0, [0.55, 0.9], [S::BICYCLE; 5], instance);
-    b.oriented_box([0.45, 0.0], [0.04, 0.3], 0.0, [0.95, 1.0], [S::BICYCLE; 5], instance);
+    b.oriented_box(
+        [0.0, 0.0],
+        [0.5, 0.03],
+        0.0,
+        [0.55, 0.9],
+        [S::BICYCLE; 5],
+        instance,
+    );
+    b.oriented_box(
+        [0.45, 0.0],
+        [0.04, 0.3],
+        0.0,
+        [0.95, 1.0],
+        [S::BICYCLE; 5],
+        instance,
+    );
     let h = rng.range(1.6, 1.85);
     b.cylinder(-0.1, 0.0, 0.3, 0.09, 0.55, S::BICYCLIST, instance);
-    b.cylinder(-0.05, 0.0, 0.85, 0.18, h - 0.85 - 0.2, S::BICYCLIST, instance);
-    b.ellipsoid(v3(0.0, 0.0, h - 0.1), v3(0.11, 0.11, 0.12), S::BICYCLIST, instance);
+    b.cylinder(
+        -0.05,
+        0.0,
+        0.85,
+        0.18,
+        h - 0.85 - 0.2,
+        S::BICYCLIST,
+        instance,
+    );
+    b.ellipsoid(
+        v3(0.0, 0.0, h - 0.1),
+        v3(0.11, 0.11, 0.12),
+        S::BICYCLIST,
+        instance,
+    );
 }
 
 /// One side of a block: points are `origin + along * s + inward * u`.
@@ -240,7 +387,10 @@ struct BlockSide {
 
 impl BlockSide {
     fn at(&self, s: f32, u: f32) -> [f32; 2] {
-        [self.origin[0] + self.along[0] * s + self.inward[0] * u, self.origin[1] + self.along[1] * s + self.inward[1] * u]
+        [
+            self.origin[0] + self.along[0] * s + self.inward[0] * u,
+            self.origin[1] + self.along[1] * s + self.inward[1] * u,
+        ]
     }
     fn yaw(&self) -> f32 {
         self.along[1].atan2(self.along[0])
@@ -263,7 +413,14 @@ impl Scene {
             parking: road_half_width_m >= 5.0,
         };
         let length = config.speed_mps.max(0.0) * config.duration_s.max(0.0);
-        let trajectory = Trajectory::on_grid(&mut Rng::new(seed, 2), layout.block_m, layout.lane_offset_m, 8.0, length, config.speed_mps);
+        let trajectory = Trajectory::on_grid(
+            &mut Rng::new(seed, 2),
+            layout.block_m,
+            layout.lane_offset_m,
+            8.0,
+            length,
+            config.speed_mps,
+        );
         let margin = config.max_range_m + 25.0;
         let route: Vec<[f32; 2]> = sample_route(&trajectory, 4.0);
         let near = |x0: f32, y0: f32, x1: f32, y1: f32| {
@@ -329,10 +486,20 @@ impl Scene {
         };
         let mut lines = Vec::new();
         for k in k0..=k1 {
-            lines.push((true, k, [i0 as f32 * bx, k as f32 * by], (i1 - i0) as f32 * bx));
+            lines.push((
+                true,
+                k,
+                [i0 as f32 * bx, k as f32 * by],
+                (i1 - i0) as f32 * bx,
+            ));
         }
         for i in i0..=i1 {
-            lines.push((false, i, [i as f32 * bx, k0 as f32 * by], (k1 - k0) as f32 * by));
+            lines.push((
+                false,
+                i,
+                [i as f32 * bx, k0 as f32 * by],
+                (k1 - k0) as f32 * by,
+            ));
         }
         for (horizontal, line, start, span) in lines {
             for positive in [true, false] {
@@ -343,8 +510,13 @@ impl Scene {
                     (false, false) => [0.0, -1.0],
                 };
                 let right = [along[1], -along[0]];
-                let origin = if positive { start } else { [start[0] + along[0] * -span, start[1] + along[1] * -span] };
-                let in_lane = |offset: f32| [origin[0] + right[0] * offset, origin[1] + right[1] * offset];
+                let origin = if positive {
+                    start
+                } else {
+                    [start[0] + along[0] * -span, start[1] + along[1] * -span]
+                };
+                let in_lane =
+                    |offset: f32| [origin[0] + right[0] * offset, origin[1] + right[1] * offset];
                 if !ego_uses(horizontal, line, positive) {
                     let cars = (span / 120.0 * srng.range(0.0, 2.0)).round() as usize;
                     for _ in 0..cars {
@@ -378,7 +550,13 @@ impl Scene {
             }
         }
         let static_bvh = Bvh::build(b.prims);
-        Scene { config, layout, trajectory, static_bvh, actors }
+        Scene {
+            config,
+            layout,
+            trajectory,
+            static_bvh,
+            actors,
+        }
     }
 
     /// Number of static primitives (for reports).
@@ -403,9 +581,22 @@ impl Scene {
             let place = |q: Vec3| v3(p[0] + c * q.x - s * q.y, p[1] + s * q.x + c * q.y, q.z + z);
             for prim in &actor.template {
                 let shape = match prim.shape {
-                    Shape::Triangle { p0, e1, e2 } => Shape::triangle(place(p0), place(p0 + e1), place(p0 + e2)),
-                    Shape::Ellipsoid { centre, radii } => Shape::Ellipsoid { centre: place(centre), radii },
-                    Shape::Cylinder { base, radius, height } => Shape::Cylinder { base: place(base), radius, height },
+                    Shape::Triangle { p0, e1, e2 } => {
+                        Shape::triangle(place(p0), place(p0 + e1), place(p0 + e2))
+                    }
+                    Shape::Ellipsoid { centre, radii } => Shape::Ellipsoid {
+                        centre: place(centre),
+                        radii,
+                    },
+                    Shape::Cylinder {
+                        base,
+                        radius,
+                        height,
+                    } => Shape::Cylinder {
+                        base: place(base),
+                        radius,
+                        height,
+                    },
                 };
                 prims.push(Primitive { shape, ..*prim });
             }
@@ -416,23 +607,36 @@ impl Scene {
     /// First hit along `ray` (unit direction) closer than `t_max`, in the static
     /// scene and in `dynamic`. `ray_key` seeds the free path inside porous media.
     pub fn cast(&self, dynamic: &Bvh, ray: &Ray, t_max: f32, ray_key: u64) -> Option<SceneHit> {
-        let mut best = self.static_bvh.nearest(ray, 1e-4, t_max, |p, h| accept_hit(&self.static_bvh, ray_key, 0, p, h)).map(|h| (h, &self.static_bvh));
+        let mut best = self
+            .static_bvh
+            .nearest(ray, 1e-4, t_max, |p, h| {
+                accept_hit(&self.static_bvh, ray_key, 0, p, h)
+            })
+            .map(|h| (h, &self.static_bvh));
         let limit = best.map_or(t_max, |(h, _)| h.hit.t);
-        if let Some(h) = dynamic.nearest(ray, 1e-4, limit, |p, h| accept_hit(dynamic, ray_key, 1, p, h)) {
+        if let Some(h) = dynamic.nearest(ray, 1e-4, limit, |p, h| {
+            accept_hit(dynamic, ray_key, 1, p, h)
+        }) {
             best = Some((h, dynamic));
         }
         best.map(|(h, bvh)| {
             let prim = &bvh.prims[h.prim as usize];
             let n = h.hit.normal;
             let normal = if n.dot(ray.dir) > 0.0 { -n } else { n };
-            SceneHit { t: h.hit.t, normal, surface: SURFACES[prim.surface as usize], instance: prim.instance }
+            SceneHit {
+                t: h.hit.t,
+                normal,
+                surface: SURFACES[prim.surface as usize],
+                instance: prim.instance,
+            }
         })
     }
 
     /// Ego pose at time `t_s`, with the ground height under it.
     pub fn ego_pose(&self, t_s: f32) -> (PlanarPose, f32) {
         let p = self.trajectory.pose_at(t_s);
-        let crown = self.layout.camber * (self.layout.road_half_width_m - self.layout.lane_offset_m);
+        let crown =
+            self.layout.camber * (self.layout.road_half_width_m - self.layout.lane_offset_m);
         (p, self.layout.ground_z(p.x, p.y) + crown)
     }
 }
@@ -440,7 +644,13 @@ impl Scene {
 /// Distance at which a ray really stops on primitive `prim`: the surface for solid
 /// shapes; inside porous media (tree crowns) after an exponential free path keyed
 /// by the ray, or nowhere (None) if that lies beyond the exit.
-fn accept_hit(bvh: &Bvh, ray_key: u64, salt: u64, prim: u32, hit: &super::geometry::ShapeHit) -> Option<f32> {
+fn accept_hit(
+    bvh: &Bvh,
+    ray_key: u64,
+    salt: u64,
+    prim: u32,
+    hit: &super::geometry::ShapeHit,
+) -> Option<f32> {
     let surface = &SURFACES[bvh.prims[prim as usize].surface as usize];
     if surface.mean_free_path_m <= 0.0 {
         return Some(hit.t);
@@ -464,12 +674,25 @@ fn sample_route(traj: &Trajectory, step: f32) -> Vec<[f32; 2]> {
 /// the curbs. `start` is on the centreline, `dir` along the street.
 fn road_strip(b: &mut Builder, start: [f32; 2], dir: [f32; 2], len: f32, hw: f32, crown: f32) {
     let right = [dir[1], -dir[0]];
-    let p = |s: f32, u: f32, z: f32| v3(start[0] + dir[0] * s + right[0] * u, start[1] + dir[1] * s + right[1] * u, z);
+    let p = |s: f32, u: f32, z: f32| {
+        v3(
+            start[0] + dir[0] * s + right[0] * u,
+            start[1] + dir[1] * s + right[1] * u,
+            z,
+        )
+    };
     let n = (len / 5.0).ceil().max(1.0) as usize;
     for k in 0..n {
         let (s0, s1) = (len * k as f32 / n as f32, len * (k + 1) as f32 / n as f32);
         for side in [-1.0f32, 1.0] {
-            b.quad(p(s0, 0.0, crown), p(s1, 0.0, crown), p(s1, side * hw, 0.0), p(s0, side * hw, 0.0), S::ROAD, 0);
+            b.quad(
+                p(s0, 0.0, crown),
+                p(s1, 0.0, crown),
+                p(s1, side * hw, 0.0),
+                p(s0, side * hw, 0.0),
+                S::ROAD,
+                0,
+            );
         }
     }
 }
@@ -478,8 +701,18 @@ fn road_strip(b: &mut Builder, start: [f32; 2], dir: [f32; 2], len: f32, hw: f32
 /// so it meets the cambered strips on all four sides.
 fn intersection(b: &mut Builder, x: f32, y: f32, hw: f32, crown: f32) {
     let c = v3(x, y, crown);
-    let mids = [v3(x + hw, y, crown), v3(x, y + hw, crown), v3(x - hw, y, crown), v3(x, y - hw, crown)];
-    let corners = [v3(x + hw, y + hw, 0.0), v3(x - hw, y + hw, 0.0), v3(x - hw, y - hw, 0.0), v3(x + hw, y - hw, 0.0)];
+    let mids = [
+        v3(x + hw, y, crown),
+        v3(x, y + hw, crown),
+        v3(x - hw, y, crown),
+        v3(x, y - hw, crown),
+    ];
+    let corners = [
+        v3(x + hw, y + hw, 0.0),
+        v3(x - hw, y + hw, 0.0),
+        v3(x - hw, y - hw, 0.0),
+        v3(x + hw, y - hw, 0.0),
+    ];
     for q in 0..4 {
         b.tri(c, mids[q], corners[q], S::ROAD, 0);
         b.tri(c, corners[q], mids[(q + 1) % 4], S::ROAD, 0);
@@ -493,21 +726,55 @@ fn block(b: &mut Builder, rng: &mut Rng, layout: &Layout, r: [f32; 4], actors: &
     let (curb, sw) = (layout.curb_m, layout.sidewalk_m);
     // Interior terrain, tiled.
     let (ix0, iy0, ix1, iy1) = (x0 + sw, y0 + sw, x1 - sw, y1 - sw);
-    let (nx, ny) = (((ix1 - ix0) / 6.0).ceil().max(1.0) as usize, ((iy1 - iy0) / 6.0).ceil().max(1.0) as usize);
+    let (nx, ny) = (
+        ((ix1 - ix0) / 6.0).ceil().max(1.0) as usize,
+        ((iy1 - iy0) / 6.0).ceil().max(1.0) as usize,
+    );
     for a in 0..nx {
         for c in 0..ny {
             let xa = ix0 + (ix1 - ix0) * a as f32 / nx as f32;
             let xb = ix0 + (ix1 - ix0) * (a + 1) as f32 / nx as f32;
             let ya = iy0 + (iy1 - iy0) * c as f32 / ny as f32;
             let yb = iy0 + (iy1 - iy0) * (c + 1) as f32 / ny as f32;
-            b.quad(v3(xa, ya, curb), v3(xb, ya, curb), v3(xb, yb, curb), v3(xa, yb, curb), S::TERRAIN, 0);
+            b.quad(
+                v3(xa, ya, curb),
+                v3(xb, ya, curb),
+                v3(xb, yb, curb),
+                v3(xa, yb, curb),
+                S::TERRAIN,
+                0,
+            );
         }
     }
     let sides = [
-        BlockSide { origin: [x0, y0], along: [1.0, 0.0], inward: [0.0, 1.0], len: x1 - x0, depth: (y1 - y0) / 2.0 },
-        BlockSide { origin: [x1, y0], along: [0.0, 1.0], inward: [-1.0, 0.0], len: y1 - y0, depth: (x1 - x0) / 2.0 },
-        BlockSide { origin: [x1, y1], along: [-1.0, 0.0], inward: [0.0, -1.0], len: x1 - x0, depth: (y1 - y0) / 2.0 },
-        BlockSide { origin: [x0, y1], along: [0.0, -1.0], inward: [1.0, 0.0], len: y1 - y0, depth: (x1 - x0) / 2.0 },
+        BlockSide {
+            origin: [x0, y0],
+            along: [1.0, 0.0],
+            inward: [0.0, 1.0],
+            len: x1 - x0,
+            depth: (y1 - y0) / 2.0,
+        },
+        BlockSide {
+            origin: [x1, y0],
+            along: [0.0, 1.0],
+            inward: [-1.0, 0.0],
+            len: y1 - y0,
+            depth: (x1 - x0) / 2.0,
+        },
+        BlockSide {
+            origin: [x1, y1],
+            along: [-1.0, 0.0],
+            inward: [0.0, -1.0],
+            len: x1 - x0,
+            depth: (y1 - y0) / 2.0,
+        },
+        BlockSide {
+            origin: [x0, y1],
+            along: [0.0, -1.0],
+            inward: [1.0, 0.0],
+            len: y1 - y0,
+            depth: (x1 - x0) / 2.0,
+        },
     ];
     for side in &sides {
         let at3 = |s: f32, u: f32, z: f32| {
@@ -515,15 +782,46 @@ fn block(b: &mut Builder, rng: &mut Rng, layout: &Layout, r: [f32; 4], actors: &
             v3(p[0], p[1], z)
         };
         // Half the streets have a grass verge between curb and sidewalk.
-        let verge = if rng.chance(0.5) { rng.range(1.2, 3.0) } else { 0.0 };
+        let verge = if rng.chance(0.5) {
+            rng.range(1.2, 3.0)
+        } else {
+            0.0
+        };
         if verge > 0.0 {
-            b.tiled_quad(at3(0.0, 0.0, curb), at3(side.len, 0.0, curb), at3(side.len, verge, curb), at3(0.0, verge, curb), 5.0, S::TERRAIN, 0);
+            b.tiled_quad(
+                at3(0.0, 0.0, curb),
+                at3(side.len, 0.0, curb),
+                at3(side.len, verge, curb),
+                at3(0.0, verge, curb),
+                5.0,
+                S::TERRAIN,
+                0,
+            );
         }
         // Sidewalk strip (corners overlap the neighbouring strip: harmless) and curb face.
         let (u0, u1) = (verge, verge + sw);
-        b.tiled_quad(at3(0.0, u0, curb), at3(side.len, u0, curb), at3(side.len, u1, curb), at3(0.0, u1, curb), 5.0, S::SIDEWALK, 0);
-        b.tiled_quad(at3(0.0, 0.0, 0.0), at3(side.len, 0.0, 0.0), at3(side.len, 0.0, curb), at3(0.0, 0.0, curb), 5.0, S::CURB, 0);
-        let wide = Layout { sidewalk_m: u1, ..layout.clone() };
+        b.tiled_quad(
+            at3(0.0, u0, curb),
+            at3(side.len, u0, curb),
+            at3(side.len, u1, curb),
+            at3(0.0, u1, curb),
+            5.0,
+            S::SIDEWALK,
+            0,
+        );
+        b.tiled_quad(
+            at3(0.0, 0.0, 0.0),
+            at3(side.len, 0.0, 0.0),
+            at3(side.len, 0.0, curb),
+            at3(0.0, 0.0, curb),
+            5.0,
+            S::CURB,
+            0,
+        );
+        let wide = Layout {
+            sidewalk_m: u1,
+            ..layout.clone()
+        };
         side_furniture(b, rng, &wide, side, actors);
         frontage(b, rng, &wide, side);
         if layout.parking {
@@ -532,7 +830,13 @@ fn block(b: &mut Builder, rng: &mut Rng, layout: &Layout, r: [f32; 4], actors: &
     }
 }
 
-fn side_furniture(b: &mut Builder, rng: &mut Rng, layout: &Layout, side: &BlockSide, actors: &mut Vec<Actor>) {
+fn side_furniture(
+    b: &mut Builder,
+    rng: &mut Rng,
+    layout: &Layout,
+    side: &BlockSide,
+    actors: &mut Vec<Actor>,
+) {
     let (curb, sw) = (layout.curb_m, layout.sidewalk_m);
     // Street trees.
     if rng.chance(0.85) {
@@ -541,9 +845,22 @@ fn side_furniture(b: &mut Builder, rng: &mut Rng, layout: &Layout, side: &BlockS
             let p = side.at(s, 0.9);
             let inst = b.instance();
             let trunk_h = rng.range(1.2, 2.4);
-            b.cylinder(p[0], p[1], curb, rng.range(0.1, 0.22), trunk_h + 0.5, S::TRUNK, inst);
+            b.cylinder(
+                p[0],
+                p[1],
+                curb,
+                rng.range(0.1, 0.22),
+                trunk_h + 0.5,
+                S::TRUNK,
+                inst,
+            );
             let r = rng.range(1.4, 3.0);
-            b.ellipsoid(v3(p[0], p[1], curb + trunk_h + r * 0.9), v3(r, r, r * rng.range(0.9, 1.4)), S::FOLIAGE, inst);
+            b.ellipsoid(
+                v3(p[0], p[1], curb + trunk_h + r * 0.9),
+                v3(r, r, r * rng.range(0.9, 1.4)),
+                S::FOLIAGE,
+                inst,
+            );
             s += rng.range(6.0, 12.0);
         }
     }
@@ -557,7 +874,14 @@ fn side_furniture(b: &mut Builder, rng: &mut Rng, layout: &Layout, side: &BlockS
         // The arm reaches out over the road.
         let arm = side.at(s, -0.8);
         let (yaw, zc) = (side.yaw() + FRAC_PI_2, curb + h);
-        b.oriented_box([(p[0] + arm[0]) / 2.0, (p[1] + arm[1]) / 2.0], [0.6, 0.06], yaw, [zc - 0.12, zc], [S::POLE; 5], inst);
+        b.oriented_box(
+            [(p[0] + arm[0]) / 2.0, (p[1] + arm[1]) / 2.0],
+            [0.6, 0.06],
+            yaw,
+            [zc - 0.12, zc],
+            [S::POLE; 5],
+            inst,
+        );
         s += rng.range(22.0, 40.0);
     }
     // Traffic signs near the corners, facing oncoming traffic.
@@ -570,7 +894,20 @@ fn side_furniture(b: &mut Builder, rng: &mut Rng, layout: &Layout, side: &BlockS
         b.cylinder(p[0], p[1], curb, 0.035, 2.7, S::POLE, inst);
         let yaw = side.yaw();
         let centre = side.at(s, 0.3);
-        b.oriented_box(centre, [0.32, 0.015], yaw + FRAC_PI_2, [curb + 2.0, curb + 2.65], [S::SIGN_FACE, S::SIGN_BACK, S::SIGN_BACK, S::SIGN_BACK, S::SIGN_BACK], inst);
+        b.oriented_box(
+            centre,
+            [0.32, 0.015],
+            yaw + FRAC_PI_2,
+            [curb + 2.0, curb + 2.65],
+            [
+                S::SIGN_FACE,
+                S::SIGN_BACK,
+                S::SIGN_BACK,
+                S::SIGN_BACK,
+                S::SIGN_BACK,
+            ],
+            inst,
+        );
     }
     // Pedestrians: some stand, some walk along the sidewalk.
     let people = rng.index(((side.len / 25.0) as usize).max(1) + 1);
@@ -604,9 +941,24 @@ fn side_furniture(b: &mut Builder, rng: &mut Rng, layout: &Layout, side: &BlockS
 fn lift_template(p: &mut Primitive, dz: f32) {
     let up = v3(0.0, 0.0, dz);
     p.shape = match p.shape {
-        Shape::Triangle { p0, e1, e2 } => Shape::Triangle { p0: p0 + up, e1, e2 },
-        Shape::Ellipsoid { centre, radii } => Shape::Ellipsoid { centre: centre + up, radii },
-        Shape::Cylinder { base, radius, height } => Shape::Cylinder { base: base + up, radius, height },
+        Shape::Triangle { p0, e1, e2 } => Shape::Triangle {
+            p0: p0 + up,
+            e1,
+            e2,
+        },
+        Shape::Ellipsoid { centre, radii } => Shape::Ellipsoid {
+            centre: centre + up,
+            radii,
+        },
+        Shape::Cylinder {
+            base,
+            radius,
+            height,
+        } => Shape::Cylinder {
+            base: base + up,
+            radius,
+            height,
+        },
     };
 }
 
@@ -626,7 +978,11 @@ fn frontage(b: &mut Builder, rng: &mut Rng, layout: &Layout, side: &BlockSide) {
             if depth < 4.0 || w < 4.0 {
                 break;
             }
-            let angle = if rng.chance(0.2) { rng.range(-0.35, 0.35) } else { 0.0 };
+            let angle = if rng.chance(0.2) {
+                rng.range(-0.35, 0.35)
+            } else {
+                0.0
+            };
             // Keep rotated footprints off the sidewalk.
             let extra = (angle.abs().sin() * w / 2.0).max(angle.abs().sin() * depth / 2.0);
             let u = sw + setback + extra + depth / 2.0;
@@ -635,19 +991,43 @@ fn frontage(b: &mut Builder, rng: &mut Rng, layout: &Layout, side: &BlockSide) {
             let height = rng.range(4.0, 16.0);
             let facade = facades[rng.index(3)];
             let inst = b.instance();
-            b.oriented_box(centre, [w / 2.0, depth / 2.0], yaw, [0.0, curb + height], [facade; 5], inst);
+            b.oriented_box(
+                centre,
+                [w / 2.0, depth / 2.0],
+                yaw,
+                [0.0, curb + height],
+                [facade; 5],
+                inst,
+            );
             // Window bands per floor on the street-facing facade (local -y face).
             let (sn, cs) = yaw.sin_cos();
-            let local = |lx: f32, ly: f32, z: f32| v3(centre[0] + cs * lx - sn * ly, centre[1] + sn * lx + cs * ly, z);
+            let local = |lx: f32, ly: f32, z: f32| {
+                v3(
+                    centre[0] + cs * lx - sn * ly,
+                    centre[1] + sn * lx + cs * ly,
+                    z,
+                )
+            };
             let ly = -depth / 2.0 - 0.03;
             let hx = w / 2.0 * rng.range(0.4, 0.7);
             let mut floor = 0.0;
             while floor + 3.0 <= height {
                 let (za, zb) = (curb + floor + 1.0, curb + floor + 2.2);
-                b.quad(local(-hx, ly, za), local(hx, ly, za), local(hx, ly, zb), local(-hx, ly, zb), S::WINDOW, inst);
+                b.quad(
+                    local(-hx, ly, za),
+                    local(hx, ly, za),
+                    local(hx, ly, zb),
+                    local(-hx, ly, zb),
+                    S::WINDOW,
+                    inst,
+                );
                 floor += 3.0;
             }
-            s += w + if rng.chance(0.5) { rng.range(1.5, 8.0) } else { 0.0 };
+            s += w + if rng.chance(0.5) {
+                rng.range(1.5, 8.0)
+            } else {
+                0.0
+            };
         }
     };
     if style < 0.2 {
@@ -655,22 +1035,43 @@ fn frontage(b: &mut Builder, rng: &mut Rng, layout: &Layout, side: &BlockSide) {
     } else if style < 0.6 {
         // Wall or fence along the property line, gardens and houses behind.
         let wall = rng.chance(0.4);
-        let h = if wall { rng.range(0.8, 2.0) } else { rng.range(1.0, 1.8) };
+        let h = if wall {
+            rng.range(0.8, 2.0)
+        } else {
+            rng.range(1.0, 1.8)
+        };
         let thick = if wall { 0.2 } else { 0.05 };
         let surf = if wall { S::WALL } else { S::FENCE };
         let mut s = 0.5;
         while s < side.len - 1.0 {
             let run = rng.range(6.0, 25.0).min(side.len - 0.5 - s);
             let inst = b.instance();
-            b.oriented_box(side.at(s + run / 2.0, sw + 0.3), [run / 2.0, thick / 2.0], side.yaw(), [0.0, curb + h], [surf; 5], inst);
-            s += run + if rng.chance(0.4) { rng.range(3.0, 5.0) } else { 0.0 };
+            b.oriented_box(
+                side.at(s + run / 2.0, sw + 0.3),
+                [run / 2.0, thick / 2.0],
+                side.yaw(),
+                [0.0, curb + h],
+                [surf; 5],
+                inst,
+            );
+            s += run
+                + if rng.chance(0.4) {
+                    rng.range(3.0, 5.0)
+                } else {
+                    0.0
+                };
         }
         let mut s = rng.range(2.0, 6.0);
         while s < side.len - 2.0 {
             let p = side.at(s, sw + rng.range(1.5, 4.0));
             let inst = b.instance();
             let r = rng.range(0.6, 1.6);
-            b.ellipsoid(v3(p[0], p[1], curb + r * 0.6), v3(r, r, r * 0.8), S::BUSH, inst);
+            b.ellipsoid(
+                v3(p[0], p[1], curb + r * 0.6),
+                v3(r, r, r * 0.8),
+                S::BUSH,
+                inst,
+            );
             s += rng.range(2.0, 6.0);
         }
         buildings(b, rng, [8.0, 18.0]);
@@ -681,21 +1082,46 @@ fn frontage(b: &mut Builder, rng: &mut Rng, layout: &Layout, side: &BlockSide) {
             let along = side.along;
             let half = side.len / 2.0 - 3.0;
             let inst = b.instance();
-            let radii = v3((along[0].abs() * half).max(0.6), (along[1].abs() * half).max(0.6), 0.9);
+            let radii = v3(
+                (along[0].abs() * half).max(0.6),
+                (along[1].abs() * half).max(0.6),
+                0.9,
+            );
             b.ellipsoid(v3(p[0], p[1], curb + 0.6), radii, S::HEDGE, inst);
         }
         let n = (side.len * max_depth / 50.0) as usize;
         for _ in 0..n {
-            let p = side.at(rng.range(2.0, side.len - 2.0), sw + rng.range(2.5, max_depth));
+            let p = side.at(
+                rng.range(2.0, side.len - 2.0),
+                sw + rng.range(2.5, max_depth),
+            );
             let inst = b.instance();
             if rng.chance(0.5) {
                 let trunk_h = rng.range(1.5, 4.0);
-                b.cylinder(p[0], p[1], curb, rng.range(0.12, 0.3), trunk_h + 0.5, S::TRUNK, inst);
+                b.cylinder(
+                    p[0],
+                    p[1],
+                    curb,
+                    rng.range(0.12, 0.3),
+                    trunk_h + 0.5,
+                    S::TRUNK,
+                    inst,
+                );
                 let r = rng.range(1.5, 4.0);
-                b.ellipsoid(v3(p[0], p[1], curb + trunk_h + r * 0.9), v3(r, r, r * rng.range(0.8, 1.3)), S::FOLIAGE, inst);
+                b.ellipsoid(
+                    v3(p[0], p[1], curb + trunk_h + r * 0.9),
+                    v3(r, r, r * rng.range(0.8, 1.3)),
+                    S::FOLIAGE,
+                    inst,
+                );
             } else {
                 let r = rng.range(0.5, 1.8);
-                b.ellipsoid(v3(p[0], p[1], curb + r * 0.5), v3(r, r * rng.range(0.7, 1.3), r * 0.7), S::BUSH, inst);
+                b.ellipsoid(
+                    v3(p[0], p[1], curb + r * 0.5),
+                    v3(r, r * rng.range(0.7, 1.3), r * 0.7),
+                    S::BUSH,
+                    inst,
+                );
             }
         }
     }
@@ -715,9 +1141,21 @@ fn parked_cars(b: &mut Builder, rng: &mut Rng, side: &BlockSide) {
             let place = |q: Vec3| v3(p[0] + cs * q.x - sn * q.y, p[1] + sn * q.x + cs * q.y, q.z);
             for prim in tb.prims {
                 match prim.shape {
-                    Shape::Triangle { p0, e1, e2 } => b.tri(place(p0), place(p0 + e1), place(p0 + e2), prim.surface, inst),
-                    Shape::Ellipsoid { centre, radii } => b.ellipsoid(place(centre), radii, prim.surface, inst),
-                    Shape::Cylinder { base, radius, height } => {
+                    Shape::Triangle { p0, e1, e2 } => b.tri(
+                        place(p0),
+                        place(p0 + e1),
+                        place(p0 + e2),
+                        prim.surface,
+                        inst,
+                    ),
+                    Shape::Ellipsoid { centre, radii } => {
+                        b.ellipsoid(place(centre), radii, prim.surface, inst)
+                    }
+                    Shape::Cylinder {
+                        base,
+                        radius,
+                        height,
+                    } => {
                         let q = place(base);
                         b.cylinder(q.x, q.y, q.z, radius, height, prim.surface, inst)
                     }
@@ -734,7 +1172,11 @@ mod tests {
 
     #[test]
     fn scenes_are_reproducible_and_vary_with_the_seed() {
-        let cfg = |seed| SceneConfig { seed, duration_s: 3.0, ..Default::default() };
+        let cfg = |seed| SceneConfig {
+            seed,
+            duration_s: 3.0,
+            ..Default::default()
+        };
         let a = Scene::generate(cfg(5));
         let b = Scene::generate(cfg(5));
         let c = Scene::generate(cfg(6));
@@ -747,11 +1189,17 @@ mod tests {
 
     #[test]
     fn ground_below_the_ego_is_road_at_sensor_height() {
-        let scene = Scene::generate(SceneConfig { seed: 3, duration_s: 2.0, ..Default::default() });
+        let scene = Scene::generate(SceneConfig {
+            seed: 3,
+            duration_s: 2.0,
+            ..Default::default()
+        });
         let (pose, z) = scene.ego_pose(0.0);
         let dynamic = scene.dynamic_bvh(0.0, [pose.x, pose.y], 80.0);
         let origin = v3(pose.x + 4.0, pose.y, z + 1.73);
-        let hit = scene.cast(&dynamic, &Ray::new(origin, v3(0.0, 0.0, -1.0)), 100.0, 0).unwrap();
+        let hit = scene
+            .cast(&dynamic, &Ray::new(origin, v3(0.0, 0.0, -1.0)), 100.0, 0)
+            .unwrap();
         assert_eq!(hit.surface.label, super::super::material::label::ROAD);
         assert!((hit.t - 1.73).abs() < 0.1, "{}", hit.t);
         assert!(hit.normal.z > 0.99);

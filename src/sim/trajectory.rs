@@ -37,7 +37,14 @@ impl Trajectory {
     /// A route on the grid with streets at `x = i * block_x`, `y = k * block_y`,
     /// starting mid-block on the street `y = 0` heading +x, long enough to drive
     /// `length_m`. At each intersection it goes straight, left or right by `rng`.
-    pub fn on_grid(rng: &mut Rng, block_m: [f32; 2], lane_offset_m: f32, turn_radius_m: f32, length_m: f32, speed_mps: f32) -> Self {
+    pub fn on_grid(
+        rng: &mut Rng,
+        block_m: [f32; 2],
+        lane_offset_m: f32,
+        turn_radius_m: f32,
+        length_m: f32,
+        speed_mps: f32,
+    ) -> Self {
         let mut node = [0i32, 0i32];
         let mut heading = 0i32;
         let node_pos = |n: [i32; 2]| [n[0] as f32 * block_m[0], n[1] as f32 * block_m[1]];
@@ -45,7 +52,10 @@ impl Trajectory {
         let lane = |p: [f32; 2], h: i32, along: f32| {
             let d = heading_dir(h);
             let right = [d[1] as f32, -(d[0] as f32)];
-            [p[0] + right[0] * lane_offset_m + d[0] as f32 * along, p[1] + right[1] * lane_offset_m + d[1] as f32 * along]
+            [
+                p[0] + right[0] * lane_offset_m + d[0] as f32 * along,
+                p[1] + right[1] * lane_offset_m + d[1] as f32 * along,
+            ]
         };
         let mut points = vec![lane(node_pos(node), heading, -0.5 * block_m[0])];
         let mut street_segments = Vec::new();
@@ -58,7 +68,13 @@ impl Trajectory {
             node = next;
             let draw = rng.unit();
             // Never turn twice in a row, so the route does not circle one block.
-            let turn = if turned_last || draw < 0.55 { 0 } else if draw < 0.775 { 1 } else { -1 };
+            let turn = if turned_last || draw < 0.55 {
+                0
+            } else if draw < 0.775 {
+                1
+            } else {
+                -1
+            };
             let centre = node_pos(node);
             let prev = *points.last().unwrap_or(&centre);
             if turn == 0 {
@@ -73,7 +89,11 @@ impl Trajectory {
                 let b = heading_dir(out);
                 let li = lane(centre, heading, 0.0);
                 let lo = lane(centre, out, 0.0);
-                let corner = if a[0] != 0 { [lo[0], li[1]] } else { [li[0], lo[1]] };
+                let corner = if a[0] != 0 {
+                    [lo[0], li[1]]
+                } else {
+                    [li[0], lo[1]]
+                };
                 let r = turn_radius_m;
                 let p0 = [corner[0] - a[0] as f32 * r, corner[1] - a[1] as f32 * r];
                 let p2 = [corner[0] + b[0] as f32 * r, corner[1] + b[1] as f32 * r];
@@ -81,7 +101,10 @@ impl Trajectory {
                 for s in 0..=16 {
                     let u = s as f32 / 16.0;
                     let w = [(1.0 - u) * (1.0 - u), 2.0 * u * (1.0 - u), u * u];
-                    let p = [w[0] * p0[0] + w[1] * corner[0] + w[2] * p2[0], w[0] * p0[1] + w[1] * corner[1] + w[2] * p2[1]];
+                    let p = [
+                        w[0] * p0[0] + w[1] * corner[0] + w[2] * p2[0],
+                        w[0] * p0[1] + w[1] * corner[1] + w[2] * p2[1],
+                    ];
                     length += (p[0] - last[0]).hypot(p[1] - last[1]);
                     points.push(p);
                     last = p;
@@ -98,7 +121,12 @@ impl Trajectory {
             }
             arc_m.push(acc);
         }
-        Trajectory { points, arc_m, speed_mps, street_segments }
+        Trajectory {
+            points,
+            arc_m,
+            speed_mps,
+            street_segments,
+        }
     }
 
     pub fn length_m(&self) -> f32 {
@@ -112,10 +140,17 @@ impl Trajectory {
 
     fn position_at_arc(&self, s: f32) -> [f32; 2] {
         let s = s.clamp(0.0, self.length_m());
-        let i = self.arc_m.partition_point(|&a| a <= s).clamp(1, self.points.len().max(2) - 1);
+        let i = self
+            .arc_m
+            .partition_point(|&a| a <= s)
+            .clamp(1, self.points.len().max(2) - 1);
         let (a, b) = (self.points[i - 1], self.points[i]);
         let seg = self.arc_m[i] - self.arc_m[i - 1];
-        let u = if seg > 0.0 { (s - self.arc_m[i - 1]) / seg } else { 0.0 };
+        let u = if seg > 0.0 {
+            (s - self.arc_m[i - 1]) / seg
+        } else {
+            0.0
+        };
         [a[0] + (b[0] - a[0]) * u, a[1] + (b[1] - a[1]) * u]
     }
 
@@ -124,7 +159,11 @@ impl Trajectory {
         let p = self.position_at_arc(s);
         let a = self.position_at_arc(s - 0.5);
         let b = self.position_at_arc(s + 0.5);
-        PlanarPose { x: p[0], y: p[1], yaw: (b[1] - a[1]).atan2(b[0] - a[0]) }
+        PlanarPose {
+            x: p[0],
+            y: p[1],
+            yaw: (b[1] - a[1]).atan2(b[0] - a[0]),
+        }
     }
 
     /// Pose at time `t_s` after the start of the drive.
@@ -155,7 +194,10 @@ mod tests {
             for k in 1..400 {
                 let p = traj.pose_at(k as f32 * 0.1);
                 let step = (p.x - prev.x).hypot(p.y - prev.y);
-                assert!((step - 1.0).abs() < 0.05, "seed {seed} scan {k}: step {step}");
+                assert!(
+                    (step - 1.0).abs() < 0.05,
+                    "seed {seed} scan {k}: step {step}"
+                );
                 prev = p;
             }
         }
