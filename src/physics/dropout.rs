@@ -185,9 +185,9 @@ fn one() -> f32 {
 }
 
 impl OcclusionSector {
-    pub fn contains(&self, d: [f32; 3]) -> bool {
-        let az = d[1].atan2(d[0]).to_degrees();
-        let el = d[2].atan2(d[0].hypot(d[1])).to_degrees();
+    /// Whether a ray at `azimuth_rad`, `elevation_rad` lies in the sector.
+    pub fn contains(&self, azimuth_rad: f32, elevation_rad: f32) -> bool {
+        let (az, el) = (azimuth_rad.to_degrees(), elevation_rad.to_degrees());
         let in_az = if self.azimuth_min_deg <= self.azimuth_max_deg {
             (self.azimuth_min_deg..=self.azimuth_max_deg).contains(&az)
         } else {
@@ -215,15 +215,24 @@ impl OcclusionBox {
 }
 
 impl SelfOcclusion {
-    /// Drop probability of a ray along `d`: the largest over the regions it is in.
-    pub fn block_prob(&self, d: [f32; 3]) -> f32 {
+    /// Drop probability of a ray: the largest over the regions it is in.
+    pub fn block_prob(&self, f: &RayFeatures) -> f32 {
         let s = self
             .sectors
             .iter()
-            .filter(|s| s.contains(d))
+            .filter(|s| s.contains(f.azimuth_rad, f.elevation_rad))
             .map(|s| s.prob);
-        let b = self.boxes.iter().filter(|b| b.blocks(d)).map(|b| b.prob);
-        s.chain(b).fold(0.0, f32::max)
+        let mut p = s.fold(0.0, f32::max);
+        if !self.boxes.is_empty() {
+            let d = super::Physics::direction(f);
+            p = self
+                .boxes
+                .iter()
+                .filter(|b| b.blocks(d))
+                .map(|b| b.prob)
+                .fold(p, f32::max);
+        }
+        p
     }
 }
 
@@ -235,7 +244,7 @@ impl Effect for SelfOcclusion {
         true
     }
     fn drop_prob(&self, f: &RayFeatures) -> f32 {
-        self.block_prob(f.direction)
+        self.block_prob(f)
     }
 }
 
@@ -305,7 +314,8 @@ pub(crate) mod tests {
             material,
             reflectivity: 0.3,
             intensity: 0.2,
-            direction: [1.0, 0.0, 0.0],
+            azimuth_rad: 0.0,
+            elevation_rad: 0.0,
         }
     }
 
@@ -454,20 +464,21 @@ pub(crate) mod tests {
                 prob: 1.0,
             }],
         };
-        let dir = |az: f32, el: f32| {
-            let (a, e) = (az.to_radians(), el.to_radians());
-            [e.cos() * a.cos(), e.cos() * a.sin(), e.sin()]
+        let dir = |az: f32, el: f32| RayFeatures {
+            azimuth_rad: az.to_radians(),
+            elevation_rad: el.to_radians(),
+            ..features(10.0, 0.0, Material::Asphalt, 60)
         };
-        assert_eq!(e.block_prob(dir(180.0, -20.0)), 1.0);
-        assert_eq!(e.block_prob(dir(-170.0, -20.0)), 1.0);
-        assert_eq!(e.block_prob(dir(180.0, -10.0)), 0.0);
-        assert_eq!(e.block_prob(dir(0.0, -20.0)), 0.0);
+        assert_eq!(e.block_prob(&dir(180.0, -20.0)), 1.0);
+        assert_eq!(e.block_prob(&dir(-170.0, -20.0)), 1.0);
+        assert_eq!(e.block_prob(&dir(180.0, -10.0)), 0.0);
+        assert_eq!(e.block_prob(&dir(0.0, -20.0)), 0.0);
         assert_eq!(
-            e.block_prob(dir(90.0, -20.0)),
+            e.block_prob(&dir(90.0, -20.0)),
             1.0,
             "the box beside the sensor"
         );
-        assert_eq!(e.block_prob(dir(0.0, 0.0)), 0.0);
+        assert_eq!(e.block_prob(&dir(0.0, 0.0)), 0.0);
         let blocked = |seed| {
             let (ideal, real) = before_after(Box::new(e.clone()), seed);
             (0..ideal.len())

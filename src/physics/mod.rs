@@ -6,7 +6,7 @@
 //! Two kinds of effect, both with a likelihood-friendly form for diagnosis:
 //! - **drop models** give a drop probability per ray from its ideal features
 //!   ([`RayFeatures`]: row, column, true range, incidence, material, reflectivity,
-//!   intensity, direction). Each draws independently, so a ray's keep
+//!   intensity, azimuth, elevation). Each draws independently, so a ray's keep
 //!   probability is the product of `1 - p` over the enabled drop effects.
 //! - **perturbations** move kept returns (range noise, quantisation, mixed pixels
 //!   at depth edges, motion distortion), change intensity, or add clutter returns.
@@ -36,8 +36,9 @@ pub struct RayFeatures {
     pub reflectivity: f32,
     /// Ideal intensity (reflectivity x cos(incidence) x range falloff).
     pub intensity: f32,
-    /// Unit ray direction, sensor frame.
-    pub direction: [f32; 3],
+    /// Ray azimuth (0 = ahead, counter-clockwise) and elevation, radians.
+    pub azimuth_rad: f32,
+    pub elevation_rad: f32,
 }
 
 impl RayFeatures {
@@ -52,7 +53,8 @@ impl RayFeatures {
             material: scan.material[k],
             reflectivity: scan.reflectivity[k],
             intensity: scan.image.intensity[k],
-            direction: scan.image.angles.direction(k),
+            azimuth_rad: scan.image.angles.azimuth_rad[k],
+            elevation_rad: scan.image.angles.elevation_rad[k],
         }
     }
 }
@@ -129,6 +131,13 @@ impl Physics {
             .filter(|e| e.drops())
             .map(|e| 1.0 - e.drop_prob(features).clamp(0.0, 1.0))
             .product()
+    }
+
+    /// Unit direction (sensor frame) of a ray with these features.
+    pub fn direction(features: &RayFeatures) -> [f32; 3] {
+        let (se, ce) = features.elevation_rad.sin_cos();
+        let (sa, ca) = features.azimuth_rad.sin_cos();
+        [ce * ca, ce * sa, se]
     }
 
     /// Applies every enabled effect to an ideal scan, in place. `seed` is the scene seed.
