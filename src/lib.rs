@@ -14,4 +14,6 @@ pub mod cli;
 pub mod error;
 pub mod io;
 pub mod lidar;
+pub mod physics;
 pub mod pipeline;
+pub mod sim;
