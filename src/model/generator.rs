@@ -361,8 +361,8 @@ impl Generator {
                 let s = tensor_from(shift.to_vec(), [b], &device);
                 let raw = self.synthesis(w, grid, Some(s)); // [batch, 2, H, W]
                 // Azimuth decreases with the column index (pi - (j + 0.5) 2pi / W), so adding
-                // 2 pi s shows, at column j, what belongs at column j - sW: move it back by +sW.
-                let px: Vec<f32> = shift.iter().map(|s| s * grid.width as f32).collect();
+                // 2 pi s shows, at column j, what belongs at column j - sW: read it from j + sW.
+                let px: Vec<f32> = shift.iter().map(|s| -s * grid.width as f32).collect();
                 shift_columns(raw, &px)
             }
             None => self.synthesis(w, grid, None),

@@ -41,7 +41,7 @@ impl MeasurementConfig {
         let soft = sigmoid((keep_logit.clone() + logistic).div_scalar(self.tau)); // [batch, 1, H, W]
         let hard = soft.clone().detach().greater_elem(0.5).float(); // [batch, 1, H, W]
         // Straight-through: the value of `hard`, the gradient of `soft`.
-        let mask = hard + soft.clone() - soft.detach();
+        let mask = hard + (soft.clone() - soft.detach());
         let x_measured = (mask.clone() * x_d.add_scalar(1.0)).sub_scalar(1.0);
         let keep_prob = sigmoid(keep_logit);
         Measured {

@@ -132,6 +132,8 @@ pub struct TrainOptions {
     /// Used when the run directory has no config.json yet; otherwise the saved one wins.
     pub config: TrainConfig,
     pub backend: Backend,
+    /// Overrides the (saved) total image budget, e.g. to extend a finished run.
+    pub total_images: Option<u64>,
     /// Stop after this much wall time (checkpointing first).
     pub max_duration: Option<Duration>,
     pub progress: bool,
@@ -188,6 +190,15 @@ pub fn run(opts: &TrainOptions) -> Result<()> {
             .save(&config_path)
             .with_context(|| format!("failed to write '{}'", config_path.display()))?;
         opts.config.clone()
+    };
+    let config = match opts.total_images {
+        Some(n) if n != config.total_images => {
+            let c = config.with_total_images(n);
+            c.save(&config_path)
+                .with_context(|| format!("failed to write '{}'", config_path.display()))?;
+            c
+        }
+        _ => config,
     };
     let data = RangeDataset::load_or_build(&opts.dataset_cache, &opts.scans, 512)?;
     if data.len() < config.batch_size {
@@ -682,6 +693,7 @@ impl ModuleMapper for Lerp {
     }
 }
 
+/// `g` must live on an autodiff device (the training module): trainability is read from it.
 pub fn ema_update<M: Module>(ema: M, g: &M, beta: f32) -> M {
     let mut c = Collect(Vec::new());
     g.visit(&mut c);
@@ -717,7 +729,8 @@ mod tests {
 
     #[test]
     fn ema_moves_towards_the_generator() {
-        let dev = Device::flex();
+        // The source is a training (autodiff) module: that is where trainability is known.
+        let dev = Device::flex().autodiff();
         let cfg = TrainConfig::new().with_generator(
             GeneratorConfig::new()
                 .with_mapping(super::super::generator::MappingConfig::new().with_d_z(4).with_d_w(4))
@@ -776,6 +789,7 @@ mod tests {
             scans: vec![],
             config,
             backend: Backend::Flex,
+            total_images: None,
             max_duration: None,
             progress: false,
         };
@@ -788,10 +802,7 @@ mod tests {
         let log = std::fs::read_to_string(opts.run_dir.join("log.jsonl")).expect("log");
         assert!(log.lines().count() >= 1 || state.step < 10);
         // Resume with a larger budget: continues from 8, not from 0.
-        let cfg = TrainConfig::load(opts.run_dir.join("config.json")).expect("config");
-        let cfg = cfg.with_total_images(12);
-        cfg.save(opts.run_dir.join("config.json")).expect("save");
-        opts.config = cfg;
+        opts.total_images = Some(12);
         run(&opts).expect("resume");
         let state: TrainState = serde_json::from_str(
             &std::fs::read_to_string(opts.run_dir.join("checkpoint/state.json")).expect("state"),
