@@ -10,6 +10,9 @@
 //! 4. [`io`] encodes the results as new channels and writes them beside every
 //!    copied input record, atomically.
 
+pub mod cli;
 pub mod error;
+pub mod io;
 pub mod lidar;
 pub mod model;
+pub mod pipeline;

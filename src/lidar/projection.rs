@@ -242,8 +242,8 @@ mod tests {
         let mut xyz = Vec::new();
         for e in elev.iter().take(beams) {
             for k in 0..per_ring {
-                // Start slightly right of ahead (azimuth < 0), sweep counter-clockwise.
-                let az = -0.01 + k as f32 * 2.0 * std::f32::consts::PI / per_ring as f32;
+                // Start just left of ahead (azimuth >= 0), sweep counter-clockwise.
+                let az = 0.01 + k as f32 * 2.0 * std::f32::consts::PI / per_ring as f32;
                 let (e, az) = (e.to_radians(), az);
                 xyz.push([range * e.cos() * az.cos(), range * e.cos() * az.sin(), range * e.sin()]);
             }

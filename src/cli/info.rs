@@ -1,0 +1,199 @@
+//! `rangegan-mcap info IN`: what a recording holds and how its clouds project.
+
+use std::collections::BTreeMap;
+use std::path::PathBuf;
+
+use anyhow::Context;
+use mcap::records::Record;
+
+use super::{GlobalArgs, Outcome};
+use crate::io::{CloudFormat, OnError, decode_cloud, read_records};
+use crate::lidar::{Strategy, project};
+use crate::pipeline::{SensorChoice, guess_profile};
+
+#[derive(Debug, clap::Args)]
+pub struct InfoArgs {
+    /// MCAP recording.
+    pub input: PathBuf,
+    /// Sensor profile for the projection report (`auto`, a built-in name or a JSON file).
+    #[arg(long, default_value = "auto")]
+    pub sensor: String,
+}
+
+#[derive(Debug, Default, serde::Serialize)]
+struct ChannelInfo {
+    id: u16,
+    topic: String,
+    schema: String,
+    schema_encoding: String,
+    message_encoding: String,
+    messages: u64,
+    first_log_time: Option<u64>,
+    last_log_time: Option<u64>,
+    point_cloud: Option<CloudFormat>,
+    layout: Option<CloudLayoutInfo>,
+}
+
+#[derive(Debug, serde::Serialize)]
+struct CloudLayoutInfo {
+    height: usize,
+    width: usize,
+    returns: usize,
+    fields: Vec<String>,
+    sensor: String,
+    beams: usize,
+    columns: usize,
+    strategy: String,
+    kept_fraction: f64,
+    error: Option<String>,
+}
+
+pub fn run(global: &GlobalArgs, args: InfoArgs) -> anyhow::Result<Outcome> {
+    let file = std::fs::File::open(&args.input).with_context(|| format!("cannot open {}", args.input.display()))?;
+    let len = file.metadata().ok().map(|m| m.len());
+    let sensor = super::convert::sensor_choice(&args.sensor)?;
+    let mut schemas: BTreeMap<u16, (String, String)> = BTreeMap::new();
+    let mut channels: BTreeMap<u16, ChannelInfo> = BTreeMap::new();
+    let (mut attachments, mut metadata) = (Vec::new(), Vec::new());
+    let reader = std::io::BufReader::with_capacity(1 << 20, file);
+    let report = read_records(
+        reader,
+        len,
+        OnError::Skip,
+        |rec| {
+            match rec {
+                Record::Schema { header, .. } => {
+                    schemas.insert(header.id, (header.name.clone(), header.encoding.clone()));
+                }
+                Record::Channel(c) => {
+                    let (schema, schema_encoding) = schemas.get(&c.schema_id).cloned().unwrap_or_default();
+                    let point_cloud = CloudFormat::detect(&c.message_encoding, &schema);
+                    channels.entry(c.id).or_insert(ChannelInfo {
+                        id: c.id,
+                        topic: c.topic.clone(),
+                        schema,
+                        schema_encoding,
+                        message_encoding: c.message_encoding.clone(),
+                        point_cloud,
+                        ..Default::default()
+                    });
+                }
+                Record::Message { header, data } => {
+                    if let Some(ch) = channels.get_mut(&header.channel_id) {
+                        ch.messages += 1;
+                        ch.first_log_time = Some(ch.first_log_time.map_or(header.log_time, |t| t.min(header.log_time)));
+                        ch.last_log_time = Some(ch.last_log_time.map_or(header.log_time, |t| t.max(header.log_time)));
+                        if let (Some(format), None) = (ch.point_cloud, &ch.layout) {
+                            ch.layout = Some(describe(format, data, &sensor));
+                        }
+                    }
+                }
+                Record::Attachment { header, data, .. } => attachments.push((header.name.clone(), data.len())),
+                Record::Metadata(m) => metadata.push(m.name.clone()),
+                _ => {}
+            }
+            Ok(())
+        },
+        |_| {},
+    )
+    .map_err(|e| anyhow::anyhow!("{}: {e}", args.input.display()))?;
+
+    if global.json {
+        let out = serde_json::json!({
+            "file": args.input,
+            "bytes": len,
+            "complete": report.complete,
+            "read": report,
+            "channels": channels.values().collect::<Vec<_>>(),
+            "attachments": attachments,
+            "metadata": metadata,
+        });
+        println!("{}", serde_json::to_string_pretty(&out)?);
+        return Ok(Outcome::Success);
+    }
+    println!("{}: {} bytes{}", args.input.display(), len.unwrap_or(0), if report.complete { "" } else { " (incomplete)" });
+    if let Some(why) = &report.stopped {
+        println!("  warning: {why}; {} bytes unread", report.unread_bytes);
+    }
+    for c in &report.bad_chunks {
+        println!("  warning: {c}");
+    }
+    println!("channels:");
+    for ch in channels.values() {
+        println!("  {:>4} {} [{} / {}] {} messages", ch.id, ch.topic, ch.schema, ch.message_encoding, ch.messages);
+        if let Some(l) = &ch.layout {
+            println!(
+                "       point cloud {}x{} ({} returns), fields {}",
+                l.height,
+                l.width,
+                l.returns,
+                l.fields.join(",")
+            );
+            match &l.error {
+                Some(e) => println!("       cannot project: {e}"),
+                None => println!(
+                    "       sensor {} ({} beams x {} columns), projection {}, {:.1} % of returns keep a pixel",
+                    l.sensor,
+                    l.beams,
+                    l.columns,
+                    l.strategy,
+                    100.0 * l.kept_fraction
+                ),
+            }
+        }
+    }
+    if !attachments.is_empty() {
+        println!("attachments: {}", attachments.iter().map(|a| a.0.as_str()).collect::<Vec<_>>().join(", "));
+    }
+    if !metadata.is_empty() {
+        println!("metadata: {}", metadata.join(", "));
+    }
+    Ok(Outcome::Success)
+}
+
+fn describe(format: CloudFormat, data: &[u8], sensor: &SensorChoice) -> CloudLayoutInfo {
+    let mut info = CloudLayoutInfo {
+        height: 0,
+        width: 0,
+        returns: 0,
+        fields: Vec::new(),
+        sensor: String::new(),
+        beams: 0,
+        columns: 0,
+        strategy: String::new(),
+        kept_fraction: 0.0,
+        error: None,
+    };
+    let cloud = match decode_cloud(format, data) {
+        Ok(c) => c,
+        Err(e) => {
+            info.error = Some(e.to_string());
+            return info;
+        }
+    };
+    let scan = &cloud.scan;
+    info.height = scan.height;
+    info.width = scan.width;
+    info.returns = scan.returns();
+    info.fields = ["intensity", "ring", "time", "label"]
+        .into_iter()
+        .zip([scan.intensity.is_some(), scan.ring.is_some(), scan.time_s.is_some(), scan.label.is_some()])
+        .filter(|(_, has)| *has)
+        .map(|(n, _)| n.to_string())
+        .collect();
+    info.fields.insert(0, "xyz".into());
+    let profile = match sensor {
+        SensorChoice::Fixed(p) => p.clone(),
+        SensorChoice::Auto => guess_profile(scan),
+    };
+    let strategy = crate::lidar::projection::choose_strategy(scan, &profile);
+    info.sensor = profile.name.clone();
+    info.beams = profile.beams();
+    info.columns = profile.columns;
+    info.strategy = strategy.name().into();
+    match project(scan, &profile, Strategy::Auto) {
+        Ok(img) => info.kept_fraction = img.valid_count() as f64 / info.returns.max(1) as f64,
+        Err(e) => info.error = Some(e.to_string()),
+    }
+    info
+}

@@ -1,0 +1,104 @@
+//! Command-line interface: clap types and glue. The only module that prints,
+//! draws progress bars or maps results to exit codes; library code never sees
+//! clap types (each subcommand resolves its arguments into library options).
+
+mod convert;
+mod import;
+mod info;
+
+use std::process::ExitCode;
+
+use clap::{Parser, Subcommand};
+
+/// rangegan-mcap: LiDAR range images and a range-image GAN for MCAP recordings.
+#[derive(Debug, Parser)]
+#[command(name = "rangegan-mcap", version, about, propagate_version = true)]
+pub struct Args {
+    #[command(flatten)]
+    pub global: GlobalArgs,
+    #[command(subcommand)]
+    pub command: Command,
+}
+
+/// Flags every subcommand takes.
+#[derive(Debug, Clone, clap::Args)]
+pub struct GlobalArgs {
+    /// No progress bar and no summary line on stderr.
+    #[arg(long, short, global = true)]
+    pub quiet: bool,
+    /// Print a machine-readable JSON summary on stdout.
+    #[arg(long, global = true)]
+    pub json: bool,
+    /// Worker threads (default: one per core).
+    #[arg(long, global = true)]
+    pub threads: Option<usize>,
+}
+
+#[derive(Debug, Subcommand)]
+pub enum Command {
+    /// Copy a recording and add range-image channels for its point-cloud topics.
+    Convert(convert::ConvertArgs),
+    /// Channels, schemas, message counts, point-cloud topics and their sensor layout.
+    Info(info::InfoArgs),
+    /// Turn a KITTI / SemanticKITTI folder into an MCAP of ROS 2 PointCloud2 messages.
+    Import(import::ImportArgs),
+}
+
+/// How a command ended when it did not fail outright.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Outcome {
+    /// Everything was processed.
+    Success,
+    /// Done, but some input was skipped or could not be read (exit code 3).
+    DataSkipped,
+}
+
+impl Outcome {
+    pub fn exit_code(self) -> ExitCode {
+        match self {
+            Outcome::Success => ExitCode::SUCCESS,
+            Outcome::DataSkipped => ExitCode::from(3),
+        }
+    }
+}
+
+/// Runs the parsed command.
+pub fn run(args: Args) -> anyhow::Result<Outcome> {
+    if let Some(n) = args.global.threads {
+        rayon::ThreadPoolBuilder::new().num_threads(n).build_global()?;
+    }
+    match args.command {
+        Command::Convert(a) => convert::run(&args.global, a),
+        Command::Info(a) => info::run(&args.global, a),
+        Command::Import(a) => import::run(&args.global, a),
+    }
+}
+
+/// A byte-progress bar on stderr; hidden when stderr is not a terminal or `quiet`.
+pub(crate) fn progress_bar(global: &GlobalArgs, total: u64) -> indicatif::ProgressBar {
+    if global.quiet {
+        return indicatif::ProgressBar::hidden();
+    }
+    let bar = indicatif::ProgressBar::with_draw_target(Some(total), indicatif::ProgressDrawTarget::stderr());
+    let style = indicatif::ProgressStyle::with_template(
+        "{bar:30} {bytes}/{total_bytes} {binary_bytes_per_sec} {msg} ETA {eta}",
+    )
+    .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar());
+    bar.set_style(style);
+    bar
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn arguments_parse() {
+        let a = Args::try_parse_from(["rangegan-mcap", "convert", "in.mcap", "out.mcap", "--topic", "/a", "--topic", "/b", "--json"]).unwrap();
+        assert!(a.global.json);
+        let Command::Convert(c) = a.command else { panic!("not convert") };
+        assert_eq!(c.topic, vec!["/a".to_string(), "/b".to_string()]);
+        assert!(Args::try_parse_from(["rangegan-mcap", "convert", "in.mcap"]).is_err());
+        assert!(Args::try_parse_from(["rangegan-mcap", "convert", "a", "b", "--on-error", "maybe"]).is_err());
+    }
+}

@@ -1,0 +1,336 @@
+//! One pass over a recording: every input record is copied to the output, every
+//! point-cloud message is decoded and projected, and per-scan stages add new
+//! channels under `<topic>/rangegan/`. Scans are processed in parallel (rayon) in
+//! bounded batches and written back in input order, so the output is the same
+//! whatever the thread count and memory does not grow with the file.
+
+use std::collections::{BTreeMap, HashMap};
+use std::io::Read;
+use std::sync::Mutex;
+
+use mcap::records::Record;
+use rayon::prelude::*;
+
+use crate::error::Location;
+use crate::io::encoders::{Kind, Payload, PixelFormat, encode};
+use crate::io::{CloudFormat, DecodedCloud, Family, McapOutput, OnError, ReadReport, decode_cloud, read_records};
+use crate::lidar::{RangeImage, SensorProfile, Strategy, project};
+
+/// Which sensor grid a topic's scans are projected onto.
+#[derive(Debug, Clone)]
+pub enum SensorChoice {
+    /// Estimated from each topic's first scan.
+    Auto,
+    Fixed(SensorProfile),
+}
+
+/// What to convert and how.
+#[derive(Debug, Clone)]
+pub struct ConvertOptions {
+    /// Topics to process; `None` = every point-cloud topic.
+    pub topics: Option<Vec<String>>,
+    pub sensor: SensorChoice,
+    /// Columns of the range image; `None` = the profile's own.
+    pub columns: Option<usize>,
+    pub strategy: Strategy,
+    pub on_error: OnError,
+    /// Scans decoded in parallel per batch.
+    pub batch_scans: usize,
+}
+
+impl Default for ConvertOptions {
+    fn default() -> Self {
+        ConvertOptions {
+            topics: None,
+            sensor: SensorChoice::Auto,
+            columns: None,
+            strategy: Strategy::Auto,
+            on_error: OnError::Fail,
+            batch_scans: 2 * rayon::current_num_threads().max(1),
+        }
+    }
+}
+
+/// One scan handed to the per-scan stages.
+pub struct ScanInput<'a> {
+    pub topic: &'a str,
+    pub log_time: u64,
+    pub family: Family,
+    pub cloud: &'a DecodedCloud,
+    pub image: &'a RangeImage,
+}
+
+/// One message a stage adds, on channel `<topic>/rangegan/<suffix>`.
+pub struct StageOutput {
+    pub suffix: String,
+    pub kind: Kind,
+    pub data: Vec<u8>,
+}
+
+/// A per-scan stage: pure in its inputs, so results do not depend on threads.
+pub type Stage<'s> = dyn Fn(&ScanInput<'_>) -> anyhow::Result<Vec<StageOutput>> + Sync + 's;
+
+/// The range image channel every converted topic gets: range in meters, 32FC1.
+pub fn range_stage(input: &ScanInput<'_>) -> anyhow::Result<Vec<StageOutput>> {
+    let img = input.image;
+    let data: Vec<u8> = img.range_m.iter().flat_map(|r| r.to_le_bytes()).collect();
+    let payload = Payload::Image { width: img.width as u32, height: img.height as u32, format: PixelFormat::F32, data: &data };
+    let bytes = encode(input.family, input.cloud.stamp_nanos, &input.cloud.frame_id, &payload);
+    Ok(vec![StageOutput { suffix: "range".into(), kind: Kind::Image, data: bytes }])
+}
+
+/// Per-topic results for the summary.
+#[derive(Debug, Clone, Default, serde::Serialize)]
+pub struct TopicReport {
+    pub format: Option<CloudFormat>,
+    pub scans: u64,
+    /// Messages that could not be decoded or projected (copied through unchanged).
+    pub malformed: u64,
+    pub sensor: Option<String>,
+    pub strategy: Option<String>,
+    pub rows: usize,
+    pub columns: usize,
+    /// Mean fraction of a scan's returns that kept a pixel.
+    pub kept_fraction: f64,
+}
+
+/// A warning about one message; the message itself was copied unchanged.
+#[derive(Debug, Clone, serde::Serialize)]
+pub struct Warning {
+    pub topic: String,
+    pub log_time_nanos: u64,
+    pub message: String,
+}
+
+/// What a conversion did.
+#[derive(Debug, Clone, Default, serde::Serialize)]
+pub struct ConvertReport {
+    pub read: ReadReport,
+    pub records_in: RecordCounts,
+    pub copied: crate::io::writer::CopyCounts,
+    pub outputs_written: u64,
+    pub topics: BTreeMap<String, TopicReport>,
+    pub warnings: Vec<Warning>,
+}
+
+/// Counts of input records by kind (the ones a copy must preserve).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, serde::Serialize)]
+pub struct RecordCounts {
+    pub schemas: u64,
+    pub channels: u64,
+    pub messages: u64,
+    pub attachments: u64,
+    pub metadata: u64,
+}
+
+struct ChannelInfo {
+    topic: String,
+    format: Option<CloudFormat>,
+}
+
+/// A point-cloud message waiting for its batch (the message itself is already
+/// copied; its outputs follow when the batch is processed).
+struct Pending {
+    topic: String,
+    format: CloudFormat,
+    log_time: u64,
+    publish_time: u64,
+    data: Vec<u8>,
+}
+
+/// The per-scan work, shared by the worker threads.
+struct ScanProcessor<'a> {
+    opts: &'a ConvertOptions,
+    stages: &'a [&'a Stage<'a>],
+    profiles: Mutex<HashMap<String, (SensorProfile, Strategy)>>,
+}
+
+type Processed = (Vec<StageOutput>, f64, (SensorProfile, Strategy));
+
+impl ScanProcessor<'_> {
+    /// The profile and strategy for `topic`, fixed by its first decodable scan.
+    fn profile_for(&self, topic: &str, cloud: &DecodedCloud) -> (SensorProfile, Strategy) {
+        let mut map = self.profiles.lock().unwrap_or_else(|e| e.into_inner());
+        map.entry(topic.to_string())
+            .or_insert_with(|| {
+                let profile = match &self.opts.sensor {
+                    SensorChoice::Fixed(p) => p.clone(),
+                    SensorChoice::Auto => guess_profile(&cloud.scan),
+                };
+                let profile = match self.opts.columns {
+                    Some(c) => profile.with_columns(c),
+                    None => profile,
+                };
+                let strategy = match self.opts.strategy {
+                    Strategy::Auto => crate::lidar::projection::choose_strategy(&cloud.scan, &profile),
+                    s => s,
+                };
+                (profile, strategy)
+            })
+            .clone()
+    }
+
+    fn process(&self, p: &Pending) -> Result<Processed, String> {
+        let cloud = decode_cloud(p.format, &p.data).map_err(|e| e.to_string())?;
+        let (profile, strategy) = self.profile_for(&p.topic, &cloud);
+        let image = project(&cloud.scan, &profile, strategy).map_err(|e| e.to_string())?;
+        let returns = cloud.scan.returns().max(1);
+        let kept = image.valid_count() as f64 / returns as f64;
+        let input = ScanInput { topic: &p.topic, log_time: p.log_time, family: p.format.family(), cloud: &cloud, image: &image };
+        let mut outputs = Vec::new();
+        for stage in self.stages {
+            outputs.extend(stage(&input).map_err(|e| format!("{e:#}"))?);
+        }
+        Ok((outputs, kept, (profile, strategy)))
+    }
+
+}
+
+struct Converter<'a> {
+    out: McapOutput,
+    opts: &'a ConvertOptions,
+    processor: ScanProcessor<'a>,
+    file: std::path::PathBuf,
+    schemas: HashMap<u16, (String, String)>,
+    channels: HashMap<u16, ChannelInfo>,
+    batch: Vec<Pending>,
+    report: ConvertReport,
+}
+
+impl Converter<'_> {
+    fn selected(&self, topic: &str) -> bool {
+        self.opts.topics.as_ref().is_none_or(|t| t.iter().any(|x| x == topic))
+    }
+
+    fn visit(&mut self, record: &Record<'_>) -> anyhow::Result<()> {
+        let counts = &mut self.report.records_in;
+        match record {
+            Record::Schema { header, .. } => {
+                counts.schemas += 1;
+                self.schemas.insert(header.id, (header.name.clone(), header.encoding.clone()));
+            }
+            Record::Channel(c) => {
+                counts.channels += 1;
+                let schema_name = self.schemas.get(&c.schema_id).map_or("", |s| s.0.as_str());
+                let format = CloudFormat::detect(&c.message_encoding, schema_name).filter(|_| self.selected(&c.topic));
+                if let Some(f) = format {
+                    self.report.topics.entry(c.topic.clone()).or_default().format = Some(f);
+                }
+                self.channels.insert(c.id, ChannelInfo { topic: c.topic.clone(), format });
+            }
+            Record::Message { .. } => counts.messages += 1,
+            Record::Attachment { .. } => counts.attachments += 1,
+            Record::Metadata(_) => counts.metadata += 1,
+            _ => {}
+        }
+        // Copy first: the input record reaches the output whatever happens to its scan.
+        self.out.copy_record(record)?;
+        if let Record::Message { header, data } = record {
+            if let Some(ChannelInfo { topic, format: Some(format) }) = self.channels.get(&header.channel_id) {
+                self.batch.push(Pending {
+                    topic: topic.clone(),
+                    format: *format,
+                    log_time: header.log_time,
+                    publish_time: header.publish_time,
+                    data: data.to_vec(),
+                });
+                if self.batch.len() >= self.opts.batch_scans.max(1) {
+                    self.flush()?;
+                }
+            }
+        }
+        Ok(())
+    }
+
+    fn flush(&mut self) -> anyhow::Result<()> {
+        let batch = std::mem::take(&mut self.batch);
+        let processor = &self.processor;
+        let results: Vec<_> = batch.par_iter().map(|p| processor.process(p)).collect();
+        for (p, result) in batch.iter().zip(results) {
+            let topic_report = self.report.topics.entry(p.topic.clone()).or_default();
+            match result {
+                Ok((outputs, kept, (profile, strategy))) => {
+                    topic_report.kept_fraction += kept;
+                    topic_report.scans += 1;
+                    topic_report.sensor = Some(profile.name.clone());
+                    topic_report.strategy = Some(strategy.name().into());
+                    topic_report.rows = profile.beams();
+                    topic_report.columns = profile.columns;
+                    let family = p.format.family();
+                    for o in outputs {
+                        let topic = format!("{}/rangegan/{}", p.topic, o.suffix);
+                        let id = self.out.own_channel(&topic, family, o.kind)?;
+                        self.out.write_own(id, p.log_time, p.publish_time, &o.data)?;
+                        self.report.outputs_written += 1;
+                    }
+                }
+                Err(message) => {
+                    topic_report.malformed += 1;
+                    let loc = Location::message(&self.file, &p.topic, p.log_time);
+                    self.report.warnings.push(Warning { topic: p.topic.clone(), log_time_nanos: p.log_time, message: format!("{loc}: {message}; message copied unchanged") });
+                }
+            }
+        }
+        Ok(())
+    }
+}
+
+/// A built-in profile matching the scan's beam count (ring ids, organized rows or
+/// KITTI ring order), KITTI's HDL-64E when nothing tells.
+pub fn guess_profile(scan: &crate::lidar::Scan) -> SensorProfile {
+    let beams = if let Some(ring) = &scan.ring {
+        ring.iter().collect::<std::collections::BTreeSet<_>>().len()
+    } else if scan.is_organized() {
+        scan.height.min(scan.width)
+    } else {
+        crate::lidar::projection::ring_order_ids(scan).last().map_or(0, |r| *r as usize + 1)
+    };
+    let name = match beams {
+        // Organized clouds with many beams come from Ouster drivers; Velodyne's are unorganized.
+        64 if scan.is_organized() => "os1-64",
+        16 => "vlp16",
+        32 => "hdl32e",
+        128 => "os1-128",
+        _ => "hdl64e",
+    };
+    SensorProfile::builtin(name).unwrap_or_else(|_| SensorProfile::kitti_hdl64e())
+}
+
+/// Converts `input` (read as a stream from `src`) into `out`: copies every record
+/// and adds the channels of `stages` for every point-cloud topic. `progress` gets
+/// the bytes read so far.
+pub fn convert(
+    input: &std::path::Path,
+    src: impl Read,
+    file_len: Option<u64>,
+    mut out: McapOutput,
+    opts: &ConvertOptions,
+    stages: &[&Stage<'_>],
+    metadata: BTreeMap<String, String>,
+    progress: impl FnMut(u64),
+) -> anyhow::Result<ConvertReport> {
+    out.write_metadata("rangegan", metadata)?;
+    let mut conv = Converter {
+        out,
+        opts,
+        processor: ScanProcessor { opts, stages, profiles: Mutex::new(HashMap::new()) },
+        file: input.to_path_buf(),
+        schemas: HashMap::new(),
+        channels: HashMap::new(),
+        batch: Vec::new(),
+        report: ConvertReport::default(),
+    };
+    let read = read_records(src, file_len, opts.on_error, |rec| conv.visit(rec), progress)
+        .map_err(|e| anyhow::anyhow!("{}: {e}", input.display()))?;
+    conv.flush()?;
+    let mut report = conv.report;
+    report.read = read;
+    report.copied = conv.out.copied;
+    for t in report.topics.values_mut() {
+        if t.scans > 0 {
+            t.kept_fraction /= t.scans as f64;
+        }
+    }
+    conv.out.finish()?;
+    Ok(report)
+}

@@ -1,0 +1,108 @@
+//! Shared helpers for end-to-end tests: synthetic recordings written with the bare
+//! `mcap` crate, the built binary, and the independent Python reader.
+#![allow(dead_code)]
+
+use std::borrow::Cow;
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+
+use rangegan_mcap::io::decoders::{DecodedCloud, Family};
+use rangegan_mcap::io::encoders::{self, Kind};
+use rangegan_mcap::lidar::{Scan, SensorProfile};
+
+pub fn bin() -> Command {
+    Command::new(env!("CARGO_BIN_EXE_rangegan-mcap"))
+}
+
+pub fn run(args: &[&str]) -> Output {
+    bin().args(args).output().expect("binary runs")
+}
+
+pub fn stderr(o: &Output) -> String {
+    String::from_utf8_lossy(&o.stderr).into_owned()
+}
+
+/// A small synthetic 16-beam scan: a cylinder wall at `range_m`, beam `ring`
+/// recorded, some rays dropped.
+pub fn synthetic_scan(range_m: f32, seed: u32) -> Scan {
+    let profile = SensorProfile::builtin("vlp16").unwrap().with_columns(360);
+    let grid = profile.angle_grid();
+    let mut scan = Scan { intensity: Some(Vec::new()), ring: Some(Vec::new()), ..Default::default() };
+    for k in 0..grid.len() {
+        if (k as u32).wrapping_mul(2_654_435_761).wrapping_add(seed) % 10 == 0 {
+            continue; // dropped ray
+        }
+        let [x, y, z] = grid.direction(k);
+        scan.xyz.push([x * range_m, y * range_m, z * range_m]);
+        scan.intensity.as_mut().unwrap().push((k % 256) as f32);
+        scan.ring.as_mut().unwrap().push((15 - k / 360) as u16);
+    }
+    scan.height = 1;
+    scan.width = scan.xyz.len();
+    scan
+}
+
+/// Writes a recording with one point-cloud topic per family given, plus a
+/// non-cloud topic, an attachment and a metadata record. Returns message count.
+pub fn write_recording(path: &Path, families: &[Family], scans: usize, chunk_size: Option<u64>) -> u64 {
+    let file = std::io::BufWriter::new(std::fs::File::create(path).unwrap());
+    let opts = mcap::WriteOptions::new().compression(Some(mcap::Compression::Zstd)).chunk_size(chunk_size);
+    let mut w = opts.create(file).unwrap();
+    let mut channels = Vec::new();
+    for family in families {
+        let s = encoders::schema(*family, Kind::Cloud);
+        let schema = w.add_schema(&s.name, &s.encoding, &s.data).unwrap();
+        let topic = format!("/lidar_{family:?}").to_lowercase();
+        let id = w.add_channel(schema, &topic, encoders::message_encoding(*family), &BTreeMap::new()).unwrap();
+        channels.push((id, *family));
+    }
+    let note = w.add_channel(0, "/notes", "json", &BTreeMap::new()).unwrap();
+    let mut count = 0;
+    for i in 0..scans {
+        let t = 1_000_000_000 + i as u64 * 100_000_000;
+        for (id, family) in &channels {
+            let cloud = DecodedCloud { scan: synthetic_scan(5.0 + i as f32, i as u32), stamp_nanos: t, frame_id: "lidar".into() };
+            let data = encoders::encode_scan(*family, &cloud, &[]);
+            let header = mcap::records::MessageHeader { channel_id: *id, sequence: i as u32, log_time: t, publish_time: t };
+            w.write_to_known_channel(&header, &data).unwrap();
+            count += 1;
+        }
+        let header = mcap::records::MessageHeader { channel_id: note, sequence: i as u32, log_time: t, publish_time: t };
+        w.write_to_known_channel(&header, format!("{{\"i\":{i}}}").as_bytes()).unwrap();
+        count += 1;
+    }
+    w.attach(&mcap::Attachment {
+        log_time: 1,
+        create_time: 1,
+        name: "calib.txt".into(),
+        media_type: "text/plain".into(),
+        data: Cow::Borrowed(b"P0: 1 0 0"),
+    })
+    .unwrap();
+    w.write_metadata(&mcap::records::Metadata { name: "robot".into(), metadata: BTreeMap::from([("id".into(), "7".into())]) })
+        .unwrap();
+    w.finish().unwrap();
+    count
+}
+
+/// The Python interpreter with `mcap`, `mcap-ros1-support` and `mcap-ros2-support`
+/// (`.ci/run` installs them into `.venv`). `None` = not installed: the caller skips,
+/// except under CI where that is an error.
+pub fn python() -> Option<PathBuf> {
+    let candidates = [std::env::var("RANGEGAN_PYTHON").ok().map(PathBuf::from), Some(PathBuf::from(".venv/bin/python"))];
+    let found = candidates.into_iter().flatten().find(|p| p.exists());
+    if found.is_none() {
+        assert!(std::env::var("CI").is_err(), "CI must install the Python readers (.ci/run makes .venv)");
+        eprintln!("skipped: no .venv/bin/python with the mcap readers; run .ci/run once to install them");
+    }
+    found
+}
+
+/// Runs `tests/py/read_mcap.py` on `path`: decodes every message with the
+/// independent readers and returns its JSON report.
+pub fn python_read(python: &Path, path: &Path) -> serde_json::Value {
+    let out = Command::new(python).arg("tests/py/read_mcap.py").arg(path).output().expect("python runs");
+    assert!(out.status.success(), "python reader failed on {}: {}", path.display(), stderr(&out));
+    serde_json::from_slice(&out.stdout).expect("reader prints JSON")
+}
