@@ -65,6 +65,8 @@ fn disc_step(cfg: &DiscriminatorConfig, device: &Device, batch: usize, reps: usi
 
 fn main() {
     let quick = std::env::args().any(|a| a == "--quick");
+    // `--candidates` runs only the CPU-size section.
+    let only_candidates = std::env::args().any(|a| a == "--candidates");
     let reps = if quick { 3 } else { 7 };
     let reference = GeneratorConfig::new();
     let cpu = GeneratorConfig::cpu();
@@ -77,12 +79,20 @@ fn main() {
         cpu.macs_per_image(64, 512) as f64 * 1e-9
     );
 
+    let flex = Device::flex();
+    if !only_candidates {
+        backend_and_speed_sections(&reference, &cpu, reps);
+    }
+    candidate_section(&flex, reps);
+}
+
+fn backend_and_speed_sections(reference: &GeneratorConfig, cpu: &GeneratorConfig, reps: usize) {
     println!("\n## flex vs ndarray, generator fwd+bwd (w and weights), 64x512, batch 8, median s");
     println!("| size | flex | ndarray |");
     println!("|---|---|---|");
     #[allow(deprecated)]
     let backends = [("flex", Device::flex()), ("ndarray", Device::ndarray())];
-    for (name, cfg) in [("reference", &reference), ("cpu", &cpu)] {
+    for (name, cfg) in [("reference", reference), ("cpu", cpu)] {
         let r = if name == "reference" { reps.min(3) } else { reps };
         let t: Vec<f64> = backends
             .iter()
@@ -95,7 +105,7 @@ fn main() {
     println!("| size | fwd b1 | fwd b8 | fwd+bwd b1 | fwd+bwd b8 |");
     println!("|---|---|---|---|---|");
     let flex = Device::flex();
-    for (name, cfg) in [("reference", &reference), ("cpu", &cpu)] {
+    for (name, cfg) in [("reference", reference), ("cpu", cpu)] {
         let f1 = gen_step(cfg, &flex, 1, reps, false);
         let f8 = gen_step(cfg, &flex, 8, reps.min(5), false);
         let b1 = gen_step(cfg, &flex.clone().autodiff(), 1, reps, true);
@@ -110,10 +120,13 @@ fn main() {
     }
 
     println!("\n## inversion step (fwd + bwd to w only, batch 1, cached grid), median s");
-    let inv = gen_step(&reference, &flex.clone().autodiff(), 1, reps, false);
-    let pti = gen_step(&reference, &flex.clone().autodiff(), 1, reps, true);
+    let inv = gen_step(reference, &flex.clone().autodiff(), 1, reps, false);
+    let pti = gen_step(reference, &flex.clone().autodiff(), 1, reps, true);
     println!("| reference, w only | {inv:.3} |");
     println!("| reference, w + all weights (PTI) | {pti:.3} |");
+}
+
+fn candidate_section(flex: &Device, reps: usize) {
 
     println!("\n## candidate CPU sizes for training (flex, fwd+bwd, batch 8), median s");
     println!("| generator channels / n_freq | params | GMAC/img | G fwd+bwd | D | D fwd+bwd |");
@@ -123,7 +136,11 @@ fn main() {
         (vec![128, 128, 64, 32, 16], vec![64, 64, 64, 32, 32], 128),
         (vec![128, 64, 32, 16, 16], vec![64, 64, 32, 32, 16], 128),
     ];
-    let dcands = [vec![16, 32, 64, 128, 128], vec![16, 32, 64, 128, 256]];
+    let dcands = [
+        vec![16, 32, 64, 128, 128],
+        vec![8, 16, 32, 64, 128],
+        vec![8, 16, 32, 64, 64],
+    ];
     for (ch, nf, dw) in candidates {
         let cfg = GeneratorConfig::new()
             .with_mapping(MappingConfig::new().with_d_z(dw).with_d_w(dw))
@@ -132,13 +149,13 @@ fn main() {
         let t = gen_step(&cfg, &flex.clone().autodiff(), 8, reps.min(3), true);
         println!(
             "| {ch:?} / {nf:?} (w {dw}) | {} | {:.3} | {t:.3} | | |",
-            cfg.init(&flex).num_params(),
+            cfg.init(flex).num_params(),
             cfg.macs_per_image(64, 512) as f64 * 1e-9
         );
     }
     for dc in dcands {
         let cfg = DiscriminatorConfig::new().with_channels(dc.clone());
         let t = disc_step(&cfg, &flex.clone().autodiff(), 8, reps.min(3));
-        println!("| | | | | {dc:?} ({} params) | {t:.3} |", cfg.init(&flex).num_params());
+        println!("| | | | | {dc:?} ({} params) | {t:.3} |", cfg.init(flex).num_params());
     }
 }

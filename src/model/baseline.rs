@@ -79,7 +79,7 @@ impl ConvGeneratorConfig {
     pub fn cpu(out_channels: usize) -> Self {
         Self::new()
             .with_d_z(128)
-            .with_channels(vec![128, 128, 64, 32, 16])
+            .with_channels(vec![128, 64, 32, 16, 16])
             .with_out_channels(out_channels)
     }
 

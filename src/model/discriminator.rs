@@ -193,7 +193,7 @@ pub struct Discriminator {
 impl DiscriminatorConfig {
     /// The CPU configuration chosen by measurement (docs/model_benchmarks.md).
     pub fn cpu() -> Self {
-        Self::new().with_channels(vec![16, 32, 64, 128, 128])
+        Self::new().with_channels(vec![8, 16, 32, 64, 128])
     }
 
     pub fn init(&self, device: &Device) -> Discriminator {

@@ -211,8 +211,8 @@ impl GeneratorConfig {
     pub fn cpu() -> Self {
         Self::new()
             .with_mapping(MappingConfig::new().with_d_z(128).with_d_w(128))
-            .with_channels(vec![128, 128, 64, 32, 16])
-            .with_n_freq(vec![64, 64, 64, 32, 32])
+            .with_channels(vec![128, 64, 32, 16, 16])
+            .with_n_freq(vec![64, 64, 32, 32, 16])
     }
 
     /// Multiply-accumulates per image of `height x width` (modulated layers, heads, mapping;

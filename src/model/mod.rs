@@ -16,7 +16,9 @@ pub mod generator;
 pub mod data;
 pub mod layers;
 pub mod measurement;
+pub mod metrics;
 pub mod rng;
+pub mod sample;
 pub mod train;
 
 use burn::module::Module;
