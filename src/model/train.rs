@@ -111,7 +111,8 @@ pub struct TrainConfig {
     /// Stop after this many real images shown to D.
     #[config(default = 2000000)]
     pub total_images: u64,
-    #[config(default = 20000)]
+    /// PNG snapshot (and checkpoint) interval; ~10 minutes at the CPU size.
+    #[config(default = 2000)]
     pub snapshot_every_images: u64,
     #[config(default = 300)]
     pub checkpoint_every_secs: u64,
