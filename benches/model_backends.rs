@@ -32,15 +32,28 @@ fn sync(x: Tensor<1>) {
 }
 
 /// Forward (+ backward when `device` is autodiff) of the generator from w on a cached grid.
-fn gen_step(cfg: &GeneratorConfig, device: &Device, batch: usize, reps: usize, weights_grad: bool) -> f64 {
+fn gen_step(
+    cfg: &GeneratorConfig,
+    device: &Device,
+    batch: usize,
+    reps: usize,
+    weights_grad: bool,
+) -> f64 {
     let g = cfg.init(device);
     let g = if weights_grad { g } else { g.no_grad() };
-    let grid = g.prepare(&SensorProfile::kitti_hdl64e().with_columns(512).angle_grid(), device);
+    let grid = g.prepare(
+        &SensorProfile::kitti_hdl64e().with_columns(512).angle_grid(),
+        device,
+    );
     let mut rng = Rng::new(1);
     let d_w = g.d_w();
     median_secs(reps, || {
         let w = rng.normal_tensor([batch, d_w], device);
-        let w = if device.is_autodiff() { w.require_grad() } else { w };
+        let w = if device.is_autodiff() {
+            w.require_grad()
+        } else {
+            w
+        };
         let out = g.render(w.clone(), &grid, None);
         let loss = out.x_d.sum() + out.keep_logit.sum();
         if device.is_autodiff() {
@@ -70,7 +83,10 @@ fn main() {
     let reps = if quick { 3 } else { 7 };
     let reference = GeneratorConfig::new();
     let cpu = GeneratorConfig::cpu();
-    println!("# model_backends (release, f32, {} threads)", rayon::current_num_threads());
+    println!(
+        "# model_backends (release, f32, {} threads)",
+        rayon::current_num_threads()
+    );
     println!(
         "reference: {} params, {:.3} GMAC/image; cpu: {} params, {:.3} GMAC/image",
         reference.init(&Device::flex()).num_params(),
@@ -93,7 +109,11 @@ fn backend_and_speed_sections(reference: &GeneratorConfig, cpu: &GeneratorConfig
     #[allow(deprecated)]
     let backends = [("flex", Device::flex()), ("ndarray", Device::ndarray())];
     for (name, cfg) in [("reference", reference), ("cpu", cpu)] {
-        let r = if name == "reference" { reps.min(3) } else { reps };
+        let r = if name == "reference" {
+            reps.min(3)
+        } else {
+            reps
+        };
         let t: Vec<f64> = backends
             .iter()
             .map(|(_, dev)| gen_step(cfg, &dev.clone().autodiff(), 8, r, true))
@@ -127,7 +147,6 @@ fn backend_and_speed_sections(reference: &GeneratorConfig, cpu: &GeneratorConfig
 }
 
 fn candidate_section(flex: &Device, reps: usize) {
-
     println!("\n## candidate CPU sizes for training (flex, fwd+bwd, batch 8), median s");
     println!("| generator channels / n_freq | params | GMAC/img | G fwd+bwd | D | D fwd+bwd |");
     println!("|---|---|---|---|---|---|");
@@ -156,6 +175,9 @@ fn candidate_section(flex: &Device, reps: usize) {
     for dc in dcands {
         let cfg = DiscriminatorConfig::new().with_channels(dc.clone());
         let t = disc_step(&cfg, &flex.clone().autodiff(), 8, reps.min(3));
-        println!("| | | | | {dc:?} ({} params) | {t:.3} |", cfg.init(flex).num_params());
+        println!(
+            "| | | | | {dc:?} ({} params) | {t:.3} |",
+            cfg.init(flex).num_params()
+        );
     }
 }

@@ -5,11 +5,11 @@ use std::path::PathBuf;
 use std::time::Duration;
 
 use super::{GlobalArgs, Outcome};
-use crate::model::train::{Backend, TrainConfig, TrainOptions, run};
 use crate::model::Arch;
 use crate::model::data::kitti_training_files;
-use crate::model::generator::GeneratorConfig;
 use crate::model::discriminator::DiscriminatorConfig;
+use crate::model::generator::GeneratorConfig;
+use crate::model::train::{Backend, TrainConfig, TrainOptions, run};
 
 #[derive(Debug, Clone, Copy, clap::ValueEnum)]
 pub enum ArchArg {
@@ -78,7 +78,10 @@ pub fn run_train(global: &GlobalArgs, args: TrainArgs) -> anyhow::Result<Outcome
         config = config.with_seed(s);
     }
     let opts = TrainOptions {
-        dataset_cache: args.cache.clone().unwrap_or_else(|| args.run_dir.join("dataset.bin")),
+        dataset_cache: args
+            .cache
+            .clone()
+            .unwrap_or_else(|| args.run_dir.join("dataset.bin")),
         run_dir: args.run_dir,
         scans: kitti_training_files(&args.data)?,
         config,

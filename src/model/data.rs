@@ -73,7 +73,12 @@ pub const HELD_OUT_SEQUENCES: [&str; 2] = ["00", "07"];
 pub fn kitti_heldout_files(real_lidar: &Path) -> Result<Vec<PathBuf>> {
     let mut files = Vec::new();
     for seq in HELD_OUT_SEQUENCES {
-        files.extend(bins_in(&real_lidar.join("semantickitti_mini").join(seq).join("velodyne"))?);
+        files.extend(bins_in(
+            &real_lidar
+                .join("semantickitti_mini")
+                .join(seq)
+                .join("velodyne"),
+        )?);
     }
     Ok(files)
 }
@@ -123,7 +128,12 @@ impl RangeDataset {
             let image = lidar::project(&scan, &profile, Strategy::Auto)
                 .with_context(|| format!("failed to project '{}'", path.display()))?;
             if image.height != height || image.width != width {
-                bail!("'{}' projected to {}x{}", path.display(), image.height, image.width);
+                bail!(
+                    "'{}' projected to {}x{}",
+                    path.display(),
+                    image.height,
+                    image.width
+                );
             }
             images.extend(range_to_network(&image.range_m));
         }
@@ -242,7 +252,9 @@ mod tests {
         let ds = RangeDataset {
             height: grid.height,
             width: grid.width,
-            images: (0..2 * grid.len()).map(|i| (i % 7) as f32 * 0.1 - 0.5).collect(),
+            images: (0..2 * grid.len())
+                .map(|i| (i % 7) as f32 * 0.1 - 0.5)
+                .collect(),
             angles: grid,
         };
         let dir = tempfile::tempdir().expect("tempdir");
@@ -254,7 +266,11 @@ mod tests {
     #[test]
     fn split_keeps_sequences_00_and_07_out() {
         let root = Path::new("../shared/real_lidar");
-        let root = if root.exists() { root.to_path_buf() } else { PathBuf::from("/work/shared/real_lidar") };
+        let root = if root.exists() {
+            root.to_path_buf()
+        } else {
+            PathBuf::from("/work/shared/real_lidar")
+        };
         if !root.exists() {
             eprintln!("skipping: no real_lidar folder");
             return;

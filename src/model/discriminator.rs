@@ -95,7 +95,9 @@ impl EqualConvConfig {
     pub fn init(&self, rng: &mut Rng, device: &Device) -> EqualConv {
         let k = self.kernel;
         EqualConv {
-            weight: Param::from_tensor(rng.normal_tensor([self.d_output, self.d_input, k, k], device)),
+            weight: Param::from_tensor(
+                rng.normal_tensor([self.d_output, self.d_input, k, k], device),
+            ),
             bias: self
                 .bias
                 .then(|| Param::from_tensor(Tensor::zeros([self.d_output], device))),
@@ -201,13 +203,15 @@ impl DiscriminatorConfig {
         let c = &self.channels;
         let n_down = c.len() - 1;
         assert!(
-            self.height % (1 << n_down) == 0 && self.width % (1 << n_down) == 0,
+            self.height.is_multiple_of(1 << n_down) && self.width.is_multiple_of(1 << n_down),
             "discriminator input must divide by 2^{n_down}"
         );
         let last = c[c.len() - 1];
         let (h, w) = (self.height >> n_down, self.width >> n_down);
         Discriminator {
-            from_input: EqualConvConfig::new(2, c[0]).with_kernel(1).init(&mut rng, device),
+            from_input: EqualConvConfig::new(2, c[0])
+                .with_kernel(1)
+                .init(&mut rng, device),
             blocks: (0..n_down)
                 .map(|i| ResBlockConfig::new(c[i], c[i + 1]).init(&mut rng, device))
                 .collect(),
@@ -228,7 +232,8 @@ impl Discriminator {
         let b = x.dims()[0];
         let horiz = (roll(x.clone(), 1, 3) + roll(x.clone(), -1, 3) + x.clone().mul_scalar(2.0))
             .div_scalar(4.0); // [batch, 1, H, W]
-        let vert = (shift_replicate(x.clone(), 1, 2) + shift_replicate(x.clone(), -1, 2)
+        let vert = (shift_replicate(x.clone(), 1, 2)
+            + shift_replicate(x.clone(), -1, 2)
             + x.mul_scalar(2.0))
         .div_scalar(4.0); // [batch, 1, H, W]
         let mut y = self.from_input.forward(Tensor::cat(vec![vert, horiz], 1)); // [batch, c0, H, W]
@@ -299,7 +304,9 @@ mod tests {
             .with_width(32)
             .with_channels(vec![4, 8, 8])
             .init(&dev);
-        let x = Rng::new(1).normal_tensor([4, 1, 8, 32], &dev).require_grad();
+        let x = Rng::new(1)
+            .normal_tensor([4, 1, 8, 32], &dev)
+            .require_grad();
         let logits = d.forward(x.clone());
         assert_eq!(logits.dims(), [4, 1]);
         let grads = logits.sum().backward();

@@ -88,7 +88,11 @@ impl Mapping {
             let device = avg.device();
             let avg_inner = avg.inner();
             let new = mean.clone() + (avg_inner - mean).mul_scalar(beta);
-            let new = if device.is_autodiff() { new.autodiff() } else { new };
+            let new = if device.is_autodiff() {
+                new.autodiff()
+            } else {
+                new
+            };
             new.set_require_grad(false)
         });
         self
@@ -262,7 +266,11 @@ impl GeneratorConfig {
 
 impl Generator {
     pub fn d_z(&self) -> usize {
-        self.mapping.layers.first().map(|l| l.weight.dims()[1]).unwrap_or(0)
+        self.mapping
+            .layers
+            .first()
+            .map(|l| l.weight.dims()[1])
+            .unwrap_or(0)
     }
 
     pub fn d_w(&self) -> usize {
@@ -278,7 +286,7 @@ impl Generator {
     pub fn prepare(&self, angles: &AngleGrid, device: &Device) -> GridCache {
         let step = self.resolution_step();
         assert!(
-            angles.height % step == 0 && angles.width % step == 0,
+            angles.height.is_multiple_of(step) && angles.width.is_multiple_of(step),
             "grid {}x{} must be divisible by {step}",
             angles.height,
             angles.width
@@ -329,7 +337,10 @@ impl Generator {
                 w.clone(),
             ); // [batch, h*w, ch]
             let y = block.conv1.forward(y, w.clone()); // [batch, h*w, ch]
-            let head = block.head.forward(y.clone(), w.clone()).reshape([b, h, wd, 2]); // [batch, h, w, 2]
+            let head = block
+                .head
+                .forward(y.clone(), w.clone())
+                .reshape([b, h, wd, 2]); // [batch, h, w, 2]
             heads = Some(match heads {
                 Some(prev) => upsample2x(prev) + head,
                 None => head,
@@ -353,7 +364,12 @@ impl Generator {
     /// Render from w, optionally with subgrid training: the azimuths get a per-sample phase
     /// 2 pi s and the image is shifted back by s W columns (circular, bilinear), so the pixels
     /// sample the scene between the grid columns while the image stays aligned.
-    pub fn render(&self, w: Tensor<2>, grid: &GridCache, subgrid_shift: Option<&[f32]>) -> GeneratorOutput {
+    pub fn render(
+        &self,
+        w: Tensor<2>,
+        grid: &GridCache,
+        subgrid_shift: Option<&[f32]>,
+    ) -> GeneratorOutput {
         let device = w.device();
         let raw = match subgrid_shift {
             Some(shift) => {
@@ -486,7 +502,11 @@ mod tests {
         let dense = g.forward(z, &g.prepare(&grid.resample(32, 128), &dev)).x_d;
         assert_eq!(dense.dims(), [1, 1, 32, 128]);
         // The dense render samples the same continuous function: 2x2 means match the base.
-        let pooled = dense.reshape([1, 16, 2, 64, 2]).mean_dim(4).mean_dim(2).reshape([1, 1, 16, 64]);
+        let pooled = dense
+            .reshape([1, 16, 2, 64, 2])
+            .mean_dim(4)
+            .mean_dim(2)
+            .reshape([1, 1, 16, 64]);
         let a = tensor_to_vec(base);
         let p = tensor_to_vec(pooled);
         let corr = correlation(&a, &p);
@@ -507,7 +527,9 @@ mod tests {
         let dev = Device::flex();
         let g = tiny(2).init(&dev);
         // Change w_avg so that the fixed params are non-trivial.
-        let g = g.clone().with_mapping_w_avg(Rng::new(9).normal_tensor([8], &dev));
+        let g = g
+            .clone()
+            .with_mapping_w_avg(Rng::new(9).normal_tensor([8], &dev));
         let dir = tempfile::tempdir().expect("tempdir");
         let path = dir.path().join("g.bpk");
         g.clone().save_file(&path).expect("save");
@@ -586,7 +608,11 @@ mod tests {
         };
         g.visit(&mut check);
         // The mapping is not on the path from w; everything in the synthesis must be.
-        let missing: Vec<_> = check.missing.iter().filter(|p| !p.starts_with("mapping")).collect();
+        let missing: Vec<_> = check
+            .missing
+            .iter()
+            .filter(|p| !p.starts_with("mapping"))
+            .collect();
         assert!(missing.is_empty(), "no gradient for {missing:?}");
         assert!(check.trainable > 10);
         assert_eq!(check.fixed_with_grad, 0, "fixed params must not train");
@@ -602,7 +628,11 @@ mod tests {
             path: vec![],
         };
         g.visit(&mut check);
-        assert!(check.missing.is_empty(), "no gradient from z for {:?}", check.missing);
+        assert!(
+            check.missing.is_empty(),
+            "no gradient from z for {:?}",
+            check.missing
+        );
     }
 
     #[test]

@@ -61,7 +61,8 @@ impl EqualLinearConfig {
         let weight = rng
             .normal_tensor([self.d_output, self.d_input], device)
             .div_scalar(self.lr_mul);
-        let bias = Tensor::<1>::ones([self.d_output], device).mul_scalar(self.bias_init / self.lr_mul);
+        let bias =
+            Tensor::<1>::ones([self.d_output], device).mul_scalar(self.bias_init / self.lr_mul);
         EqualLinear {
             weight: Param::from_tensor(weight),
             bias: Param::from_tensor(bias),
@@ -77,7 +78,11 @@ impl EqualLinear {
     /// - x: `[batch, d_input]` -> `[batch, d_output]`
     pub fn forward(&self, x: Tensor<2>) -> Tensor<2> {
         let w_t = self.weight.val().mul_scalar(self.weight_gain).transpose(); // [in, out]
-        let b = self.bias.val().mul_scalar(self.lr_mul).unsqueeze_dim::<2>(0); // [1, out]
+        let b = self
+            .bias
+            .val()
+            .mul_scalar(self.lr_mul)
+            .unsqueeze_dim::<2>(0); // [1, out]
         let y = x.matmul(w_t) + b; // [batch, out]
         if self.activate {
             leaky_relu(y, 0.2).mul_scalar(std::f32::consts::SQRT_2)
@@ -325,8 +330,8 @@ impl FourierFeatures {
     /// # Shapes
     /// - shift: `[batch]` fractions of a turn -> (cos, sin) each `[batch, F]`
     pub fn rotation(&self, shift: Tensor<1>) -> PhaseRotation {
-        let delta = shift.unsqueeze_dim::<2>(1).mul_scalar(TAU)
-            * self.b_theta.val().unsqueeze_dim::<2>(0); // [batch, F]
+        let delta =
+            shift.unsqueeze_dim::<2>(1).mul_scalar(TAU) * self.b_theta.val().unsqueeze_dim::<2>(0); // [batch, F]
         PhaseRotation {
             cos: delta.clone().cos(),
             sin: delta.sin(),
@@ -438,7 +443,11 @@ pub trait AngleGridExt {
 /// azimuth of column j = pi - (j + 0.5) 2pi / W (column 0 at the rear, clockwise).
 pub fn regular_grid(height: usize, width: usize, top_rad: f32, bottom_rad: f32) -> AngleGrid {
     AngleGrid::regular_columns(height, width, |r| {
-        let t = if height > 1 { r as f32 / (height - 1) as f32 } else { 0.5 };
+        let t = if height > 1 {
+            r as f32 / (height - 1) as f32
+        } else {
+            0.5
+        };
         top_rad + t * (bottom_rad - top_rad)
     })
 }
@@ -446,7 +455,12 @@ pub fn regular_grid(height: usize, width: usize, top_rad: f32, bottom_rad: f32) 
 /// A regular grid spanning the KITTI HDL-64E field of view (+2.92 deg to -23.53 deg) with
 /// any number of rows; the real beam table is `SensorProfile::kitti_hdl64e()`.
 pub fn kitti_like_grid(height: usize, width: usize) -> AngleGrid {
-    regular_grid(height, width, 2.92f32.to_radians(), (-23.53f32).to_radians())
+    regular_grid(
+        height,
+        width,
+        2.92f32.to_radians(),
+        (-23.53f32).to_radians(),
+    )
 }
 
 impl AngleGridExt for AngleGrid {
@@ -486,8 +500,14 @@ impl AngleGridExt for AngleGrid {
         AngleGrid {
             height: h / 2,
             width: w / 2,
-            elevation_rad: atan2(plane(&self.elevation_rad, f32::sin), plane(&self.elevation_rad, f32::cos)),
-            azimuth_rad: atan2(plane(&self.azimuth_rad, f32::sin), plane(&self.azimuth_rad, f32::cos)),
+            elevation_rad: atan2(
+                plane(&self.elevation_rad, f32::sin),
+                plane(&self.elevation_rad, f32::cos),
+            ),
+            azimuth_rad: atan2(
+                plane(&self.azimuth_rad, f32::sin),
+                plane(&self.azimuth_rad, f32::cos),
+            ),
         }
     }
 
@@ -532,7 +552,10 @@ impl AngleGridExt for AngleGrid {
     fn pyramid(&self, levels: usize) -> Vec<AngleGrid> {
         let mut out = vec![self.clone()];
         for _ in 1..levels {
-            let next = out.last().map(AngleGrid::downsample2x).unwrap_or_else(|| self.clone());
+            let next = out
+                .last()
+                .map(AngleGrid::downsample2x)
+                .unwrap_or_else(|| self.clone());
             out.push(next);
         }
         out.reverse();
@@ -580,7 +603,9 @@ mod tests {
     fn fourier_path_equals_explicit_rotated_encoding() {
         let dev = device();
         let mut rng = Rng::new(2);
-        let ff = FourierFeaturesConfig::new(4, 3).with_n_freq(3).init(&mut rng, &dev);
+        let ff = FourierFeaturesConfig::new(4, 3)
+            .with_n_freq(3)
+            .init(&mut rng, &dev);
         let layer = ModulatedLinearConfig::new(2 + 6, 4, 5).init(&mut rng, &dev);
         let grid = kitti_like_grid(2, 8);
         let x = rng.normal_tensor([2, 16, 2], &dev);
@@ -595,7 +620,10 @@ mod tests {
         // Explicit: encode each sample's rotated grid and concatenate.
         let encs: Vec<Tensor<3>> = [0.3f32, 0.71]
             .iter()
-            .map(|s| ff.basis(&grid.with_azimuth_offset(s * TAU), &dev).unsqueeze_dim::<3>(0))
+            .map(|s| {
+                ff.basis(&grid.with_azimuth_offset(s * TAU), &dev)
+                    .unsqueeze_dim::<3>(0)
+            })
             .collect();
         let input = Tensor::cat(vec![x, Tensor::cat(encs, 0)], 2);
         let slow = layer.forward(input, w);
@@ -607,7 +635,9 @@ mod tests {
     fn fourier_encoding_is_exactly_periodic_in_azimuth() {
         let dev = device();
         let mut rng = Rng::new(3);
-        let ff = FourierFeaturesConfig::new(5, 6).with_n_freq(16).init(&mut rng, &dev);
+        let ff = FourierFeaturesConfig::new(5, 6)
+            .with_n_freq(16)
+            .init(&mut rng, &dev);
         let grid = kitti_like_grid(4, 16);
         let a = ff.basis(&grid, &dev);
         let b = ff.basis(&grid.with_azimuth_offset(TAU), &dev);

@@ -69,14 +69,20 @@ mod tests {
         let n = 20_000;
         // keep_prob = sigmoid(1.0) = 0.731
         let logit = Tensor::<4>::ones([1, 1, 1, n], &dev).require_grad();
-        let x_d = Tensor::<4>::zeros([1, 1, 1, n], &dev).add_scalar(0.5).require_grad();
+        let x_d = Tensor::<4>::zeros([1, 1, 1, n], &dev)
+            .add_scalar(0.5)
+            .require_grad();
         let m = MeasurementConfig::new().measure(x_d.clone(), logit.clone(), &mut Rng::new(1));
         let mask = tensor_to_vec(m.mask.clone());
         assert!(mask.iter().all(|v| *v == 0.0 || *v == 1.0));
         let freq = mask.iter().sum::<f32>() / n as f32;
         assert!((freq - 0.731).abs() < 0.015, "keep frequency {freq}");
         let xm = tensor_to_vec(m.x_measured.clone());
-        assert!(xm.iter().zip(&mask).all(|(x, k)| if *k > 0.5 { (x - 0.5).abs() < 1e-6 } else { (x + 1.0).abs() < 1e-6 }));
+        assert!(xm.iter().zip(&mask).all(|(x, k)| if *k > 0.5 {
+            (x - 0.5).abs() < 1e-6
+        } else {
+            (x + 1.0).abs() < 1e-6
+        }));
         let drop = tensor_to_vec(m.drop_prob.clone());
         assert!((drop[0] - (1.0 - 0.731)).abs() < 1e-3);
         let grads = m.x_measured.sum().backward();

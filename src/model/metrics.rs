@@ -79,7 +79,12 @@ fn pyr_up(x: &[f32], h: usize, w: usize) -> Vec<f32> {
 }
 
 /// Laplacian pyramid, finest first; the last level is the low-pass residual.
-pub fn laplacian_pyramid(x: &[f32], h: usize, w: usize, levels: usize) -> Vec<(usize, usize, Vec<f32>)> {
+pub fn laplacian_pyramid(
+    x: &[f32],
+    h: usize,
+    w: usize,
+    levels: usize,
+) -> Vec<(usize, usize, Vec<f32>)> {
     let mut out = Vec::with_capacity(levels);
     let (mut cur, mut ch, mut cw) = (x.to_vec(), h, w);
     for l in 0..levels {
@@ -100,10 +105,19 @@ pub fn laplacian_pyramid(x: &[f32], h: usize, w: usize, levels: usize) -> Vec<(u
 
 /// Random patches of every image at every level: `descriptors[level]` is a flat list of
 /// patch*patch vectors.
-fn descriptors(images: &[&[f32]], h: usize, w: usize, cfg: &SwdConfig, rng: &mut Rng) -> Vec<Vec<Vec<f32>>> {
+fn descriptors(
+    images: &[&[f32]],
+    h: usize,
+    w: usize,
+    cfg: &SwdConfig,
+    rng: &mut Rng,
+) -> Vec<Vec<Vec<f32>>> {
     let mut out = vec![Vec::new(); cfg.levels];
     for img in images {
-        for (l, (lh, lw, lap)) in laplacian_pyramid(img, h, w, cfg.levels).into_iter().enumerate() {
+        for (l, (lh, lw, lap)) in laplacian_pyramid(img, h, w, cfg.levels)
+            .into_iter()
+            .enumerate()
+        {
             let p = cfg.patch.min(lh);
             for _ in 0..cfg.patches_per_image {
                 let r0 = rng.below(lh - p + 1);
@@ -125,7 +139,12 @@ fn descriptors(images: &[&[f32]], h: usize, w: usize, cfg: &SwdConfig, rng: &mut
 fn normalise(desc: &mut [Vec<f32>]) {
     let n = desc.iter().map(|d| d.len()).sum::<usize>().max(1) as f64;
     let mean = desc.iter().flatten().map(|&v| v as f64).sum::<f64>() / n;
-    let var = desc.iter().flatten().map(|&v| (v as f64 - mean).powi(2)).sum::<f64>() / n;
+    let var = desc
+        .iter()
+        .flatten()
+        .map(|&v| (v as f64 - mean).powi(2))
+        .sum::<f64>()
+        / n;
     let std = var.sqrt().max(1e-8);
     for d in desc.iter_mut() {
         for v in d.iter_mut() {
@@ -156,7 +175,12 @@ fn sliced(a: &[Vec<f32>], b: &[Vec<f32>], cfg: &SwdConfig, rng: &mut Rng) -> f64
                 p
             };
             let (pa, pb) = (project(a), project(b));
-            sum += pa.iter().zip(&pb).map(|(x, y)| (x - y).abs() as f64).sum::<f64>() / n as f64;
+            sum += pa
+                .iter()
+                .zip(&pb)
+                .map(|(x, y)| (x - y).abs() as f64)
+                .sum::<f64>()
+                / n as f64;
         }
         total += sum / cfg.projections as f64;
     }
@@ -185,7 +209,7 @@ mod tests {
         let mut rng = Rng::new(seed);
         (0..n)
             .map(|_| {
-                let phase = rng.uniform() * 6.28;
+                let phase = rng.uniform() * std::f32::consts::TAU;
                 (0..h * w)
                     .map(|k| ((k % w) as f32 * freq + phase).sin() + 0.1 * rng.normal())
                     .collect()
@@ -209,7 +233,11 @@ mod tests {
 
     #[test]
     fn swd_is_small_within_a_distribution_and_larger_across() {
-        let cfg = SwdConfig { patches_per_image: 64, projections: 32, ..Default::default() };
+        let cfg = SwdConfig {
+            patches_per_image: 64,
+            projections: 32,
+            ..Default::default()
+        };
         let (h, w) = (16, 64);
         let a = images(1, 8, h, w, 0.3);
         let a2 = images(2, 8, h, w, 0.3);

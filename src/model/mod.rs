@@ -11,9 +11,9 @@
 //! 2 x_d - 1, no return = -1. The backend/device is chosen by the caller.
 
 pub mod baseline;
+pub mod data;
 pub mod discriminator;
 pub mod generator;
-pub mod data;
 pub mod layers;
 pub mod measurement;
 pub mod metrics;
@@ -53,12 +53,15 @@ impl std::str::FromStr for Arch {
             "dusty2" => Ok(Arch::Dusty2),
             "dusty1" => Ok(Arch::Dusty1),
             "vanilla" => Ok(Arch::Vanilla),
-            other => Err(format!("unknown arch {other:?}: use dusty2, dusty1 or vanilla")),
+            other => Err(format!(
+                "unknown arch {other:?}: use dusty2, dusty1 or vanilla"
+            )),
         }
     }
 }
 
 /// Any of the three generators behind one interface.
+#[allow(clippy::large_enum_variant)] // one generator per run; never stored in bulk
 #[derive(Module, Debug)]
 pub enum AnyGenerator {
     Implicit(Generator),

@@ -69,11 +69,20 @@ pub fn sample(run_dir: &Path, opts: &SampleOptions, device: &Device) -> Result<V
         let z = rng.normal_tensor([b, g.d_z()], device);
         let (x_d, keep_logit, angles) = match &g {
             AnyGenerator::Implicit(generator) => {
-                if grid.height % generator.resolution_step() != 0 || grid.width % generator.resolution_step() != 0 {
-                    bail!("grid {}x{} must divide by {}", grid.height, grid.width, generator.resolution_step());
+                if !grid.height.is_multiple_of(generator.resolution_step())
+                    || !grid.width.is_multiple_of(generator.resolution_step())
+                {
+                    bail!(
+                        "grid {}x{} must divide by {}",
+                        grid.height,
+                        grid.width,
+                        generator.resolution_step()
+                    );
                 }
                 let cache = generator.prepare(&grid, device);
-                let w = generator.mapping.truncate(generator.mapping.forward(z), opts.truncation);
+                let w = generator
+                    .mapping
+                    .truncate(generator.mapping.forward(z), opts.truncation);
                 let o = generator.render(w, &cache, None);
                 (o.x_d, Some(o.keep_logit), grid.clone())
             }
@@ -85,7 +94,10 @@ pub fn sample(run_dir: &Path, opts: &SampleOptions, device: &Device) -> Result<V
                 let logit = (c > 1).then(|| y.narrow(1, 1, 1));
                 let angles = SensorProfile::kitti_hdl64e().with_columns(w).angle_grid();
                 if angles.height != h {
-                    bail!("conv generator renders {h} rows, the KITTI grid has {}", angles.height);
+                    bail!(
+                        "conv generator renders {h} rows, the KITTI grid has {}",
+                        angles.height
+                    );
                 }
                 (x_d, logit, angles)
             }
@@ -98,15 +110,24 @@ pub fn sample(run_dir: &Path, opts: &SampleOptions, device: &Device) -> Result<V
                 let m = config.measurement.measure(x_d, logit, &mut rng);
                 (
                     keep.iter().map(|k| 1.0 - k).collect::<Vec<f32>>(),
-                    tensor_to_vec(m.mask).iter().map(|v| *v > 0.5).collect::<Vec<bool>>(),
+                    tensor_to_vec(m.mask)
+                        .iter()
+                        .map(|v| *v > 0.5)
+                        .collect::<Vec<bool>>(),
                 )
             }
             // vanilla: the image itself says where the returns are
-            None => (vec![0.0; b * n], x_d_net.iter().map(|v| *v > -0.99).collect()),
+            None => (
+                vec![0.0; b * n],
+                x_d_net.iter().map(|v| *v > -0.99).collect(),
+            ),
         };
         for i in 0..b {
             let xs = &x_d_net[i * n..(i + 1) * n];
-            let x_d: Vec<f32> = xs.iter().map(|v| ((v + 1.0) * 0.5).clamp(1e-4, 1.0)).collect();
+            let x_d: Vec<f32> = xs
+                .iter()
+                .map(|v| ((v + 1.0) * 0.5).clamp(1e-4, 1.0))
+                .collect();
             let mask_i = mask[i * n..(i + 1) * n].to_vec();
             let range_m = x_d
                 .iter()

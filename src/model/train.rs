@@ -158,12 +158,20 @@ const CHECKPOINT: &str = "checkpoint";
 pub fn init_generator(config: &TrainConfig, device: &Device) -> AnyGenerator {
     match config.arch {
         Arch::Dusty2 => AnyGenerator::Implicit(config.generator.init(device)),
-        Arch::Dusty1 => {
-            AnyGenerator::Conv(config.conv_generator.clone().with_out_channels(2).init(device))
-        }
-        Arch::Vanilla => {
-            AnyGenerator::Conv(config.conv_generator.clone().with_out_channels(1).init(device))
-        }
+        Arch::Dusty1 => AnyGenerator::Conv(
+            config
+                .conv_generator
+                .clone()
+                .with_out_channels(2)
+                .init(device),
+        ),
+        Arch::Vanilla => AnyGenerator::Conv(
+            config
+                .conv_generator
+                .clone()
+                .with_out_channels(1)
+                .init(device),
+        ),
     }
 }
 
@@ -254,11 +262,21 @@ impl Trainer {
             let load_err = |what: &str, e: burn::store::RecordError| {
                 anyhow::anyhow!("failed to load {what} from '{}': {e}", ck.display())
             };
-            g = g.try_load_file(ck.join("g.bpk")).map_err(|e| load_err("g", e))?;
-            g_ema = g_ema.try_load_file(ck.join("g_ema.bpk")).map_err(|e| load_err("g_ema", e))?;
-            d = d.try_load_file(ck.join("d.bpk")).map_err(|e| load_err("d", e))?;
-            opt_g = opt_g.load(ck.join("opt_g.bpk")).map_err(|e| load_err("opt_g", e))?;
-            opt_d = opt_d.load(ck.join("opt_d.bpk")).map_err(|e| load_err("opt_d", e))?;
+            g = g
+                .try_load_file(ck.join("g.bpk"))
+                .map_err(|e| load_err("g", e))?;
+            g_ema = g_ema
+                .try_load_file(ck.join("g_ema.bpk"))
+                .map_err(|e| load_err("g_ema", e))?;
+            d = d
+                .try_load_file(ck.join("d.bpk"))
+                .map_err(|e| load_err("d", e))?;
+            opt_g = opt_g
+                .load(ck.join("opt_g.bpk"))
+                .map_err(|e| load_err("opt_g", e))?;
+            opt_d = opt_d
+                .load(ck.join("opt_d.bpk"))
+                .map_err(|e| load_err("opt_d", e))?;
             let text = std::fs::read_to_string(ck.join("state.json"))?;
             state = serde_json::from_str(&text).context("bad checkpoint/state.json")?;
         } else {
@@ -312,7 +330,8 @@ impl Trainer {
         let started = Instant::now();
         let mut last_ckpt = Instant::now();
         let mut window = (Instant::now(), self.state.images);
-        let mut next_snapshot = (self.state.images / cfg.snapshot_every_images + 1) * cfg.snapshot_every_images;
+        let mut next_snapshot =
+            (self.state.images / cfg.snapshot_every_images + 1) * cfg.snapshot_every_images;
         if self.state.images == 0 {
             self.snapshot(opts, data)?;
         }
@@ -321,7 +340,7 @@ impl Trainer {
             self.state.step += 1;
             self.state.images += b as u64;
             bar.set_position(self.state.images);
-            if self.state.step % cfg.log_every_steps == 0 {
+            if self.state.step.is_multiple_of(cfg.log_every_steps) {
                 let dt = window.0.elapsed().as_secs_f64();
                 let ips = (self.state.images - window.1) as f64 / dt.max(1e-9);
                 window = (Instant::now(), self.state.images);
@@ -445,8 +464,9 @@ impl Trainer {
         let logit_fake = self.d.forward(fake); // [batch, 1]
         let logit_real = self.d.forward(real.clone()); // [batch, 1]
         let d_real = tensor_to_vec(logit_real.clone().inner());
-        let loss_d = softplus(logit_fake.clone(), 1.0).mean() + softplus(logit_real.clone().neg(), 1.0).mean();
-        let lazy = cfg.r1_gamma > 0.0 && self.state.step % cfg.r1_interval as u64 == 0;
+        let loss_d = softplus(logit_fake.clone(), 1.0).mean()
+            + softplus(logit_real.clone().neg(), 1.0).mean();
+        let lazy = cfg.r1_gamma > 0.0 && self.state.step.is_multiple_of(cfg.r1_interval as u64);
         let (loss_d_total, r1) = if lazy {
             // Finite-difference R1: with v ~ N(0, I), E[(grad D . v)^2] = |grad D|^2, and
             // (D(x + h v) - D(x)) / h estimates grad D . v with first-order autodiff only.
@@ -456,8 +476,13 @@ impl Trainer {
             let moved = self.d.forward(real_c + v.mul_scalar(h)); // [batch, 1]
             let dd = (moved - logit_real).div_scalar(h); // [batch, 1]
             let r1 = dd.powi_scalar(2).mean(); // |grad D|^2 estimate
-            let penalty = r1.clone().mul_scalar(cfg.r1_gamma * 0.5 * cfg.r1_interval as f32);
-            (loss_d.clone() + penalty, Some(r1.inner().into_scalar::<f32>()))
+            let penalty = r1
+                .clone()
+                .mul_scalar(cfg.r1_gamma * 0.5 * cfg.r1_interval as f32);
+            (
+                loss_d.clone() + penalty,
+                Some(r1.inner().into_scalar::<f32>()),
+            )
         } else {
             (loss_d.clone(), None)
         };
@@ -468,7 +493,7 @@ impl Trainer {
         // Adaptive augmentation: move p towards E[sign(D(real))] = target.
         self.state.ada_acc += d_real.iter().map(|v| v.signum()).sum::<f32>();
         self.state.ada_count += d_real.len() as u64;
-        if self.state.step % cfg.ada_interval as u64 == 0 && self.state.ada_count > 0 {
+        if self.state.step.is_multiple_of(cfg.ada_interval as u64) && self.state.ada_count > 0 {
             let rt = self.state.ada_acc / self.state.ada_count as f32;
             let delta = (cfg.batch_size * cfg.ada_interval) as f64 / cfg.ada_speed_images;
             let p = self.state.ada_p + (rt - cfg.ada_target).signum() * delta as f32;
@@ -518,13 +543,30 @@ impl Trainer {
         let dst = run_dir.join(CHECKPOINT);
         let _ = std::fs::remove_dir_all(&tmp);
         std::fs::create_dir_all(&tmp)?;
-        let save_err = |what: &str, e: burn::store::RecordError| anyhow::anyhow!("failed to save {what}: {e}");
-        self.g.clone().save_file(tmp.join("g.bpk")).map_err(|e| save_err("g", e))?;
-        self.g_ema.clone().save_file(tmp.join("g_ema.bpk")).map_err(|e| save_err("g_ema", e))?;
-        self.d.clone().save_file(tmp.join("d.bpk")).map_err(|e| save_err("d", e))?;
-        self.opt_g.save(tmp.join("opt_g.bpk")).map_err(|e| save_err("opt_g", e))?;
-        self.opt_d.save(tmp.join("opt_d.bpk")).map_err(|e| save_err("opt_d", e))?;
-        std::fs::write(tmp.join("state.json"), serde_json::to_string_pretty(&self.state)?)?;
+        let save_err =
+            |what: &str, e: burn::store::RecordError| anyhow::anyhow!("failed to save {what}: {e}");
+        self.g
+            .clone()
+            .save_file(tmp.join("g.bpk"))
+            .map_err(|e| save_err("g", e))?;
+        self.g_ema
+            .clone()
+            .save_file(tmp.join("g_ema.bpk"))
+            .map_err(|e| save_err("g_ema", e))?;
+        self.d
+            .clone()
+            .save_file(tmp.join("d.bpk"))
+            .map_err(|e| save_err("d", e))?;
+        self.opt_g
+            .save(tmp.join("opt_g.bpk"))
+            .map_err(|e| save_err("opt_g", e))?;
+        self.opt_d
+            .save(tmp.join("opt_d.bpk"))
+            .map_err(|e| save_err("opt_d", e))?;
+        std::fs::write(
+            tmp.join("state.json"),
+            serde_json::to_string_pretty(&self.state)?,
+        )?;
         let _ = std::fs::remove_dir_all(&old);
         if dst.exists() {
             std::fs::rename(&dst, &old)?;
@@ -591,7 +633,11 @@ pub fn write_png(path: &Path, images: &[&[f32]], h: usize, w: usize) -> Result<(
     }
     let file = std::fs::File::create(path)
         .with_context(|| format!("failed to create '{}'", path.display()))?;
-    let mut enc = png::Encoder::new(std::io::BufWriter::new(file), w as u32, (images.len() * (h + 2)) as u32);
+    let mut enc = png::Encoder::new(
+        std::io::BufWriter::new(file),
+        w as u32,
+        (images.len() * (h + 2)) as u32,
+    );
     enc.set_color(png::ColorType::Grayscale);
     enc.set_depth(png::BitDepth::Eight);
     let mut writer = enc.write_header()?;
@@ -734,16 +780,26 @@ mod tests {
         let dev = Device::flex().autodiff();
         let cfg = TrainConfig::new().with_generator(
             GeneratorConfig::new()
-                .with_mapping(super::super::generator::MappingConfig::new().with_d_z(4).with_d_w(4))
+                .with_mapping(
+                    super::super::generator::MappingConfig::new()
+                        .with_d_z(4)
+                        .with_d_w(4),
+                )
                 .with_channels(vec![4])
                 .with_n_freq(vec![2])
                 .with_lh(vec![3])
                 .with_lw(vec![2]),
         );
         let a = init_generator(&cfg, &dev);
-        let b = init_generator(&cfg.clone().with_generator(cfg.generator.clone().with_seed(9)), &dev);
+        let b = init_generator(
+            &cfg.clone()
+                .with_generator(cfg.generator.clone().with_seed(9)),
+            &dev,
+        );
         let mid = ema_update(a.clone(), &b, 0.5);
-        let (AnyGenerator::Implicit(a), AnyGenerator::Implicit(b), AnyGenerator::Implicit(m)) = (a, b, mid) else {
+        let (AnyGenerator::Implicit(a), AnyGenerator::Implicit(b), AnyGenerator::Implicit(m)) =
+            (a, b, mid)
+        else {
             panic!("implicit expected");
         };
         let wa = tensor_to_vec(a.blocks[0].conv0.weight.val());
@@ -753,7 +809,10 @@ mod tests {
             assert!((wm[i] - 0.5 * (wa[i] + wb[i])).abs() < 1e-6);
         }
         // Fixed tensors are copied, not averaged.
-        assert_eq!(tensor_to_vec(m.blocks[0].fourier.b_theta.val()), tensor_to_vec(b.blocks[0].fourier.b_theta.val()));
+        assert_eq!(
+            tensor_to_vec(m.blocks[0].fourier.b_theta.val()),
+            tensor_to_vec(b.blocks[0].fourier.b_theta.val())
+        );
     }
 
     /// A few steps on synthetic data, a checkpoint, and a resume that continues the count.
@@ -764,13 +823,28 @@ mod tests {
         let (h, w) = (grid.height, grid.width);
         let mut rng = Rng::new(3);
         let images: Vec<f32> = (0..8 * h * w)
-            .map(|i| if rng.uniform() < 0.2 { -1.0 } else { ((i % w) as f32 / w as f32) - 0.5 })
+            .map(|i| {
+                if rng.uniform() < 0.2 {
+                    -1.0
+                } else {
+                    ((i % w) as f32 / w as f32) - 0.5
+                }
+            })
             .collect();
-        let data = RangeDataset { height: h, width: w, images, angles: grid };
+        let data = RangeDataset {
+            height: h,
+            width: w,
+            images,
+            angles: grid,
+        };
         let cache = dir.path().join("ds.bin");
         data.save(&cache).expect("cache");
         let generator = GeneratorConfig::new()
-            .with_mapping(super::super::generator::MappingConfig::new().with_d_z(8).with_d_w(8))
+            .with_mapping(
+                super::super::generator::MappingConfig::new()
+                    .with_d_z(8)
+                    .with_d_w(8),
+            )
             .with_channels(vec![8, 8])
             .with_n_freq(vec![4, 4])
             .with_lh(vec![4, 5])
@@ -810,7 +884,12 @@ mod tests {
         )
         .expect("json");
         assert_eq!(state.images, 12);
-        assert!(std::fs::read_dir(opts.run_dir.join("snapshots")).expect("snapshots").count() >= 2);
+        assert!(
+            std::fs::read_dir(opts.run_dir.join("snapshots"))
+                .expect("snapshots")
+                .count()
+                >= 2
+        );
         let (g, _) = load_generator(&opts.run_dir, &Device::flex()).expect("load ema");
         assert_eq!(g.d_z(), 8);
     }
