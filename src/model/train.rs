@@ -892,5 +892,28 @@ mod tests {
         );
         let (g, _) = load_generator(&opts.run_dir, &Device::flex()).expect("load ema");
         assert_eq!(g.d_z(), 8);
+        // Sampling from the run, on the training grid and on a 2x denser one.
+        let mut sopts = super::super::sample::SampleOptions {
+            n: 3,
+            seed: 1,
+            truncation: 1.0,
+            grid: Some(data.angles.clone()),
+        };
+        let scans =
+            super::super::sample::sample(&opts.run_dir, &sopts, &Device::flex()).expect("sample");
+        assert_eq!(scans.len(), 3);
+        let s = &scans[0];
+        assert_eq!(s.range_m.len(), h * w);
+        assert!(s.drop_prob.iter().all(|p| (0.0..=1.0).contains(p)));
+        assert!(s.range_m.iter().zip(&s.mask).all(|(r, m)| (*r > 0.0) == *m));
+        assert_eq!(s.points().len(), s.mask.iter().filter(|m| **m).count());
+        sopts.grid = Some(super::super::layers::AngleGridExt::resample(
+            &data.angles,
+            2 * h,
+            2 * w,
+        ));
+        let dense =
+            super::super::sample::sample(&opts.run_dir, &sopts, &Device::flex()).expect("dense");
+        assert_eq!(dense[0].range_m.len(), 4 * h * w);
     }
 }
