@@ -92,6 +92,10 @@ pub struct TrainConfig {
     /// Generator EMA half-life in images.
     #[config(default = 10000.0)]
     pub ema_half_life_images: f64,
+    /// EMA ramp-up: the half-life is at most this fraction of the images seen (StyleGAN2-ADA),
+    /// so the EMA model is not stuck near the initial weights early on.
+    #[config(default = 0.05)]
+    pub ema_rampup: f64,
     /// Adaptive augmentation target of E[sign(D(real))].
     #[config(default = 0.6)]
     pub ada_target: f32,
@@ -523,7 +527,11 @@ impl Trainer {
         };
 
         // ---- EMA of the generator (inference model).
-        let beta = 0.5f64.powf(cfg.batch_size as f64 / cfg.ema_half_life_images.max(1.0)) as f32;
+        let half_life = cfg
+            .ema_half_life_images
+            .min(self.state.images as f64 * cfg.ema_rampup)
+            .max(1.0);
+        let beta = 0.5f64.powf(cfg.batch_size as f64 / half_life) as f32;
         self.g_ema = ema_update(self.g_ema.clone(), &self.g, beta);
 
         Ok(StepMetrics {
