@@ -181,13 +181,40 @@ pub fn init_generator(config: &TrainConfig, device: &Device) -> AnyGenerator {
 
 /// Load the EMA generator of a run (inference); returns it with the run's config.
 pub fn load_generator(run_dir: &Path, device: &Device) -> Result<(AnyGenerator, TrainConfig)> {
-    let config = TrainConfig::load(run_dir.join("config.json"))
-        .with_context(|| format!("failed to read '{}/config.json'", run_dir.display()))?;
+    let config = load_config(&run_dir.join("config.json"))?;
     let path = run_dir.join(CHECKPOINT).join("g_ema.bpk");
     let g = init_generator(&config, device)
         .try_load_file(&path)
         .map_err(|e| anyhow::anyhow!("failed to load '{}': {e}", path.display()))?;
     Ok((g, config))
+}
+
+/// Read a run's `config.json`; fields added to [`TrainConfig`] after the run started take
+/// their defaults (burn's `Config::load` rejects missing fields), so old runs stay resumable.
+pub fn load_config(path: &Path) -> Result<TrainConfig> {
+    let text = std::fs::read_to_string(path)
+        .with_context(|| format!("failed to read '{}'", path.display()))?;
+    let saved: serde_json::Value =
+        serde_json::from_str(&text).with_context(|| format!("'{}' is not JSON", path.display()))?;
+    let mut merged = serde_json::to_value(TrainConfig::new())?;
+    merge_json(&mut merged, saved);
+    serde_json::from_value(merged).with_context(|| format!("bad config '{}'", path.display()))
+}
+
+fn merge_json(base: &mut serde_json::Value, over: serde_json::Value) {
+    match (base, over) {
+        (serde_json::Value::Object(b), serde_json::Value::Object(o)) => {
+            for (k, v) in o {
+                match b.get_mut(&k) {
+                    Some(slot) => merge_json(slot, v),
+                    None => {
+                        b.insert(k, v);
+                    }
+                }
+            }
+        }
+        (slot, v) => *slot = v,
+    }
 }
 
 /// Train (or resume) in `opts.run_dir`.
@@ -196,8 +223,7 @@ pub fn run(opts: &TrainOptions) -> Result<()> {
         .with_context(|| format!("failed to create '{}'", opts.run_dir.display()))?;
     let config_path = opts.run_dir.join("config.json");
     let config = if config_path.exists() {
-        TrainConfig::load(&config_path)
-            .with_context(|| format!("failed to read '{}'", config_path.display()))?
+        load_config(&config_path)?
     } else {
         opts.config
             .save(&config_path)
@@ -762,6 +788,27 @@ pub fn ema_update<M: Module>(ema: M, g: &M, beta: f32) -> M {
 mod tests {
     use super::*;
     use crate::lidar::SensorProfile;
+
+    #[test]
+    fn old_configs_load_with_new_fields_defaulted() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        let path = dir.path().join("config.json");
+        let mut v = serde_json::to_value(TrainConfig::new().with_batch_size(3)).expect("json");
+        let obj = v.as_object_mut().expect("object");
+        obj.remove("ema_rampup");
+        obj.get_mut("generator")
+            .and_then(|g| g.as_object_mut())
+            .map(|g| g.remove("output_gain"));
+        std::fs::write(&path, v.to_string()).expect("write");
+        assert!(
+            TrainConfig::load(&path).is_err(),
+            "burn's loader needs every field"
+        );
+        let c = load_config(&path).expect("load");
+        assert_eq!(c.batch_size, 3);
+        assert_eq!(c.ema_rampup, 0.05);
+        assert_eq!(c.generator.output_gain, 0.25);
+    }
 
     #[test]
     fn augment_keeps_drops_and_identity_at_p0() {
