@@ -201,6 +201,79 @@ pub fn swd(a: &[&[f32]], b: &[&[f32]], h: usize, w: usize, cfg: &SwdConfig) -> V
         .collect()
 }
 
+/// SWD (per level, finest first, and their mean) between a run's EMA samples and real scans.
+#[derive(Debug, Clone, serde::Serialize)]
+pub struct SwdReport {
+    pub per_level: Vec<f64>,
+    pub mean: f64,
+    pub fake_images: usize,
+    pub real_images: usize,
+}
+
+impl SwdReport {
+    fn new(per_level: Vec<f64>, fake_images: usize, real_images: usize) -> Self {
+        let mean = per_level.iter().sum::<f64>() / per_level.len().max(1) as f64;
+        Self {
+            per_level,
+            mean,
+            fake_images,
+            real_images,
+        }
+    }
+}
+
+/// Inverse depth x_d of a set of images in network units (what the paper's SWD compares;
+/// dropped pixels count as 0).
+fn inverse_depth(images: &[f32]) -> Vec<f32> {
+    images.iter().map(|v| ((v + 1.0) * 0.5).max(0.0)).collect()
+}
+
+/// SWD between `n_fake` samples (after ray drop) of the run in `run_dir` and the scans of
+/// `real` (e.g. the held-out sequences), on the inverse depth.
+pub fn swd_of_run(
+    run_dir: &std::path::Path,
+    real: &super::data::RangeDataset,
+    n_fake: usize,
+    cfg: &SwdConfig,
+    device: &burn::tensor::Device,
+) -> anyhow::Result<SwdReport> {
+    let opts = super::sample::SampleOptions {
+        n: n_fake,
+        seed: cfg.seed ^ 0xfa6e,
+        truncation: 1.0,
+        grid: Some(real.angles.clone()),
+    };
+    let fakes: Vec<Vec<f32>> = super::sample::sample(run_dir, &opts, device)?
+        .into_iter()
+        .map(|s| {
+            s.x_d
+                .iter()
+                .zip(&s.mask)
+                .map(|(x, &m)| if m { *x } else { 0.0 })
+                .collect()
+        })
+        .collect();
+    let reals = inverse_depth(&real.images);
+    let n = real.height * real.width;
+    let a: Vec<&[f32]> = fakes.iter().map(|f| f.as_slice()).collect();
+    let b: Vec<&[f32]> = reals.chunks_exact(n).collect();
+    let per_level = swd(&a, &b, real.height, real.width, cfg);
+    Ok(SwdReport::new(per_level, a.len(), b.len()))
+}
+
+/// The floor: SWD between two real sets (e.g. training scans vs held-out scans).
+pub fn swd_between(
+    a: &super::data::RangeDataset,
+    b: &super::data::RangeDataset,
+    cfg: &SwdConfig,
+) -> SwdReport {
+    let (ia, ib) = (inverse_depth(&a.images), inverse_depth(&b.images));
+    let n = a.height * a.width;
+    let sa: Vec<&[f32]> = ia.chunks_exact(n).collect();
+    let sb: Vec<&[f32]> = ib.chunks_exact(n).collect();
+    SwdReport::new(swd(&sa, &sb, a.height, a.width, cfg), sa.len(), sb.len())
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -970,5 +970,23 @@ mod tests {
         let dense =
             super::super::sample::sample(&opts.run_dir, &sopts, &Device::flex()).expect("dense");
         assert_eq!(dense[0].range_m.len(), 4 * h * w);
+        // SWD of the run against the real set, and the real set against itself (floor 0).
+        let cfg = super::super::metrics::SwdConfig {
+            patches_per_image: 16,
+            projections: 8,
+            ..Default::default()
+        };
+        let report =
+            super::super::metrics::swd_of_run(&opts.run_dir, &data, 4, &cfg, &Device::flex())
+                .expect("swd");
+        assert_eq!(report.per_level.len(), 3);
+        assert!(report.mean > 0.0 && report.mean.is_finite());
+        let floor = super::super::metrics::swd_between(&data, &data, &cfg);
+        assert!(
+            floor.mean < report.mean,
+            "floor {} run {}",
+            floor.mean,
+            report.mean
+        );
     }
 }
