@@ -259,6 +259,8 @@ struct Trainer {
     grid: Option<GridCache>,
     grid_inner: Option<GridCache>,
     snapshot_z: Tensor<2>,
+    /// The latest (lazy) R1 estimate, logged on every log line.
+    last_r1: Option<f32>,
 }
 
 impl Trainer {
@@ -333,6 +335,7 @@ impl Trainer {
             grid,
             grid_inner,
             snapshot_z,
+            last_r1: None,
         })
     }
 
@@ -383,7 +386,7 @@ impl Trainer {
                     "images": self.state.images,
                     "loss_d": m.loss_d,
                     "loss_g": m.loss_g,
-                    "r1": m.r1,
+                    "r1": m.r1.or(self.last_r1),
                     "d_real": m.d_real,
                     "d_fake": m.d_fake,
                     "ada_p": self.state.ada_p,
@@ -516,6 +519,9 @@ impl Trainer {
         } else {
             (loss_d.clone(), None)
         };
+        if r1.is_some() {
+            self.last_r1 = r1;
+        }
         let grads = loss_d_total.backward();
         let grads = GradientsParams::from_grads(grads, &self.d);
         self.d = self.opt_d.step(cfg.lr, self.d.clone(), grads);
