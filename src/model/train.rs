@@ -876,6 +876,66 @@ mod tests {
         );
     }
 
+    /// The baselines run through the same loop (fixed 64x64 output here).
+    #[test]
+    fn baselines_train_a_few_steps() {
+        for arch in [Arch::Dusty1, Arch::Vanilla] {
+            let dir = tempfile::tempdir().expect("tempdir");
+            let grid = SensorProfile::kitti_hdl64e().with_columns(64).angle_grid();
+            let (h, w) = (grid.height, grid.width);
+            let mut rng = Rng::new(4);
+            let images: Vec<f32> = (0..4 * h * w)
+                .map(|_| {
+                    if rng.uniform() < 0.2 {
+                        -1.0
+                    } else {
+                        rng.uniform() - 0.5
+                    }
+                })
+                .collect();
+            let data = RangeDataset {
+                height: h,
+                width: w,
+                images,
+                angles: grid,
+            };
+            let cache = dir.path().join("ds.bin");
+            data.save(&cache).expect("cache");
+            let config = TrainConfig::new()
+                .with_arch(arch)
+                .with_conv_generator(
+                    ConvGeneratorConfig::new()
+                        .with_d_z(8)
+                        .with_channels(vec![8, 8, 8, 8, 8])
+                        .with_base_width(4),
+                )
+                .with_discriminator(DiscriminatorConfig::new().with_channels(vec![4, 8, 8]))
+                .with_batch_size(2)
+                .with_r1_interval(1)
+                .with_total_images(4)
+                .with_snapshot_every_images(4);
+            let opts = TrainOptions {
+                run_dir: dir.path().join("run"),
+                dataset_cache: cache,
+                scans: vec![],
+                config,
+                backend: Backend::Flex,
+                total_images: None,
+                max_duration: None,
+                progress: false,
+            };
+            run(&opts).expect("train");
+            let (g, c) = load_generator(&opts.run_dir, &Device::flex()).expect("load");
+            assert_eq!(c.arch, arch);
+            let AnyGenerator::Conv(g) = g else {
+                panic!("conv generator expected")
+            };
+            let z = Rng::new(1).normal_tensor([1, 8], &Device::flex());
+            let channels = if arch == Arch::Vanilla { 1 } else { 2 };
+            assert_eq!(g.forward(z).dims(), [1, channels, h, w]);
+        }
+    }
+
     /// A few steps on synthetic data, a checkpoint, and a resume that continues the count.
     #[test]
     fn trains_checkpoints_and_resumes() {
