@@ -15,4 +15,6 @@ pub mod error;
 pub mod io;
 pub mod lidar;
 pub mod model;
+pub mod physics;
 pub mod pipeline;
+pub mod sim;
