@@ -5,6 +5,7 @@
 mod convert;
 mod import;
 mod info;
+mod train;
 
 use std::process::ExitCode;
 
@@ -42,6 +43,8 @@ pub enum Command {
     Info(info::InfoArgs),
     /// Turn a KITTI / SemanticKITTI folder into an MCAP of ROS 2 PointCloud2 messages.
     Import(import::ImportArgs),
+    /// Train the range-image GAN on KITTI scans (resumes an existing run directory).
+    Train(train::TrainArgs),
 }
 
 /// How a command ended when it did not fail outright.
@@ -71,6 +74,7 @@ pub fn run(args: Args) -> anyhow::Result<Outcome> {
         Command::Convert(a) => convert::run(&args.global, a),
         Command::Info(a) => info::run(&args.global, a),
         Command::Import(a) => import::run(&args.global, a),
+        Command::Train(a) => train::run_train(&args.global, a),
     }
 }
 
