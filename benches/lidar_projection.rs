@@ -1,23 +1,61 @@
-//! Criterion benchmarks of the `lidar` module on one full-resolution KITTI scan
-//! (~124k points): projection per strategy at 64x2048, sensor estimation, and
-//! resampling. Reads `../shared/real_lidar/semantickitti_ssv3/000000.bin` when it
-//! exists, else generates a scan with the same layout (64 rings x 2010 points in
-//! KITTI ring order). Run: `cargo bench --bench lidar_projection`; numbers in
-//! `docs/lidar.md`.
+//! Speed of the `lidar` module on one full-resolution KITTI scan (~124k points):
+//! projection per strategy at 64x2048, sensor estimation, and resampling. Reads
+//! `../shared/real_lidar/semantickitti_ssv3/000000.bin` when it exists, else
+//! generates a scan with the same layout (64 rings x 2010 points in KITTI ring
+//! order). Plain timing harness (no criterion), single-threaded like one scan in
+//! `convert`:
+//!
+//! `cargo bench --bench lidar_projection`
+//!
+//! Prints `group/case/size: wall median ms (min .. max) over N runs; CPU ms/run`.
+//! Numbers are recorded in `docs/lidar.md`.
 
 use std::hint::black_box;
 use std::path::Path;
+use std::time::Instant;
 
-use criterion::{Criterion, criterion_group, criterion_main};
 use rangegan_mcap::lidar::{
     Interpolation, Scan, SensorProfile, Strategy, estimate_profile, kitti, project, resample_image,
 };
+
+/// CPU seconds used by this process so far (user + system), from `/proc/self/stat`;
+/// on a shared machine this is the fair single-core cost.
+fn cpu_seconds() -> Option<f64> {
+    let stat = std::fs::read_to_string("/proc/self/stat").ok()?;
+    let rest = &stat[stat.rfind(')')? + 2..];
+    let fields: Vec<&str> = rest.split_whitespace().collect();
+    let ticks: f64 = fields.get(11)?.parse::<f64>().ok()? + fields.get(12)?.parse::<f64>().ok()?;
+    Some(ticks / 100.0) // USER_HZ is 100 on Linux
+}
+
+fn time_runs<T>(label: &str, runs: u32, mut f: impl FnMut() -> T) {
+    black_box(f()); // warm up
+    let cpu0 = cpu_seconds();
+    let mut ms: Vec<f64> = (0..runs)
+        .map(|_| {
+            let t = Instant::now();
+            black_box(f());
+            t.elapsed().as_secs_f64() * 1e3
+        })
+        .collect();
+    let cpu = cpu0
+        .zip(cpu_seconds())
+        .map(|(a, b)| (b - a) * 1e3 / f64::from(runs));
+    ms.sort_by(f64::total_cmp);
+    let cpu = cpu.map_or(String::new(), |c| format!("; CPU {c:.1} ms/run"));
+    println!(
+        "{label}: wall median {:.1} ms (min {:.1} .. max {:.1}) over {runs} runs{cpu}",
+        ms[ms.len() / 2],
+        ms[0],
+        ms[ms.len() - 1]
+    );
+}
 
 /// The real scan, or a generated one in the same layout.
 fn kitti_scan() -> (Scan, &'static str) {
     let path = Path::new("../shared/real_lidar/semantickitti_ssv3/000000.bin");
     if let Ok(scan) = kitti::read_scan(path, None) {
-        return (scan, "real KITTI 000000.bin");
+        return (scan, "real KITTI semantickitti_ssv3/000000.bin");
     }
     let table = SensorProfile::kitti_hdl64e().elevation_deg;
     let per_ring = 2010;
@@ -34,40 +72,43 @@ fn kitti_scan() -> (Scan, &'static str) {
     (Scan::from_xyz(xyz), "generated KITTI-like scan")
 }
 
-fn benches(c: &mut Criterion) {
+fn main() {
     let (scan, what) = kitti_scan();
-    eprintln!("input: {what}, {} points", scan.len());
+    println!("input: {what}, {} points", scan.len());
+    let runs = 30;
     let profile = SensorProfile::kitti_hdl64e().with_columns(2048);
-    let mut g = c.benchmark_group("lidar");
     for (name, strategy) in [
         ("ring-order", Strategy::RingOrder),
         ("auto", Strategy::Auto),
         ("spherical", Strategy::Spherical),
     ] {
-        g.bench_function(format!("project/{name}/64x2048"), |b| {
-            b.iter(|| project(black_box(&scan), &profile, strategy).unwrap())
+        time_runs(&format!("lidar/project/{name}/64x2048"), runs, || {
+            project(&scan, &profile, strategy).map(|img| img.valid_count())
         });
     }
-    g.bench_function("estimate/ring-order/1-scan", |b| {
-        b.iter(|| estimate_profile(std::slice::from_ref(black_box(&scan))).unwrap())
+    time_runs("lidar/estimate/ring-order/1-scan", runs, || {
+        estimate_profile(std::slice::from_ref(&scan)).map(|e| e.columns)
     });
-    let small = project(
+    let small = match project(
         &scan,
         &SensorProfile::kitti_hdl64e().with_columns(512),
         Strategy::RingOrder,
-    )
-    .unwrap();
+    ) {
+        Ok(img) => img,
+        Err(e) => {
+            eprintln!("cannot project the input: {e}");
+            return;
+        }
+    };
     let fine = small.angles.resized(64, 2048);
-    g.bench_function("grid-resize/64x512-to-128x2048", |b| {
-        b.iter(|| black_box(&small.angles).resized(128, 2048))
+    time_runs("lidar/grid-resize/64x512-to-128x2048", runs, || {
+        small.angles.resized(128, 2048)
     });
     for m in [Interpolation::Nearest, Interpolation::Bilinear] {
-        g.bench_function(format!("resample/{}/64x512-to-64x2048", m.name()), |b| {
-            b.iter(|| resample_image(black_box(&small), &fine, m))
-        });
+        time_runs(
+            &format!("lidar/resample/{}/64x512-to-64x2048", m.name()),
+            runs,
+            || resample_image(&small, &fine, m).valid_count(),
+        );
     }
-    g.finish();
 }
-
-criterion_group!(lidar, benches);
-criterion_main!(lidar);

@@ -1,11 +1,13 @@
 //! Range images on real LiDAR data (issue 2, "Range images"): KITTI HDL-64E scans,
-//! a nuScenes HDL-32E scan and a Velodyne VLP-16 cloud, read from
+//! a nuScenes HDL-32E scan, a Velodyne VLP-16 cloud and the Ouster OS1-64 clouds of
+//! a real MCAP (decoded by `io`), read from
 //! `../shared/real_lidar` (relative to the crate root). Each test skips with a
 //! message when that folder is absent. Run with `-- --nocapture` to see the
 //! measured numbers that `docs/lidar.md` records.
 
 use std::path::{Path, PathBuf};
 
+use rangegan_mcap::io::{CloudFormat, decode_cloud};
 use rangegan_mcap::lidar::projection::{choose_strategy, ring_order_ids};
 use rangegan_mcap::lidar::range_image::{NO_POINT, azimuth_column};
 use rangegan_mcap::lidar::{
@@ -515,4 +517,69 @@ fn sensor_estimation_on_real_scans() {
             b.elevation_deg
         );
     }
+}
+
+#[test]
+fn ouster_os1_cloud_in_the_mcap_projects_column_major() {
+    let Some(root) = real_data("ouster_os1_cloud_in_the_mcap_projects_column_major") else {
+        return;
+    };
+    let bytes = std::fs::read(root.join("mcap/pointcloudset_test.mcap")).unwrap();
+    let profile = SensorProfile::builtin("os1-64").unwrap();
+    let mut clouds = 0;
+    for msg in mcap::MessageStream::new(&bytes).unwrap() {
+        let msg = msg.unwrap();
+        let Some(schema) = msg.channel.schema.as_ref() else {
+            continue;
+        };
+        let Some(format) = CloudFormat::detect(&msg.channel.message_encoding, &schema.name) else {
+            continue;
+        };
+        let mut scan = decode_cloud(format, &msg.data).unwrap().scan;
+        clouds += 1;
+        // The header says 64 rows of 2048, row-major; the data is column-major.
+        assert_eq!((scan.height, scan.width), (64, 2048));
+        let returns = scan.returns();
+        let ring = scan.ring.take();
+        assert_eq!(choose_strategy(&scan, &profile), Strategy::ColumnMajor);
+        let img = project(&scan, &profile, Strategy::Auto).unwrap();
+        let rows: Vec<f32> = row_medians_deg(&img)
+            .into_iter()
+            .map(|m| m.expect("empty row"))
+            .collect();
+        assert_eq!(rows.len(), 64);
+        assert!(strictly_decreasing(&rows), "{rows:?}");
+        // One firing per column and beam: every return keeps its own pixel.
+        assert_eq!(img.valid_count(), returns);
+        // Taken at its header's word (row-major), beams smear across rows.
+        let naive = project(&scan, &profile, Strategy::RowMajor).unwrap();
+        eprintln!(
+            "OS1-64 cloud {clouds}: {returns} returns of {} cells; column-major keeps {} (100 %), row-major {} ({:.1} %); rows {:+.2} .. {:+.2} deg",
+            scan.len(),
+            img.valid_count(),
+            naive.valid_count(),
+            100.0 * naive.valid_count() as f64 / returns as f64,
+            rows[0],
+            rows[63]
+        );
+        assert!(naive.valid_count() < returns * 9 / 10);
+        // The driver's ring field gives the same image.
+        if let Some(ring) = ring {
+            scan.ring = Some(ring);
+            assert_eq!(choose_strategy(&scan, &profile), Strategy::RingField);
+            assert_eq!(
+                project(&scan, &profile, Strategy::Auto).unwrap().range_m,
+                img.range_m
+            );
+        }
+        // And --sensor auto finds the gen-1 OS1-64 (33 deg field of view).
+        let est = estimate_profile(std::slice::from_ref(&scan)).unwrap();
+        assert_eq!((est.beams.len(), est.columns), (64, 2048), "{est}");
+        assert!(
+            (est.beams[0].elevation_deg - 16.5).abs() < 0.3
+                && (est.beams[63].elevation_deg + 16.7).abs() < 0.3,
+            "{est}"
+        );
+    }
+    assert_eq!(clouds, 2, "pointcloudset_test.mcap holds two OS1-64 clouds");
 }
