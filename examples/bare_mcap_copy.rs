@@ -32,7 +32,13 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
                     w.add_schema_with_id(header.id, &header.name, &header.encoding, &data)?;
                 }
                 Record::Channel(c) => {
-                    w.add_channel_with_id(c.id, c.schema_id, &c.topic, &c.message_encoding, &c.metadata)?;
+                    w.add_channel_with_id(
+                        c.id,
+                        c.schema_id,
+                        &c.topic,
+                        &c.message_encoding,
+                        &c.metadata,
+                    )?;
                 }
                 Record::Message { header, data } => w.write_to_known_channel(&header, &data)?,
                 Record::Attachment { header, data, .. } => w.attach(&mcap::Attachment {

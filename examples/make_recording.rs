@@ -11,11 +11,15 @@ use rangegan_mcap::lidar::{Scan, SensorProfile};
 
 /// A deterministic, compressible-but-not-trivial byte pattern (like real images).
 fn payload(len: usize, seed: u64) -> Vec<u8> {
-    let mut x = seed.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+    let mut x = seed
+        .wrapping_mul(6364136223846793005)
+        .wrapping_add(1442695040888963407);
     (0..len)
         .map(|i| {
             if i % 64 == 0 {
-                x = x.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+                x = x
+                    .wrapping_mul(6364136223846793005)
+                    .wrapping_add(1442695040888963407);
             }
             ((x >> ((i % 8) * 8)) as u8) & 0x3f | (i as u8 & 0xc0)
         })
@@ -24,7 +28,10 @@ fn payload(len: usize, seed: u64) -> Vec<u8> {
 
 fn cloud(i: u64) -> Scan {
     let grid = SensorProfile::kitti_hdl64e().angle_grid();
-    let mut scan = Scan { intensity: Some(Vec::new()), ..Default::default() };
+    let mut scan = Scan {
+        intensity: Some(Vec::new()),
+        ..Default::default()
+    };
     for k in 0..grid.len() {
         let r = 5.0 + ((k as u64 * 7919 + i * 13) % 600) as f32 / 10.0;
         let [x, y, z] = grid.direction(k);
@@ -42,9 +49,16 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let target_bytes: u64 = args[2].parse::<u64>()? * 1_000_000;
     let clouds = args.iter().any(|a| a == "--clouds");
     let file = std::io::BufWriter::with_capacity(1 << 20, std::fs::File::create(out)?);
-    let mut w = mcap::WriteOptions::new().compression(Some(mcap::Compression::Zstd)).create(file)?;
+    let mut w = mcap::WriteOptions::new()
+        .compression(Some(mcap::Compression::Zstd))
+        .create(file)?;
     let image_schema = w.add_schema("raw_bytes", "", b"")?;
-    let camera = w.add_channel(image_schema, "/camera/raw", "application/octet-stream", &BTreeMap::new())?;
+    let camera = w.add_channel(
+        image_schema,
+        "/camera/raw",
+        "application/octet-stream",
+        &BTreeMap::new(),
+    )?;
     let status = w.add_channel(0, "/status", "json", &BTreeMap::new())?;
     let s = encoders::schema(Family::Ros2, Kind::Cloud);
     let cloud_schema = w.add_schema(&s.name, &s.encoding, &s.data)?;
@@ -53,14 +67,23 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let mut i = 0u64;
     while written < target_bytes {
         let t = 1_600_000_000_000_000_000 + i * 100_000_000;
-        let header = |channel_id| mcap::records::MessageHeader { channel_id, sequence: i as u32, log_time: t, publish_time: t };
+        let header = |channel_id| mcap::records::MessageHeader {
+            channel_id,
+            sequence: i as u32,
+            log_time: t,
+            publish_time: t,
+        };
         let img = payload(1_000_000, i);
         w.write_to_known_channel(&header(camera), &img)?;
         written += img.len() as u64;
         let json = format!("{{\"seq\":{i},\"ok\":true}}");
         w.write_to_known_channel(&header(status), json.as_bytes())?;
         if clouds {
-            let c = DecodedCloud { scan: cloud(i), stamp_nanos: t, frame_id: "velodyne".into() };
+            let c = DecodedCloud {
+                scan: cloud(i),
+                stamp_nanos: t,
+                frame_id: "velodyne".into(),
+            };
             let data = encoders::encode_scan(Family::Ros2, &c, &[]);
             written += data.len() as u64;
             w.write_to_known_channel(&header(lidar), &data)?;
@@ -68,6 +91,9 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         i += 1;
     }
     w.finish()?;
-    eprintln!("{out}: {i} frames, {:.0} MB of message data", written as f64 / 1e6);
+    eprintln!(
+        "{out}: {i} frames, {:.0} MB of message data",
+        written as f64 / 1e6
+    );
     Ok(())
 }

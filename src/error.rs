@@ -13,7 +13,10 @@ pub struct Location {
 
 impl Location {
     pub fn file(file: impl Into<PathBuf>) -> Self {
-        Location { file: file.into(), ..Default::default() }
+        Location {
+            file: file.into(),
+            ..Default::default()
+        }
     }
 
     pub fn message(file: impl Into<PathBuf>, topic: &str, log_time_nanos: u64) -> Self {
@@ -45,7 +48,10 @@ mod tests {
     #[test]
     fn location_names_file_topic_and_time() {
         let loc = Location::message("in.mcap", "/velodyne_points", 1_317_022_740_129_000_001);
-        assert_eq!(loc.to_string(), "in.mcap: /velodyne_points @ 1317022740.129000001 s");
+        assert_eq!(
+            loc.to_string(),
+            "in.mcap: /velodyne_points @ 1317022740.129000001 s"
+        );
         assert_eq!(Location::file("a.mcap").to_string(), "a.mcap");
     }
 }

@@ -13,7 +13,9 @@ use rayon::prelude::*;
 
 use crate::error::Location;
 use crate::io::encoders::{Kind, Payload, PixelFormat, encode};
-use crate::io::{CloudFormat, DecodedCloud, Family, McapOutput, OnError, ReadReport, decode_cloud, read_records};
+use crate::io::{
+    CloudFormat, DecodedCloud, Family, McapOutput, OnError, ReadReport, decode_cloud, read_records,
+};
 use crate::lidar::{RangeImage, SensorProfile, Strategy, estimate_profile, project};
 
 /// Which sensor grid a topic's scans are projected onto.
@@ -74,9 +76,23 @@ pub type Stage<'s> = dyn Fn(&ScanInput<'_>) -> anyhow::Result<Vec<StageOutput>> 
 pub fn range_stage(input: &ScanInput<'_>) -> anyhow::Result<Vec<StageOutput>> {
     let img = input.image;
     let data: Vec<u8> = img.range_m.iter().flat_map(|r| r.to_le_bytes()).collect();
-    let payload = Payload::Image { width: img.width as u32, height: img.height as u32, format: PixelFormat::F32, data: &data };
-    let bytes = encode(input.family, input.cloud.stamp_nanos, &input.cloud.frame_id, &payload);
-    Ok(vec![StageOutput { suffix: "range".into(), kind: Kind::Image, data: bytes }])
+    let payload = Payload::Image {
+        width: img.width as u32,
+        height: img.height as u32,
+        format: PixelFormat::F32,
+        data: &data,
+    };
+    let bytes = encode(
+        input.family,
+        input.cloud.stamp_nanos,
+        &input.cloud.frame_id,
+        &payload,
+    );
+    Ok(vec![StageOutput {
+        suffix: "range".into(),
+        kind: Kind::Image,
+        data: bytes,
+    }])
 }
 
 /// Per-topic results for the summary.
@@ -149,14 +165,22 @@ type Processed = (Vec<StageOutput>, f64, (SensorProfile, Strategy));
 
 impl ScanProcessor<'_> {
     /// The profile and strategy for `topic`, fixed by its first scan with returns.
-    fn profile_for(&self, topic: &str, cloud: &DecodedCloud) -> Result<(SensorProfile, Strategy), String> {
+    fn profile_for(
+        &self,
+        topic: &str,
+        cloud: &DecodedCloud,
+    ) -> Result<(SensorProfile, Strategy), String> {
         let mut map = self.profiles.lock().unwrap_or_else(|e| e.into_inner());
         if let Some(found) = map.get(topic) {
             return Ok(found.clone());
         }
         let profile = match &self.opts.sensor {
             SensorChoice::Fixed(p) => p.clone(),
-            SensorChoice::Auto => estimate_profile(std::slice::from_ref(&cloud.scan)).map_err(|e| e.to_string())?.profile,
+            SensorChoice::Auto => {
+                estimate_profile(std::slice::from_ref(&cloud.scan))
+                    .map_err(|e| e.to_string())?
+                    .profile
+            }
         };
         let profile = match self.opts.columns {
             Some(c) => profile.with_columns(c),
@@ -176,14 +200,19 @@ impl ScanProcessor<'_> {
         let image = project(&cloud.scan, &profile, strategy).map_err(|e| e.to_string())?;
         let returns = cloud.scan.returns().max(1);
         let kept = image.valid_count() as f64 / returns as f64;
-        let input = ScanInput { topic: &p.topic, log_time: p.log_time, family: p.format.family(), cloud: &cloud, image: &image };
+        let input = ScanInput {
+            topic: &p.topic,
+            log_time: p.log_time,
+            family: p.format.family(),
+            cloud: &cloud,
+            image: &image,
+        };
         let mut outputs = Vec::new();
         for stage in self.stages {
             outputs.extend(stage(&input).map_err(|e| format!("{e:#}"))?);
         }
         Ok((outputs, kept, (profile, strategy)))
     }
-
 }
 
 struct Converter<'a> {
@@ -200,7 +229,10 @@ struct Converter<'a> {
 
 impl Converter<'_> {
     fn selected(&self, topic: &str) -> bool {
-        self.opts.topics.as_ref().is_none_or(|t| t.iter().any(|x| x == topic))
+        self.opts
+            .topics
+            .as_ref()
+            .is_none_or(|t| t.iter().any(|x| x == topic))
     }
 
     fn visit(&mut self, record: &Record<'_>) -> anyhow::Result<()> {
@@ -208,16 +240,28 @@ impl Converter<'_> {
         match record {
             Record::Schema { header, .. } => {
                 counts.schemas += 1;
-                self.schemas.insert(header.id, (header.name.clone(), header.encoding.clone()));
+                self.schemas
+                    .insert(header.id, (header.name.clone(), header.encoding.clone()));
             }
             Record::Channel(c) => {
                 counts.channels += 1;
                 let schema_name = self.schemas.get(&c.schema_id).map_or("", |s| s.0.as_str());
-                let format = CloudFormat::detect(&c.message_encoding, schema_name).filter(|_| self.selected(&c.topic));
+                let format = CloudFormat::detect(&c.message_encoding, schema_name)
+                    .filter(|_| self.selected(&c.topic));
                 if let Some(f) = format {
-                    self.report.topics.entry(c.topic.clone()).or_default().format = Some(f);
+                    self.report
+                        .topics
+                        .entry(c.topic.clone())
+                        .or_default()
+                        .format = Some(f);
                 }
-                self.channels.insert(c.id, ChannelInfo { topic: c.topic.clone(), format });
+                self.channels.insert(
+                    c.id,
+                    ChannelInfo {
+                        topic: c.topic.clone(),
+                        format,
+                    },
+                );
             }
             Record::Message { .. } => counts.messages += 1,
             Record::Attachment { .. } => counts.attachments += 1,
@@ -227,7 +271,11 @@ impl Converter<'_> {
         // Copy first: the input record reaches the output whatever happens to its scan.
         self.out.copy_record(record)?;
         if let Record::Message { header, data } = record {
-            if let Some(ChannelInfo { topic, format: Some(format) }) = self.channels.get(&header.channel_id) {
+            if let Some(ChannelInfo {
+                topic,
+                format: Some(format),
+            }) = self.channels.get(&header.channel_id)
+            {
                 self.batch.push(Pending {
                     topic: topic.clone(),
                     format: *format,
@@ -262,14 +310,19 @@ impl Converter<'_> {
                     for o in outputs {
                         let topic = format!("{}/rangegan/{}", p.topic, o.suffix);
                         let id = self.out.own_channel(&topic, family, o.kind)?;
-                        self.out.write_own(id, p.log_time, p.publish_time, &o.data)?;
+                        self.out
+                            .write_own(id, p.log_time, p.publish_time, &o.data)?;
                         self.report.outputs_written += 1;
                     }
                 }
                 Err(message) => {
                     topic_report.malformed += 1;
                     let loc = Location::message(&self.file, &p.topic, p.log_time);
-                    self.report.warnings.push(Warning { topic: p.topic.clone(), log_time_nanos: p.log_time, message: format!("{loc}: {message}; message copied unchanged") });
+                    self.report.warnings.push(Warning {
+                        topic: p.topic.clone(),
+                        log_time_nanos: p.log_time,
+                        message: format!("{loc}: {message}; message copied unchanged"),
+                    });
                 }
             }
         }
@@ -300,7 +353,11 @@ pub fn convert(
     let mut conv = Converter {
         out,
         opts,
-        processor: ScanProcessor { opts, stages, profiles: Mutex::new(HashMap::new()) },
+        processor: ScanProcessor {
+            opts,
+            stages,
+            profiles: Mutex::new(HashMap::new()),
+        },
         file: input.to_path_buf(),
         schemas: HashMap::new(),
         channels: HashMap::new(),
@@ -318,7 +375,12 @@ pub fn convert(
             scans.set(conv.scans_done);
             Ok(())
         },
-        |bytes_read| progress(Progress { bytes_read, scans: scans.get() }),
+        |bytes_read| {
+            progress(Progress {
+                bytes_read,
+                scans: scans.get(),
+            })
+        },
     )
     .map_err(|e| anyhow::anyhow!("{}: {e}", input.display()))?;
     conv.flush()?;

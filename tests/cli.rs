@@ -19,7 +19,10 @@ fn info_lists_channels_counts_and_cloud_layouts() {
     assert_eq!(channels.len(), 3);
     let by_topic = |t: &str| channels.iter().find(|c| c["topic"] == t).unwrap().clone();
     assert_eq!(by_topic("/lidar_ros2")["point_cloud"], "ros2_cdr");
-    assert_eq!(by_topic("/lidar_foxglove")["point_cloud"], "foxglove_protobuf");
+    assert_eq!(
+        by_topic("/lidar_foxglove")["point_cloud"],
+        "foxglove_protobuf"
+    );
     assert!(by_topic("/notes")["point_cloud"].is_null());
     assert_eq!(by_topic("/notes")["messages"], 3);
     let layout = &by_topic("/lidar_ros2")["layout"];
@@ -30,11 +33,18 @@ fn info_lists_channels_counts_and_cloud_layouts() {
 
     let text = run(&["info", input.to_str().unwrap()]);
     let out = String::from_utf8_lossy(&text.stdout);
-    assert!(out.contains("/lidar_ros2") && out.contains("projection ring-field"), "{out}");
+    assert!(
+        out.contains("/lidar_ros2") && out.contains("projection ring-field"),
+        "{out}"
+    );
 }
 
 fn write_bin(path: &Path, points: &[[f32; 4]]) {
-    let bytes: Vec<u8> = points.iter().flatten().flat_map(|v| v.to_le_bytes()).collect();
+    let bytes: Vec<u8> = points
+        .iter()
+        .flatten()
+        .flat_map(|v| v.to_le_bytes())
+        .collect();
     std::fs::write(path, bytes).unwrap();
 }
 
@@ -51,18 +61,33 @@ fn import_writes_ros2_clouds_with_ring_and_label() {
             for k in 0..100 {
                 let az = 0.01 + k as f32 * std::f32::consts::TAU / 100.0;
                 let el = if ring == 0 { 0.0f32 } else { -0.1 };
-                pts.push([10.0 * el.cos() * az.cos(), 10.0 * el.cos() * az.sin(), 10.0 * el.sin(), 0.5]);
+                pts.push([
+                    10.0 * el.cos() * az.cos(),
+                    10.0 * el.cos() * az.sin(),
+                    10.0 * el.sin(),
+                    0.5,
+                ]);
             }
         }
         write_bin(&root.join(format!("velodyne/{s:06}.bin")), &pts);
-        let labels: Vec<u8> = (0..pts.len() as u32).flat_map(|i| (40 + i % 2).to_le_bytes()).collect();
+        let labels: Vec<u8> = (0..pts.len() as u32)
+            .flat_map(|i| (40 + i % 2).to_le_bytes())
+            .collect();
         std::fs::write(root.join(format!("labels/{s:06}.label")), labels).unwrap();
     }
     let out = dir.path().join("seq.mcap");
-    let o = run(&["import", root.to_str().unwrap(), out.to_str().unwrap(), "--json"]);
+    let o = run(&[
+        "import",
+        root.to_str().unwrap(),
+        out.to_str().unwrap(),
+        "--json",
+    ]);
     assert!(o.status.success(), "{}", stderr(&o));
     let v: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
-    assert_eq!((v["scans"].as_u64(), v["labelled"].as_u64()), (Some(3), Some(3)));
+    assert_eq!(
+        (v["scans"].as_u64(), v["labelled"].as_u64()),
+        (Some(3), Some(3))
+    );
 
     // Read back through our decoder: ring ids from the ring order, labels kept.
     let bytes = std::fs::read(&out).unwrap();
@@ -70,7 +95,10 @@ fn import_writes_ros2_clouds_with_ring_and_label() {
     for m in mcap::MessageStream::new(&bytes).unwrap() {
         let m = m.unwrap();
         assert_eq!(m.channel.topic, "/velodyne_points");
-        clouds.push(rangegan_mcap::io::decode_cloud(rangegan_mcap::io::CloudFormat::Ros2Cdr, &m.data).unwrap());
+        clouds.push(
+            rangegan_mcap::io::decode_cloud(rangegan_mcap::io::CloudFormat::Ros2Cdr, &m.data)
+                .unwrap(),
+        );
         assert_eq!(m.log_time, (clouds.len() as u64 - 1) * 100_000_000, "10 Hz");
     }
     assert_eq!(clouds.len(), 3);
@@ -89,31 +117,60 @@ fn import_writes_ros2_clouds_with_ring_and_label() {
 #[test]
 fn import_of_an_empty_folder_is_a_clear_error() {
     let dir = tempfile::tempdir().unwrap();
-    let o = run(&["import", dir.path().to_str().unwrap(), dir.path().join("o.mcap").to_str().unwrap()]);
+    let o = run(&[
+        "import",
+        dir.path().to_str().unwrap(),
+        dir.path().join("o.mcap").to_str().unwrap(),
+    ]);
     assert_eq!(o.status.code(), Some(1));
     assert!(stderr(&o).contains("no .bin scans"), "{}", stderr(&o));
     assert!(!dir.path().join("o.mcap").exists());
 }
 
-/// Real SemanticKITTI through import and convert: 64 rings, labels, nearly every
-/// point keeps a pixel at the subsampled 64 x 512 resolution.
+/// Real SemanticKITTI through import and convert: the sensor is estimated from the
+/// data (64 beams by ring, columns from the azimuth step of these every-4th-point
+/// files) and nearly every point keeps a pixel.
 #[test]
 fn real_semantickitti_imports_and_converts() {
     let seq = Path::new("../shared/real_lidar/semantickitti_mini/00");
     if !seq.exists() {
-        eprintln!("skipped: {} is absent (real data lives beside the repo)", seq.display());
+        eprintln!(
+            "skipped: {} is absent (real data lives beside the repo)",
+            seq.display()
+        );
         return;
     }
     let dir = tempfile::tempdir().unwrap();
     let (mcap, out) = (dir.path().join("00.mcap"), dir.path().join("00.out.mcap"));
-    assert!(run(&["import", seq.to_str().unwrap(), mcap.to_str().unwrap(), "--quiet"]).status.success());
-    let o = run(&["convert", mcap.to_str().unwrap(), out.to_str().unwrap(), "--json", "--quiet", "--sensor", "hdl64e", "--columns", "512"]);
+    assert!(
+        run(&[
+            "import",
+            seq.to_str().unwrap(),
+            mcap.to_str().unwrap(),
+            "--quiet"
+        ])
+        .status
+        .success()
+    );
+    let o = run(&[
+        "convert",
+        mcap.to_str().unwrap(),
+        out.to_str().unwrap(),
+        "--json",
+        "--quiet",
+    ]);
     assert!(o.status.success(), "{}", stderr(&o));
     let v: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
     let t = &v["report"]["topics"]["/velodyne_points"];
     assert_eq!(t["scans"], 10);
     assert_eq!(t["rows"], 64);
     assert_eq!(t["strategy"], "ring-field");
+    assert_eq!(t["sensor"], "auto");
+    let columns = t["columns"].as_u64().unwrap();
+    assert!(
+        (500..=600).contains(&columns),
+        "~502 points per ring: {columns} columns"
+    );
     let kept = t["kept_fraction"].as_f64().unwrap();
-    assert!(kept > 0.95, "kept {kept}");
+    assert!(kept > 0.97, "kept {kept}");
 }

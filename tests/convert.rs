@@ -21,7 +21,13 @@ fn converts_every_family_and_copies_every_record() {
     let (input, output) = (dir.path().join("in.mcap"), dir.path().join("out.mcap"));
     let messages = write_recording(&input, &FAMILIES, 5, Some(64 * 1024));
     let before = hash(&input);
-    let o = run(&["convert", input.to_str().unwrap(), output.to_str().unwrap(), "--json", "--quiet"]);
+    let o = run(&[
+        "convert",
+        input.to_str().unwrap(),
+        output.to_str().unwrap(),
+        "--json",
+        "--quiet",
+    ]);
     assert!(o.status.success(), "{}", stderr(&o));
     assert_eq!(hash(&input), before, "input must never be modified");
     let summary: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
@@ -45,8 +51,14 @@ fn converts_every_family_and_copies_every_record() {
         // Foxglove's own readers decode every message, protobuf RawImage included.
         let r = node_read(&node, &output);
         assert_eq!(r["decoded"], messages + 15);
-        assert_eq!(r["images"]["/lidar_foxglove/rangegan/range"], serde_json::json!([16, 360, "32FC1", 1440, 16 * 1440]));
-        assert_eq!(r["images"]["/lidar_ros2/rangegan/range"], r["images"]["/lidar_foxglove/rangegan/range"]);
+        assert_eq!(
+            r["images"]["/lidar_foxglove/rangegan/range"],
+            serde_json::json!([16, 360, "32FC1", 1440, 16 * 1440])
+        );
+        assert_eq!(
+            r["images"]["/lidar_ros2/rangegan/range"],
+            r["images"]["/lidar_foxglove/rangegan/range"]
+        );
     }
     let Some(py) = python() else { return };
     let r = python_read(&py, &output);
@@ -101,17 +113,41 @@ fn truncated_recordings_keep_every_complete_message() {
         let cut = dir.path().join("cut.mcap");
         let out = dir.path().join("cut.out.mcap");
         std::fs::write(&cut, &bytes[..(bytes.len() as f64 * fraction) as usize]).unwrap();
-        let o = run(&["convert", cut.to_str().unwrap(), out.to_str().unwrap(), "--json", "--force"]);
+        let o = run(&[
+            "convert",
+            cut.to_str().unwrap(),
+            out.to_str().unwrap(),
+            "--json",
+            "--force",
+        ]);
         assert!(o.status.success(), "{}", stderr(&o));
         let err = stderr(&o);
-        assert!(err.contains("truncated") && err.contains("could not be read"), "{err}");
+        assert!(
+            err.contains("truncated") && err.contains("could not be read"),
+            "{err}"
+        );
         let s: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
-        let scans = s["report"]["topics"]["/lidar_ros2"]["scans"].as_u64().unwrap();
-        assert!(scans > last, "more of the file gives more scans ({scans} after {last})");
-        assert_eq!(s["report"]["copied"]["messages"], s["report"]["records_in"]["messages"]);
+        let scans = s["report"]["topics"]["/lidar_ros2"]["scans"]
+            .as_u64()
+            .unwrap();
+        assert!(
+            scans > last,
+            "more of the file gives more scans ({scans} after {last})"
+        );
+        assert_eq!(
+            s["report"]["copied"]["messages"],
+            s["report"]["records_in"]["messages"]
+        );
         assert!(s["report"]["read"]["unread_bytes"].as_u64().unwrap() > 0);
         last = scans;
-        let strict = run(&["convert", cut.to_str().unwrap(), out.to_str().unwrap(), "--force", "--strict", "--quiet"]);
+        let strict = run(&[
+            "convert",
+            cut.to_str().unwrap(),
+            out.to_str().unwrap(),
+            "--force",
+            "--strict",
+            "--quiet",
+        ]);
         assert_eq!(strict.status.code(), Some(3));
     }
 }
@@ -147,19 +183,42 @@ fn corrupt_chunks_are_named_and_can_be_skipped() {
     assert_eq!(o.status.code(), Some(1));
     let err = stderr(&o);
     assert!(err.contains("/lidar_ros2"), "{err}");
-    assert!(err.contains("--on-error skip") && err.contains(" s to "), "{err}");
+    assert!(
+        err.contains("--on-error skip") && err.contains(" s to "),
+        "{err}"
+    );
     assert!(!output.exists(), "a failed conversion leaves no output");
-    let leftovers: Vec<_> = std::fs::read_dir(dir.path()).unwrap().filter_map(|e| e.ok()).filter(|e| e.file_name().to_string_lossy().ends_with(".tmp")).collect();
+    let leftovers: Vec<_> = std::fs::read_dir(dir.path())
+        .unwrap()
+        .filter_map(|e| e.ok())
+        .filter(|e| e.file_name().to_string_lossy().ends_with(".tmp"))
+        .collect();
     assert!(leftovers.is_empty(), "no temporary file left behind");
 
-    let o = run(&["convert", input.to_str().unwrap(), output.to_str().unwrap(), "--on-error", "skip", "--json"]);
+    let o = run(&[
+        "convert",
+        input.to_str().unwrap(),
+        output.to_str().unwrap(),
+        "--on-error",
+        "skip",
+        "--json",
+    ]);
     assert!(o.status.success(), "{}", stderr(&o));
     assert!(stderr(&o).contains("skipped"), "{}", stderr(&o));
     let s: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
-    assert_eq!(s["report"]["read"]["bad_chunks"].as_array().unwrap().len(), 1);
-    let lost = s["report"]["read"]["bad_chunks"][0]["messages"].as_u64().unwrap();
+    assert_eq!(
+        s["report"]["read"]["bad_chunks"].as_array().unwrap().len(),
+        1
+    );
+    let lost = s["report"]["read"]["bad_chunks"][0]["messages"]
+        .as_u64()
+        .unwrap();
     let copied = s["report"]["copied"]["messages"].as_u64().unwrap();
-    assert_eq!(copied + lost, 12, "every input message is copied or reported lost");
+    assert_eq!(
+        copied + lost,
+        12,
+        "every input message is copied or reported lost"
+    );
 }
 
 /// N good and M malformed point clouds: N scans, M warnings naming topic and
@@ -170,31 +229,61 @@ fn malformed_clouds_are_copied_and_reported() {
     use rangegan_mcap::io::encoders::{self, Kind};
     let dir = tempfile::tempdir().unwrap();
     let (input, output) = (dir.path().join("in.mcap"), dir.path().join("out.mcap"));
-    let mut w = mcap::WriteOptions::new().create(std::io::BufWriter::new(std::fs::File::create(&input).unwrap())).unwrap();
+    let mut w = mcap::WriteOptions::new()
+        .create(std::io::BufWriter::new(
+            std::fs::File::create(&input).unwrap(),
+        ))
+        .unwrap();
     let s = encoders::schema(Family::Ros2, Kind::Cloud);
     let schema = w.add_schema(&s.name, &s.encoding, &s.data).unwrap();
-    let ch = w.add_channel(schema, "/points", "cdr", &Default::default()).unwrap();
+    let ch = w
+        .add_channel(schema, "/points", "cdr", &Default::default())
+        .unwrap();
     for i in 0..8u64 {
-        let cloud = DecodedCloud { scan: synthetic_scan(7.0, i as u32), stamp_nanos: i, frame_id: "l".into() };
+        let cloud = DecodedCloud {
+            scan: synthetic_scan(7.0, i as u32),
+            stamp_nanos: i,
+            frame_id: "l".into(),
+        };
         let mut data = encoders::encode_scan(Family::Ros2, &cloud, &[]);
         if i % 3 == 1 {
             data.truncate(data.len() / 2); // data shorter than height * row_step
         }
-        let h = mcap::records::MessageHeader { channel_id: ch, sequence: i as u32, log_time: 2_000_000_000 + i, publish_time: 0 };
+        let h = mcap::records::MessageHeader {
+            channel_id: ch,
+            sequence: i as u32,
+            log_time: 2_000_000_000 + i,
+            publish_time: 0,
+        };
         w.write_to_known_channel(&h, &data).unwrap();
     }
     w.finish().unwrap();
     drop(w);
-    let o = run(&["convert", input.to_str().unwrap(), output.to_str().unwrap(), "--json"]);
+    let o = run(&[
+        "convert",
+        input.to_str().unwrap(),
+        output.to_str().unwrap(),
+        "--json",
+    ]);
     assert!(o.status.success(), "{}", stderr(&o));
     let err = stderr(&o);
     assert_eq!(err.matches("warning:").count(), 3, "{err}");
-    assert!(err.contains("/points @ 2.000000001 s") && err.contains("copied unchanged"), "{err}");
+    assert!(
+        err.contains("/points @ 2.000000001 s") && err.contains("copied unchanged"),
+        "{err}"
+    );
     let s: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
     assert_eq!(s["report"]["topics"]["/points"]["scans"], 5);
     assert_eq!(s["report"]["topics"]["/points"]["malformed"], 3);
     assert_eq!(s["report"]["copied"]["messages"], 8);
-    let strict = run(&["convert", input.to_str().unwrap(), output.to_str().unwrap(), "--force", "--strict", "--quiet"]);
+    let strict = run(&[
+        "convert",
+        input.to_str().unwrap(),
+        output.to_str().unwrap(),
+        "--force",
+        "--strict",
+        "--quiet",
+    ]);
     assert_eq!(strict.status.code(), Some(3));
 }
 
@@ -203,7 +292,15 @@ fn not_an_mcap_is_a_clear_error() {
     let dir = tempfile::tempdir().unwrap();
     let input = dir.path().join("notes.txt");
     std::fs::write(&input, b"hello, this is not a recording").unwrap();
-    let o = run(&["convert", input.to_str().unwrap(), dir.path().join("o.mcap").to_str().unwrap()]);
+    let o = run(&[
+        "convert",
+        input.to_str().unwrap(),
+        dir.path().join("o.mcap").to_str().unwrap(),
+    ]);
     assert_eq!(o.status.code(), Some(1));
-    assert!(stderr(&o).contains("notes.txt") && stderr(&o).contains("not an MCAP"), "{}", stderr(&o));
+    assert!(
+        stderr(&o).contains("notes.txt") && stderr(&o).contains("not an MCAP"),
+        "{}",
+        stderr(&o)
+    );
 }

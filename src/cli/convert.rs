@@ -66,7 +66,11 @@ impl From<ProjectionArg> for Strategy {
 
 /// Resolves the sensor argument shared by several subcommands.
 pub(crate) fn sensor_choice(sensor: &str) -> anyhow::Result<SensorChoice> {
-    Ok(if sensor == "auto" { SensorChoice::Auto } else { SensorChoice::Fixed(SensorProfile::resolve(sensor)?) })
+    Ok(if sensor == "auto" {
+        SensorChoice::Auto
+    } else {
+        SensorChoice::Fixed(SensorProfile::resolve(sensor)?)
+    })
 }
 
 fn same_file(a: &std::path::Path, b: &std::path::Path) -> bool {
@@ -78,9 +82,13 @@ fn same_file(a: &std::path::Path, b: &std::path::Path) -> bool {
 
 pub fn run(global: &GlobalArgs, args: ConvertArgs) -> anyhow::Result<Outcome> {
     if args.input == args.output || same_file(&args.input, &args.output) {
-        bail!("{}: output is the input; write to another file (inputs are never modified)", args.output.display());
+        bail!(
+            "{}: output is the input; write to another file (inputs are never modified)",
+            args.output.display()
+        );
     }
-    let file = std::fs::File::open(&args.input).with_context(|| format!("cannot open {}", args.input.display()))?;
+    let file = std::fs::File::open(&args.input)
+        .with_context(|| format!("cannot open {}", args.input.display()))?;
     let len = file.metadata().ok().map(|m| m.len());
     let opts = ConvertOptions {
         topics: (!args.topic.is_empty()).then(|| args.topic.clone()),
@@ -94,18 +102,34 @@ pub fn run(global: &GlobalArgs, args: ConvertArgs) -> anyhow::Result<Outcome> {
     let metadata = BTreeMap::from([
         ("tool".to_string(), "rangegan-mcap".to_string()),
         ("version".to_string(), env!("CARGO_PKG_VERSION").to_string()),
-        ("args".to_string(), std::env::args().skip(1).collect::<Vec<_>>().join(" ")),
+        (
+            "args".to_string(),
+            std::env::args().skip(1).collect::<Vec<_>>().join(" "),
+        ),
         ("input".to_string(), args.input.display().to_string()),
     ]);
     let bar = super::progress_bar(global, len.unwrap_or(0));
     let started = std::time::Instant::now();
     let stages: [&Stage<'_>; 1] = [&pipeline::range_stage];
     let reader = std::io::BufReader::with_capacity(1 << 20, file);
-    let report = pipeline::convert(&args.input, reader, len, out, &opts, &stages, metadata, |p| {
-        bar.set_position(p.bytes_read);
-        let secs = started.elapsed().as_secs_f64().max(1e-3);
-        bar.set_message(format!("{} scans, {:.1} scans/s", p.scans, p.scans as f64 / secs));
-    })?;
+    let report = pipeline::convert(
+        &args.input,
+        reader,
+        len,
+        out,
+        &opts,
+        &stages,
+        metadata,
+        |p| {
+            bar.set_position(p.bytes_read);
+            let secs = started.elapsed().as_secs_f64().max(1e-3);
+            bar.set_message(format!(
+                "{} scans, {:.1} scans/s",
+                p.scans,
+                p.scans as f64 / secs
+            ));
+        },
+    )?;
     bar.finish_and_clear();
     let secs = started.elapsed().as_secs_f64();
 
@@ -115,7 +139,11 @@ pub fn run(global: &GlobalArgs, args: ConvertArgs) -> anyhow::Result<Outcome> {
         }
     }
     for c in &report.read.bad_chunks {
-        eprintln!("warning: {}: skipped {c} ({} messages lost)", args.input.display(), c.messages);
+        eprintln!(
+            "warning: {}: skipped {c} ({} messages lost)",
+            args.input.display(),
+            c.messages
+        );
     }
     if let Some(why) = &report.read.stopped {
         eprintln!(
@@ -125,7 +153,11 @@ pub fn run(global: &GlobalArgs, args: ConvertArgs) -> anyhow::Result<Outcome> {
         );
     }
     if report.copied.orphan_messages > 0 {
-        eprintln!("warning: {}: {} messages on channels that were never defined were dropped", args.input.display(), report.copied.orphan_messages);
+        eprintln!(
+            "warning: {}: {} messages on channels that were never defined were dropped",
+            args.input.display(),
+            report.copied.orphan_messages
+        );
     }
     let scans: u64 = report.topics.values().map(|t| t.scans).sum();
     let malformed: u64 = report.topics.values().map(|t| t.malformed).sum();
@@ -138,7 +170,11 @@ pub fn run(global: &GlobalArgs, args: ConvertArgs) -> anyhow::Result<Outcome> {
             "{} -> {}: {} records copied, {} scans on {} topics -> {} new messages, {} malformed, {:.1} MB/s, {:.1} scans/s",
             args.input.display(),
             args.output.display(),
-            report.copied.messages + report.copied.schemas + report.copied.channels + report.copied.attachments + report.copied.metadata,
+            report.copied.messages
+                + report.copied.schemas
+                + report.copied.channels
+                + report.copied.attachments
+                + report.copied.metadata,
             scans,
             report.topics.len(),
             report.outputs_written,
@@ -151,5 +187,9 @@ pub fn run(global: &GlobalArgs, args: ConvertArgs) -> anyhow::Result<Outcome> {
         || report.read.stopped.is_some()
         || !report.read.bad_chunks.is_empty()
         || report.copied.orphan_messages > 0;
-    Ok(if skipped && args.strict { Outcome::DataSkipped } else { Outcome::Success })
+    Ok(if skipped && args.strict {
+        Outcome::DataSkipped
+    } else {
+        Outcome::Success
+    })
 }

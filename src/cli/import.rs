@@ -35,7 +35,11 @@ pub struct ImportArgs {
 
 /// The scans of a dataset folder, sorted, each with its label file if present.
 fn dataset_files(dir: &Path) -> anyhow::Result<Vec<(PathBuf, Option<PathBuf>)>> {
-    let velodyne = if dir.join("velodyne").is_dir() { dir.join("velodyne") } else { dir.to_path_buf() };
+    let velodyne = if dir.join("velodyne").is_dir() {
+        dir.join("velodyne")
+    } else {
+        dir.to_path_buf()
+    };
     let labels = dir.join("labels");
     let mut bins: Vec<PathBuf> = std::fs::read_dir(&velodyne)
         .with_context(|| format!("cannot read {}", velodyne.display()))?
@@ -49,7 +53,10 @@ fn dataset_files(dir: &Path) -> anyhow::Result<Vec<(PathBuf, Option<PathBuf>)>> 
     Ok(bins
         .into_iter()
         .map(|bin| {
-            let label = bin.file_stem().map(|s| labels.join(s).with_extension("label")).filter(|l| l.exists());
+            let label = bin
+                .file_stem()
+                .map(|s| labels.join(s).with_extension("label"))
+                .filter(|l| l.exists());
             (bin, label)
         })
         .collect())
@@ -72,10 +79,23 @@ pub fn run(global: &GlobalArgs, args: ImportArgs) -> anyhow::Result<Outcome> {
     for (i, (bin, label)) in files.iter().enumerate() {
         let mut scan = kitti::read_scan(bin, label.as_deref())?;
         // KITTI stores rings one after another; make the ring explicit for every reader.
-        scan.ring = Some(ring_order_ids(&scan).into_iter().map(|r| r.min(u16::MAX as u32) as u16).collect());
+        scan.ring = Some(
+            ring_order_ids(&scan)
+                .into_iter()
+                .map(|r| r.min(u16::MAX as u32) as u16)
+                .collect(),
+        );
         let (layout, data) = pointcloud::encode(&scan, &[]);
         let stamp = start_nanos + i as u64 * 100_000_000;
-        let msg = encode(Family::Ros2, stamp, &args.frame_id, &Payload::Cloud { layout: &layout, data: &data });
+        let msg = encode(
+            Family::Ros2,
+            stamp,
+            &args.frame_id,
+            &Payload::Cloud {
+                layout: &layout,
+                data: &data,
+            },
+        );
         out.write_own(channel, stamp, stamp, &msg)?;
         bar.inc(1);
     }
@@ -83,9 +103,19 @@ pub fn run(global: &GlobalArgs, args: ImportArgs) -> anyhow::Result<Outcome> {
     out.finish()?;
     let labelled = files.iter().filter(|f| f.1.is_some()).count();
     if global.json {
-        println!("{}", serde_json::json!({ "output": args.output, "scans": files.len(), "labelled": labelled, "topic": args.topic }));
+        println!(
+            "{}",
+            serde_json::json!({ "output": args.output, "scans": files.len(), "labelled": labelled, "topic": args.topic })
+        );
     } else if !global.quiet {
-        eprintln!("{} -> {}: {} scans ({} labelled) on {}", args.dir.display(), args.output.display(), files.len(), labelled, args.topic);
+        eprintln!(
+            "{} -> {}: {} scans ({} labelled) on {}",
+            args.dir.display(),
+            args.output.display(),
+            files.len(),
+            labelled,
+            args.topic
+        );
     }
     Ok(Outcome::Success)
 }

@@ -8,8 +8,8 @@ use mcap::records::Record;
 
 use super::{GlobalArgs, Outcome};
 use crate::io::{CloudFormat, OnError, decode_cloud, read_records};
-use crate::lidar::{Strategy, project};
 use crate::lidar::estimate_profile;
+use crate::lidar::{Strategy, project};
 use crate::pipeline::SensorChoice;
 
 #[derive(Debug, clap::Args)]
@@ -57,7 +57,8 @@ fn median_spread(est: &crate::lidar::SensorEstimate) -> f32 {
 }
 
 pub fn run(global: &GlobalArgs, args: InfoArgs) -> anyhow::Result<Outcome> {
-    let file = std::fs::File::open(&args.input).with_context(|| format!("cannot open {}", args.input.display()))?;
+    let file = std::fs::File::open(&args.input)
+        .with_context(|| format!("cannot open {}", args.input.display()))?;
     let len = file.metadata().ok().map(|m| m.len());
     let sensor = super::convert::sensor_choice(&args.sensor)?;
     let mut schemas: BTreeMap<u16, (String, String)> = BTreeMap::new();
@@ -74,7 +75,8 @@ pub fn run(global: &GlobalArgs, args: InfoArgs) -> anyhow::Result<Outcome> {
                     schemas.insert(header.id, (header.name.clone(), header.encoding.clone()));
                 }
                 Record::Channel(c) => {
-                    let (schema, schema_encoding) = schemas.get(&c.schema_id).cloned().unwrap_or_default();
+                    let (schema, schema_encoding) =
+                        schemas.get(&c.schema_id).cloned().unwrap_or_default();
                     let point_cloud = CloudFormat::detect(&c.message_encoding, &schema);
                     channels.entry(c.id).or_insert(ChannelInfo {
                         id: c.id,
@@ -89,14 +91,22 @@ pub fn run(global: &GlobalArgs, args: InfoArgs) -> anyhow::Result<Outcome> {
                 Record::Message { header, data } => {
                     if let Some(ch) = channels.get_mut(&header.channel_id) {
                         ch.messages += 1;
-                        ch.first_log_time = Some(ch.first_log_time.map_or(header.log_time, |t| t.min(header.log_time)));
-                        ch.last_log_time = Some(ch.last_log_time.map_or(header.log_time, |t| t.max(header.log_time)));
+                        ch.first_log_time = Some(
+                            ch.first_log_time
+                                .map_or(header.log_time, |t| t.min(header.log_time)),
+                        );
+                        ch.last_log_time = Some(
+                            ch.last_log_time
+                                .map_or(header.log_time, |t| t.max(header.log_time)),
+                        );
                         if let (Some(format), None) = (ch.point_cloud, &ch.layout) {
                             ch.layout = Some(describe(format, data, &sensor));
                         }
                     }
                 }
-                Record::Attachment { header, data, .. } => attachments.push((header.name.clone(), data.len())),
+                Record::Attachment { header, data, .. } => {
+                    attachments.push((header.name.clone(), data.len()))
+                }
                 Record::Metadata(m) => metadata.push(m.name.clone()),
                 _ => {}
             }
@@ -119,7 +129,12 @@ pub fn run(global: &GlobalArgs, args: InfoArgs) -> anyhow::Result<Outcome> {
         println!("{}", serde_json::to_string_pretty(&out)?);
         return Ok(Outcome::Success);
     }
-    println!("{}: {} bytes{}", args.input.display(), len.unwrap_or(0), if report.complete { "" } else { " (incomplete)" });
+    println!(
+        "{}: {} bytes{}",
+        args.input.display(),
+        len.unwrap_or(0),
+        if report.complete { "" } else { " (incomplete)" }
+    );
     if let Some(why) = &report.stopped {
         println!("  warning: {why}; {} bytes unread", report.unread_bytes);
     }
@@ -128,7 +143,10 @@ pub fn run(global: &GlobalArgs, args: InfoArgs) -> anyhow::Result<Outcome> {
     }
     println!("channels:");
     for ch in channels.values() {
-        println!("  {:>4} {} [{} / {}] {} messages", ch.id, ch.topic, ch.schema, ch.message_encoding, ch.messages);
+        println!(
+            "  {:>4} {} [{} / {}] {} messages",
+            ch.id, ch.topic, ch.schema, ch.message_encoding, ch.messages
+        );
         if let Some(l) = &ch.layout {
             println!(
                 "       point cloud {}x{} ({} returns), fields {}",
@@ -154,7 +172,14 @@ pub fn run(global: &GlobalArgs, args: InfoArgs) -> anyhow::Result<Outcome> {
         }
     }
     if !attachments.is_empty() {
-        println!("attachments: {}", attachments.iter().map(|a| a.0.as_str()).collect::<Vec<_>>().join(", "));
+        println!(
+            "attachments: {}",
+            attachments
+                .iter()
+                .map(|a| a.0.as_str())
+                .collect::<Vec<_>>()
+                .join(", ")
+        );
     }
     if !metadata.is_empty() {
         println!("metadata: {}", metadata.join(", "));
@@ -189,7 +214,12 @@ fn describe(format: CloudFormat, data: &[u8], sensor: &SensorChoice) -> CloudLay
     info.returns = scan.returns();
     info.fields = ["intensity", "ring", "time", "label"]
         .into_iter()
-        .zip([scan.intensity.is_some(), scan.ring.is_some(), scan.time_s.is_some(), scan.label.is_some()])
+        .zip([
+            scan.intensity.is_some(),
+            scan.ring.is_some(),
+            scan.time_s.is_some(),
+            scan.label.is_some(),
+        ])
         .filter(|(_, has)| *has)
         .map(|(n, _)| n.to_string())
         .collect();

@@ -68,7 +68,9 @@ impl Outcome {
 /// Runs the parsed command.
 pub fn run(args: Args) -> anyhow::Result<Outcome> {
     if let Some(n) = args.global.threads {
-        rayon::ThreadPoolBuilder::new().num_threads(n).build_global()?;
+        rayon::ThreadPoolBuilder::new()
+            .num_threads(n)
+            .build_global()?;
     }
     match args.command {
         Command::Convert(a) => convert::run(&args.global, a),
@@ -83,7 +85,10 @@ pub(crate) fn progress_bar(global: &GlobalArgs, total: u64) -> indicatif::Progre
     if global.quiet {
         return indicatif::ProgressBar::hidden();
     }
-    let bar = indicatif::ProgressBar::with_draw_target(Some(total), indicatif::ProgressDrawTarget::stderr());
+    let bar = indicatif::ProgressBar::with_draw_target(
+        Some(total),
+        indicatif::ProgressDrawTarget::stderr(),
+    );
     let style = indicatif::ProgressStyle::with_template(
         "{bar:30} {bytes}/{total_bytes} {binary_bytes_per_sec} {msg} ETA {eta}",
     )
@@ -98,11 +103,27 @@ mod tests {
 
     #[test]
     fn arguments_parse() {
-        let a = Args::try_parse_from(["rangegan-mcap", "convert", "in.mcap", "out.mcap", "--topic", "/a", "--topic", "/b", "--json"]).unwrap();
+        let a = Args::try_parse_from([
+            "rangegan-mcap",
+            "convert",
+            "in.mcap",
+            "out.mcap",
+            "--topic",
+            "/a",
+            "--topic",
+            "/b",
+            "--json",
+        ])
+        .unwrap();
         assert!(a.global.json);
-        let Command::Convert(c) = a.command else { panic!("not convert") };
+        let Command::Convert(c) = a.command else {
+            panic!("not convert")
+        };
         assert_eq!(c.topic, vec!["/a".to_string(), "/b".to_string()]);
         assert!(Args::try_parse_from(["rangegan-mcap", "convert", "in.mcap"]).is_err());
-        assert!(Args::try_parse_from(["rangegan-mcap", "convert", "a", "b", "--on-error", "maybe"]).is_err());
+        assert!(
+            Args::try_parse_from(["rangegan-mcap", "convert", "a", "b", "--on-error", "maybe"])
+                .is_err()
+        );
     }
 }

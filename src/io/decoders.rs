@@ -31,7 +31,10 @@ pub enum CloudFormat {
 impl CloudFormat {
     /// The decoder for a channel, or `None` when it is not a point cloud we know.
     pub fn detect(message_encoding: &str, schema_name: &str) -> Option<Self> {
-        let ros_cloud = matches!(schema_name, "sensor_msgs/msg/PointCloud2" | "sensor_msgs/PointCloud2");
+        let ros_cloud = matches!(
+            schema_name,
+            "sensor_msgs/msg/PointCloud2" | "sensor_msgs/PointCloud2"
+        );
         match (message_encoding, schema_name) {
             ("cdr", _) if ros_cloud => Some(CloudFormat::Ros2Cdr),
             ("ros1", _) if ros_cloud => Some(CloudFormat::Ros1),
@@ -65,12 +68,13 @@ pub fn decode_cloud(format: CloudFormat, data: &[u8]) -> Result<DecodedCloud, Cl
         CloudFormat::Ros2Cdr => decode_ros(WireReader::cdr(data)?),
         CloudFormat::Ros1 => decode_ros(WireReader::ros1(data)),
         CloudFormat::FoxgloveProtobuf => {
-            let msg = foxglove::messages::PointCloud::decode(data).map_err(|e| CloudError::Other(format!("protobuf: {e}")))?;
+            let msg = foxglove::messages::PointCloud::decode(data)
+                .map_err(|e| CloudError::Other(format!("protobuf: {e}")))?;
             decode_foxglove(&msg)
         }
         CloudFormat::FoxgloveJson => {
-            let msg: foxglove::messages::PointCloud =
-                serde_json::from_slice(data).map_err(|e| CloudError::Other(format!("json: {e}")))?;
+            let msg: foxglove::messages::PointCloud = serde_json::from_slice(data)
+                .map_err(|e| CloudError::Other(format!("json: {e}")))?;
             decode_foxglove(&msg)
         }
     }
@@ -87,31 +91,64 @@ fn decode_ros(mut r: WireReader<'_>) -> Result<DecodedCloud, CloudError> {
         let offset = r.u32("fields.offset")?;
         let code = r.u8("fields.datatype")?;
         let count = r.u32("fields.count")?;
-        let numeric =
-            Numeric::from_ros(code).ok_or_else(|| CloudError::UnknownDatatype { name: name.clone(), code: code as i32 })?;
-        fields.push(Field { name, offset, numeric, count });
+        let numeric = Numeric::from_ros(code).ok_or_else(|| CloudError::UnknownDatatype {
+            name: name.clone(),
+            code: code as i32,
+        })?;
+        fields.push(Field {
+            name,
+            offset,
+            numeric,
+            count,
+        });
     }
     let big_endian = r.u8("is_bigendian")? != 0;
     let point_step = r.u32("point_step")?;
     let row_step = r.u32("row_step")?;
     let data = r.bytes("data")?;
-    let layout = CloudLayout { fields, point_step, row_step, height, width, big_endian };
-    Ok(DecodedCloud { scan: layout.decode(data)?, stamp_nanos, frame_id: frame_id.to_string() })
+    let layout = CloudLayout {
+        fields,
+        point_step,
+        row_step,
+        height,
+        width,
+        big_endian,
+    };
+    Ok(DecodedCloud {
+        scan: layout.decode(data)?,
+        stamp_nanos,
+        frame_id: frame_id.to_string(),
+    })
 }
 
 fn decode_foxglove(msg: &foxglove::messages::PointCloud) -> Result<DecodedCloud, CloudError> {
     let mut fields = Vec::new();
     for f in &msg.fields {
-        let numeric = Numeric::from_foxglove(f.r#type)
-            .ok_or_else(|| CloudError::UnknownDatatype { name: f.name.clone(), code: f.r#type })?;
-        fields.push(Field { name: f.name.clone(), offset: f.offset, numeric, count: 1 });
+        let numeric =
+            Numeric::from_foxglove(f.r#type).ok_or_else(|| CloudError::UnknownDatatype {
+                name: f.name.clone(),
+                code: f.r#type,
+            })?;
+        fields.push(Field {
+            name: f.name.clone(),
+            offset: f.offset,
+            numeric,
+            count: 1,
+        });
     }
     let stride = msg.point_stride;
     if stride == 0 {
         return Err(CloudError::Other("point_stride is 0".into()));
     }
     let width = (msg.data.len() / stride as usize) as u32;
-    let layout = CloudLayout { fields, point_step: stride, row_step: stride * width, height: 1, width, big_endian: false };
+    let layout = CloudLayout {
+        fields,
+        point_step: stride,
+        row_step: stride * width,
+        height: 1,
+        width,
+        big_endian: false,
+    };
     Ok(DecodedCloud {
         scan: layout.decode(&msg.data)?,
         stamp_nanos: msg.timestamp.map_or(0, |t| t.total_nanos()),

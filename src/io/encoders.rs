@@ -53,8 +53,16 @@ pub struct Transform {
 /// What an output message carries.
 #[derive(Debug, Clone)]
 pub enum Payload<'a> {
-    Image { width: u32, height: u32, format: PixelFormat, data: &'a [u8] },
-    Cloud { layout: &'a CloudLayout, data: &'a [u8] },
+    Image {
+        width: u32,
+        height: u32,
+        format: PixelFormat,
+        data: &'a [u8],
+    },
+    Cloud {
+        layout: &'a CloudLayout,
+        data: &'a [u8],
+    },
     Transforms(&'a [Transform]),
 }
 
@@ -87,7 +95,11 @@ pub fn message_encoding(family: Family) -> &'static str {
 
 fn foxglove_schema<T: Encode>() -> SchemaDef {
     let s = T::get_schema().unwrap_or_else(|| foxglove::Schema::new("", "", Vec::new()));
-    SchemaDef { name: s.name, encoding: s.encoding, data: s.data.into_owned() }
+    SchemaDef {
+        name: s.name,
+        encoding: s.encoding,
+        data: s.data.into_owned(),
+    }
 }
 
 /// The schema of a `kind` channel in `family`.
@@ -98,34 +110,49 @@ pub fn schema(family: Family, kind: Kind) -> SchemaDef {
         data: text.as_bytes().to_vec(),
     };
     match (family, kind) {
-        (Family::Ros2, Kind::Image) => {
-            ros("sensor_msgs/msg/Image", "ros2msg", include_str!("../../schemas/ros2/sensor_msgs__Image.msg"))
-        }
+        (Family::Ros2, Kind::Image) => ros(
+            "sensor_msgs/msg/Image",
+            "ros2msg",
+            include_str!("../../schemas/ros2/sensor_msgs__Image.msg"),
+        ),
         (Family::Ros2, Kind::Cloud) => ros(
             "sensor_msgs/msg/PointCloud2",
             "ros2msg",
             include_str!("../../schemas/ros2/sensor_msgs__PointCloud2.msg"),
         ),
-        (Family::Ros2, Kind::Transforms) => {
-            ros("tf2_msgs/msg/TFMessage", "ros2msg", include_str!("../../schemas/ros2/tf2_msgs__TFMessage.msg"))
-        }
-        (Family::Ros1, Kind::Image) => {
-            ros("sensor_msgs/Image", "ros1msg", include_str!("../../schemas/ros1/sensor_msgs__Image.msg"))
-        }
-        (Family::Ros1, Kind::Cloud) => {
-            ros("sensor_msgs/PointCloud2", "ros1msg", include_str!("../../schemas/ros1/sensor_msgs__PointCloud2.msg"))
-        }
-        (Family::Ros1, Kind::Transforms) => {
-            ros("tf2_msgs/TFMessage", "ros1msg", include_str!("../../schemas/ros1/tf2_msgs__TFMessage.msg"))
-        }
+        (Family::Ros2, Kind::Transforms) => ros(
+            "tf2_msgs/msg/TFMessage",
+            "ros2msg",
+            include_str!("../../schemas/ros2/tf2_msgs__TFMessage.msg"),
+        ),
+        (Family::Ros1, Kind::Image) => ros(
+            "sensor_msgs/Image",
+            "ros1msg",
+            include_str!("../../schemas/ros1/sensor_msgs__Image.msg"),
+        ),
+        (Family::Ros1, Kind::Cloud) => ros(
+            "sensor_msgs/PointCloud2",
+            "ros1msg",
+            include_str!("../../schemas/ros1/sensor_msgs__PointCloud2.msg"),
+        ),
+        (Family::Ros1, Kind::Transforms) => ros(
+            "tf2_msgs/TFMessage",
+            "ros1msg",
+            include_str!("../../schemas/ros1/tf2_msgs__TFMessage.msg"),
+        ),
         (Family::Foxglove, Kind::Image) => foxglove_schema::<foxglove::messages::RawImage>(),
         (Family::Foxglove, Kind::Cloud) => foxglove_schema::<foxglove::messages::PointCloud>(),
-        (Family::Foxglove, Kind::Transforms) => foxglove_schema::<foxglove::messages::FrameTransforms>(),
+        (Family::Foxglove, Kind::Transforms) => {
+            foxglove_schema::<foxglove::messages::FrameTransforms>()
+        }
     }
 }
 
 fn timestamp(nanos: u64) -> foxglove::messages::Timestamp {
-    foxglove::messages::Timestamp::new((nanos / 1_000_000_000) as u32, (nanos % 1_000_000_000) as u32)
+    foxglove::messages::Timestamp::new(
+        (nanos / 1_000_000_000) as u32,
+        (nanos % 1_000_000_000) as u32,
+    )
 }
 
 fn protobuf<T: Encode>(msg: &T) -> Vec<u8> {
@@ -148,9 +175,18 @@ fn encode_ros(family: Family, stamp_nanos: u64, frame_id: &str, payload: &Payloa
         Payload::Image { data, .. } | Payload::Cloud { data, .. } => data.len(),
         Payload::Transforms(t) => t.len() * 128,
     };
-    let mut w = if family == Family::Ros1 { WireWriter::ros1(size + 256) } else { WireWriter::cdr(size + 256) };
+    let mut w = if family == Family::Ros1 {
+        WireWriter::ros1(size + 256)
+    } else {
+        WireWriter::cdr(size + 256)
+    };
     match payload {
-        Payload::Image { width, height, format, data } => {
+        Payload::Image {
+            width,
+            height,
+            format,
+            data,
+        } => {
             w.header(stamp_nanos, frame_id)
                 .u32(*height)
                 .u32(*width)
@@ -160,16 +196,27 @@ fn encode_ros(family: Family, stamp_nanos: u64, frame_id: &str, payload: &Payloa
                 .bytes(data);
         }
         Payload::Cloud { layout, data } => {
-            w.header(stamp_nanos, frame_id).u32(layout.height).u32(layout.width).u32(layout.fields.len() as u32);
+            w.header(stamp_nanos, frame_id)
+                .u32(layout.height)
+                .u32(layout.width)
+                .u32(layout.fields.len() as u32);
             for f in &layout.fields {
-                w.string(&f.name).u32(f.offset).u8(f.numeric.ros_code()).u32(f.count);
+                w.string(&f.name)
+                    .u32(f.offset)
+                    .u8(f.numeric.ros_code())
+                    .u32(f.count);
             }
-            w.u8(layout.big_endian as u8).u32(layout.point_step).u32(layout.row_step).bytes(data).u8(0);
+            w.u8(layout.big_endian as u8)
+                .u32(layout.point_step)
+                .u32(layout.row_step)
+                .bytes(data)
+                .u8(0);
         }
         Payload::Transforms(transforms) => {
             w.u32(transforms.len() as u32);
             for t in transforms.iter() {
-                w.header(stamp_nanos, &t.parent_frame_id).string(&t.child_frame_id);
+                w.header(stamp_nanos, &t.parent_frame_id)
+                    .string(&t.child_frame_id);
                 for v in t.translation.iter().chain(t.rotation.iter()) {
                     w.f64(*v);
                 }
@@ -183,7 +230,12 @@ fn encode_foxglove(stamp_nanos: u64, frame_id: &str, payload: &Payload<'_>) -> V
     use foxglove::messages as fm;
     let ts = Some(timestamp(stamp_nanos));
     match payload {
-        Payload::Image { width, height, format, data } => protobuf(&fm::RawImage {
+        Payload::Image {
+            width,
+            height,
+            format,
+            data,
+        } => protobuf(&fm::RawImage {
             timestamp: ts,
             frame_id: frame_id.into(),
             width: *width,
@@ -200,7 +252,11 @@ fn encode_foxglove(stamp_nanos: u64, frame_id: &str, payload: &Payload<'_>) -> V
             fields: layout
                 .fields
                 .iter()
-                .map(|f| fm::PackedElementField { name: f.name.clone(), offset: f.offset, r#type: f.numeric.foxglove_code() })
+                .map(|f| fm::PackedElementField {
+                    name: f.name.clone(),
+                    offset: f.offset,
+                    r#type: f.numeric.foxglove_code(),
+                })
                 .collect(),
             data: foxglove::bytes::Bytes::copy_from_slice(data),
         }),
@@ -211,7 +267,11 @@ fn encode_foxglove(stamp_nanos: u64, frame_id: &str, payload: &Payload<'_>) -> V
                     timestamp: ts,
                     parent_frame_id: t.parent_frame_id.clone(),
                     child_frame_id: t.child_frame_id.clone(),
-                    translation: Some(fm::Vector3 { x: t.translation[0], y: t.translation[1], z: t.translation[2] }),
+                    translation: Some(fm::Vector3 {
+                        x: t.translation[0],
+                        y: t.translation[1],
+                        z: t.translation[2],
+                    }),
                     rotation: Some(fm::Quaternion {
                         x: t.rotation[0],
                         y: t.rotation[1],
@@ -228,7 +288,15 @@ fn encode_foxglove(stamp_nanos: u64, frame_id: &str, payload: &Payload<'_>) -> V
 /// optional fields, then `extra` float channels).
 pub fn encode_scan(family: Family, cloud: &DecodedCloud, extra: &[(&str, &[f32])]) -> Vec<u8> {
     let (layout, data) = super::pointcloud::encode(&cloud.scan, extra);
-    encode(family, cloud.stamp_nanos, &cloud.frame_id, &Payload::Cloud { layout: &layout, data: &data })
+    encode(
+        family,
+        cloud.stamp_nanos,
+        &cloud.frame_id,
+        &Payload::Cloud {
+            layout: &layout,
+            data: &data,
+        },
+    )
 }
 
 #[cfg(test)]
@@ -241,7 +309,11 @@ mod tests {
         let mut scan = Scan::from_xyz(vec![[1.0, 2.0, 3.0], [4.0, -5.0, 6.5], [0.5, 0.25, -1.0]]);
         scan.intensity = Some(vec![10.0, 20.0, 30.0]);
         scan.ring = Some(vec![0, 1, 2]);
-        DecodedCloud { scan, stamp_nanos: 1_700_000_000_123_456_789, frame_id: "lidar".into() }
+        DecodedCloud {
+            scan,
+            stamp_nanos: 1_700_000_000_123_456_789,
+            frame_id: "lidar".into(),
+        }
     }
 
     #[test]
@@ -255,7 +327,10 @@ mod tests {
             let bytes = encode_scan(family, &c, &[]);
             assert_eq!(decode_cloud(format, &bytes).unwrap(), c, "{family:?}");
             let s = schema(family, Kind::Cloud);
-            assert_eq!(CloudFormat::detect(message_encoding(family), &s.name), Some(format));
+            assert_eq!(
+                CloudFormat::detect(message_encoding(family), &s.name),
+                Some(format)
+            );
         }
     }
 
@@ -280,14 +355,27 @@ mod tests {
             data: data.into(),
         };
         let json = serde_json::to_vec(&msg).unwrap();
-        assert!(String::from_utf8_lossy(&json).contains("\"data\":\""), "bytes as base64 text");
+        assert!(
+            String::from_utf8_lossy(&json).contains("\"data\":\""),
+            "bytes as base64 text"
+        );
         assert_eq!(decode_cloud(CloudFormat::FoxgloveJson, &json).unwrap(), c);
     }
 
     #[test]
     fn ros2_image_has_the_sensor_msgs_layout() {
         let data: Vec<u8> = [1.5f32, 2.5].iter().flat_map(|v| v.to_le_bytes()).collect();
-        let bytes = encode(Family::Ros2, 5_000_000_001, "lidar", &Payload::Image { width: 2, height: 1, format: PixelFormat::F32, data: &data });
+        let bytes = encode(
+            Family::Ros2,
+            5_000_000_001,
+            "lidar",
+            &Payload::Image {
+                width: 2,
+                height: 1,
+                format: PixelFormat::F32,
+                data: &data,
+            },
+        );
         let mut r = super::super::wire::WireReader::cdr(&bytes).unwrap();
         assert_eq!(r.header().unwrap(), (5_000_000_001, "lidar"));
         assert_eq!((r.u32("h").unwrap(), r.u32("w").unwrap()), (1, 2));

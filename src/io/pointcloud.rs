@@ -20,10 +20,26 @@ pub enum Numeric {
 }
 
 impl Numeric {
-    const ROS: [Numeric; 8] =
-        [Numeric::I8, Numeric::U8, Numeric::I16, Numeric::U16, Numeric::I32, Numeric::U32, Numeric::F32, Numeric::F64];
-    const FOXGLOVE: [Numeric; 8] =
-        [Numeric::U8, Numeric::I8, Numeric::U16, Numeric::I16, Numeric::U32, Numeric::I32, Numeric::F32, Numeric::F64];
+    const ROS: [Numeric; 8] = [
+        Numeric::I8,
+        Numeric::U8,
+        Numeric::I16,
+        Numeric::U16,
+        Numeric::I32,
+        Numeric::U32,
+        Numeric::F32,
+        Numeric::F64,
+    ];
+    const FOXGLOVE: [Numeric; 8] = [
+        Numeric::U8,
+        Numeric::I8,
+        Numeric::U16,
+        Numeric::I16,
+        Numeric::U32,
+        Numeric::I32,
+        Numeric::F32,
+        Numeric::F64,
+    ];
 
     /// `sensor_msgs/PointField` datatype: INT8=1, UINT8=2, INT16=3, UINT16=4, INT32=5,
     /// UINT32=6, FLOAT32=7, FLOAT64=8.
@@ -34,15 +50,23 @@ impl Numeric {
     /// `foxglove.PackedElementField.NumericType`: UINT8=1, INT8=2, UINT16=3, INT16=4,
     /// UINT32=5, INT32=6, FLOAT32=7, FLOAT64=8.
     pub fn from_foxglove(code: i32) -> Option<Self> {
-        Self::FOXGLOVE.get(usize::try_from(code).ok()?.checked_sub(1)?).copied()
+        Self::FOXGLOVE
+            .get(usize::try_from(code).ok()?.checked_sub(1)?)
+            .copied()
     }
 
     pub fn ros_code(self) -> u8 {
-        Self::ROS.iter().position(|n| *n == self).map_or(0, |p| p as u8 + 1)
+        Self::ROS
+            .iter()
+            .position(|n| *n == self)
+            .map_or(0, |p| p as u8 + 1)
     }
 
     pub fn foxglove_code(self) -> i32 {
-        Self::FOXGLOVE.iter().position(|n| *n == self).map_or(0, |p| p as i32 + 1)
+        Self::FOXGLOVE
+            .iter()
+            .position(|n| *n == self)
+            .map_or(0, |p| p as i32 + 1)
     }
 
     pub fn size(self) -> usize {
@@ -64,7 +88,11 @@ impl Numeric {
             ($t:ty, $n:expr) => {{
                 let mut a = [0u8; $n];
                 a.copy_from_slice(&b[..$n]);
-                if big_endian { <$t>::from_be_bytes(a) } else { <$t>::from_le_bytes(a) }
+                if big_endian {
+                    <$t>::from_be_bytes(a)
+                } else {
+                    <$t>::from_le_bytes(a)
+                }
             }};
         }
         match self {
@@ -105,15 +133,31 @@ pub struct CloudLayout {
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
 pub enum CloudError {
     #[error("no \"{missing}\" field (found: {found}); pick a channel with --topic")]
-    MissingField { missing: &'static str, found: String },
+    MissingField {
+        missing: &'static str,
+        found: String,
+    },
     #[error("field \"{name}\" has unknown datatype {code}")]
     UnknownDatatype { name: String, code: i32 },
     #[error("field \"{name}\" ends at byte {end}, beyond the {point_step}-byte point")]
-    FieldOutsidePoint { name: String, end: u32, point_step: u32 },
+    FieldOutsidePoint {
+        name: String,
+        end: u32,
+        point_step: u32,
+    },
     #[error("data holds {len} bytes, but height {height} x row_step {row_step} needs {need}")]
-    DataTooShort { len: usize, height: u32, row_step: u32, need: u64 },
+    DataTooShort {
+        len: usize,
+        height: u32,
+        row_step: u32,
+        need: u64,
+    },
     #[error("row_step {row_step} is smaller than width {width} x point_step {point_step}")]
-    RowStep { row_step: u32, width: u32, point_step: u32 },
+    RowStep {
+        row_step: u32,
+        width: u32,
+        point_step: u32,
+    },
     #[error("{0}")]
     Wire(#[from] super::wire::WireError),
     #[error("{0}")]
@@ -127,22 +171,37 @@ const LABEL: [&str; 2] = ["label", "semantic_label"];
 
 impl CloudLayout {
     fn find(&self, names: &[&str]) -> Option<&Field> {
-        names.iter().find_map(|n| self.fields.iter().find(|f| f.name == *n))
+        names
+            .iter()
+            .find_map(|n| self.fields.iter().find(|f| f.name == *n))
     }
 
     fn check(&self, data_len: usize) -> Result<(), CloudError> {
         for f in &self.fields {
             let end = f.offset as u64 + f.numeric.size() as u64 * f.count.max(1) as u64;
             if end > self.point_step as u64 {
-                return Err(CloudError::FieldOutsidePoint { name: f.name.clone(), end: end as u32, point_step: self.point_step });
+                return Err(CloudError::FieldOutsidePoint {
+                    name: f.name.clone(),
+                    end: end as u32,
+                    point_step: self.point_step,
+                });
             }
         }
         if (self.row_step as u64) < self.width as u64 * self.point_step as u64 {
-            return Err(CloudError::RowStep { row_step: self.row_step, width: self.width, point_step: self.point_step });
+            return Err(CloudError::RowStep {
+                row_step: self.row_step,
+                width: self.width,
+                point_step: self.point_step,
+            });
         }
         let need = self.height as u64 * self.row_step as u64;
         if (data_len as u64) < need {
-            return Err(CloudError::DataTooShort { len: data_len, height: self.height, row_step: self.row_step, need });
+            return Err(CloudError::DataTooShort {
+                len: data_len,
+                height: self.height,
+                row_step: self.row_step,
+                need,
+            });
         }
         Ok(())
     }
@@ -150,14 +209,27 @@ impl CloudLayout {
     /// Decodes `data` laid out as `self` into a scan. Integer time fields are taken as
     /// nanoseconds (Ouster `t`), float ones as seconds.
     pub fn decode(&self, data: &[u8]) -> Result<Scan, CloudError> {
-        let found = || self.fields.iter().map(|f| f.name.as_str()).collect::<Vec<_>>().join(", ");
+        let found = || {
+            self.fields
+                .iter()
+                .map(|f| f.name.as_str())
+                .collect::<Vec<_>>()
+                .join(", ")
+        };
         let coord = |name: &'static str| {
-            self.find(&[name]).ok_or_else(|| CloudError::MissingField { missing: name, found: found() })
+            self.find(&[name]).ok_or_else(|| CloudError::MissingField {
+                missing: name,
+                found: found(),
+            })
         };
         let (fx, fy, fz) = (coord("x")?, coord("y")?, coord("z")?);
         self.check(data.len())?;
         let n = self.height as usize * self.width as usize;
-        let (step, row_step, w) = (self.point_step as usize, self.row_step as usize, self.width as usize);
+        let (step, row_step, w) = (
+            self.point_step as usize,
+            self.row_step as usize,
+            self.width as usize,
+        );
         let be = self.big_endian;
         let value = |f: &Field, p: &[u8]| f.numeric.read(&p[f.offset as usize..], be);
         let record = |i: usize| {
@@ -165,22 +237,38 @@ impl CloudLayout {
             &data[start..start + step]
         };
         let column = |f: Option<&Field>, scale: f64| -> Option<Vec<f32>> {
-            f.map(|f| (0..n).map(|i| (value(f, record(i)) * scale) as f32).collect())
+            f.map(|f| {
+                (0..n)
+                    .map(|i| (value(f, record(i)) * scale) as f32)
+                    .collect()
+            })
         };
         let xyz = (0..n)
             .map(|i| {
                 let p = record(i);
-                [value(fx, p) as f32, value(fy, p) as f32, value(fz, p) as f32]
+                [
+                    value(fx, p) as f32,
+                    value(fy, p) as f32,
+                    value(fz, p) as f32,
+                ]
             })
             .collect();
         let time = self.find(&TIME);
-        let time_scale = if time.is_some_and(|f| f.numeric.is_float()) { 1.0 } else { 1e-9 };
+        let time_scale = if time.is_some_and(|f| f.numeric.is_float()) {
+            1.0
+        } else {
+            1e-9
+        };
         Ok(Scan {
             xyz,
             intensity: column(self.find(&INTENSITY), 1.0),
-            ring: self.find(&RING).map(|f| (0..n).map(|i| value(f, record(i)) as u16).collect()),
+            ring: self
+                .find(&RING)
+                .map(|f| (0..n).map(|i| value(f, record(i)) as u16).collect()),
             time_s: column(time, time_scale),
-            label: self.find(&LABEL).map(|f| (0..n).map(|i| value(f, record(i)) as u32).collect()),
+            label: self
+                .find(&LABEL)
+                .map(|f| (0..n).map(|i| value(f, record(i)) as u32).collect()),
             height: self.height as usize,
             width: self.width as usize,
         })
@@ -193,7 +281,12 @@ pub fn encode(scan: &Scan, extra: &[(&str, &[f32])]) -> (CloudLayout, Vec<u8>) {
     let mut fields = Vec::new();
     let mut offset = 0u32;
     let mut add = |name: &str, numeric: Numeric| {
-        fields.push(Field { name: name.into(), offset, numeric, count: 1 });
+        fields.push(Field {
+            name: name.into(),
+            offset,
+            numeric,
+            count: 1,
+        });
         offset += numeric.size() as u32;
     };
     for name in ["x", "y", "z"] {
@@ -237,7 +330,11 @@ pub fn encode(scan: &Scan, extra: &[(&str, &[f32])]) -> (CloudLayout, Vec<u8>) {
             data.extend_from_slice(&v.get(i).copied().unwrap_or(f32::NAN).to_le_bytes());
         }
     }
-    let (height, width) = if scan.height * scan.width == n { (scan.height, scan.width) } else { (1, n) };
+    let (height, width) = if scan.height * scan.width == n {
+        (scan.height, scan.width)
+    } else {
+        (1, n)
+    };
     let layout = CloudLayout {
         fields,
         point_step,
@@ -281,7 +378,10 @@ mod tests {
         let back = layout.decode(&data).unwrap();
         assert_eq!(back.xyz[0], scan.xyz[0]);
         assert!(back.xyz[1][2].is_nan());
-        assert_eq!((back.intensity, back.ring, back.time_s, back.label), (scan.intensity, scan.ring, scan.time_s, scan.label));
+        assert_eq!(
+            (back.intensity, back.ring, back.time_s, back.label),
+            (scan.intensity, scan.ring, scan.time_s, scan.label)
+        );
     }
 
     #[test]
@@ -289,11 +389,36 @@ mod tests {
         // x, y, z float64 big-endian; t uint32 nanoseconds; reflectivity uint16.
         let layout = CloudLayout {
             fields: vec![
-                Field { name: "x".into(), offset: 0, numeric: Numeric::F64, count: 1 },
-                Field { name: "y".into(), offset: 8, numeric: Numeric::F64, count: 1 },
-                Field { name: "z".into(), offset: 16, numeric: Numeric::F64, count: 1 },
-                Field { name: "t".into(), offset: 24, numeric: Numeric::U32, count: 1 },
-                Field { name: "reflectivity".into(), offset: 28, numeric: Numeric::U16, count: 1 },
+                Field {
+                    name: "x".into(),
+                    offset: 0,
+                    numeric: Numeric::F64,
+                    count: 1,
+                },
+                Field {
+                    name: "y".into(),
+                    offset: 8,
+                    numeric: Numeric::F64,
+                    count: 1,
+                },
+                Field {
+                    name: "z".into(),
+                    offset: 16,
+                    numeric: Numeric::F64,
+                    count: 1,
+                },
+                Field {
+                    name: "t".into(),
+                    offset: 24,
+                    numeric: Numeric::U32,
+                    count: 1,
+                },
+                Field {
+                    name: "reflectivity".into(),
+                    offset: 28,
+                    numeric: Numeric::U16,
+                    count: 1,
+                },
             ],
             point_step: 32,
             row_step: 32,
@@ -317,11 +442,20 @@ mod tests {
     #[test]
     fn malformed_layouts_are_errors_not_panics() {
         let (mut layout, data) = encode(&Scan::from_xyz(vec![[1.0, 2.0, 3.0]; 4]), &[]);
-        assert!(matches!(layout.decode(&data[..20]), Err(CloudError::DataTooShort { .. })));
+        assert!(matches!(
+            layout.decode(&data[..20]),
+            Err(CloudError::DataTooShort { .. })
+        ));
         layout.fields[0].offset = 10;
-        assert!(matches!(layout.decode(&data), Err(CloudError::FieldOutsidePoint { .. })));
+        assert!(matches!(
+            layout.decode(&data),
+            Err(CloudError::FieldOutsidePoint { .. })
+        ));
         layout.fields.remove(0);
         let err = layout.decode(&data).unwrap_err().to_string();
-        assert!(err.contains("no \"x\" field") && err.contains("found: y, z"), "{err}");
+        assert!(
+            err.contains("no \"x\" field") && err.contains("found: y, z"),
+            "{err}"
+        );
     }
 }

@@ -35,8 +35,19 @@ pub struct BadChunk {
 impl std::fmt::Display for BadChunk {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         let t = |n: u64| format!("{}.{:09}", n / 1_000_000_000, n % 1_000_000_000);
-        let topics = if self.topics.is_empty() { "unknown topics".to_string() } else { self.topics.join(", ") };
-        write!(f, "{} in the chunk of {} from {} s to {} s", self.reason, topics, t(self.start_nanos), t(self.end_nanos))
+        let topics = if self.topics.is_empty() {
+            "unknown topics".to_string()
+        } else {
+            self.topics.join(", ")
+        };
+        write!(
+            f,
+            "{} in the chunk of {} from {} s to {} s",
+            self.reason,
+            topics,
+            t(self.start_nanos),
+            t(self.end_nanos)
+        )
     }
 }
 
@@ -80,9 +91,14 @@ pub fn read_records(
     mut visit: impl FnMut(&Record<'_>) -> anyhow::Result<()>,
     mut progress: impl FnMut(u64),
 ) -> Result<ReadReport, ReadError> {
-    let opts = LinearReaderOptions::default().with_emit_chunks(true).with_record_length_limit(1 << 32);
+    let opts = LinearReaderOptions::default()
+        .with_emit_chunks(true)
+        .with_record_length_limit(1 << 32);
     let mut reader = LinearReader::new_with_options(opts);
-    let mut report = ReadReport { bytes_read: 8, ..Default::default() };
+    let mut report = ReadReport {
+        bytes_read: 8,
+        ..Default::default()
+    };
     let mut topics: HashMap<u16, String> = HashMap::new();
     let mut seen_any = false;
     // A broken chunk is completed from the message indexes that follow it (they
@@ -107,10 +123,13 @@ pub fn read_records(
             Err(e) => {
                 settle_bad_chunk(&mut pending_bad, &topics, on_error, &mut report)?;
                 report.stopped = Some(match e {
-                    mcap::McapError::UnexpectedEof => "the file ends in the middle of a record (truncated recording)".into(),
+                    mcap::McapError::UnexpectedEof => {
+                        "the file ends in the middle of a record (truncated recording)".into()
+                    }
                     other => format!("unreadable record: {other}"),
                 });
-                report.unread_bytes = file_len.map_or(0, |len| len.saturating_sub(report.bytes_read));
+                report.unread_bytes =
+                    file_len.map_or(0, |len| len.saturating_sub(report.bytes_read));
                 return Ok(report);
             }
         };
@@ -174,7 +193,10 @@ fn settle_bad_chunk(
     };
     bad.messages = bad.messages.max(indexed);
     for id in channels {
-        let topic = topics.get(&id).cloned().unwrap_or_else(|| format!("channel {id}"));
+        let topic = topics
+            .get(&id)
+            .cloned()
+            .unwrap_or_else(|| format!("channel {id}"));
         if !bad.topics.contains(&topic) {
             bad.topics.push(topic);
         }
@@ -194,24 +216,33 @@ fn note_channel(topics: &mut HashMap<u16, String>, rec: &Record<'_>) {
 
 /// Decompresses a chunk and checks its CRC; returns its records' bytes.
 fn open_chunk(header: &mcap::records::ChunkHeader, data: &[u8]) -> Result<Vec<u8>, String> {
-    let size = usize::try_from(header.uncompressed_size).map_err(|_| "chunk too large".to_string())?;
+    let size =
+        usize::try_from(header.uncompressed_size).map_err(|_| "chunk too large".to_string())?;
     let records = match header.compression.as_str() {
         "" => data.to_vec(),
         "zstd" => zstd::bulk::decompress(data, size).map_err(|e| format!("zstd: {e}"))?,
         "lz4" => {
             let mut out = Vec::with_capacity(size);
-            lz4::Decoder::new(data).and_then(|mut d| d.read_to_end(&mut out)).map_err(|e| format!("lz4: {e}"))?;
+            lz4::Decoder::new(data)
+                .and_then(|mut d| d.read_to_end(&mut out))
+                .map_err(|e| format!("lz4: {e}"))?;
             out
         }
         other => return Err(format!("unsupported chunk compression '{other}'")),
     };
     if records.len() != size {
-        return Err(format!("chunk holds {} bytes, header says {size}", records.len()));
+        return Err(format!(
+            "chunk holds {} bytes, header says {size}",
+            records.len()
+        ));
     }
     if header.uncompressed_crc != 0 {
         let calculated = crc32fast::hash(&records);
         if calculated != header.uncompressed_crc {
-            return Err(format!("CRC mismatch (saved {:#010x}, calculated {calculated:#010x})", header.uncompressed_crc));
+            return Err(format!(
+                "CRC mismatch (saved {:#010x}, calculated {calculated:#010x})",
+                header.uncompressed_crc
+            ));
         }
     }
     Ok(records)
@@ -223,14 +254,20 @@ enum ChunkWalk {
 }
 
 /// Walks the records packed in a chunk: opcode (1), length (8), body.
-fn for_each_record(mut buf: &[u8], mut f: impl FnMut(&Record<'_>) -> anyhow::Result<()>) -> Result<(), ChunkWalk> {
+fn for_each_record(
+    mut buf: &[u8],
+    mut f: impl FnMut(&Record<'_>) -> anyhow::Result<()>,
+) -> Result<(), ChunkWalk> {
     while !buf.is_empty() {
         if buf.len() < 9 {
             return Err(ChunkWalk::Record(mcap::McapError::UnexpectedEoc));
         }
         let opcode = buf[0];
         let len = u64::from_le_bytes(buf[1..9].try_into().unwrap_or_default());
-        let end = usize::try_from(len).ok().and_then(|l| l.checked_add(9)).filter(|&e| e <= buf.len());
+        let end = usize::try_from(len)
+            .ok()
+            .and_then(|l| l.checked_add(9))
+            .filter(|&e| e <= buf.len());
         let Some(end) = end else {
             return Err(ChunkWalk::Record(mcap::McapError::UnexpectedEoc));
         };
@@ -258,7 +295,10 @@ fn describe_bad_chunk(
         "zstd" => zstd::bulk::decompress(data, header.uncompressed_size as usize).ok(),
         "lz4" => {
             let mut out = Vec::new();
-            lz4::Decoder::new(data).and_then(|mut d| d.read_to_end(&mut out)).ok().map(|_| out)
+            lz4::Decoder::new(data)
+                .and_then(|mut d| d.read_to_end(&mut out))
+                .ok()
+                .map(|_| out)
         }
         _ => None,
     };
@@ -279,7 +319,19 @@ fn describe_bad_chunk(
     }
     let topics = channels
         .iter()
-        .map(|id| own_topics.get(id).or_else(|| topics.get(id)).cloned().unwrap_or_else(|| format!("channel {id}")))
+        .map(|id| {
+            own_topics
+                .get(id)
+                .or_else(|| topics.get(id))
+                .cloned()
+                .unwrap_or_else(|| format!("channel {id}"))
+        })
         .collect();
-    BadChunk { reason, topics, start_nanos: header.message_start_time, end_nanos: header.message_end_time, messages }
+    BadChunk {
+        reason,
+        topics,
+        start_nanos: header.message_start_time,
+        end_nanos: header.message_end_time,
+        messages,
+    }
 }

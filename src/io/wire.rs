@@ -7,7 +7,11 @@
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
 pub enum WireError {
     #[error("message ends at byte {len} but {field} needs {need} more bytes")]
-    Short { field: &'static str, need: usize, len: usize },
+    Short {
+        field: &'static str,
+        need: usize,
+        len: usize,
+    },
     #[error("unknown CDR encapsulation {0:#06x}")]
     Encapsulation(u16),
     #[error("{field} is not valid UTF-8")]
@@ -36,18 +40,32 @@ impl<'a> WireReader<'a> {
     /// A CDR reader; consumes and checks the encapsulation header.
     pub fn cdr(buf: &'a [u8]) -> Result<Self, WireError> {
         if buf.len() < 4 {
-            return Err(WireError::Short { field: "CDR header", need: 4, len: buf.len() });
+            return Err(WireError::Short {
+                field: "CDR header",
+                need: 4,
+                len: buf.len(),
+            });
         }
         let big_endian = match u16::from_be_bytes([buf[0], buf[1]]) {
             0x0000 | 0x0002 => true,
             0x0001 | 0x0003 => false,
             other => return Err(WireError::Encapsulation(other)),
         };
-        Ok(WireReader { buf, pos: 4, origin: 4, wire: Wire::Cdr { big_endian } })
+        Ok(WireReader {
+            buf,
+            pos: 4,
+            origin: 4,
+            wire: Wire::Cdr { big_endian },
+        })
     }
 
     pub fn ros1(buf: &'a [u8]) -> Self {
-        WireReader { buf, pos: 0, origin: 0, wire: Wire::Ros1 }
+        WireReader {
+            buf,
+            pos: 0,
+            origin: 0,
+            wire: Wire::Ros1,
+        }
     }
 
     fn take(&mut self, n: usize, align: usize, field: &'static str) -> Result<&'a [u8], WireError> {
@@ -57,7 +75,11 @@ impl<'a> WireReader<'a> {
         }
         let end = self.pos.checked_add(n).filter(|&e| e <= self.buf.len());
         let Some(end) = end else {
-            return Err(WireError::Short { field, need: n, len: self.buf.len() });
+            return Err(WireError::Short {
+                field,
+                need: n,
+                len: self.buf.len(),
+            });
         };
         let out = &self.buf[self.pos..end];
         self.pos = end;
@@ -74,7 +96,11 @@ impl<'a> WireReader<'a> {
 
     pub fn u32(&mut self, field: &'static str) -> Result<u32, WireError> {
         let b: [u8; 4] = self.take(4, 4, field)?.try_into().unwrap_or_default();
-        Ok(if self.big_endian() { u32::from_be_bytes(b) } else { u32::from_le_bytes(b) })
+        Ok(if self.big_endian() {
+            u32::from_be_bytes(b)
+        } else {
+            u32::from_le_bytes(b)
+        })
     }
 
     pub fn i32(&mut self, field: &'static str) -> Result<i32, WireError> {
@@ -127,11 +153,19 @@ impl WireWriter {
     pub fn cdr(capacity: usize) -> Self {
         let mut buf = Vec::with_capacity(capacity + 4);
         buf.extend_from_slice(&[0, 1, 0, 0]);
-        WireWriter { buf, origin: 4, wire: Wire::Cdr { big_endian: false } }
+        WireWriter {
+            buf,
+            origin: 4,
+            wire: Wire::Cdr { big_endian: false },
+        }
     }
 
     pub fn ros1(capacity: usize) -> Self {
-        WireWriter { buf: Vec::with_capacity(capacity), origin: 0, wire: Wire::Ros1 }
+        WireWriter {
+            buf: Vec::with_capacity(capacity),
+            origin: 0,
+            wire: Wire::Ros1,
+        }
     }
 
     fn align(&mut self, n: usize) {

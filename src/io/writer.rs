@@ -48,16 +48,28 @@ impl McapOutput {
         if path.exists() && !force {
             bail!("{} exists; pass --force to overwrite it", path.display());
         }
-        let dir = path.parent().filter(|p| !p.as_os_str().is_empty()).unwrap_or(Path::new("."));
-        let name = path.file_name().with_context(|| format!("{} is not a file path", path.display()))?;
-        let tmp_path = dir.join(format!(".{}.{}.tmp", name.to_string_lossy(), std::process::id()));
-        let file = File::create(&tmp_path).with_context(|| format!("cannot create {}", tmp_path.display()))?;
+        let dir = path
+            .parent()
+            .filter(|p| !p.as_os_str().is_empty())
+            .unwrap_or(Path::new("."));
+        let name = path
+            .file_name()
+            .with_context(|| format!("{} is not a file path", path.display()))?;
+        let tmp_path = dir.join(format!(
+            ".{}.{}.tmp",
+            name.to_string_lossy(),
+            std::process::id()
+        ));
+        let file = File::create(&tmp_path)
+            .with_context(|| format!("cannot create {}", tmp_path.display()))?;
         let options = mcap::WriteOptions::new()
             .compression(Some(mcap::Compression::Zstd))
             .compression_level(3)
             .chunk_size(Some(4 * 1024 * 1024))
             .library(format!("rangegan-mcap {}", env!("CARGO_PKG_VERSION")));
-        let writer = options.create(BufWriter::with_capacity(1 << 20, file)).context("cannot start MCAP writer")?;
+        let writer = options
+            .create(BufWriter::with_capacity(1 << 20, file))
+            .context("cannot start MCAP writer")?;
         Ok(McapOutput {
             writer: Some(writer),
             tmp_path,
@@ -83,7 +95,9 @@ impl McapOutput {
         let id = if wanted != 0 && !used.contains(&wanted) {
             wanted
         } else {
-            (1..=u16::MAX).find(|i| !used.contains(i)).context("more than 65535 ids")?
+            (1..=u16::MAX)
+                .find(|i| !used.contains(i))
+                .context("more than 65535 ids")?
         };
         used.insert(id);
         Ok(id)
@@ -98,7 +112,8 @@ impl McapOutput {
                     return Ok(true); // repeated in the summary or another chunk
                 }
                 let id = Self::claim(&mut self.used_schema_ids, header.id)?;
-                self.writer()?.add_schema_with_id(id, &header.name, &header.encoding, data)?;
+                self.writer()?
+                    .add_schema_with_id(id, &header.name, &header.encoding, data)?;
                 self.schema_ids.insert(header.id, id);
                 self.copied.schemas += 1;
             }
@@ -108,10 +123,19 @@ impl McapOutput {
                 }
                 let schema_id = match c.schema_id {
                     0 => 0,
-                    s => *self.schema_ids.get(&s).with_context(|| format!("channel {} names unknown schema {s}", c.topic))?,
+                    s => *self
+                        .schema_ids
+                        .get(&s)
+                        .with_context(|| format!("channel {} names unknown schema {s}", c.topic))?,
                 };
                 let id = Self::claim(&mut self.used_channel_ids, c.id)?;
-                self.writer()?.add_channel_with_id(id, schema_id, &c.topic, &c.message_encoding, &c.metadata)?;
+                self.writer()?.add_channel_with_id(
+                    id,
+                    schema_id,
+                    &c.topic,
+                    &c.message_encoding,
+                    &c.metadata,
+                )?;
                 self.channel_ids.insert(c.id, id);
                 self.copied.channels += 1;
             }
@@ -120,7 +144,13 @@ impl McapOutput {
                     self.copied.orphan_messages += 1;
                     return Ok(false);
                 };
-                self.writer()?.write_to_known_channel(&MessageHeader { channel_id, ..*header }, data)?;
+                self.writer()?.write_to_known_channel(
+                    &MessageHeader {
+                        channel_id,
+                        ..*header
+                    },
+                    data,
+                )?;
                 self.copied.messages += 1;
             }
             Record::Attachment { header, data, .. } => {
@@ -158,45 +188,81 @@ impl McapOutput {
             Some(&id) => id,
             None => {
                 let s = encoders::schema(family, kind);
-                let id = (1..=u16::MAX).rev().find(|i| !self.used_schema_ids.contains(i)).context("no schema id left")?;
+                let id = (1..=u16::MAX)
+                    .rev()
+                    .find(|i| !self.used_schema_ids.contains(i))
+                    .context("no schema id left")?;
                 self.used_schema_ids.insert(id);
-                self.writer()?.add_schema_with_id(id, &s.name, &s.encoding, &s.data)?;
+                self.writer()?
+                    .add_schema_with_id(id, &s.name, &s.encoding, &s.data)?;
                 self.own_schemas.insert((family, kind), id);
                 id
             }
         };
-        let id = (1..=u16::MAX).rev().find(|i| !self.used_channel_ids.contains(i)).context("no channel id left")?;
+        let id = (1..=u16::MAX)
+            .rev()
+            .find(|i| !self.used_channel_ids.contains(i))
+            .context("no channel id left")?;
         self.used_channel_ids.insert(id);
         let encoding = encoders::message_encoding(family);
-        self.writer()?.add_channel_with_id(id, schema_id, topic, encoding, &BTreeMap::new())?;
+        self.writer()?
+            .add_channel_with_id(id, schema_id, topic, encoding, &BTreeMap::new())?;
         self.own_channels.insert(topic.to_string(), id);
         Ok(id)
     }
 
     /// Writes a message on one of our own channels.
-    pub fn write_own(&mut self, channel_id: u16, log_time: u64, publish_time: u64, data: &[u8]) -> anyhow::Result<()> {
+    pub fn write_own(
+        &mut self,
+        channel_id: u16,
+        log_time: u64,
+        publish_time: u64,
+        data: &[u8],
+    ) -> anyhow::Result<()> {
         let seq = self.own_sequence.entry(channel_id).or_insert(0);
         *seq += 1;
-        let header = MessageHeader { channel_id, sequence: *seq, log_time, publish_time };
+        let header = MessageHeader {
+            channel_id,
+            sequence: *seq,
+            log_time,
+            publish_time,
+        };
         self.writer()?.write_to_known_channel(&header, data)?;
         Ok(())
     }
 
     /// Writes a metadata record of our own.
-    pub fn write_metadata(&mut self, name: &str, entries: BTreeMap<String, String>) -> anyhow::Result<()> {
-        self.writer()?.write_metadata(&mcap::records::Metadata { name: name.into(), metadata: entries })?;
+    pub fn write_metadata(
+        &mut self,
+        name: &str,
+        entries: BTreeMap<String, String>,
+    ) -> anyhow::Result<()> {
+        self.writer()?.write_metadata(&mcap::records::Metadata {
+            name: name.into(),
+            metadata: entries,
+        })?;
         Ok(())
     }
 
     /// Completes the file (summary, footer), syncs it and renames it into place.
     pub fn finish(mut self) -> anyhow::Result<()> {
         let mut writer = self.writer.take().context("MCAP writer already finished")?;
-        writer.finish().with_context(|| format!("cannot finish {}", self.tmp_path.display()))?;
-        let file = writer.into_inner().into_inner().map_err(|e| e.into_error())?;
+        writer
+            .finish()
+            .with_context(|| format!("cannot finish {}", self.tmp_path.display()))?;
+        let file = writer
+            .into_inner()
+            .into_inner()
+            .map_err(|e| e.into_error())?;
         file.sync_all()?;
         drop(file);
-        std::fs::rename(&self.tmp_path, &self.path)
-            .with_context(|| format!("cannot move {} to {}", self.tmp_path.display(), self.path.display()))?;
+        std::fs::rename(&self.tmp_path, &self.path).with_context(|| {
+            format!(
+                "cannot move {} to {}",
+                self.tmp_path.display(),
+                self.path.display()
+            )
+        })?;
         Ok(())
     }
 }

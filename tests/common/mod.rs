@@ -28,7 +28,11 @@ pub fn stderr(o: &Output) -> String {
 pub fn synthetic_scan(range_m: f32, seed: u32) -> Scan {
     let profile = SensorProfile::builtin("vlp16").unwrap().with_columns(360);
     let grid = profile.angle_grid();
-    let mut scan = Scan { intensity: Some(Vec::new()), ring: Some(Vec::new()), ..Default::default() };
+    let mut scan = Scan {
+        intensity: Some(Vec::new()),
+        ring: Some(Vec::new()),
+        ..Default::default()
+    };
     for k in 0..grid.len() {
         if (k as u32).wrapping_mul(2_654_435_761).wrapping_add(seed) % 10 == 0 {
             continue; // dropped ray
@@ -45,31 +49,62 @@ pub fn synthetic_scan(range_m: f32, seed: u32) -> Scan {
 
 /// Writes a recording with one point-cloud topic per family given, plus a
 /// non-cloud topic, an attachment and a metadata record. Returns message count.
-pub fn write_recording(path: &Path, families: &[Family], scans: usize, chunk_size: Option<u64>) -> u64 {
+pub fn write_recording(
+    path: &Path,
+    families: &[Family],
+    scans: usize,
+    chunk_size: Option<u64>,
+) -> u64 {
     let file = std::io::BufWriter::new(std::fs::File::create(path).unwrap());
-    let opts = mcap::WriteOptions::new().compression(Some(mcap::Compression::Zstd)).chunk_size(chunk_size);
+    let opts = mcap::WriteOptions::new()
+        .compression(Some(mcap::Compression::Zstd))
+        .chunk_size(chunk_size);
     let mut w = opts.create(file).unwrap();
     let mut channels = Vec::new();
     for family in families {
         let s = encoders::schema(*family, Kind::Cloud);
         let schema = w.add_schema(&s.name, &s.encoding, &s.data).unwrap();
         let topic = format!("/lidar_{family:?}").to_lowercase();
-        let id = w.add_channel(schema, &topic, encoders::message_encoding(*family), &BTreeMap::new()).unwrap();
+        let id = w
+            .add_channel(
+                schema,
+                &topic,
+                encoders::message_encoding(*family),
+                &BTreeMap::new(),
+            )
+            .unwrap();
         channels.push((id, *family));
     }
-    let note = w.add_channel(0, "/notes", "json", &BTreeMap::new()).unwrap();
+    let note = w
+        .add_channel(0, "/notes", "json", &BTreeMap::new())
+        .unwrap();
     let mut count = 0;
     for i in 0..scans {
         let t = 1_000_000_000 + i as u64 * 100_000_000;
         for (id, family) in &channels {
-            let cloud = DecodedCloud { scan: synthetic_scan(5.0 + i as f32, i as u32), stamp_nanos: t, frame_id: "lidar".into() };
+            let cloud = DecodedCloud {
+                scan: synthetic_scan(5.0 + i as f32, i as u32),
+                stamp_nanos: t,
+                frame_id: "lidar".into(),
+            };
             let data = encoders::encode_scan(*family, &cloud, &[]);
-            let header = mcap::records::MessageHeader { channel_id: *id, sequence: i as u32, log_time: t, publish_time: t };
+            let header = mcap::records::MessageHeader {
+                channel_id: *id,
+                sequence: i as u32,
+                log_time: t,
+                publish_time: t,
+            };
             w.write_to_known_channel(&header, &data).unwrap();
             count += 1;
         }
-        let header = mcap::records::MessageHeader { channel_id: note, sequence: i as u32, log_time: t, publish_time: t };
-        w.write_to_known_channel(&header, format!("{{\"i\":{i}}}").as_bytes()).unwrap();
+        let header = mcap::records::MessageHeader {
+            channel_id: note,
+            sequence: i as u32,
+            log_time: t,
+            publish_time: t,
+        };
+        w.write_to_known_channel(&header, format!("{{\"i\":{i}}}").as_bytes())
+            .unwrap();
         count += 1;
     }
     w.attach(&mcap::Attachment {
@@ -80,8 +115,11 @@ pub fn write_recording(path: &Path, families: &[Family], scans: usize, chunk_siz
         data: Cow::Borrowed(b"P0: 1 0 0"),
     })
     .unwrap();
-    w.write_metadata(&mcap::records::Metadata { name: "robot".into(), metadata: BTreeMap::from([("id".into(), "7".into())]) })
-        .unwrap();
+    w.write_metadata(&mcap::records::Metadata {
+        name: "robot".into(),
+        metadata: BTreeMap::from([("id".into(), "7".into())]),
+    })
+    .unwrap();
     w.finish().unwrap();
     count
 }
@@ -90,11 +128,19 @@ pub fn write_recording(path: &Path, families: &[Family], scans: usize, chunk_siz
 /// (`.ci/run` installs them into `.venv`). `None` = not installed: the caller skips,
 /// except under CI where that is an error.
 pub fn python() -> Option<PathBuf> {
-    let candidates = [std::env::var("RANGEGAN_PYTHON").ok().map(PathBuf::from), Some(PathBuf::from(".venv/bin/python"))];
+    let candidates = [
+        std::env::var("RANGEGAN_PYTHON").ok().map(PathBuf::from),
+        Some(PathBuf::from(".venv/bin/python")),
+    ];
     let found = candidates.into_iter().flatten().find(|p| p.exists());
     if found.is_none() {
-        assert!(std::env::var("CI").is_err(), "CI must install the Python readers (.ci/run makes .venv)");
-        eprintln!("skipped: no .venv/bin/python with the mcap readers; run .ci/run once to install them");
+        assert!(
+            std::env::var("CI").is_err(),
+            "CI must install the Python readers (.ci/run makes .venv)"
+        );
+        eprintln!(
+            "skipped: no .venv/bin/python with the mcap readers; run .ci/run once to install them"
+        );
     }
     found
 }
@@ -102,8 +148,17 @@ pub fn python() -> Option<PathBuf> {
 /// Runs `tests/py/read_mcap.py` on `path`: decodes every message with the
 /// independent readers and returns its JSON report.
 pub fn python_read(python: &Path, path: &Path) -> serde_json::Value {
-    let out = Command::new(python).arg("tests/py/read_mcap.py").arg(path).output().expect("python runs");
-    assert!(out.status.success(), "python reader failed on {}: {}", path.display(), stderr(&out));
+    let out = Command::new(python)
+        .arg("tests/py/read_mcap.py")
+        .arg(path)
+        .output()
+        .expect("python runs");
+    assert!(
+        out.status.success(),
+        "python reader failed on {}: {}",
+        path.display(),
+        stderr(&out)
+    );
     serde_json::from_slice(&out.stdout).expect("reader prints JSON")
 }
 
@@ -113,8 +168,13 @@ pub fn node() -> Option<PathBuf> {
     let ready = Path::new("tests/js/node_modules/@mcap/core").exists();
     let node = std::env::var("RANGEGAN_NODE").unwrap_or_else(|_| "node".into());
     if !ready {
-        assert!(std::env::var("CI").is_err(), "CI must install the npm readers (.ci/run runs npm ci in tests/js)");
-        eprintln!("skipped: tests/js/node_modules is missing; run .ci/run once to install Foxglove's readers");
+        assert!(
+            std::env::var("CI").is_err(),
+            "CI must install the npm readers (.ci/run runs npm ci in tests/js)"
+        );
+        eprintln!(
+            "skipped: tests/js/node_modules is missing; run .ci/run once to install Foxglove's readers"
+        );
         return None;
     }
     Some(PathBuf::from(node))
@@ -123,7 +183,17 @@ pub fn node() -> Option<PathBuf> {
 /// Runs `tests/js/read_mcap.mjs` (@mcap/core + Foxglove's deserializers) on
 /// `path`; fails the test if any message does not decode.
 pub fn node_read(node: &Path, path: &Path) -> serde_json::Value {
-    let out = Command::new(node).arg("tests/js/read_mcap.mjs").arg(path).output().expect("node runs");
-    assert!(out.status.success(), "Foxglove readers failed on {}: {}{}", path.display(), String::from_utf8_lossy(&out.stdout), stderr(&out));
+    let out = Command::new(node)
+        .arg("tests/js/read_mcap.mjs")
+        .arg(path)
+        .output()
+        .expect("node runs");
+    assert!(
+        out.status.success(),
+        "Foxglove readers failed on {}: {}{}",
+        path.display(),
+        String::from_utf8_lossy(&out.stdout),
+        stderr(&out)
+    );
     serde_json::from_slice(&out.stdout).expect("reader prints JSON")
 }
