@@ -5,6 +5,7 @@
 mod convert;
 mod import;
 mod info;
+mod simulate;
 
 use std::process::ExitCode;
 
@@ -42,6 +43,8 @@ pub enum Command {
     Info(info::InfoArgs),
     /// Turn a KITTI / SemanticKITTI folder into an MCAP of ROS 2 PointCloud2 messages.
     Import(import::ImportArgs),
+    /// Simulate a LiDAR drive through a procedural street scene, with switchable sensor physics.
+    Simulate(simulate::SimulateArgs),
 }
 
 /// How a command ended when it did not fail outright.
@@ -71,6 +74,7 @@ pub fn run(args: Args) -> anyhow::Result<Outcome> {
         Command::Convert(a) => convert::run(&args.global, a),
         Command::Info(a) => info::run(&args.global, a),
         Command::Import(a) => import::run(&args.global, a),
+        Command::Simulate(a) => simulate::run(&args.global, a),
     }
 }
 
