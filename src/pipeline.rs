@@ -194,6 +194,7 @@ struct Converter<'a> {
     schemas: HashMap<u16, (String, String)>,
     channels: HashMap<u16, ChannelInfo>,
     batch: Vec<Pending>,
+    scans_done: u64,
     report: ConvertReport,
 }
 
@@ -250,6 +251,7 @@ impl Converter<'_> {
             let topic_report = self.report.topics.entry(p.topic.clone()).or_default();
             match result {
                 Ok((outputs, kept, (profile, strategy))) => {
+                    self.scans_done += 1;
                     topic_report.kept_fraction += kept;
                     topic_report.scans += 1;
                     topic_report.sensor = Some(profile.name.clone());
@@ -296,9 +298,15 @@ pub fn guess_profile(scan: &crate::lidar::Scan) -> SensorProfile {
     SensorProfile::builtin(name).unwrap_or_else(|_| SensorProfile::kitti_hdl64e())
 }
 
+/// How far a conversion has come, for progress bars.
+#[derive(Debug, Clone, Copy, Default)]
+pub struct Progress {
+    pub bytes_read: u64,
+    pub scans: u64,
+}
+
 /// Converts `input` (read as a stream from `src`) into `out`: copies every record
-/// and adds the channels of `stages` for every point-cloud topic. `progress` gets
-/// the bytes read so far.
+/// and adds the channels of `stages` for every point-cloud topic.
 pub fn convert(
     input: &std::path::Path,
     src: impl Read,
@@ -307,7 +315,7 @@ pub fn convert(
     opts: &ConvertOptions,
     stages: &[&Stage<'_>],
     metadata: BTreeMap<String, String>,
-    progress: impl FnMut(u64),
+    mut progress: impl FnMut(Progress),
 ) -> anyhow::Result<ConvertReport> {
     out.write_metadata("rangegan", metadata)?;
     let mut conv = Converter {
@@ -318,10 +326,22 @@ pub fn convert(
         schemas: HashMap::new(),
         channels: HashMap::new(),
         batch: Vec::new(),
+        scans_done: 0,
         report: ConvertReport::default(),
     };
-    let read = read_records(src, file_len, opts.on_error, |rec| conv.visit(rec), progress)
-        .map_err(|e| anyhow::anyhow!("{}: {e}", input.display()))?;
+    let scans = std::cell::Cell::new(0u64);
+    let read = read_records(
+        src,
+        file_len,
+        opts.on_error,
+        |rec| {
+            conv.visit(rec)?;
+            scans.set(conv.scans_done);
+            Ok(())
+        },
+        |bytes_read| progress(Progress { bytes_read, scans: scans.get() }),
+    )
+    .map_err(|e| anyhow::anyhow!("{}: {e}", input.display()))?;
     conv.flush()?;
     let mut report = conv.report;
     report.read = read;

@@ -42,6 +42,13 @@ fn converts_every_family_and_copies_every_record() {
         assert!(t["kept_fraction"].as_f64().unwrap() > 0.999, "{topic}: {t}");
     }
 
+    if let Some(node) = node() {
+        // Foxglove's own readers decode every message, protobuf RawImage included.
+        let r = node_read(&node, &output);
+        assert_eq!(r["decoded"], messages + 15);
+        assert_eq!(r["images"]["/lidar_foxglove/rangegan/range"], serde_json::json!([16, 360, "32FC1", 1440, 16 * 1440]));
+        assert_eq!(r["images"]["/lidar_ros2/rangegan/range"], r["images"]["/lidar_foxglove/rangegan/range"]);
+    }
     let Some(py) = python() else { return };
     let r = python_read(&py, &output);
     let topics = &r["topics"];

@@ -101,7 +101,11 @@ pub fn run(global: &GlobalArgs, args: ConvertArgs) -> anyhow::Result<Outcome> {
     let started = std::time::Instant::now();
     let stages: [&Stage<'_>; 1] = [&pipeline::range_stage];
     let reader = std::io::BufReader::with_capacity(1 << 20, file);
-    let report = pipeline::convert(&args.input, reader, len, out, &opts, &stages, metadata, |b| bar.set_position(b))?;
+    let report = pipeline::convert(&args.input, reader, len, out, &opts, &stages, metadata, |p| {
+        bar.set_position(p.bytes_read);
+        let secs = started.elapsed().as_secs_f64().max(1e-3);
+        bar.set_message(format!("{} scans, {:.1} scans/s", p.scans, p.scans as f64 / secs));
+    })?;
     bar.finish_and_clear();
     let secs = started.elapsed().as_secs_f64();
 

@@ -1,15 +1,23 @@
 //! Points <-> range images. Owns the decoded scan ([`Scan`]), sensor profiles
-//! ([`SensorProfile`]: beam elevations, columns, valid range), the projection of a
-//! scan onto a profile's angle grid ([`project`]), the way back to points, and
-//! resampling of angle grids. No I/O beyond reading dataset files, no MCAP, no burn.
+//! ([`SensorProfile`]: beam elevations, columns, valid range) and their estimation
+//! from data ([`estimate`]), the projection of a scan onto a profile's angle grid
+//! ([`project`]), the way back to points, and resampling of angle grids and range
+//! images ([`resample`]). Readers for dataset files on disk (KITTI, nuScenes, PCD)
+//! live here too; MCAP is left to `io`, models to later modules.
 
+pub mod estimate;
 pub mod kitti;
+pub mod nuscenes;
+pub mod pcd;
 pub mod profile;
 pub mod projection;
 pub mod range_image;
+pub mod resample;
 pub mod scan;
 
+pub use estimate::{EstimateMethod, SensorEstimate, estimate_profile};
 pub use profile::SensorProfile;
 pub use projection::{ProjectionError, Strategy, project};
 pub use range_image::{AngleGrid, RangeImage};
+pub use resample::{Interpolation, resample_image, resample_to_profile};
 pub use scan::Scan;

@@ -31,9 +31,15 @@ pub enum ProfileError {
     #[error("unknown sensor profile '{0}' (built in: {names}); or give a profile JSON file", names = SensorProfile::BUILTIN.join(", "))]
     Unknown(String),
     #[error("{path}: {source}")]
-    Io { path: String, source: std::io::Error },
+    Io {
+        path: String,
+        source: std::io::Error,
+    },
     #[error("{path}: {source}")]
-    Json { path: String, source: serde_json::Error },
+    Json {
+        path: String,
+        source: serde_json::Error,
+    },
     #[error("{path}: {reason}")]
     Invalid { path: String, reason: String },
 }
@@ -43,10 +49,10 @@ pub enum ProfileError {
 const HDL64E_ELEVATION_DEG: [f32; 64] = [
     2.613, 2.227, 1.995, 1.544, 1.263, 0.833, 0.572, 0.176, -0.161, -0.569, -0.876, -1.219, -1.566,
     -1.868, -2.169, -2.524, -2.836, -3.245, -3.518, -3.912, -4.217, -4.582, -4.894, -5.181, -5.542,
-    -5.851, -6.147, -6.411, -6.778, -7.144, -7.382, -7.766, -8.396, -8.911, -9.371, -9.763, -10.221,
-    -10.824, -11.321, -11.746, -12.2, -12.625, -13.154, -13.672, -14.241, -14.676, -15.173, -15.545,
-    -16.169, -16.694, -17.256, -17.715, -18.211, -18.631, -19.07, -19.627, -20.126, -20.786,
-    -21.261, -21.682, -22.109, -22.755, -23.211, -23.742,
+    -5.851, -6.147, -6.411, -6.778, -7.144, -7.382, -7.766, -8.396, -8.911, -9.371, -9.763,
+    -10.221, -10.824, -11.321, -11.746, -12.2, -12.625, -13.154, -13.672, -14.241, -14.676,
+    -15.173, -15.545, -16.169, -16.694, -17.256, -17.715, -18.211, -18.631, -19.07, -19.627,
+    -20.126, -20.786, -21.261, -21.682, -22.109, -22.755, -23.211, -23.742,
 ];
 
 /// Velodyne VLP-32C beam elevations (datasheet), sorted top first.
@@ -63,8 +69,9 @@ fn uniform(top_deg: f32, bottom_deg: f32, beams: usize) -> Vec<f32> {
 
 impl SensorProfile {
     /// Names accepted by [`SensorProfile::builtin`].
-    pub const BUILTIN: [&'static str; 7] =
-        ["hdl64e", "hdl32e", "vlp16", "vlp32c", "os1-32", "os1-64", "os1-128"];
+    pub const BUILTIN: [&'static str; 7] = [
+        "hdl64e", "hdl32e", "vlp16", "vlp32c", "os1-32", "os1-64", "os1-128",
+    ];
 
     /// KITTI's HDL-64E at its native ~2048 columns per revolution, 1.45-80 m as in
     /// the reference preprocessing.
@@ -117,26 +124,50 @@ impl SensorProfile {
     /// (`beam_altitude_angles`, `beam_azimuth_angles`, optional `lidar_mode`).
     pub fn load(path: &Path) -> Result<Self, ProfileError> {
         let p = path.display().to_string();
-        let text = std::fs::read_to_string(path).map_err(|source| ProfileError::Io { path: p.clone(), source })?;
+        let text = std::fs::read_to_string(path).map_err(|source| ProfileError::Io {
+            path: p.clone(),
+            source,
+        })?;
         let value: serde_json::Value =
-            serde_json::from_str(&text).map_err(|source| ProfileError::Json { path: p.clone(), source })?;
+            serde_json::from_str(&text).map_err(|source| ProfileError::Json {
+                path: p.clone(),
+                source,
+            })?;
         let profile = if let Some(ouster) = find_key(&value, "beam_altitude_angles") {
             Self::from_ouster(&value, ouster, &p)?
         } else {
-            serde_json::from_value(value).map_err(|source| ProfileError::Json { path: p.clone(), source })?
+            serde_json::from_value(value).map_err(|source| ProfileError::Json {
+                path: p.clone(),
+                source,
+            })?
         };
-        profile.validate().map_err(|reason| ProfileError::Invalid { path: p, reason })?;
+        profile
+            .validate()
+            .map_err(|reason| ProfileError::Invalid { path: p, reason })?;
         Ok(profile)
     }
 
-    fn from_ouster(root: &serde_json::Value, altitudes: &serde_json::Value, path: &str) -> Result<Self, ProfileError> {
+    fn from_ouster(
+        root: &serde_json::Value,
+        altitudes: &serde_json::Value,
+        path: &str,
+    ) -> Result<Self, ProfileError> {
         let floats = |v: &serde_json::Value| -> Option<Vec<f32>> {
-            v.as_array()?.iter().map(|x| x.as_f64().map(|f| f as f32)).collect()
+            v.as_array()?
+                .iter()
+                .map(|x| x.as_f64().map(|f| f as f32))
+                .collect()
         };
-        let invalid = |reason: &str| ProfileError::Invalid { path: path.into(), reason: reason.into() };
-        let elevation_deg = floats(altitudes).ok_or_else(|| invalid("beam_altitude_angles is not a list of numbers"))?;
+        let invalid = |reason: &str| ProfileError::Invalid {
+            path: path.into(),
+            reason: reason.into(),
+        };
+        let elevation_deg = floats(altitudes)
+            .ok_or_else(|| invalid("beam_altitude_angles is not a list of numbers"))?;
         let azimuth_offset_deg = match find_key(root, "beam_azimuth_angles") {
-            Some(v) => Some(floats(v).ok_or_else(|| invalid("beam_azimuth_angles is not a list of numbers"))?),
+            Some(v) => Some(
+                floats(v).ok_or_else(|| invalid("beam_azimuth_angles is not a list of numbers"))?,
+            ),
             None => None,
         };
         // lidar_mode looks like "1024x10": columns x frequency.
@@ -145,7 +176,9 @@ impl SensorProfile {
             .and_then(|m| m.split('x').next())
             .and_then(|c| c.parse().ok())
             .unwrap_or(1024);
-        let prod = find_key(root, "prod_line").and_then(|v| v.as_str()).unwrap_or("ouster");
+        let prod = find_key(root, "prod_line")
+            .and_then(|v| v.as_str())
+            .unwrap_or("ouster");
         Ok(SensorProfile {
             name: prod.to_ascii_lowercase(),
             elevation_deg,
@@ -164,13 +197,20 @@ impl SensorProfile {
         if self.columns == 0 {
             return Err("columns must be > 0".into());
         }
-        if let Some(off) = &self.azimuth_offset_deg {
-            if off.len() != self.elevation_deg.len() {
-                return Err(format!("{} azimuth offsets for {} beams", off.len(), self.elevation_deg.len()));
-            }
+        if let Some(off) = &self.azimuth_offset_deg
+            && off.len() != self.elevation_deg.len()
+        {
+            return Err(format!(
+                "{} azimuth offsets for {} beams",
+                off.len(),
+                self.elevation_deg.len()
+            ));
         }
         if !(self.min_range_m >= 0.0 && self.max_range_m > self.min_range_m) {
-            return Err(format!("range {}..{} m is empty", self.min_range_m, self.max_range_m));
+            return Err(format!(
+                "range {}..{} m is empty",
+                self.min_range_m, self.max_range_m
+            ));
         }
         if self.elevation_deg.iter().any(|e| !e.is_finite()) {
             return Err("non-finite elevation".into());
@@ -193,7 +233,9 @@ impl SensorProfile {
     /// elevations, columns at `pi - (j + 0.5) * 2 pi / W`. Points are binned by their
     /// measured azimuth, so per-beam azimuth offsets do not move a pixel's direction.
     pub fn angle_grid(&self) -> AngleGrid {
-        AngleGrid::regular_columns(self.beams(), self.columns, |i| self.elevation_deg[i].to_radians())
+        AngleGrid::regular_columns(self.beams(), self.columns, |i| {
+            self.elevation_deg[i].to_radians()
+        })
     }
 }
 
@@ -210,7 +252,8 @@ pub fn wrap_pi(a: f32) -> f32 {
 /// `beam_intrinsics` in newer metadata).
 fn find_key<'a>(v: &'a serde_json::Value, key: &str) -> Option<&'a serde_json::Value> {
     let obj = v.as_object()?;
-    obj.get(key).or_else(|| obj.values().find_map(|child| child.as_object()?.get(key)))
+    obj.get(key)
+        .or_else(|| obj.values().find_map(|child| child.as_object()?.get(key)))
 }
 
 #[cfg(test)]
@@ -222,7 +265,10 @@ mod tests {
         for name in SensorProfile::BUILTIN {
             let p = SensorProfile::builtin(name).unwrap();
             p.validate().unwrap();
-            assert!(p.elevation_deg.windows(2).all(|w| w[0] > w[1]), "{name} not sorted top-down");
+            assert!(
+                p.elevation_deg.windows(2).all(|w| w[0] > w[1]),
+                "{name} not sorted top-down"
+            );
         }
         assert_eq!(SensorProfile::builtin("KITTI").unwrap().beams(), 64);
         let err = SensorProfile::builtin("hdl65").unwrap_err().to_string();
@@ -242,7 +288,10 @@ mod tests {
     fn loads_real_ouster_metadata() {
         let path = Path::new("../shared/real_lidar/ouster/OS-1-32-G_v2.1.1_1024x10.json");
         if !path.exists() {
-            eprintln!("skipped: {} is absent (real data lives beside the repo)", path.display());
+            eprintln!(
+                "skipped: {} is absent (real data lives beside the repo)",
+                path.display()
+            );
             return;
         }
         let p = SensorProfile::load(path).unwrap();
@@ -261,5 +310,50 @@ mod tests {
             assert!((g.azimuth_rad[j] - e).abs() < 1e-6);
         }
         assert!((wrap_pi(3.0 * PI / 2.0) + PI / 2.0).abs() < 1e-6);
+    }
+
+    #[test]
+    fn profile_json_matches_its_schema() {
+        let schema: serde_json::Value =
+            serde_json::from_str(include_str!("../../schemas/sensor_profile.schema.json")).unwrap();
+        let props = schema["properties"].as_object().unwrap();
+        let required: Vec<&str> = schema["required"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|v| v.as_str().unwrap())
+            .collect();
+        let ouster = SensorProfile {
+            azimuth_offset_deg: Some(vec![0.0; 64]),
+            ..SensorProfile::builtin("os1-64").unwrap()
+        };
+        for p in SensorProfile::BUILTIN
+            .iter()
+            .map(|n| SensorProfile::builtin(n).unwrap())
+            .chain([ouster])
+        {
+            let v = serde_json::to_value(&p).unwrap();
+            let obj = v.as_object().unwrap();
+            for key in obj.keys() {
+                assert!(
+                    props.contains_key(key),
+                    "{key} is written but not in the schema"
+                );
+            }
+            for key in &required {
+                assert!(
+                    obj.contains_key(*key),
+                    "{key} is required by the schema but not written"
+                );
+            }
+        }
+        let example: SensorProfile = serde_json::from_value(schema["examples"][0].clone()).unwrap();
+        assert_eq!(
+            example,
+            SensorProfile {
+                name: "vlp16".into(),
+                ..SensorProfile::builtin("vlp16").unwrap()
+            }
+        );
     }
 }

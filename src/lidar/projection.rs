@@ -44,19 +44,51 @@ impl Strategy {
 pub enum ProjectionError {
     #[error("strategy {strategy} needs a ring field, and the cloud has none")]
     NoRingField { strategy: &'static str },
-    #[error("found {found} rings, but the sensor profile '{profile}' has {beams} beams; try --sensor auto or --projection spherical")]
-    RingCount { found: usize, beams: usize, profile: String },
-    #[error("{points} points are not a whole number of {beams}-beam columns; column-major order needs an organized cloud")]
+    #[error(
+        "found {found} rings, but the sensor profile '{profile}' has {beams} beams; try --sensor auto or --projection spherical"
+    )]
+    RingCount {
+        found: usize,
+        beams: usize,
+        profile: String,
+    },
+    #[error(
+        "{points} points are not a whole number of {beams}-beam columns; column-major order needs an organized cloud"
+    )]
     ColumnMajorLength { points: usize, beams: usize },
     #[error("invalid sensor profile: {0}")]
     Profile(String),
+    #[error("the {field} field has {len} values for {points} points")]
+    FieldLength {
+        field: &'static str,
+        len: usize,
+        points: usize,
+    },
 }
 
-fn elevation(p: [f32; 3]) -> f32 {
+/// Checks that every optional per-point field has one value per point, so the
+/// projection can index them by point.
+fn check_fields(scan: &Scan) -> Result<(), ProjectionError> {
+    let points = scan.len();
+    let lens = [
+        ("intensity", scan.intensity.as_ref().map(Vec::len)),
+        ("ring", scan.ring.as_ref().map(Vec::len)),
+        ("time", scan.time_s.as_ref().map(Vec::len)),
+        ("label", scan.label.as_ref().map(Vec::len)),
+    ];
+    for (field, len) in lens {
+        if let Some(len) = len.filter(|&l| l != points) {
+            return Err(ProjectionError::FieldLength { field, len, points });
+        }
+    }
+    Ok(())
+}
+
+pub(crate) fn elevation(p: [f32; 3]) -> f32 {
     p[2].atan2(p[0].hypot(p[1]))
 }
 
-fn azimuth(p: [f32; 3]) -> f32 {
+pub(crate) fn azimuth(p: [f32; 3]) -> f32 {
     p[1].atan2(p[0])
 }
 
@@ -70,10 +102,8 @@ pub fn ring_order_ids(scan: &Scan) -> Vec<u32> {
         if scan.is_return(i) {
             let p = scan.xyz[i];
             let az = azimuth(p);
-            if let Some(prev) = prev_az {
-                if prev < 0.0 && az >= 0.0 && p[0] > 0.0 {
-                    ring += 1;
-                }
+            if prev_az.is_some_and(|prev| prev < 0.0 && az >= 0.0 && p[0] > 0.0) {
+                ring += 1;
             }
             prev_az = Some(az);
         }
@@ -82,13 +112,24 @@ pub fn ring_order_ids(scan: &Scan) -> Vec<u32> {
     ids
 }
 
-/// Maps arbitrary group ids (rings, laser ids) to rows 0.. ordered by each group's
-/// median elevation, top first. Returns the row per point and the number of rows.
-fn rows_by_median_elevation(scan: &Scan, group: &[u32]) -> (Vec<u32>, usize) {
+/// Maps arbitrary group ids (rings, laser ids) to rows of `profile`, ordered by
+/// each group's median elevation, top first. With as many groups as beams, the
+/// k-th highest group is row k; with fewer (beams without a single return), each
+/// group goes to the row whose elevation fits best, keeping the order (see
+/// [`match_rows`]), so one missing beam does not shift every row below it.
+/// Returns the row per point (`u32::MAX` for no row) and the number of groups.
+fn rows_by_median_elevation(
+    scan: &Scan,
+    group: &[u32],
+    profile: &SensorProfile,
+) -> (Vec<u32>, usize) {
     let mut elevations: std::collections::BTreeMap<u32, Vec<f32>> = Default::default();
-    for (i, &g) in group.iter().enumerate() {
+    for (i, &g) in group.iter().enumerate().take(scan.len()) {
         if scan.is_return(i) {
-            elevations.entry(g).or_default().push(elevation(scan.xyz[i]));
+            elevations
+                .entry(g)
+                .or_default()
+                .push(elevation(scan.xyz[i]));
         }
     }
     let mut medians: Vec<(u32, f32)> = elevations
@@ -99,15 +140,66 @@ fn rows_by_median_elevation(scan: &Scan, group: &[u32]) -> (Vec<u32>, usize) {
         })
         .collect();
     medians.sort_by(|a, b| b.1.total_cmp(&a.1));
-    let row_of: std::collections::HashMap<u32, u32> =
-        medians.iter().enumerate().map(|(row, (g, _))| (*g, row as u32)).collect();
-    let rows = group.iter().map(|g| row_of.get(g).copied().unwrap_or(u32::MAX)).collect();
+    let table: Vec<f32> = profile
+        .elevation_deg
+        .iter()
+        .map(|e| e.to_radians())
+        .collect();
+    let sorted: Vec<f32> = medians.iter().map(|m| m.1).collect();
+    let assigned = match_rows(&sorted, &table);
+    let row_of: std::collections::HashMap<u32, u32> = medians
+        .iter()
+        .zip(&assigned)
+        .map(|((g, _), &row)| (*g, row as u32))
+        .collect();
+    let rows = group
+        .iter()
+        .map(|g| row_of.get(g).copied().unwrap_or(u32::MAX))
+        .collect();
     (rows, medians.len())
+}
+
+/// Order-preserving assignment of `medians` (decreasing) to rows of `table`
+/// (decreasing) minimising the total elevation mismatch: identity when the counts
+/// are equal, dynamic programming (O(n m)) when there are fewer medians than rows.
+/// More medians than rows cannot be matched: the extra ones get `usize::MAX`.
+pub(crate) fn match_rows(medians: &[f32], table: &[f32]) -> Vec<usize> {
+    let (n, m) = (medians.len(), table.len());
+    if n >= m {
+        return (0..n).map(|k| if k < m { k } else { usize::MAX }).collect();
+    }
+    // cost[k][r]: best total for medians 0..=k with median k on row r.
+    let mut cost = vec![vec![f32::INFINITY; m]; n];
+    let mut from = vec![vec![0usize; m]; n];
+    for r in 0..m {
+        cost[0][r] = (medians[0] - table[r]).abs();
+    }
+    for k in 1..n {
+        let (mut best, mut arg) = (f32::INFINITY, 0usize);
+        for r in k..m {
+            // Best predecessor on rows < r.
+            if cost[k - 1][r - 1] < best {
+                best = cost[k - 1][r - 1];
+                arg = r - 1;
+            }
+            cost[k][r] = best + (medians[k] - table[r]).abs();
+            from[k][r] = arg;
+        }
+    }
+    let mut rows = vec![0usize; n];
+    let mut r = (0..m)
+        .min_by(|&a, &b| cost[n - 1][a].total_cmp(&cost[n - 1][b]))
+        .unwrap_or(0);
+    for k in (0..n).rev() {
+        rows[k] = r;
+        r = from[k][r];
+    }
+    rows
 }
 
 /// Median absolute deviation of elevation within rows: small when a row assignment
 /// matches the sensor's beams.
-fn row_spread(scan: &Scan, rows: impl Fn(usize) -> usize, nrows: usize) -> f32 {
+pub(crate) fn row_spread(scan: &Scan, rows: impl Fn(usize) -> usize, nrows: usize) -> f32 {
     let mut per_row = vec![Vec::new(); nrows];
     for i in (0..scan.len()).filter(|&i| scan.is_return(i)) {
         per_row[rows(i) % nrows].push(elevation(scan.xyz[i]));
@@ -133,11 +225,22 @@ pub fn choose_strategy(scan: &Scan, profile: &SensorProfile) -> Strategy {
         return Strategy::RingField;
     }
     let beams = profile.beams();
+    if beams == 0 {
+        return Strategy::Spherical;
+    }
     if scan.is_organized() {
         let (h, w) = (scan.height, scan.width);
         let row_major = row_spread(scan, |i| i / w, h);
-        let col_major = if scan.len() % beams == 0 { row_spread(scan, |i| i % beams, beams) } else { f32::INFINITY };
-        return if col_major < row_major { Strategy::ColumnMajor } else { Strategy::RowMajor };
+        let col_major = if scan.len().is_multiple_of(beams) {
+            row_spread(scan, |i| i % beams, beams)
+        } else {
+            f32::INFINITY
+        };
+        return if col_major < row_major {
+            Strategy::ColumnMajor
+        } else {
+            Strategy::RowMajor
+        };
     }
     let rings = ring_order_ids(scan).last().map_or(0, |r| *r as usize + 1);
     if rings == beams {
@@ -146,12 +249,41 @@ pub fn choose_strategy(scan: &Scan, profile: &SensorProfile) -> Strategy {
     Strategy::Spherical
 }
 
+/// Row of the beam in `table` (radians) nearest to elevation `e`: a binary search
+/// when the table is top-down as profiles are, a scan of every beam otherwise.
+fn nearest_beam(table: &[f32], e: f32) -> u32 {
+    if table.windows(2).all(|w| w[0] >= w[1]) {
+        let k = table.partition_point(|&t| t > e);
+        let below = table.get(k).map(|t| (t - e).abs());
+        let above = k.checked_sub(1).map(|a| (table[a] - e).abs());
+        return match (above, below) {
+            (Some(a), Some(b)) if a <= b => k as u32 - 1,
+            (Some(_), None) => k as u32 - 1,
+            (_, Some(_)) => k as u32,
+            (None, None) => u32::MAX,
+        };
+    }
+    table
+        .iter()
+        .enumerate()
+        .min_by(|a, b| (a.1 - e).abs().total_cmp(&(b.1 - e).abs()))
+        .map_or(u32::MAX, |(row, _)| row as u32)
+}
+
 /// Row of every point under `strategy` (`u32::MAX` = no row).
-fn rows(scan: &Scan, profile: &SensorProfile, strategy: Strategy) -> Result<Vec<u32>, ProjectionError> {
+fn rows(
+    scan: &Scan,
+    profile: &SensorProfile,
+    strategy: Strategy,
+) -> Result<Vec<u32>, ProjectionError> {
     let beams = profile.beams();
     let check = |found: usize| {
         if found > beams {
-            Err(ProjectionError::RingCount { found, beams, profile: profile.name.clone() })
+            Err(ProjectionError::RingCount {
+                found,
+                beams,
+                profile: profile.name.clone(),
+            })
         } else {
             Ok(())
         }
@@ -159,9 +291,11 @@ fn rows(scan: &Scan, profile: &SensorProfile, strategy: Strategy) -> Result<Vec<
     Ok(match strategy {
         Strategy::Auto => return rows(scan, profile, choose_strategy(scan, profile)),
         Strategy::RingField => {
-            let ring = scan.ring.as_ref().ok_or(ProjectionError::NoRingField { strategy: strategy.name() })?;
+            let ring = scan.ring.as_ref().ok_or(ProjectionError::NoRingField {
+                strategy: strategy.name(),
+            })?;
             let ids: Vec<u32> = ring.iter().map(|&r| r as u32).collect();
-            let (rows, n) = rows_by_median_elevation(scan, &ids);
+            let (rows, n) = rows_by_median_elevation(scan, &ids, profile);
             check(n)?;
             rows
         }
@@ -171,31 +305,32 @@ fn rows(scan: &Scan, profile: &SensorProfile, strategy: Strategy) -> Result<Vec<
             ids
         }
         Strategy::ColumnMajor => {
-            if scan.len() % beams != 0 {
-                return Err(ProjectionError::ColumnMajorLength { points: scan.len(), beams });
+            if !scan.len().is_multiple_of(beams) {
+                return Err(ProjectionError::ColumnMajorLength {
+                    points: scan.len(),
+                    beams,
+                });
             }
             let ids: Vec<u32> = (0..scan.len()).map(|i| (i % beams) as u32).collect();
-            rows_by_median_elevation(scan, &ids).0
+            rows_by_median_elevation(scan, &ids, profile).0
         }
         Strategy::RowMajor => {
-            let ids: Vec<u32> = (0..scan.len()).map(|i| (i / scan.width.max(1)) as u32).collect();
-            let (rows, n) = rows_by_median_elevation(scan, &ids);
+            let ids: Vec<u32> = (0..scan.len())
+                .map(|i| (i / scan.width.max(1)) as u32)
+                .collect();
+            let (rows, n) = rows_by_median_elevation(scan, &ids, profile);
             check(n)?;
             rows
         }
         Strategy::Spherical => {
-            let table: Vec<f32> = profile.elevation_deg.iter().map(|e| e.to_radians()).collect();
+            let table: Vec<f32> = profile
+                .elevation_deg
+                .iter()
+                .map(|e| e.to_radians())
+                .collect();
             scan.xyz
                 .iter()
-                .map(|&p| {
-                    let e = elevation(p);
-                    let nearest = table
-                        .iter()
-                        .enumerate()
-                        .min_by(|a, b| (a.1 - e).abs().total_cmp(&(b.1 - e).abs()))
-                        .map_or(u32::MAX, |(row, _)| row as u32);
-                    nearest
-                })
+                .map(|&p| nearest_beam(&table, elevation(p)))
                 .collect()
         }
     })
@@ -204,8 +339,13 @@ fn rows(scan: &Scan, profile: &SensorProfile, strategy: Strategy) -> Result<Vec<
 /// Projects `scan` onto `profile`'s grid. Returns with a range in
 /// `[min_range_m, max_range_m]` compete for their pixel; the nearest wins and keeps
 /// its exact xyz, intensity and label.
-pub fn project(scan: &Scan, profile: &SensorProfile, strategy: Strategy) -> Result<RangeImage, ProjectionError> {
+pub fn project(
+    scan: &Scan,
+    profile: &SensorProfile,
+    strategy: Strategy,
+) -> Result<RangeImage, ProjectionError> {
     profile.validate().map_err(ProjectionError::Profile)?;
+    check_fields(scan)?;
     let rows = rows(scan, profile, strategy)?;
     let (h, w) = (profile.beams(), profile.columns);
     let mut image = RangeImage::empty(profile.angle_grid());
@@ -223,8 +363,16 @@ pub fn project(scan: &Scan, profile: &SensorProfile, strategy: Strategy) -> Resu
         if image.range_m[k] == 0.0 || range < image.range_m[k] {
             image.range_m[k] = range;
             image.xyz[k] = p;
-            image.intensity[k] = scan.intensity.as_ref().map_or(0.0, |v| v[i]);
-            image.label[k] = scan.label.as_ref().map_or(0, |v| v[i]);
+            image.intensity[k] = scan
+                .intensity
+                .as_ref()
+                .and_then(|v| v.get(i).copied())
+                .unwrap_or(0.0);
+            image.label[k] = scan
+                .label
+                .as_ref()
+                .and_then(|v| v.get(i).copied())
+                .unwrap_or(0);
             image.point_index[k] = i as u32;
         }
     }
@@ -242,10 +390,15 @@ mod tests {
         let mut xyz = Vec::new();
         for e in elev.iter().take(beams) {
             for k in 0..per_ring {
-                // Start just left of ahead (azimuth >= 0), sweep counter-clockwise.
+                // Start just left of ahead (azimuth >= 0, as real KITTI rings do) and
+                // sweep counter-clockwise, ending just right of ahead.
                 let az = 0.01 + k as f32 * 2.0 * std::f32::consts::PI / per_ring as f32;
                 let (e, az) = (e.to_radians(), az);
-                xyz.push([range * e.cos() * az.cos(), range * e.cos() * az.sin(), range * e.sin()]);
+                xyz.push([
+                    range * e.cos() * az.cos(),
+                    range * e.cos() * az.sin(),
+                    range * e.sin(),
+                ]);
             }
         }
         let profile = SensorProfile {
@@ -278,11 +431,23 @@ mod tests {
 
     #[test]
     fn nearest_return_wins_and_range_limits_apply() {
-        let profile = SensorProfile { columns: 8, ..SensorProfile::builtin("vlp16").unwrap() };
-        let scan = Scan::from_xyz(vec![[10.0, 0.0, 0.0], [5.0, 0.0, 0.0], [0.1, 0.0, 0.0], [500.0, 0.0, 0.0]]);
+        let profile = SensorProfile {
+            columns: 8,
+            ..SensorProfile::builtin("vlp16").unwrap()
+        };
+        let scan = Scan::from_xyz(vec![
+            [10.0, 0.0, 0.0],
+            [5.0, 0.0, 0.0],
+            [0.1, 0.0, 0.0],
+            [500.0, 0.0, 0.0],
+        ]);
         let img = project(&scan, &profile, Strategy::Spherical).unwrap();
         assert_eq!(img.valid_count(), 1);
-        let k = img.point_index.iter().position(|&p| p != super::super::range_image::NO_POINT).unwrap();
+        let k = img
+            .point_index
+            .iter()
+            .position(|&p| p != super::super::range_image::NO_POINT)
+            .unwrap();
         assert_eq!(img.range_m[k], 5.0);
         assert_eq!(img.point_index[k], 1);
     }
@@ -297,7 +462,12 @@ mod tests {
                 xyz.push(rm.xyz[beam * 64 + col]);
             }
         }
-        let scan = Scan { xyz, height: 4, width: 64, ..Default::default() };
+        let scan = Scan {
+            xyz,
+            height: 4,
+            width: 64,
+            ..Default::default()
+        };
         assert_eq!(choose_strategy(&scan, &profile), Strategy::ColumnMajor);
         let img = project(&scan, &profile, Strategy::Auto).unwrap();
         assert_eq!(img.valid_count(), 256);
@@ -314,7 +484,111 @@ mod tests {
         let img = project(&scan, &profile, Strategy::Auto).unwrap();
         assert_eq!(img.valid_count(), 64);
         assert!(img.xyz[0][2] > 0.0, "row 0 must be the top beam");
-        let too_many = SensorProfile { elevation_deg: vec![1.0, 0.0], ..profile };
-        assert!(matches!(project(&scan, &too_many, Strategy::RingField), Err(ProjectionError::RingCount { found: 4, .. })));
+        let too_many = SensorProfile {
+            elevation_deg: vec![1.0, 0.0],
+            ..profile
+        };
+        assert!(matches!(
+            project(&scan, &too_many, Strategy::RingField),
+            Err(ProjectionError::RingCount { found: 4, .. })
+        ));
+    }
+
+    #[test]
+    fn a_beam_without_returns_does_not_shift_the_rows_below() {
+        // Column-major 4-beam data with beam 1 (0 deg) entirely dropped.
+        let (rm, profile) = ring_order_scan(4, 32, 10.0);
+        let mut xyz = Vec::new();
+        for col in 0..32 {
+            for beam in 0..4 {
+                xyz.push(if beam == 1 {
+                    [0.0; 3]
+                } else {
+                    rm.xyz[beam * 32 + col]
+                });
+            }
+        }
+        let scan = Scan {
+            xyz,
+            height: 4,
+            width: 32,
+            ..Default::default()
+        };
+        let img = project(&scan, &profile, Strategy::ColumnMajor).unwrap();
+        assert_eq!(img.valid_count(), 96);
+        for (row, expect_deg) in [
+            (0usize, Some(2.0f32)),
+            (1, None),
+            (2, Some(-2.0)),
+            (3, Some(-4.0)),
+        ] {
+            let k = row * 32 + 5;
+            match expect_deg {
+                Some(e) => assert!(
+                    (img.xyz[k][2] / img.range_m[k] - e.to_radians().sin()).abs() < 1e-4,
+                    "row {row}"
+                ),
+                None => assert!(!img.is_valid(k), "row {row} must stay empty"),
+            }
+        }
+        assert_eq!(
+            match_rows(&[0.3, 0.1, -0.3], &[0.3, 0.2, 0.1, 0.0, -0.3]),
+            vec![0, 2, 4]
+        );
+        assert_eq!(match_rows(&[0.3, 0.1], &[0.3, 0.1]), vec![0, 1]);
+    }
+
+    #[test]
+    fn fields_of_the_wrong_length_are_an_error_not_a_panic() {
+        let (mut scan, profile) = ring_order_scan(4, 16, 10.0);
+        scan.ring = Some(vec![0; scan.len() + 3]);
+        let err = project(&scan, &profile, Strategy::Auto).unwrap_err();
+        assert_eq!(
+            err,
+            ProjectionError::FieldLength {
+                field: "ring",
+                len: 67,
+                points: 64
+            }
+        );
+        scan.ring = None;
+        scan.intensity = Some(vec![1.0; 2]);
+        assert!(
+            err_text(project(&scan, &profile, Strategy::RingOrder))
+                .contains("intensity field has 2 values for 64 points")
+        );
+    }
+
+    fn err_text(r: Result<RangeImage, ProjectionError>) -> String {
+        r.err().map(|e| e.to_string()).unwrap_or_default()
+    }
+
+    #[test]
+    fn nearest_beam_search_agrees_with_a_full_scan() {
+        let table: Vec<f32> = SensorProfile::builtin("vlp32c")
+            .unwrap()
+            .elevation_deg
+            .iter()
+            .map(|e| e.to_radians())
+            .collect();
+        let mut reversed = table.clone();
+        reversed.reverse();
+        for k in 0..=400 {
+            let e = (-30.0 + 0.15 * k as f32).to_radians();
+            let full = table
+                .iter()
+                .enumerate()
+                .min_by(|a, b| (a.1 - e).abs().total_cmp(&(b.1 - e).abs()))
+                .unwrap()
+                .0;
+            assert_eq!(
+                nearest_beam(&table, e),
+                full as u32,
+                "elevation {} deg",
+                e.to_degrees()
+            );
+            assert_eq!(nearest_beam(&reversed, e), (table.len() - 1 - full) as u32);
+        }
+        assert_eq!(nearest_beam(&[], 0.1), u32::MAX);
     }
 }

@@ -21,7 +21,11 @@ pub struct AngleGrid {
 impl AngleGrid {
     /// A grid whose row `i` sits at `elevation_of_row(i)` and whose columns are the
     /// regular azimuths of the reference convention.
-    pub fn regular_columns(height: usize, width: usize, elevation_of_row: impl Fn(usize) -> f32) -> Self {
+    pub fn regular_columns(
+        height: usize,
+        width: usize,
+        elevation_of_row: impl Fn(usize) -> f32,
+    ) -> Self {
         let mut elevation_rad = Vec::with_capacity(height * width);
         let mut azimuth_rad = Vec::with_capacity(height * width);
         for i in 0..height {
@@ -31,7 +35,12 @@ impl AngleGrid {
                 azimuth_rad.push(column_azimuth(j, width));
             }
         }
-        AngleGrid { height, width, elevation_rad, azimuth_rad }
+        AngleGrid {
+            height,
+            width,
+            elevation_rad,
+            azimuth_rad,
+        }
     }
 
     /// Unit direction of pixel `k` (row-major index), sensor frame.
@@ -119,7 +128,10 @@ impl RangeImage {
 
     /// The kept returns as points: the exact xyz stored per pixel, row-major order.
     pub fn to_points(&self) -> Vec<[f32; 3]> {
-        (0..self.len()).filter(|&k| self.is_valid(k)).map(|k| self.xyz[k]).collect()
+        (0..self.len())
+            .filter(|&k| self.is_valid(k))
+            .map(|k| self.xyz[k])
+            .collect()
     }
 
     /// Points from the range alone along each pixel's grid direction, as a generated
@@ -163,6 +175,9 @@ mod tests {
         let r = (p[0][0].powi(2) + p[0][1].powi(2) + p[0][2].powi(2)).sqrt();
         assert!((r - 10.0).abs() < 1e-4);
         assert!((p[0][2] - 10.0 * (-0.2f32).sin()).abs() < 1e-4);
-        assert!((p[0][1] / p[0][0] + 1.0).abs() < 1e-4, "azimuth -pi/4: y = -x");
+        assert!(
+            (p[0][1] / p[0][0] + 1.0).abs() < 1e-4,
+            "azimuth -pi/4: y = -x"
+        );
     }
 }

@@ -27,7 +27,12 @@ impl Scan {
     /// An unorganized scan from bare coordinates.
     pub fn from_xyz(xyz: Vec<[f32; 3]>) -> Self {
         let width = xyz.len();
-        Scan { xyz, height: 1, width, ..Default::default() }
+        Scan {
+            xyz,
+            height: 1,
+            width,
+            ..Default::default()
+        }
     }
 
     pub fn len(&self) -> usize {

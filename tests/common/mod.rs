@@ -106,3 +106,24 @@ pub fn python_read(python: &Path, path: &Path) -> serde_json::Value {
     assert!(out.status.success(), "python reader failed on {}: {}", path.display(), stderr(&out));
     serde_json::from_slice(&out.stdout).expect("reader prints JSON")
 }
+
+/// `node` with Foxglove's readers installed in `tests/js/node_modules` (`.ci/run`
+/// runs `npm ci` there). `None` = not installed: skip, except under CI.
+pub fn node() -> Option<PathBuf> {
+    let ready = Path::new("tests/js/node_modules/@mcap/core").exists();
+    let node = std::env::var("RANGEGAN_NODE").unwrap_or_else(|_| "node".into());
+    if !ready {
+        assert!(std::env::var("CI").is_err(), "CI must install the npm readers (.ci/run runs npm ci in tests/js)");
+        eprintln!("skipped: tests/js/node_modules is missing; run .ci/run once to install Foxglove's readers");
+        return None;
+    }
+    Some(PathBuf::from(node))
+}
+
+/// Runs `tests/js/read_mcap.mjs` (@mcap/core + Foxglove's deserializers) on
+/// `path`; fails the test if any message does not decode.
+pub fn node_read(node: &Path, path: &Path) -> serde_json::Value {
+    let out = Command::new(node).arg("tests/js/read_mcap.mjs").arg(path).output().expect("node runs");
+    assert!(out.status.success(), "Foxglove readers failed on {}: {}{}", path.display(), String::from_utf8_lossy(&out.stdout), stderr(&out));
+    serde_json::from_slice(&out.stdout).expect("reader prints JSON")
+}
