@@ -159,6 +159,10 @@ fn realistic(beams: usize) -> PhysicsConfig {
                 sector(-13.0, 13.0, -20.5, 0.6),
                 sector(126.0, 142.0, -19.3, 0.7),
                 sector(-146.0, -126.0, -19.3, 0.7),
+                // The lowest three beams clip the bonnet and the roof edges widely.
+                sector(-45.0, 45.0, -21.9, 0.45),
+                sector(120.0, 150.0, -21.9, 0.8),
+                sector(-150.0, -120.0, -21.9, 0.8),
             ],
             boxes: vec![],
         }),
