@@ -14,6 +14,7 @@ pub mod cli;
 pub mod error;
 pub mod io;
 pub mod lidar;
+pub mod model;
 pub mod physics;
 pub mod pipeline;
 pub mod sim;

@@ -14,7 +14,7 @@ use rayon::prelude::*;
 use crate::error::Location;
 use crate::io::encoders::{Kind, Payload, PixelFormat, encode};
 use crate::io::{CloudFormat, DecodedCloud, Family, McapOutput, OnError, ReadReport, decode_cloud, read_records};
-use crate::lidar::{RangeImage, SensorProfile, Strategy, project};
+use crate::lidar::{RangeImage, SensorProfile, Strategy, estimate_profile, project};
 
 /// Which sensor grid a topic's scans are projected onto.
 #[derive(Debug, Clone)]
@@ -148,31 +148,31 @@ struct ScanProcessor<'a> {
 type Processed = (Vec<StageOutput>, f64, (SensorProfile, Strategy));
 
 impl ScanProcessor<'_> {
-    /// The profile and strategy for `topic`, fixed by its first decodable scan.
-    fn profile_for(&self, topic: &str, cloud: &DecodedCloud) -> (SensorProfile, Strategy) {
+    /// The profile and strategy for `topic`, fixed by its first scan with returns.
+    fn profile_for(&self, topic: &str, cloud: &DecodedCloud) -> Result<(SensorProfile, Strategy), String> {
         let mut map = self.profiles.lock().unwrap_or_else(|e| e.into_inner());
-        map.entry(topic.to_string())
-            .or_insert_with(|| {
-                let profile = match &self.opts.sensor {
-                    SensorChoice::Fixed(p) => p.clone(),
-                    SensorChoice::Auto => guess_profile(&cloud.scan),
-                };
-                let profile = match self.opts.columns {
-                    Some(c) => profile.with_columns(c),
-                    None => profile,
-                };
-                let strategy = match self.opts.strategy {
-                    Strategy::Auto => crate::lidar::projection::choose_strategy(&cloud.scan, &profile),
-                    s => s,
-                };
-                (profile, strategy)
-            })
-            .clone()
+        if let Some(found) = map.get(topic) {
+            return Ok(found.clone());
+        }
+        let profile = match &self.opts.sensor {
+            SensorChoice::Fixed(p) => p.clone(),
+            SensorChoice::Auto => estimate_profile(std::slice::from_ref(&cloud.scan)).map_err(|e| e.to_string())?.profile,
+        };
+        let profile = match self.opts.columns {
+            Some(c) => profile.with_columns(c),
+            None => profile,
+        };
+        let strategy = match self.opts.strategy {
+            Strategy::Auto => crate::lidar::projection::choose_strategy(&cloud.scan, &profile),
+            s => s,
+        };
+        map.insert(topic.to_string(), (profile.clone(), strategy));
+        Ok((profile, strategy))
     }
 
     fn process(&self, p: &Pending) -> Result<Processed, String> {
         let cloud = decode_cloud(p.format, &p.data).map_err(|e| e.to_string())?;
-        let (profile, strategy) = self.profile_for(&p.topic, &cloud);
+        let (profile, strategy) = self.profile_for(&p.topic, &cloud)?;
         let image = project(&cloud.scan, &profile, strategy).map_err(|e| e.to_string())?;
         let returns = cloud.scan.returns().max(1);
         let kept = image.valid_count() as f64 / returns as f64;
@@ -275,27 +275,6 @@ impl Converter<'_> {
         }
         Ok(())
     }
-}
-
-/// A built-in profile matching the scan's beam count (ring ids, organized rows or
-/// KITTI ring order), KITTI's HDL-64E when nothing tells.
-pub fn guess_profile(scan: &crate::lidar::Scan) -> SensorProfile {
-    let beams = if let Some(ring) = &scan.ring {
-        ring.iter().collect::<std::collections::BTreeSet<_>>().len()
-    } else if scan.is_organized() {
-        scan.height.min(scan.width)
-    } else {
-        crate::lidar::projection::ring_order_ids(scan).last().map_or(0, |r| *r as usize + 1)
-    };
-    let name = match beams {
-        // Organized clouds with many beams come from Ouster drivers; Velodyne's are unorganized.
-        64 if scan.is_organized() => "os1-64",
-        16 => "vlp16",
-        32 => "hdl32e",
-        128 => "os1-128",
-        _ => "hdl64e",
-    };
-    SensorProfile::builtin(name).unwrap_or_else(|_| SensorProfile::kitti_hdl64e())
 }
 
 /// How far a conversion has come, for progress bars.

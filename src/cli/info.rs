@@ -9,7 +9,8 @@ use mcap::records::Record;
 use super::{GlobalArgs, Outcome};
 use crate::io::{CloudFormat, OnError, decode_cloud, read_records};
 use crate::lidar::{Strategy, project};
-use crate::pipeline::{SensorChoice, guess_profile};
+use crate::lidar::estimate_profile;
+use crate::pipeline::SensorChoice;
 
 #[derive(Debug, clap::Args)]
 pub struct InfoArgs {
@@ -45,7 +46,14 @@ struct CloudLayoutInfo {
     columns: usize,
     strategy: String,
     kept_fraction: f64,
+    estimate: Option<String>,
     error: Option<String>,
+}
+
+fn median_spread(est: &crate::lidar::SensorEstimate) -> f32 {
+    let mut s: Vec<f32> = est.beams.iter().map(|b| b.spread_deg).collect();
+    s.sort_by(f32::total_cmp);
+    s.get(s.len() / 2).copied().unwrap_or(0.0)
 }
 
 pub fn run(global: &GlobalArgs, args: InfoArgs) -> anyhow::Result<Outcome> {
@@ -129,6 +137,9 @@ pub fn run(global: &GlobalArgs, args: InfoArgs) -> anyhow::Result<Outcome> {
                 l.returns,
                 l.fields.join(",")
             );
+            if let Some(e) = &l.estimate {
+                println!("       estimated sensor: {e}");
+            }
             match &l.error {
                 Some(e) => println!("       cannot project: {e}"),
                 None => println!(
@@ -162,6 +173,7 @@ fn describe(format: CloudFormat, data: &[u8], sensor: &SensorChoice) -> CloudLay
         columns: 0,
         strategy: String::new(),
         kept_fraction: 0.0,
+        estimate: None,
         error: None,
     };
     let cloud = match decode_cloud(format, data) {
@@ -184,7 +196,26 @@ fn describe(format: CloudFormat, data: &[u8], sensor: &SensorChoice) -> CloudLay
     info.fields.insert(0, "xyz".into());
     let profile = match sensor {
         SensorChoice::Fixed(p) => p.clone(),
-        SensorChoice::Auto => guess_profile(scan),
+        SensorChoice::Auto => match estimate_profile(std::slice::from_ref(scan)) {
+            Ok(est) => {
+                info.estimate = Some(format!(
+                    "{} beams by {}, elevations {:+.2} to {:+.2} deg (median spread {:.2} deg), {} columns, {:.1}-{:.1} m",
+                    est.beams.len(),
+                    est.method.name(),
+                    est.beams.first().map_or(0.0, |b| b.elevation_deg),
+                    est.beams.last().map_or(0.0, |b| b.elevation_deg),
+                    median_spread(&est),
+                    est.columns,
+                    est.min_range_m,
+                    est.max_range_m
+                ));
+                est.profile
+            }
+            Err(e) => {
+                info.error = Some(e.to_string());
+                return info;
+            }
+        },
     };
     let strategy = crate::lidar::projection::choose_strategy(scan, &profile);
     info.sensor = profile.name.clone();

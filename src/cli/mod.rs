@@ -6,6 +6,7 @@ mod convert;
 mod import;
 mod info;
 mod simulate;
+mod train;
 
 use std::process::ExitCode;
 
@@ -45,6 +46,8 @@ pub enum Command {
     Import(import::ImportArgs),
     /// Simulate a LiDAR drive through a procedural street scene, with switchable sensor physics.
     Simulate(simulate::SimulateArgs),
+    /// Train the range-image GAN on KITTI scans (resumes an existing run directory).
+    Train(train::TrainArgs),
 }
 
 /// How a command ended when it did not fail outright.
@@ -75,6 +78,7 @@ pub fn run(args: Args) -> anyhow::Result<Outcome> {
         Command::Info(a) => info::run(&args.global, a),
         Command::Import(a) => import::run(&args.global, a),
         Command::Simulate(a) => simulate::run(&args.global, a),
+        Command::Train(a) => train::run_train(&args.global, a),
     }
 }
 

@@ -1,0 +1,98 @@
+//! `rangegan-mcap train RUN_DIR`: train the range-image GAN (DUSty v2 or a baseline) on the
+//! KITTI training scans; an existing run directory resumes from its checkpoint.
+
+use std::path::PathBuf;
+use std::time::Duration;
+
+use super::{GlobalArgs, Outcome};
+use crate::model::Arch;
+use crate::model::data::kitti_training_files;
+use crate::model::discriminator::DiscriminatorConfig;
+use crate::model::generator::GeneratorConfig;
+use crate::model::train::{Backend, TrainConfig, TrainOptions, run};
+
+#[derive(Debug, Clone, Copy, clap::ValueEnum)]
+pub enum ArchArg {
+    /// Implicit generator + ray-drop measurement model (the paper's method).
+    Dusty2,
+    /// Transposed-conv generator + measurement model.
+    Dusty1,
+    /// Transposed-conv generator on raw images.
+    Vanilla,
+}
+
+#[derive(Debug, Clone, Copy, clap::ValueEnum)]
+pub enum BackendArg {
+    Flex,
+    Ndarray,
+}
+
+#[derive(Debug, clap::Args)]
+pub struct TrainArgs {
+    /// Run directory: config.json, checkpoint/, log.jsonl, snapshots/. Resumes if it exists.
+    pub run_dir: PathBuf,
+    /// Folder holding kitti_raw_drive_a/ and semantickitti_mini/ (sequences 00, 07 held out).
+    #[arg(long, default_value = "../shared/real_lidar")]
+    pub data: PathBuf,
+    /// Projected-dataset cache (default: RUN_DIR/dataset.bin).
+    #[arg(long)]
+    pub cache: Option<PathBuf>,
+    /// Architecture of a new run.
+    #[arg(long, value_enum, default_value = "dusty2")]
+    pub arch: ArchArg,
+    /// CPU backend.
+    #[arg(long, value_enum, default_value = "flex")]
+    pub backend: BackendArg,
+    /// Batch size of a new run.
+    #[arg(long)]
+    pub batch: Option<usize>,
+    /// Stop after this many real images (also extends a resumed run).
+    #[arg(long)]
+    pub total_images: Option<u64>,
+    /// Stop (with a checkpoint) after this many minutes.
+    #[arg(long)]
+    pub max_minutes: Option<f64>,
+    /// Seed of a new run.
+    #[arg(long)]
+    pub seed: Option<u64>,
+    /// Use the paper's network widths instead of the CPU ones.
+    #[arg(long)]
+    pub reference_size: bool,
+}
+
+pub fn run_train(global: &GlobalArgs, args: TrainArgs) -> anyhow::Result<Outcome> {
+    let mut config = TrainConfig::new().with_arch(match args.arch {
+        ArchArg::Dusty2 => Arch::Dusty2,
+        ArchArg::Dusty1 => Arch::Dusty1,
+        ArchArg::Vanilla => Arch::Vanilla,
+    });
+    if args.reference_size {
+        config = config
+            .with_generator(GeneratorConfig::new())
+            .with_discriminator(DiscriminatorConfig::new());
+    }
+    if let Some(b) = args.batch {
+        config = config.with_batch_size(b);
+    }
+    if let Some(s) = args.seed {
+        config = config.with_seed(s);
+    }
+    let opts = TrainOptions {
+        dataset_cache: args
+            .cache
+            .clone()
+            .unwrap_or_else(|| args.run_dir.join("dataset.bin")),
+        run_dir: args.run_dir,
+        scans: kitti_training_files(&args.data)?,
+        config,
+        backend: match args.backend {
+            BackendArg::Flex => Backend::Flex,
+            BackendArg::Ndarray => Backend::Ndarray,
+        },
+        total_images: args.total_images,
+        max_duration: args.max_minutes.map(|m| Duration::from_secs_f64(m * 60.0)),
+        progress: !global.quiet,
+    };
+    run(&opts)?;
+    Ok(Outcome::Success)
+}

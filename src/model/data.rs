@@ -1,0 +1,286 @@
+//! Training data for the GAN: KITTI scans projected once to 64 x 512 inverse-depth images
+//! (network units, no return = -1) and cached in one binary file, so training never
+//! re-projects. Owns the train/held-out split of `real_lidar/` and the cache format.
+
+use std::fs::File;
+use std::io::{BufReader, BufWriter, Read, Write};
+use std::path::{Path, PathBuf};
+
+use anyhow::{Context, Result, bail};
+
+use crate::lidar::{self, AngleGrid, SensorProfile, Strategy};
+
+/// Smallest valid depth; also the scale of the inverse depth x_d = MIN_DEPTH_M / depth.
+pub const MIN_DEPTH_M: f32 = 1.45;
+/// Largest valid depth.
+pub const MAX_DEPTH_M: f32 = 80.0;
+
+/// Range image (meters, 0 = no return) -> network units: 2 * 1.45 / depth - 1 for depths in
+/// [1.45, 80] m, -1 elsewhere.
+pub fn range_to_network(range_m: &[f32]) -> Vec<f32> {
+    range_m
+        .iter()
+        .map(|&d| {
+            if (MIN_DEPTH_M..=MAX_DEPTH_M).contains(&d) {
+                2.0 * MIN_DEPTH_M / d - 1.0
+            } else {
+                -1.0
+            }
+        })
+        .collect()
+}
+
+/// Network units -> depth in meters (0 = no return).
+pub fn network_to_range(x: &[f32]) -> Vec<f32> {
+    x.iter()
+        .map(|&v| {
+            let x_d = (v + 1.0) * 0.5;
+            if x_d > MIN_DEPTH_M / MAX_DEPTH_M * 0.5 {
+                MIN_DEPTH_M / x_d
+            } else {
+                0.0
+            }
+        })
+        .collect()
+}
+
+/// The training scans of `real_lidar/`: `kitti_raw_drive_a/*.bin` and
+/// `semantickitti_mini/SS/velodyne/*.bin` for every SS except 00 and 07 (held out for
+/// evaluation together with `semantickitti_ssv3` and `patchworkpp`).
+pub fn kitti_training_files(real_lidar: &Path) -> Result<Vec<PathBuf>> {
+    let mut files = bins_in(&real_lidar.join("kitti_raw_drive_a"))?;
+    let mini = real_lidar.join("semantickitti_mini");
+    let mut seqs: Vec<PathBuf> = std::fs::read_dir(&mini)
+        .with_context(|| format!("failed to list '{}'", mini.display()))?
+        .filter_map(|e| e.ok().map(|e| e.path()))
+        .filter(|p| p.is_dir())
+        .collect();
+    seqs.sort();
+    for seq in seqs {
+        let name = seq.file_name().and_then(|n| n.to_str()).unwrap_or("");
+        if HELD_OUT_SEQUENCES.contains(&name) {
+            continue;
+        }
+        files.extend(bins_in(&seq.join("velodyne"))?);
+    }
+    Ok(files)
+}
+
+/// SemanticKITTI sequences kept out of training.
+pub const HELD_OUT_SEQUENCES: [&str; 2] = ["00", "07"];
+
+/// The held-out evaluation scans (sequences 00 and 07 of `semantickitti_mini`).
+pub fn kitti_heldout_files(real_lidar: &Path) -> Result<Vec<PathBuf>> {
+    let mut files = Vec::new();
+    for seq in HELD_OUT_SEQUENCES {
+        files.extend(bins_in(
+            &real_lidar
+                .join("semantickitti_mini")
+                .join(seq)
+                .join("velodyne"),
+        )?);
+    }
+    Ok(files)
+}
+
+fn bins_in(dir: &Path) -> Result<Vec<PathBuf>> {
+    let mut v: Vec<PathBuf> = std::fs::read_dir(dir)
+        .with_context(|| format!("failed to list '{}'", dir.display()))?
+        .filter_map(|e| e.ok().map(|e| e.path()))
+        .filter(|p| p.extension().is_some_and(|e| e == "bin"))
+        .collect();
+    v.sort();
+    Ok(v)
+}
+
+/// Images in network units, `[n, H, W]` row-major, on one shared angle grid.
+#[derive(Debug, Clone, PartialEq)]
+pub struct RangeDataset {
+    pub height: usize,
+    pub width: usize,
+    pub images: Vec<f32>,
+    pub angles: AngleGrid,
+}
+
+impl RangeDataset {
+    pub fn len(&self) -> usize {
+        self.images.len() / (self.height * self.width).max(1)
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+
+    pub fn image(&self, i: usize) -> &[f32] {
+        let n = self.height * self.width;
+        &self.images[i * n..(i + 1) * n]
+    }
+
+    /// Project KITTI `.bin` scans with the HDL-64E profile at `width` columns.
+    pub fn from_kitti_files(files: &[PathBuf], width: usize) -> Result<Self> {
+        let profile = SensorProfile::kitti_hdl64e().with_columns(width);
+        let angles = profile.angle_grid();
+        let (height, width) = (angles.height, angles.width);
+        let mut images = Vec::with_capacity(files.len() * height * width);
+        for path in files {
+            let scan = lidar::kitti::read_bin(path)
+                .with_context(|| format!("failed to read '{}'", path.display()))?;
+            let image = lidar::project(&scan, &profile, Strategy::Auto)
+                .with_context(|| format!("failed to project '{}'", path.display()))?;
+            if image.height != height || image.width != width {
+                bail!(
+                    "'{}' projected to {}x{}",
+                    path.display(),
+                    image.height,
+                    image.width
+                );
+            }
+            images.extend(range_to_network(&image.range_m));
+        }
+        Ok(Self {
+            height,
+            width,
+            images,
+            angles,
+        })
+    }
+
+    const MAGIC: &'static [u8; 8] = b"RGDSv001";
+
+    /// Write the cache: magic, n, H, W (u64 LE), elevation, azimuth, images (f32 LE).
+    pub fn save(&self, path: &Path) -> Result<()> {
+        let tmp = path.with_extension("tmp");
+        {
+            let f = File::create(&tmp)
+                .with_context(|| format!("failed to create '{}'", tmp.display()))?;
+            let mut w = BufWriter::new(f);
+            w.write_all(Self::MAGIC)?;
+            for v in [self.len(), self.height, self.width] {
+                w.write_all(&(v as u64).to_le_bytes())?;
+            }
+            for v in self
+                .angles
+                .elevation_rad
+                .iter()
+                .chain(&self.angles.azimuth_rad)
+                .chain(&self.images)
+            {
+                w.write_all(&v.to_le_bytes())?;
+            }
+            w.flush()?;
+        }
+        std::fs::rename(&tmp, path)
+            .with_context(|| format!("failed to rename '{}'", tmp.display()))?;
+        Ok(())
+    }
+
+    pub fn load(path: &Path) -> Result<Self> {
+        let f = File::open(path).with_context(|| format!("failed to open '{}'", path.display()))?;
+        let mut r = BufReader::new(f);
+        let mut magic = [0u8; 8];
+        r.read_exact(&mut magic)?;
+        if &magic != Self::MAGIC {
+            bail!("'{}' is not a dataset cache (bad magic)", path.display());
+        }
+        let mut u = [0u8; 8];
+        let mut next_u64 = |r: &mut BufReader<File>| -> Result<usize> {
+            r.read_exact(&mut u)?;
+            Ok(u64::from_le_bytes(u) as usize)
+        };
+        let (n, height, width) = (next_u64(&mut r)?, next_u64(&mut r)?, next_u64(&mut r)?);
+        let read_f32 = |r: &mut BufReader<File>, count: usize| -> Result<Vec<f32>> {
+            let mut bytes = vec![0u8; count * 4];
+            r.read_exact(&mut bytes)
+                .with_context(|| format!("'{}' is truncated", path.display()))?;
+            Ok(bytes
+                .chunks_exact(4)
+                .map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]]))
+                .collect())
+        };
+        let elevation_rad = read_f32(&mut r, height * width)?;
+        let azimuth_rad = read_f32(&mut r, height * width)?;
+        let images = read_f32(&mut r, n * height * width)?;
+        Ok(Self {
+            height,
+            width,
+            images,
+            angles: AngleGrid {
+                height,
+                width,
+                elevation_rad,
+                azimuth_rad,
+            },
+        })
+    }
+
+    /// Load the cache at `cache`, or build it from `files` and write it.
+    pub fn load_or_build(cache: &Path, files: &[PathBuf], width: usize) -> Result<Self> {
+        if cache.exists() {
+            return Self::load(cache);
+        }
+        let ds = Self::from_kitti_files(files, width)?;
+        if let Some(dir) = cache.parent() {
+            std::fs::create_dir_all(dir)
+                .with_context(|| format!("failed to create '{}'", dir.display()))?;
+        }
+        ds.save(cache)?;
+        Ok(ds)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn network_units_round_trip_and_invalid_is_minus_one() {
+        let r = [0.0, 1.0, 1.45, 10.0, 80.0, 81.0];
+        let x = range_to_network(&r);
+        assert_eq!(x[0], -1.0);
+        assert_eq!(x[1], -1.0);
+        assert!((x[2] - 1.0).abs() < 1e-6);
+        assert_eq!(x[5], -1.0);
+        let back = network_to_range(&x);
+        assert!((back[3] - 10.0).abs() < 1e-3);
+        assert!((back[4] - 80.0).abs() < 1e-2);
+        assert_eq!(back[0], 0.0);
+    }
+
+    #[test]
+    fn cache_round_trip() {
+        let grid = SensorProfile::kitti_hdl64e().with_columns(8).angle_grid();
+        let ds = RangeDataset {
+            height: grid.height,
+            width: grid.width,
+            images: (0..2 * grid.len())
+                .map(|i| (i % 7) as f32 * 0.1 - 0.5)
+                .collect(),
+            angles: grid,
+        };
+        let dir = tempfile::tempdir().expect("tempdir");
+        let path = dir.path().join("ds.bin");
+        ds.save(&path).expect("save");
+        assert_eq!(RangeDataset::load(&path).expect("load"), ds);
+    }
+
+    #[test]
+    fn split_keeps_sequences_00_and_07_out() {
+        let root = Path::new("../shared/real_lidar");
+        let root = if root.exists() {
+            root.to_path_buf()
+        } else {
+            PathBuf::from("/work/shared/real_lidar")
+        };
+        if !root.exists() {
+            eprintln!("skipping: no real_lidar folder");
+            return;
+        }
+        let train = kitti_training_files(&root).expect("list");
+        let held = kitti_heldout_files(&root).expect("list");
+        assert!(!train.is_empty() && !held.is_empty());
+        for f in &train {
+            let s = f.to_string_lossy();
+            assert!(!s.contains("semantickitti_mini/00/") && !s.contains("semantickitti_mini/07/"));
+        }
+    }
+}

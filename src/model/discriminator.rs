@@ -1,0 +1,330 @@
+//! The discriminator: a residual CNN on measured range images with circular padding along
+//! azimuth (replicate along elevation), [1,3,3,1] blur-downsampling, minibatch standard deviation
+//! and a linear head giving one logit per image. Shared by all three architectures.
+
+use burn::config::Config;
+use burn::module::{Module, Param};
+use burn::tensor::activation::leaky_relu;
+use burn::tensor::module::conv2d;
+use burn::tensor::ops::ConvOptions;
+use burn::tensor::{Device, Tensor};
+
+use super::layers::{EqualLinear, EqualLinearConfig, roll, shift_replicate};
+use super::rng::Rng;
+
+fn lrelu4(x: Tensor<4>) -> Tensor<4> {
+    leaky_relu(x, 0.2).mul_scalar(std::f32::consts::SQRT_2)
+}
+
+/// Pad `[batch, ch, H, W]` by `p` on every side: circular along W, replicate along H.
+pub fn pad_circular(x: Tensor<4>, p: usize) -> Tensor<4> {
+    if p == 0 {
+        return x;
+    }
+    let [_, _, h, w] = x.dims();
+    let left = x.clone().narrow(3, w - p, p);
+    let right = x.clone().narrow(3, 0, p);
+    let x = Tensor::cat(vec![left, x, right], 3);
+    let top = x.clone().narrow(2, 0, 1).repeat_dim(2, p);
+    let bottom = x.clone().narrow(2, h - 1, 1).repeat_dim(2, p);
+    Tensor::cat(vec![top, x, bottom], 2)
+}
+
+/// [1,3,3,1]/8 blur + stride-2 decimation along H and W (circular W, replicate H), written as
+/// shifted sums so no depthwise convolution is needed.
+///
+/// # Shapes
+/// - x: `[batch, ch, H, W]` -> `[batch, ch, H/2, W/2]`
+pub fn downsample2x(x: Tensor<4>) -> Tensor<4> {
+    let [b, c, h, w] = x.dims();
+    // along W: out[j] = (x[2j-1] + 3x[2j] + 3x[2j+1] + x[2j+2]) / 8
+    let pairs = x.clone().reshape([b, c, h, w / 2, 2]);
+    let even = pairs.clone().narrow(4, 0, 1).reshape([b, c, h, w / 2]); // x[2j]
+    let odd = pairs.narrow(4, 1, 1).reshape([b, c, h, w / 2]); // x[2j+1]
+    let odd_prev = roll(odd.clone(), 1, 3); // x[2j-1]
+    let even_next = roll(even.clone(), -1, 3); // x[2j+2]
+    let x = (odd_prev + even_next + (even + odd).mul_scalar(3.0)).div_scalar(8.0); // [b, c, H, W/2]
+    // along H: replicate at the borders
+    let pairs = x.reshape([b, c, h / 2, 2, w / 2]);
+    let even = pairs.clone().narrow(3, 0, 1).reshape([b, c, h / 2, w / 2]);
+    let odd = pairs.narrow(3, 1, 1).reshape([b, c, h / 2, w / 2]);
+    let odd_prev = if h / 2 > 1 {
+        // x[2i-1] with x[-1] = x[0]
+        let shifted = shift_replicate(odd.clone(), 1, 2);
+        let first = even.clone().narrow(2, 0, 1);
+        Tensor::cat(vec![first, shifted.narrow(2, 1, h / 2 - 1)], 2)
+    } else {
+        even.clone()
+    };
+    let even_next = if h / 2 > 1 {
+        // x[2i+2] with x[H] = x[H-1]
+        let shifted = shift_replicate(even.clone(), -1, 2);
+        let last = odd.clone().narrow(2, h / 2 - 1, 1);
+        Tensor::cat(vec![shifted.narrow(2, 0, h / 2 - 1), last], 2)
+    } else {
+        odd.clone()
+    };
+    (odd_prev + even_next + (even + odd).mul_scalar(3.0)).div_scalar(8.0)
+}
+
+/// Equalised-lr 2D convolution with circular-W / replicate-H padding ("same" output size).
+#[derive(Config, Debug)]
+pub struct EqualConvConfig {
+    pub d_input: usize,
+    pub d_output: usize,
+    #[config(default = 3)]
+    pub kernel: usize,
+    #[config(default = true)]
+    pub bias: bool,
+    #[config(default = true)]
+    pub activate: bool,
+}
+
+#[derive(Module, Debug)]
+pub struct EqualConv {
+    /// `[out, in, k, k]`
+    pub weight: Param<Tensor<4>>,
+    pub bias: Option<Param<Tensor<1>>>,
+    #[module(skip)]
+    pub weight_gain: f32,
+    #[module(skip)]
+    pub activate: bool,
+}
+
+impl EqualConvConfig {
+    pub fn init(&self, rng: &mut Rng, device: &Device) -> EqualConv {
+        let k = self.kernel;
+        EqualConv {
+            weight: Param::from_tensor(
+                rng.normal_tensor([self.d_output, self.d_input, k, k], device),
+            ),
+            bias: self
+                .bias
+                .then(|| Param::from_tensor(Tensor::zeros([self.d_output], device))),
+            weight_gain: 1.0 / ((self.d_input * k * k) as f32).sqrt(),
+            activate: self.activate,
+        }
+    }
+}
+
+impl EqualConv {
+    /// # Shapes
+    /// - x: `[batch, in, H, W]` -> `[batch, out, H, W]`
+    pub fn forward(&self, x: Tensor<4>) -> Tensor<4> {
+        let k = self.weight.dims()[2];
+        let x = pad_circular(x, k / 2);
+        let weight = self.weight.val().mul_scalar(self.weight_gain);
+        let y = conv2d(
+            x,
+            weight,
+            self.bias.as_ref().map(|b| b.val()),
+            ConvOptions::new([1, 1], [0, 0], [1, 1], 1),
+        );
+        if self.activate { lrelu4(y) } else { y }
+    }
+}
+
+/// Residual block: conv 3x3 -> blur-downsample -> conv 3x3, plus a downsampled 1x1 skip.
+#[derive(Config, Debug)]
+pub struct ResBlockConfig {
+    pub d_input: usize,
+    pub d_output: usize,
+}
+
+#[derive(Module, Debug)]
+pub struct ResBlock {
+    pub conv0: EqualConv,
+    pub conv1: EqualConv,
+    pub skip: EqualConv,
+}
+
+impl ResBlockConfig {
+    pub fn init(&self, rng: &mut Rng, device: &Device) -> ResBlock {
+        ResBlock {
+            conv0: EqualConvConfig::new(self.d_input, self.d_input).init(rng, device),
+            conv1: EqualConvConfig::new(self.d_input, self.d_output).init(rng, device),
+            skip: EqualConvConfig::new(self.d_input, self.d_output)
+                .with_kernel(1)
+                .with_bias(false)
+                .with_activate(false)
+                .init(rng, device),
+        }
+    }
+}
+
+impl ResBlock {
+    /// # Shapes
+    /// - x: `[batch, in, H, W]` -> `[batch, out, H/2, W/2]`
+    pub fn forward(&self, x: Tensor<4>) -> Tensor<4> {
+        let skip = self.skip.forward(downsample2x(x.clone())); // [batch, out, H/2, W/2]
+        let y = self.conv0.forward(x); // [batch, in, H, W]
+        let y = self.conv1.forward(downsample2x(y)); // [batch, out, H/2, W/2]
+        (y + skip).mul_scalar(std::f32::consts::FRAC_1_SQRT_2)
+    }
+}
+
+/// Discriminator (reference section 4). Defaults are the paper's widths.
+#[derive(Config, Debug)]
+pub struct DiscriminatorConfig {
+    /// Input height and width (the linear head depends on them).
+    #[config(default = 64)]
+    pub height: usize,
+    #[config(default = 512)]
+    pub width: usize,
+    /// Channels after the input layer and after each residual block.
+    #[config(default = "vec![32, 64, 128, 256, 512]")]
+    pub channels: Vec<usize>,
+    /// Minibatch-stddev group size.
+    #[config(default = 4)]
+    pub mbstd_group: usize,
+    #[config(default = 1)]
+    pub seed: u64,
+}
+
+#[derive(Module, Debug)]
+pub struct Discriminator {
+    pub from_input: EqualConv,
+    pub blocks: Vec<ResBlock>,
+    pub conv_out: EqualConv,
+    pub fc: EqualLinear,
+    pub out: EqualLinear,
+    #[module(skip)]
+    pub mbstd_group: usize,
+}
+
+impl DiscriminatorConfig {
+    /// The CPU configuration chosen by measurement (docs/model_benchmarks.md).
+    pub fn cpu() -> Self {
+        Self::new().with_channels(vec![8, 16, 32, 64, 128])
+    }
+
+    pub fn init(&self, device: &Device) -> Discriminator {
+        let mut rng = Rng::new(self.seed);
+        let c = &self.channels;
+        let n_down = c.len() - 1;
+        assert!(
+            self.height.is_multiple_of(1 << n_down) && self.width.is_multiple_of(1 << n_down),
+            "discriminator input must divide by 2^{n_down}"
+        );
+        let last = c[c.len() - 1];
+        let (h, w) = (self.height >> n_down, self.width >> n_down);
+        Discriminator {
+            from_input: EqualConvConfig::new(2, c[0])
+                .with_kernel(1)
+                .init(&mut rng, device),
+            blocks: (0..n_down)
+                .map(|i| ResBlockConfig::new(c[i], c[i + 1]).init(&mut rng, device))
+                .collect(),
+            conv_out: EqualConvConfig::new(last + 1, last).init(&mut rng, device),
+            fc: EqualLinearConfig::new(last * h * w, last)
+                .with_activate(true)
+                .init(&mut rng, device),
+            out: EqualLinearConfig::new(last, 1).init(&mut rng, device),
+            mbstd_group: self.mbstd_group,
+        }
+    }
+}
+
+impl Discriminator {
+    /// # Shapes
+    /// - x: `[batch, 1, H, W]` measured image in network units -> logits `[batch, 1]`
+    pub fn forward(&self, x: Tensor<4>) -> Tensor<2> {
+        let b = x.dims()[0];
+        let horiz = (roll(x.clone(), 1, 3) + roll(x.clone(), -1, 3) + x.clone().mul_scalar(2.0))
+            .div_scalar(4.0); // [batch, 1, H, W]
+        let vert = (shift_replicate(x.clone(), 1, 2)
+            + shift_replicate(x.clone(), -1, 2)
+            + x.mul_scalar(2.0))
+        .div_scalar(4.0); // [batch, 1, H, W]
+        let mut y = self.from_input.forward(Tensor::cat(vec![vert, horiz], 1)); // [batch, c0, H, W]
+        for block in &self.blocks {
+            y = block.forward(y); // [batch, c, h, w]
+        }
+        let y = minibatch_stddev(y, self.mbstd_group); // [batch, c + 1, h, w]
+        let y = self.conv_out.forward(y); // [batch, c, h, w]
+        let y = y.reshape([b as i64, -1]); // [batch, c*h*w]
+        self.out.forward(self.fc.forward(y)) // [batch, 1]
+    }
+}
+
+/// Append the mean (over channels and pixels) of the per-group standard deviation as a channel.
+///
+/// # Shapes
+/// - x: `[batch, ch, H, W]` -> `[batch, ch + 1, H, W]`
+pub fn minibatch_stddev(x: Tensor<4>, group: usize) -> Tensor<4> {
+    let [b, c, h, w] = x.dims();
+    let mut g = group.min(b).max(1);
+    while b % g != 0 {
+        g -= 1;
+    }
+    let y = x.clone().reshape([g, b / g, c, h, w]); // [G, M, ch, H, W]
+    let y = y.clone() - y.mean_dim(0); // [G, M, ch, H, W]
+    let std = y.powi_scalar(2).mean_dim(0).add_scalar(1e-8).sqrt(); // [1, M, ch, H, W]
+    let s = std.reshape([b / g, c * h * w]).mean_dim(1); // [M, 1]
+    let s = s.reshape([1, b / g]).repeat_dim(0, g).reshape([b, 1, 1, 1]); // [batch, 1, 1, 1]
+    let s = s.repeat_dim(2, h).repeat_dim(3, w); // [batch, 1, H, W]
+    Tensor::cat(vec![x, s], 1)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::super::rng::tensor_to_vec;
+    use super::*;
+
+    #[test]
+    fn downsample_keeps_constants_and_matches_filter() {
+        let dev = Device::flex();
+        let x = Tensor::<4>::ones([1, 1, 4, 8], &dev);
+        let y = downsample2x(x);
+        assert_eq!(y.dims(), [1, 1, 2, 4]);
+        assert!(tensor_to_vec(y).iter().all(|v| (v - 1.0).abs() < 1e-6));
+        // One row, columns 0..8 as values: out[0] = (x[7] + 3x[0] + 3x[1] + x[2]) / 8 (circular)
+        let v: Vec<f32> = (0..16).map(|i| (i % 8) as f32).collect();
+        let x = super::super::rng::tensor_from(v, [1, 1, 2, 8], &dev);
+        let y = tensor_to_vec(downsample2x(x));
+        assert!((y[0] - (7.0 + 0.0 + 3.0 + 2.0) / 8.0).abs() < 1e-6, "{y:?}");
+    }
+
+    #[test]
+    fn circular_conv_is_shift_equivariant_along_azimuth() {
+        let dev = Device::flex();
+        let mut rng = Rng::new(3);
+        let conv = EqualConvConfig::new(2, 3).init(&mut rng, &dev);
+        let x = rng.normal_tensor([1, 2, 4, 8], &dev);
+        let a = roll(conv.forward(x.clone()), 1, 3);
+        let b = conv.forward(roll(x, 1, 3));
+        assert!((a - b).abs().max().into_scalar::<f32>() < 1e-5);
+    }
+
+    #[test]
+    fn discriminator_shapes_and_gradients() {
+        let dev = Device::flex().autodiff();
+        let d = DiscriminatorConfig::new()
+            .with_height(8)
+            .with_width(32)
+            .with_channels(vec![4, 8, 8])
+            .init(&dev);
+        let x = Rng::new(1)
+            .normal_tensor([4, 1, 8, 32], &dev)
+            .require_grad();
+        let logits = d.forward(x.clone());
+        assert_eq!(logits.dims(), [4, 1]);
+        let grads = logits.sum().backward();
+        assert!(x.grad(&grads).is_some());
+        assert!(d.fc.weight.val().grad(&grads).is_some());
+        assert!(d.blocks[0].conv0.weight.val().grad(&grads).is_some());
+    }
+
+    #[test]
+    fn minibatch_stddev_sees_the_batch() {
+        let dev = Device::flex();
+        let same = Tensor::<4>::ones([4, 2, 2, 2], &dev);
+        let y = minibatch_stddev(same, 4);
+        let extra = tensor_to_vec(y.narrow(1, 2, 1));
+        assert!(extra.iter().all(|v| *v < 1e-3));
+        let mut rng = Rng::new(2);
+        let y = minibatch_stddev(rng.normal_tensor([4, 2, 2, 2], &dev), 4);
+        let extra = tensor_to_vec(y.narrow(1, 2, 1));
+        assert!(extra.iter().all(|v| *v > 0.1));
+    }
+}

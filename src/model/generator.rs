@@ -1,0 +1,649 @@
+//! The DUSty v2 implicit generator: mapping network z -> w (with the w_avg tracker), synthesis
+//! blocks of per-pixel modulated layers fed with circular Fourier features of a per-pixel angle
+//! pyramid, and skip heads for inverse depth (tanh) and the ray-drop logit. Also the subgrid
+//! (random azimuth phase) rendering used in training.
+//!
+//! The generator is a function of the angles, not of a pixel grid: any grid whose size is
+//! divisible by 2^(blocks - 1) can be rendered, e.g. a 2x denser one, without retraining.
+
+use std::f32::consts::TAU;
+
+use burn::config::Config;
+use burn::module::{Module, Param};
+use burn::tensor::{Device, Tensor};
+
+use super::layers::{
+    AngleGridExt, EqualLinear, EqualLinearConfig, FourierFeatures, FourierFeaturesConfig,
+    ModulatedLinear, ModulatedLinearConfig, fixed_param, upsample2x,
+};
+use super::rng::{Rng, tensor_from};
+use crate::lidar::AngleGrid;
+
+// ---------------------------------------------------------------------------------------------
+// Mapping network
+// ---------------------------------------------------------------------------------------------
+
+/// Mapping network (paper / reference section 2): PixelNorm then `n_layers` equalised-lr
+/// linear layers with lr multiplier 0.01.
+#[derive(Config, Debug)]
+pub struct MappingConfig {
+    #[config(default = 512)]
+    pub d_z: usize,
+    #[config(default = 512)]
+    pub d_w: usize,
+    #[config(default = 2)]
+    pub n_layers: usize,
+    #[config(default = 0.01)]
+    pub lr_mul: f32,
+    /// EMA decay of the tracked mean latent w_avg.
+    #[config(default = 0.995)]
+    pub w_avg_beta: f32,
+}
+
+#[derive(Module, Debug)]
+pub struct Mapping {
+    pub layers: Vec<EqualLinear>,
+    /// `[d_w]` running mean of w (non-trainable; truncation and inversion start point).
+    pub w_avg: Param<Tensor<1>>,
+    #[module(skip)]
+    pub w_avg_beta: f32,
+}
+
+impl MappingConfig {
+    pub fn init(&self, rng: &mut Rng, device: &Device) -> Mapping {
+        let layers = (0..self.n_layers)
+            .map(|i| {
+                let d_in = if i == 0 { self.d_z } else { self.d_w };
+                EqualLinearConfig::new(d_in, self.d_w)
+                    .with_lr_mul(self.lr_mul)
+                    .with_activate(true)
+                    .init(rng, device)
+            })
+            .collect();
+        Mapping {
+            layers,
+            w_avg: fixed_param(Tensor::zeros([self.d_w], device)),
+            w_avg_beta: self.w_avg_beta,
+        }
+    }
+}
+
+impl Mapping {
+    /// # Shapes
+    /// - z: `[batch, d_z]` -> w: `[batch, d_w]`
+    pub fn forward(&self, z: Tensor<2>) -> Tensor<2> {
+        let norm = z.clone().powi_scalar(2).mean_dim(1).add_scalar(1e-8).sqrt(); // [batch, 1]
+        let mut w = z / norm; // [batch, d_z] pixel norm
+        for layer in &self.layers {
+            w = layer.forward(w); // [batch, d_w]
+        }
+        w
+    }
+
+    /// Move w_avg towards the batch mean of `w` (training only; no gradient).
+    pub fn track_w_avg(mut self, w: &Tensor<2>) -> Self {
+        let mean = w.clone().detach().inner().mean_dim(0).squeeze_dim::<1>(0); // [d_w]
+        let beta = self.w_avg_beta;
+        self.w_avg = self.w_avg.map(|avg| {
+            let device = avg.device();
+            let avg_inner = avg.inner();
+            let new = mean.clone() + (avg_inner - mean).mul_scalar(beta);
+            let new = if device.is_autodiff() {
+                new.autodiff()
+            } else {
+                new
+            };
+            new.set_require_grad(false)
+        });
+        self
+    }
+
+    /// Truncation trick: w_avg + psi (w - w_avg).
+    pub fn truncate(&self, w: Tensor<2>, psi: f32) -> Tensor<2> {
+        let avg = self.w_avg.val().unsqueeze_dim::<2>(0); // [1, d_w]
+        avg.clone() + (w - avg).mul_scalar(psi)
+    }
+}
+
+// ---------------------------------------------------------------------------------------------
+// Synthesis block
+// ---------------------------------------------------------------------------------------------
+
+/// One synthesis block: [upsampled features, Fourier(angles)] -> 2 modulated layers -> heads.
+#[derive(Config, Debug)]
+pub struct SynthesisBlockConfig {
+    /// Channels coming from the previous block (0 for the first).
+    pub d_prev: usize,
+    pub d_out: usize,
+    pub d_w: usize,
+    pub fourier: FourierFeaturesConfig,
+}
+
+#[derive(Module, Debug)]
+pub struct SynthesisBlock {
+    pub fourier: FourierFeatures,
+    pub conv0: ModulatedLinear,
+    pub conv1: ModulatedLinear,
+    /// Two channels, no demodulation: inverse depth and ray-drop logit.
+    pub head: ModulatedLinear,
+}
+
+impl SynthesisBlockConfig {
+    pub fn init(&self, rng: &mut Rng, device: &Device) -> SynthesisBlock {
+        let fourier = self.fourier.init(rng, device);
+        let d_in = self.d_prev + 2 * self.fourier.n_freq;
+        SynthesisBlock {
+            fourier,
+            conv0: ModulatedLinearConfig::new(d_in, self.d_out, self.d_w).init(rng, device),
+            conv1: ModulatedLinearConfig::new(self.d_out, self.d_out, self.d_w).init(rng, device),
+            head: ModulatedLinearConfig::new(self.d_out, 2, self.d_w)
+                .with_demodulate(false)
+                .with_activate(false)
+                .init(rng, device),
+        }
+    }
+}
+
+/// The Fourier basis of one pyramid level.
+#[derive(Debug, Clone)]
+pub struct LevelBasis {
+    pub height: usize,
+    pub width: usize,
+    /// `[H*W, 2F]`
+    pub basis: Tensor<2>,
+}
+
+/// Everything the generator needs from an angle grid, computed once per grid: the Fourier
+/// basis of each pyramid level. Never rebuild it inside an optimisation loop.
+#[derive(Debug, Clone)]
+pub struct GridCache {
+    pub height: usize,
+    pub width: usize,
+    pub levels: Vec<LevelBasis>,
+}
+
+// ---------------------------------------------------------------------------------------------
+// Generator
+// ---------------------------------------------------------------------------------------------
+
+/// DUSty v2 generator (reference section 2). Defaults are the paper's: 5 blocks at 4x32 ...
+/// 64x512 with 512/256/128/64/32 channels, 256 Fourier pairs per block, (Lh, Lw) = (5,4) ...
+/// (9,8), 4.37 M parameters.
+#[derive(Config, Debug)]
+pub struct GeneratorConfig {
+    #[config(default = "MappingConfig::new()")]
+    pub mapping: MappingConfig,
+    /// Channels per block, coarsest first.
+    #[config(default = "vec![512, 256, 128, 64, 32]")]
+    pub channels: Vec<usize>,
+    /// Fourier frequency pairs per block.
+    #[config(default = "vec![256, 256, 256, 256, 256]")]
+    pub n_freq: Vec<usize>,
+    /// log2 elevation bandwidth per block.
+    #[config(default = "vec![5, 6, 7, 8, 9]")]
+    pub lh: Vec<u32>,
+    /// log2 azimuth bandwidth per block (integer frequencies).
+    #[config(default = "vec![4, 5, 6, 7, 8]")]
+    pub lw: Vec<u32>,
+    /// Scale of the summed head outputs before tanh.
+    #[config(default = 0.25)]
+    pub output_gain: f32,
+    /// Seed of the initial weights and Fourier frequencies.
+    #[config(default = 0)]
+    pub seed: u64,
+}
+
+#[derive(Module, Debug)]
+pub struct Generator {
+    pub mapping: Mapping,
+    pub blocks: Vec<SynthesisBlock>,
+    #[module(skip)]
+    pub output_gain: f32,
+}
+
+/// Generator output in network units.
+#[derive(Debug, Clone)]
+pub struct GeneratorOutput {
+    /// `[batch, 1, H, W]` inverse depth 2 x_d - 1 in [-1, 1] (before ray drop).
+    pub x_d: Tensor<4>,
+    /// `[batch, 1, H, W]` ray-drop logit: sigmoid(logit) is the KEEP probability.
+    pub keep_logit: Tensor<4>,
+}
+
+impl GeneratorConfig {
+    /// The CPU configuration chosen by measurement (docs/model_benchmarks.md).
+    pub fn cpu() -> Self {
+        Self::new()
+            .with_mapping(MappingConfig::new().with_d_z(128).with_d_w(128))
+            .with_channels(vec![128, 64, 32, 16, 16])
+            .with_n_freq(vec![64, 64, 32, 32, 16])
+    }
+
+    /// Multiply-accumulates per image of `height x width` (modulated layers, heads, mapping;
+    /// the style affines and elementwise work are negligible).
+    pub fn macs_per_image(&self, height: usize, width: usize) -> u64 {
+        let n = self.channels.len();
+        let mut macs = (self.mapping.d_z * self.mapping.d_w
+            + (self.mapping.n_layers.saturating_sub(1)) * self.mapping.d_w * self.mapping.d_w)
+            as u64;
+        for i in 0..n {
+            let k = 1usize << (n - 1 - i);
+            let pixels = ((height / k) * (width / k)) as u64;
+            let d_prev = if i == 0 { 0 } else { self.channels[i - 1] };
+            let c = self.channels[i];
+            let d_in = d_prev + 2 * self.n_freq[i];
+            macs += pixels * (d_in * c + c * c + 2 * c) as u64;
+        }
+        macs
+    }
+
+    pub fn init(&self, device: &Device) -> Generator {
+        assert!(
+            !self.channels.is_empty()
+                && self.channels.len() == self.n_freq.len()
+                && self.channels.len() == self.lh.len()
+                && self.channels.len() == self.lw.len(),
+            "generator config: channels, n_freq, lh and lw need one entry per block"
+        );
+        let mut rng = Rng::new(self.seed);
+        let mapping = self.mapping.init(&mut rng, device);
+        let blocks = (0..self.channels.len())
+            .map(|i| {
+                let d_prev = if i == 0 { 0 } else { self.channels[i - 1] };
+                let fourier =
+                    FourierFeaturesConfig::new(self.lh[i], self.lw[i]).with_n_freq(self.n_freq[i]);
+                SynthesisBlockConfig::new(d_prev, self.channels[i], self.mapping.d_w, fourier)
+                    .init(&mut rng, device)
+            })
+            .collect();
+        Generator {
+            mapping,
+            blocks,
+            output_gain: self.output_gain,
+        }
+    }
+}
+
+impl Generator {
+    pub fn d_z(&self) -> usize {
+        self.mapping
+            .layers
+            .first()
+            .map(|l| l.weight.dims()[1])
+            .unwrap_or(0)
+    }
+
+    pub fn d_w(&self) -> usize {
+        self.mapping.w_avg.dims()[0]
+    }
+
+    /// Grid sizes must divide by this.
+    pub fn resolution_step(&self) -> usize {
+        1 << (self.blocks.len() - 1)
+    }
+
+    /// Compute the per-level Fourier bases of an angle grid (once per grid).
+    pub fn prepare(&self, angles: &AngleGrid, device: &Device) -> GridCache {
+        let step = self.resolution_step();
+        assert!(
+            angles.height.is_multiple_of(step) && angles.width.is_multiple_of(step),
+            "grid {}x{} must be divisible by {step}",
+            angles.height,
+            angles.width
+        );
+        let levels = angles
+            .pyramid(self.blocks.len())
+            .iter()
+            .zip(&self.blocks)
+            .map(|(grid, block)| LevelBasis {
+                height: grid.height,
+                width: grid.width,
+                basis: block.fourier.basis(grid, device),
+            })
+            .collect();
+        GridCache {
+            height: angles.height,
+            width: angles.width,
+            levels,
+        }
+    }
+
+    /// Synthesis from w. `azimuth_shift` (fractions of a turn, one per sample) adds a phase
+    /// 2 pi s to every azimuth before encoding.
+    ///
+    /// # Shapes
+    /// - w: `[batch, d_w]` -> raw heads `[batch, 2, H, W]` (x_d pre-tanh, keep logit)
+    pub fn synthesis(
+        &self,
+        w: Tensor<2>,
+        grid: &GridCache,
+        azimuth_shift: Option<Tensor<1>>,
+    ) -> Tensor<4> {
+        let b = w.dims()[0];
+        let mut x: Option<Tensor<4>> = None; // [batch, h, w, ch]
+        let mut heads: Option<Tensor<4>> = None; // [batch, h, w, 2]
+        for (block, level) in self.blocks.iter().zip(&grid.levels) {
+            let (h, wd) = (level.height, level.width);
+            let rotation = azimuth_shift.clone().map(|s| block.fourier.rotation(s));
+            let x_up = x.map(|x| {
+                let up = upsample2x(x); // [batch, h, w, ch]
+                let c = up.dims()[3];
+                up.reshape([b, h * wd, c]) // [batch, h*w, ch]
+            });
+            let y = block.conv0.forward_fourier(
+                x_up,
+                level.basis.clone(),
+                rotation.as_ref(),
+                w.clone(),
+            ); // [batch, h*w, ch]
+            let y = block.conv1.forward(y, w.clone()); // [batch, h*w, ch]
+            let head = block
+                .head
+                .forward(y.clone(), w.clone())
+                .reshape([b, h, wd, 2]); // [batch, h, w, 2]
+            heads = Some(match heads {
+                Some(prev) => upsample2x(prev) + head,
+                None => head,
+            });
+            let c = y.dims()[2];
+            x = Some(y.reshape([b, h, wd, c]));
+        }
+        let heads = heads.expect("generator has at least one block"); // [batch, H, W, 2]
+        heads.permute([0, 3, 1, 2]).mul_scalar(self.output_gain) // [batch, 2, H, W]
+    }
+
+    /// Render from latents z on `grid`.
+    ///
+    /// # Shapes
+    /// - z: `[batch, d_z]` -> x_d, keep_logit: `[batch, 1, H, W]`
+    pub fn forward(&self, z: Tensor<2>, grid: &GridCache) -> GeneratorOutput {
+        let w = self.mapping.forward(z); // [batch, d_w]
+        self.render(w, grid, None)
+    }
+
+    /// Render from w, optionally with subgrid training: the azimuths get a per-sample phase
+    /// 2 pi s and the image is shifted back by s W columns (circular, bilinear), so the pixels
+    /// sample the scene between the grid columns while the image stays aligned.
+    pub fn render(
+        &self,
+        w: Tensor<2>,
+        grid: &GridCache,
+        subgrid_shift: Option<&[f32]>,
+    ) -> GeneratorOutput {
+        let device = w.device();
+        let raw = match subgrid_shift {
+            Some(shift) => {
+                let b = shift.len();
+                let s = tensor_from(shift.to_vec(), [b], &device);
+                let raw = self.synthesis(w, grid, Some(s)); // [batch, 2, H, W]
+                // Azimuth decreases with the column index (pi - (j + 0.5) 2pi / W), so adding
+                // 2 pi s shows, at column j, what belongs at column j - sW: read it from j + sW.
+                let px: Vec<f32> = shift.iter().map(|s| -s * grid.width as f32).collect();
+                shift_columns(raw, &px)
+            }
+            None => self.synthesis(w, grid, None),
+        };
+        let x_d = raw.clone().narrow(1, 0, 1).tanh(); // [batch, 1, H, W]
+        let keep_logit = raw.narrow(1, 1, 1); // [batch, 1, H, W]
+        GeneratorOutput { x_d, keep_logit }
+    }
+}
+
+/// Per-sample circular shift along W with linear interpolation: `out[.., j] = x[.., j - p_b]`
+/// (fractional p). One batched matmul with host-built `[W, W]` interpolation matrices.
+///
+/// # Shapes
+/// - x: `[batch, ch, H, W]` -> `[batch, ch, H, W]`
+pub fn shift_columns(x: Tensor<4>, shift_px: &[f32]) -> Tensor<4> {
+    let [b, c, h, w] = x.dims();
+    assert_eq!(b, shift_px.len(), "one shift per sample");
+    let mut m = vec![0f32; b * w * w];
+    for (i, p) in shift_px.iter().enumerate() {
+        let p = p.rem_euclid(w as f32);
+        let k0 = p.floor();
+        let t = p - k0;
+        let k0 = k0 as usize;
+        // out[j] = (1 - t) x[j - k0] + t x[j - k0 - 1]; M[src, j] so that out = x M.
+        for j in 0..w {
+            let src0 = (j + w - k0 % w) % w;
+            let src1 = (src0 + w - 1) % w;
+            m[i * w * w + src0 * w + j] += 1.0 - t;
+            m[i * w * w + src1 * w + j] += t;
+        }
+    }
+    let m = tensor_from(m, [b, w, w], &x.device()); // [batch, W, W]
+    let y = x.reshape([b, c * h, w]).matmul(m); // [batch, ch*H, W]
+    y.reshape([b, c, h, w])
+}
+
+/// Random subgrid phases s ~ U(0, 1), one per sample.
+pub fn random_subgrid_shift(rng: &mut Rng, batch: usize) -> Vec<f32> {
+    (0..batch).map(|_| rng.uniform()).collect()
+}
+
+/// Azimuth offset in radians of a subgrid phase.
+pub fn subgrid_offset_rad(s: f32) -> f32 {
+    s * TAU
+}
+
+#[cfg(test)]
+mod tests {
+    use super::super::layers::{kitti_like_grid, roll};
+    use super::super::rng::tensor_to_vec;
+    use super::*;
+    use burn::module::ModuleVisitor;
+
+    fn tiny(blocks: usize) -> GeneratorConfig {
+        GeneratorConfig::new()
+            .with_mapping(MappingConfig::new().with_d_z(8).with_d_w(8))
+            .with_channels(vec![8; blocks])
+            .with_n_freq(vec![4; blocks])
+            .with_lh((0..blocks as u32).map(|i| 3 + i).collect())
+            .with_lw((0..blocks as u32).map(|i| 2 + i).collect())
+            .with_seed(5)
+    }
+
+    fn max_abs(x: Tensor<4>) -> f32 {
+        x.abs().max().into_scalar::<f32>()
+    }
+
+    #[test]
+    fn one_column_azimuth_shift_shifts_output_by_one_column() {
+        // Single-level model: every column of the grid is a column of the finest level.
+        let dev = Device::flex();
+        let g = tiny(1).init(&dev);
+        let z = Rng::new(1).normal_tensor([2, 8], &dev);
+        let grid = kitti_like_grid(4, 16);
+        let a = g.forward(z.clone(), &g.prepare(&grid, &dev));
+        let b = g.forward(z, &g.prepare(&grid.roll_columns(1), &dev));
+        let diff = max_abs(roll(a.x_d.clone(), 1, 3) - b.x_d.clone());
+        assert!(diff < 1e-5, "x_d diff {diff}");
+        let diff = max_abs(roll(a.keep_logit, 1, 3) - b.keep_logit);
+        assert!(diff < 1e-5, "logit diff {diff}");
+        // And the roll is not trivially satisfied by a constant image.
+        assert!(max_abs(roll(a.x_d.clone(), 1, 3) - a.x_d) > 1e-4);
+    }
+
+    #[test]
+    fn coarse_column_shift_is_exact_for_the_whole_pyramid() {
+        // Three levels: a shift by one coarsest-level column (4 full-res columns) rolls every
+        // level by a whole number of its own columns, so the output rolls exactly.
+        let dev = Device::flex();
+        let g = tiny(3).init(&dev);
+        let z = Rng::new(2).normal_tensor([2, 8], &dev);
+        let grid = kitti_like_grid(8, 32);
+        let a = g.forward(z.clone(), &g.prepare(&grid, &dev));
+        let b = g.forward(z, &g.prepare(&grid.roll_columns(4), &dev));
+        let diff = max_abs(roll(a.x_d, 4, 3) - b.x_d);
+        assert!(diff < 1e-5, "diff {diff}");
+    }
+
+    #[test]
+    fn subgrid_shift_by_whole_coarse_columns_is_identity() {
+        // Phase s = 4/W moves the scene by 4 columns; shifting back must give the plain render.
+        let dev = Device::flex();
+        let g = tiny(3).init(&dev);
+        let mut rng = Rng::new(3);
+        let w = g.mapping.forward(rng.normal_tensor([2, 8], &dev));
+        let grid = g.prepare(&kitti_like_grid(8, 32), &dev);
+        let plain = g.render(w.clone(), &grid, None);
+        let shifted = g.render(w, &grid, Some(&[4.0 / 32.0, 8.0 / 32.0]));
+        let diff = max_abs(plain.x_d - shifted.x_d);
+        assert!(diff < 1e-4, "diff {diff}");
+    }
+
+    #[test]
+    fn renders_a_denser_grid_without_retraining() {
+        let dev = Device::flex();
+        let g = tiny(3).init(&dev);
+        let z = Rng::new(4).normal_tensor([1, 8], &dev);
+        let grid = kitti_like_grid(16, 64);
+        let base = g.forward(z.clone(), &g.prepare(&grid, &dev)).x_d;
+        let dense = g.forward(z, &g.prepare(&grid.resample(32, 128), &dev)).x_d;
+        assert_eq!(dense.dims(), [1, 1, 32, 128]);
+        // The dense render samples the same continuous function: 2x2 means match the base.
+        let pooled = dense
+            .reshape([1, 16, 2, 64, 2])
+            .mean_dim(4)
+            .mean_dim(2)
+            .reshape([1, 1, 16, 64]);
+        let a = tensor_to_vec(base);
+        let p = tensor_to_vec(pooled);
+        let corr = correlation(&a, &p);
+        assert!(corr > 0.9, "correlation {corr}");
+    }
+
+    fn correlation(a: &[f32], b: &[f32]) -> f32 {
+        let n = a.len() as f32;
+        let (ma, mb) = (a.iter().sum::<f32>() / n, b.iter().sum::<f32>() / n);
+        let cov: f32 = a.iter().zip(b).map(|(x, y)| (x - ma) * (y - mb)).sum();
+        let va: f32 = a.iter().map(|x| (x - ma).powi(2)).sum();
+        let vb: f32 = b.iter().map(|y| (y - mb).powi(2)).sum();
+        cov / (va * vb).sqrt()
+    }
+
+    #[test]
+    fn save_then_load_gives_identical_outputs() {
+        let dev = Device::flex();
+        let g = tiny(2).init(&dev);
+        // Change w_avg so that the fixed params are non-trivial.
+        let g = g
+            .clone()
+            .with_mapping_w_avg(Rng::new(9).normal_tensor([8], &dev));
+        let dir = tempfile::tempdir().expect("tempdir");
+        let path = dir.path().join("g.bpk");
+        g.clone().save_file(&path).expect("save");
+        let other = tiny(2).with_seed(77).init(&dev);
+        let loaded = other.try_load_file(&path).expect("load");
+        let z = Rng::new(5).normal_tensor([2, 8], &dev);
+        let grid = kitti_like_grid(4, 16);
+        let a = g.forward(z.clone(), &g.prepare(&grid, &dev));
+        let b = loaded.forward(z, &loaded.prepare(&grid, &dev));
+        assert_eq!(tensor_to_vec(a.x_d), tensor_to_vec(b.x_d));
+        assert_eq!(tensor_to_vec(a.keep_logit), tensor_to_vec(b.keep_logit));
+        assert_eq!(
+            tensor_to_vec(g.mapping.w_avg.val()),
+            tensor_to_vec(loaded.mapping.w_avg.val())
+        );
+    }
+
+    impl Generator {
+        fn with_mapping_w_avg(mut self, avg: Tensor<1>) -> Self {
+            self.mapping.w_avg = fixed_param(avg);
+            self
+        }
+    }
+
+    struct GradCheck<'a> {
+        grads: &'a burn::tensor::Gradients,
+        trainable: usize,
+        missing: Vec<String>,
+        fixed_with_grad: usize,
+        path: Vec<String>,
+    }
+
+    impl ModuleVisitor for GradCheck<'_> {
+        fn enter_module(&mut self, name: &str, _: &str) {
+            self.path.push(name.to_string());
+        }
+        fn exit_module(&mut self, _: &str, _: &str) {
+            self.path.pop();
+        }
+        fn visit_float<const D: usize>(&mut self, param: &Param<Tensor<D>>) {
+            let t = param.val();
+            if t.is_require_grad() {
+                self.trainable += 1;
+                let ok = t
+                    .grad(self.grads)
+                    .map(|g| g.abs().sum().into_scalar::<f32>() > 0.0)
+                    .unwrap_or(false);
+                if !ok {
+                    self.missing.push(self.path.join("."));
+                }
+            } else if t.grad(self.grads).is_some() {
+                self.fixed_with_grad += 1;
+            }
+        }
+    }
+
+    #[test]
+    fn gradients_reach_w_and_every_weight() {
+        let dev = Device::flex().autodiff();
+        let g = tiny(3).init(&dev);
+        let mut rng = Rng::new(6);
+        let w = rng.normal_tensor([2, 8], &dev).require_grad();
+        let grid = g.prepare(&kitti_like_grid(8, 32), &dev);
+        let out = g.render(w.clone(), &grid, Some(&[0.1, 0.6]));
+        let loss = (out.x_d * rng.normal_tensor([2, 1, 8, 32], &dev)).sum()
+            + (out.keep_logit * rng.normal_tensor([2, 1, 8, 32], &dev)).sum();
+        let grads = loss.backward();
+        let gw = w.grad(&grads).expect("gradient w.r.t. w");
+        assert!(gw.abs().sum().into_scalar::<f32>() > 0.0);
+        let mut check = GradCheck {
+            grads: &grads,
+            trainable: 0,
+            missing: vec![],
+            fixed_with_grad: 0,
+            path: vec![],
+        };
+        g.visit(&mut check);
+        // The mapping is not on the path from w; everything in the synthesis must be.
+        let missing: Vec<_> = check
+            .missing
+            .iter()
+            .filter(|p| !p.starts_with("mapping"))
+            .collect();
+        assert!(missing.is_empty(), "no gradient for {missing:?}");
+        assert!(check.trainable > 10);
+        assert_eq!(check.fixed_with_grad, 0, "fixed params must not train");
+        // And through z the mapping gets gradients too.
+        let z = rng.normal_tensor([2, 8], &dev);
+        let out = g.forward(z, &grid);
+        let grads = out.x_d.sum().backward();
+        let mut check = GradCheck {
+            grads: &grads,
+            trainable: 0,
+            missing: vec![],
+            fixed_with_grad: 0,
+            path: vec![],
+        };
+        g.visit(&mut check);
+        assert!(
+            check.missing.is_empty(),
+            "no gradient from z for {:?}",
+            check.missing
+        );
+    }
+
+    #[test]
+    fn w_avg_tracks_and_truncation_pulls_towards_it() {
+        let dev = Device::flex();
+        let g = tiny(1).init(&dev);
+        let w = Tensor::<2>::ones([4, 8], &dev);
+        let mapping = g.mapping.track_w_avg(&w);
+        let avg = tensor_to_vec(mapping.w_avg.val());
+        assert!(avg.iter().all(|v| (v - 0.005).abs() < 1e-6), "{avg:?}");
+        let t = tensor_to_vec(mapping.truncate(w, 0.0));
+        assert!(t.iter().all(|v| (v - 0.005).abs() < 1e-6));
+    }
+}

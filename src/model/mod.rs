@@ -1,0 +1,118 @@
+//! The range-image GAN of the seed paper (DUSty v2) and its two baselines, in burn.
+//!
+//! - [`layers`]: modulated layers, Fourier features, resampling filter, angle grids.
+//! - [`generator`]: the implicit DUSty v2 generator (z -> w -> x_d, keep logit on any grid).
+//! - [`baseline`]: fixed-resolution transposed-conv generator (DUSty v1, vanilla).
+//! - [`measurement`]: the differentiable ray-drop model (keep/drop probability, sampled masks).
+//! - [`discriminator`]: circular residual discriminator.
+//! - [`data`], [`train`]: dataset cache and the GAN training loop with checkpoints.
+//!
+//! Images are in network units: inverse depth x_d = 1.45 m / depth in [0.018, 1] mapped to
+//! 2 x_d - 1, no return = -1. The backend/device is chosen by the caller.
+
+pub mod baseline;
+pub mod data;
+pub mod discriminator;
+pub mod generator;
+pub mod layers;
+pub mod measurement;
+pub mod metrics;
+pub mod rng;
+pub mod sample;
+pub mod train;
+
+use burn::module::Module;
+use burn::tensor::Tensor;
+use serde::{Deserialize, Serialize};
+
+use baseline::ConvGenerator;
+use generator::{Generator, GridCache};
+
+/// Which generator family (the paper's comparison).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Arch {
+    /// Implicit generator + measurement model (the paper's method).
+    Dusty2,
+    /// Transposed-conv generator + measurement model.
+    Dusty1,
+    /// Transposed-conv generator learning raw images.
+    Vanilla,
+}
+
+impl Arch {
+    pub fn has_measurement_model(self) -> bool {
+        !matches!(self, Arch::Vanilla)
+    }
+}
+
+impl std::str::FromStr for Arch {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, String> {
+        match s {
+            "dusty2" => Ok(Arch::Dusty2),
+            "dusty1" => Ok(Arch::Dusty1),
+            "vanilla" => Ok(Arch::Vanilla),
+            other => Err(format!(
+                "unknown arch {other:?}: use dusty2, dusty1 or vanilla"
+            )),
+        }
+    }
+}
+
+/// Any of the three generators behind one interface.
+#[allow(clippy::large_enum_variant)] // one generator per run; never stored in bulk
+#[derive(Module, Debug)]
+pub enum AnyGenerator {
+    Implicit(Generator),
+    Conv(ConvGenerator),
+}
+
+/// What a generator produces, network units, `[batch, 1, H, W]`.
+#[derive(Debug, Clone)]
+pub struct Generated {
+    /// Inverse depth before ray drop (vanilla: the raw image).
+    pub x_d: Tensor<4>,
+    /// Keep logit (None for vanilla).
+    pub keep_logit: Option<Tensor<4>>,
+}
+
+impl AnyGenerator {
+    pub fn d_z(&self) -> usize {
+        match self {
+            AnyGenerator::Implicit(g) => g.d_z(),
+            AnyGenerator::Conv(g) => g.d_z(),
+        }
+    }
+
+    /// Generate from z. The implicit generator needs `grid` and may use a subgrid shift; the
+    /// conv generators ignore both.
+    pub fn generate(
+        &self,
+        z: Tensor<2>,
+        grid: Option<&GridCache>,
+        subgrid_shift: Option<&[f32]>,
+    ) -> (Generated, Option<Tensor<2>>) {
+        match self {
+            AnyGenerator::Implicit(g) => {
+                let grid = grid.expect("the implicit generator needs an angle grid");
+                let w = g.mapping.forward(z);
+                let out = g.render(w.clone(), grid, subgrid_shift);
+                (
+                    Generated {
+                        x_d: out.x_d,
+                        keep_logit: Some(out.keep_logit),
+                    },
+                    Some(w),
+                )
+            }
+            AnyGenerator::Conv(g) => {
+                let y = g.forward(z);
+                let c = y.dims()[1];
+                let x_d = y.clone().narrow(1, 0, 1);
+                let keep_logit = (c > 1).then(|| y.narrow(1, 1, 1));
+                (Generated { x_d, keep_logit }, None)
+            }
+        }
+    }
+}

@@ -1,0 +1,1058 @@
+//! The GAN training loop: non-saturating loss, a finite-difference R1 penalty (burn has no
+//! double backward), Adam, generator EMA, adaptive augmentation restricted to operations that
+//! keep the circular structure, early random pixel dropout, checkpoints with resume, a JSONL
+//! loss log, an indicatif bar and PNG snapshots. Entry point: [`run`].
+//!
+//! Run directory layout: `config.json` (written first), `checkpoint/` (g, g_ema, d, optimiser
+//! records, state.json; replaced atomically), `log.jsonl`, `snapshots/*.png`.
+
+use std::fs::OpenOptions;
+use std::io::Write;
+use std::path::{Path, PathBuf};
+use std::time::{Duration, Instant};
+
+use anyhow::{Context, Result, bail};
+use burn::config::Config;
+use burn::module::{Module, ModuleMapper, ModuleVisitor, Param};
+use burn::optim::{AdamConfig, GradientsParams, ModuleOptimizer};
+use burn::tensor::activation::softplus;
+use burn::tensor::{Device, Tensor};
+use indicatif::{ProgressBar, ProgressStyle};
+use serde::{Deserialize, Serialize};
+
+use super::baseline::ConvGeneratorConfig;
+use super::data::RangeDataset;
+use super::discriminator::{Discriminator, DiscriminatorConfig};
+use super::generator::{GeneratorConfig, GridCache, random_subgrid_shift};
+use super::measurement::MeasurementConfig;
+use super::rng::{Rng, tensor_from, tensor_to_vec};
+use super::{AnyGenerator, Arch, Generated};
+
+/// CPU backend used for training and inference.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Backend {
+    Flex,
+    Ndarray,
+}
+
+impl Backend {
+    pub fn device(self) -> Device {
+        match self {
+            Backend::Flex => Device::flex(),
+            #[allow(deprecated)]
+            Backend::Ndarray => Device::ndarray(),
+        }
+    }
+}
+
+impl std::str::FromStr for Backend {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, String> {
+        match s {
+            "flex" => Ok(Backend::Flex),
+            "ndarray" => Ok(Backend::Ndarray),
+            other => Err(format!("unknown backend {other:?}: use flex or ndarray")),
+        }
+    }
+}
+
+/// Everything that defines a training run; saved as `config.json` before training starts.
+#[derive(Config, Debug)]
+pub struct TrainConfig {
+    #[config(default = "Arch::Dusty2")]
+    pub arch: Arch,
+    #[config(default = "GeneratorConfig::cpu()")]
+    pub generator: GeneratorConfig,
+    /// Used by `dusty1` (2 output channels) and `vanilla` (1).
+    #[config(default = "ConvGeneratorConfig::cpu(2)")]
+    pub conv_generator: ConvGeneratorConfig,
+    #[config(default = "DiscriminatorConfig::cpu()")]
+    pub discriminator: DiscriminatorConfig,
+    #[config(default = "MeasurementConfig::new()")]
+    pub measurement: MeasurementConfig,
+    #[config(default = 8)]
+    pub batch_size: usize,
+    /// Adam, paper values: lr 0.002, betas (0, 0.99).
+    #[config(default = 0.002)]
+    pub lr: f64,
+    #[config(default = 0.0)]
+    pub beta1: f32,
+    #[config(default = 0.99)]
+    pub beta2: f32,
+    /// Weight of the (finite-difference) R1 penalty, paper gamma = 1.
+    #[config(default = 1.0)]
+    pub r1_gamma: f32,
+    /// Lazy regularisation: every this many D steps, weighted by the interval.
+    #[config(default = 16)]
+    pub r1_interval: usize,
+    /// Step of the finite difference, network units per pixel.
+    #[config(default = 0.01)]
+    pub r1_fd_step: f32,
+    /// Generator EMA half-life in images.
+    #[config(default = 10000.0)]
+    pub ema_half_life_images: f64,
+    /// EMA ramp-up: the half-life is at most this fraction of the images seen (StyleGAN2-ADA),
+    /// so the EMA model is not stuck near the initial weights early on.
+    #[config(default = 0.05)]
+    pub ema_rampup: f64,
+    /// Adaptive augmentation target of E[sign(D(real))].
+    #[config(default = 0.6)]
+    pub ada_target: f32,
+    #[config(default = 4)]
+    pub ada_interval: usize,
+    /// Images for p to move by 1.
+    #[config(default = 100000.0)]
+    pub ada_speed_images: f64,
+    /// Early random pixel dropout: initial probability, decaying linearly to 0.
+    #[config(default = 0.5)]
+    pub pixel_drop_start: f32,
+    #[config(default = 50000.0)]
+    pub pixel_drop_images: f64,
+    /// Random azimuth phase in generator training (subgrid training, dusty2 only).
+    #[config(default = true)]
+    pub subgrid: bool,
+    /// Stop after this many real images shown to D.
+    #[config(default = 2000000)]
+    pub total_images: u64,
+    /// PNG snapshot (and checkpoint) interval; ~10 minutes at the CPU size.
+    #[config(default = 2000)]
+    pub snapshot_every_images: u64,
+    #[config(default = 300)]
+    pub checkpoint_every_secs: u64,
+    #[config(default = 10)]
+    pub log_every_steps: u64,
+    #[config(default = 2)]
+    pub seed: u64,
+}
+
+/// How to run training (not part of the saved config).
+#[derive(Debug, Clone)]
+pub struct TrainOptions {
+    pub run_dir: PathBuf,
+    /// Dataset cache file (built from `scans` if missing).
+    pub dataset_cache: PathBuf,
+    /// KITTI `.bin` scans to build the cache from.
+    pub scans: Vec<PathBuf>,
+    /// Used when the run directory has no config.json yet; otherwise the saved one wins.
+    pub config: TrainConfig,
+    pub backend: Backend,
+    /// Overrides the (saved) total image budget, e.g. to extend a finished run.
+    pub total_images: Option<u64>,
+    /// Stop after this much wall time (checkpointing first).
+    pub max_duration: Option<Duration>,
+    pub progress: bool,
+}
+
+/// Mutable training state saved with each checkpoint.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct TrainState {
+    pub step: u64,
+    pub images: u64,
+    pub ada_p: f32,
+    pub rng: Rng,
+    /// Sum of sign(D(real)) over the current ADA interval.
+    pub ada_acc: f32,
+    pub ada_count: u64,
+}
+
+const CHECKPOINT: &str = "checkpoint";
+
+/// Build the generator of `arch`.
+pub fn init_generator(config: &TrainConfig, device: &Device) -> AnyGenerator {
+    match config.arch {
+        Arch::Dusty2 => AnyGenerator::Implicit(config.generator.init(device)),
+        Arch::Dusty1 => AnyGenerator::Conv(
+            config
+                .conv_generator
+                .clone()
+                .with_out_channels(2)
+                .init(device),
+        ),
+        Arch::Vanilla => AnyGenerator::Conv(
+            config
+                .conv_generator
+                .clone()
+                .with_out_channels(1)
+                .init(device),
+        ),
+    }
+}
+
+/// Load the EMA generator of a run (inference); returns it with the run's config.
+pub fn load_generator(run_dir: &Path, device: &Device) -> Result<(AnyGenerator, TrainConfig)> {
+    let config = load_config(&run_dir.join("config.json"))?;
+    let path = run_dir.join(CHECKPOINT).join("g_ema.bpk");
+    let g = init_generator(&config, device)
+        .try_load_file(&path)
+        .map_err(|e| anyhow::anyhow!("failed to load '{}': {e}", path.display()))?;
+    Ok((g, config))
+}
+
+/// Read a run's `config.json`; fields added to [`TrainConfig`] after the run started take
+/// their defaults (burn's `Config::load` rejects missing fields), so old runs stay resumable.
+pub fn load_config(path: &Path) -> Result<TrainConfig> {
+    let text = std::fs::read_to_string(path)
+        .with_context(|| format!("failed to read '{}'", path.display()))?;
+    let saved: serde_json::Value =
+        serde_json::from_str(&text).with_context(|| format!("'{}' is not JSON", path.display()))?;
+    let mut merged = serde_json::to_value(TrainConfig::new())?;
+    merge_json(&mut merged, saved);
+    serde_json::from_value(merged).with_context(|| format!("bad config '{}'", path.display()))
+}
+
+fn merge_json(base: &mut serde_json::Value, over: serde_json::Value) {
+    match (base, over) {
+        (serde_json::Value::Object(b), serde_json::Value::Object(o)) => {
+            for (k, v) in o {
+                match b.get_mut(&k) {
+                    Some(slot) => merge_json(slot, v),
+                    None => {
+                        b.insert(k, v);
+                    }
+                }
+            }
+        }
+        (slot, v) => *slot = v,
+    }
+}
+
+/// Train (or resume) in `opts.run_dir`.
+pub fn run(opts: &TrainOptions) -> Result<()> {
+    std::fs::create_dir_all(opts.run_dir.join("snapshots"))
+        .with_context(|| format!("failed to create '{}'", opts.run_dir.display()))?;
+    let config_path = opts.run_dir.join("config.json");
+    let config = if config_path.exists() {
+        load_config(&config_path)?
+    } else {
+        opts.config
+            .save(&config_path)
+            .with_context(|| format!("failed to write '{}'", config_path.display()))?;
+        opts.config.clone()
+    };
+    let config = match opts.total_images {
+        Some(n) if n != config.total_images => {
+            let c = config.with_total_images(n);
+            c.save(&config_path)
+                .with_context(|| format!("failed to write '{}'", config_path.display()))?;
+            c
+        }
+        _ => config,
+    };
+    let data = RangeDataset::load_or_build(&opts.dataset_cache, &opts.scans, 512)?;
+    if data.len() < config.batch_size {
+        bail!("dataset has {} images, fewer than a batch", data.len());
+    }
+    let mut trainer = Trainer::new(&config, opts, &data)?;
+    trainer.train(opts, &data)
+}
+
+struct Trainer {
+    config: TrainConfig,
+    device: Device,
+    g: AnyGenerator,
+    g_ema: AnyGenerator,
+    d: Discriminator,
+    opt_g: ModuleOptimizer,
+    opt_d: ModuleOptimizer,
+    state: TrainState,
+    grid: Option<GridCache>,
+    grid_inner: Option<GridCache>,
+    snapshot_z: Tensor<2>,
+    /// The latest (lazy) R1 estimate, logged on every log line.
+    last_r1: Option<f32>,
+}
+
+impl Trainer {
+    fn new(config: &TrainConfig, opts: &TrainOptions, data: &RangeDataset) -> Result<Self> {
+        let inner = opts.backend.device();
+        let device = inner.clone().autodiff();
+        let adam = AdamConfig::new()
+            .with_beta_1(config.beta1)
+            .with_beta_2(config.beta2)
+            .with_epsilon(1e-8);
+        let mut g = init_generator(config, &device);
+        let mut g_ema = init_generator(config, &inner);
+        let mut d = config
+            .discriminator
+            .clone()
+            .with_height(data.height)
+            .with_width(data.width)
+            .init(&device);
+        let mut opt_g = adam.init();
+        let mut opt_d = adam.init();
+        let mut state = TrainState {
+            step: 0,
+            images: 0,
+            ada_p: 0.0,
+            rng: Rng::new(config.seed),
+            ada_acc: 0.0,
+            ada_count: 0,
+        };
+        let ck = opts.run_dir.join(CHECKPOINT);
+        if ck.join("state.json").exists() {
+            let load_err = |what: &str, e: burn::store::RecordError| {
+                anyhow::anyhow!("failed to load {what} from '{}': {e}", ck.display())
+            };
+            g = g
+                .try_load_file(ck.join("g.bpk"))
+                .map_err(|e| load_err("g", e))?;
+            g_ema = g_ema
+                .try_load_file(ck.join("g_ema.bpk"))
+                .map_err(|e| load_err("g_ema", e))?;
+            d = d
+                .try_load_file(ck.join("d.bpk"))
+                .map_err(|e| load_err("d", e))?;
+            opt_g = opt_g
+                .load(ck.join("opt_g.bpk"))
+                .map_err(|e| load_err("opt_g", e))?;
+            opt_d = opt_d
+                .load(ck.join("opt_d.bpk"))
+                .map_err(|e| load_err("opt_d", e))?;
+            let text = std::fs::read_to_string(ck.join("state.json"))?;
+            state = serde_json::from_str(&text).context("bad checkpoint/state.json")?;
+        } else {
+            // The EMA starts as a copy of the generator.
+            g_ema = g.valid();
+        }
+        let (grid, grid_inner) = match &g {
+            AnyGenerator::Implicit(generator) => (
+                Some(generator.prepare(&data.angles, &device)),
+                Some(generator.prepare(&data.angles, &inner)),
+            ),
+            AnyGenerator::Conv(_) => (None, None),
+        };
+        let snapshot_z = Rng::new(config.seed ^ 0x5eed).normal_tensor([4, g.d_z()], &inner);
+        Ok(Self {
+            config: config.clone(),
+            device,
+            g,
+            g_ema,
+            d,
+            opt_g,
+            opt_d,
+            state,
+            grid,
+            grid_inner,
+            snapshot_z,
+            last_r1: None,
+        })
+    }
+
+    fn train(&mut self, opts: &TrainOptions, data: &RangeDataset) -> Result<()> {
+        let cfg = self.config.clone();
+        let b = cfg.batch_size;
+        let bar = if opts.progress {
+            ProgressBar::new(cfg.total_images)
+        } else {
+            ProgressBar::hidden()
+        };
+        bar.set_style(
+            ProgressStyle::with_template(
+                "{elapsed_precise} [{bar:30}] {human_pos}/{human_len} img {msg}",
+            )
+            .unwrap_or_else(|_| ProgressStyle::default_bar()),
+        );
+        bar.set_position(self.state.images);
+        let log_path = opts.run_dir.join("log.jsonl");
+        let mut log = OpenOptions::new()
+            .create(true)
+            .append(true)
+            .open(&log_path)
+            .with_context(|| format!("failed to open '{}'", log_path.display()))?;
+        let started = Instant::now();
+        let mut last_ckpt = Instant::now();
+        let mut window = (Instant::now(), self.state.images);
+        let mut next_snapshot =
+            (self.state.images / cfg.snapshot_every_images + 1) * cfg.snapshot_every_images;
+        if self.state.images == 0 {
+            self.snapshot(opts, data)?;
+        }
+        while self.state.images < cfg.total_images {
+            let m = self.step(data)?;
+            self.state.step += 1;
+            self.state.images += b as u64;
+            bar.set_position(self.state.images);
+            if self.state.step.is_multiple_of(cfg.log_every_steps) {
+                let dt = window.0.elapsed().as_secs_f64();
+                let ips = (self.state.images - window.1) as f64 / dt.max(1e-9);
+                window = (Instant::now(), self.state.images);
+                bar.set_message(format!(
+                    "{ips:.1} img/s  D {:.3}  G {:.3}  p {:.2}",
+                    m.loss_d, m.loss_g, self.state.ada_p
+                ));
+                let line = serde_json::json!({
+                    "step": self.state.step,
+                    "images": self.state.images,
+                    "loss_d": m.loss_d,
+                    "loss_g": m.loss_g,
+                    "r1": m.r1.or(self.last_r1),
+                    "d_real": m.d_real,
+                    "d_fake": m.d_fake,
+                    "ada_p": self.state.ada_p,
+                    "pixel_drop": m.pixel_drop,
+                    "images_per_s": ips,
+                    "elapsed_s": started.elapsed().as_secs_f64(),
+                });
+                writeln!(log, "{line}")?;
+            }
+            if self.state.images >= next_snapshot {
+                next_snapshot += cfg.snapshot_every_images;
+                self.snapshot(opts, data)?;
+                self.checkpoint(&opts.run_dir)?;
+                last_ckpt = Instant::now();
+            }
+            if last_ckpt.elapsed() >= Duration::from_secs(cfg.checkpoint_every_secs) {
+                self.checkpoint(&opts.run_dir)?;
+                last_ckpt = Instant::now();
+            }
+            if opts.max_duration.is_some_and(|t| started.elapsed() >= t) {
+                break;
+            }
+        }
+        self.checkpoint(&opts.run_dir)?;
+        self.snapshot(opts, data)?;
+        bar.finish();
+        Ok(())
+    }
+
+    /// Probability of the early random pixel dropout now.
+    fn pixel_drop(&self) -> f32 {
+        let t = self.state.images as f64 / self.config.pixel_drop_images.max(1.0);
+        (self.config.pixel_drop_start as f64 * (1.0 - t).max(0.0)) as f32
+    }
+
+    fn real_batch(&mut self, data: &RangeDataset, device: &Device) -> Tensor<4> {
+        let b = self.config.batch_size;
+        let n = data.height * data.width;
+        let mut v = Vec::with_capacity(b * n);
+        for _ in 0..b {
+            let i = self.state.rng.below(data.len());
+            v.extend_from_slice(data.image(i));
+        }
+        tensor_from(v, [b, 1, data.height, data.width], device)
+    }
+
+    /// x_G of the generator output (measurement model unless vanilla).
+    fn measure(&mut self, out: Generated) -> Tensor<4> {
+        match out.keep_logit {
+            Some(logit) => {
+                self.config
+                    .measurement
+                    .measure(out.x_d, logit, &mut self.state.rng)
+                    .x_measured
+            }
+            None => out.x_d,
+        }
+    }
+
+    /// What D sees: early pixel dropout then augmentation (same for real and fake).
+    fn d_input(&mut self, x: Tensor<4>) -> Tensor<4> {
+        let p_drop = self.pixel_drop();
+        let x = if p_drop > 0.0 {
+            let keep = self
+                .state
+                .rng
+                .uniform_open_tensor(x.dims(), &x.device())
+                .greater_elem(p_drop)
+                .float();
+            (x.add_scalar(1.0) * keep).sub_scalar(1.0)
+        } else {
+            x
+        };
+        let p = self.state.ada_p;
+        if p > 0.0 {
+            augment(x, p, &mut self.state.rng)
+        } else {
+            x
+        }
+    }
+
+    fn z(&mut self, device: &Device) -> Tensor<2> {
+        let d_z = self.g.d_z();
+        self.state
+            .rng
+            .normal_tensor([self.config.batch_size, d_z], device)
+    }
+
+    fn subgrid(&mut self) -> Option<Vec<f32>> {
+        (self.config.subgrid && self.config.arch == Arch::Dusty2)
+            .then(|| random_subgrid_shift(&mut self.state.rng, self.config.batch_size))
+    }
+
+    fn step(&mut self, data: &RangeDataset) -> Result<StepMetrics> {
+        let cfg = self.config.clone();
+        let device = self.device.clone();
+        let inner = device.clone().inner();
+
+        // ---- D step: fakes come from the generator without autodiff (constants for D).
+        let z = self.z(&inner);
+        let shift = self.subgrid();
+        let g_inner = self.g.valid();
+        let (fake, _) = g_inner.generate(z, self.grid_inner.as_ref(), shift.as_deref());
+        let fake = self.measure(fake).autodiff();
+        let fake = self.d_input(fake);
+        let real = self.real_batch(data, &device);
+        let real = self.d_input(real);
+        let logit_fake = self.d.forward(fake); // [batch, 1]
+        let logit_real = self.d.forward(real.clone()); // [batch, 1]
+        let d_real = tensor_to_vec(logit_real.clone().inner());
+        let loss_d = softplus(logit_fake.clone(), 1.0).mean()
+            + softplus(logit_real.clone().neg(), 1.0).mean();
+        let lazy = cfg.r1_gamma > 0.0 && self.state.step.is_multiple_of(cfg.r1_interval as u64);
+        let (loss_d_total, r1) = if lazy {
+            // Finite-difference R1: with v ~ N(0, I), E[(grad D . v)^2] = |grad D|^2, and
+            // (D(x + h v) - D(x)) / h estimates grad D . v with first-order autodiff only.
+            let h = cfg.r1_fd_step;
+            let v = self.state.rng.normal_tensor(real.dims(), &device);
+            let real_c = real.detach();
+            let moved = self.d.forward(real_c + v.mul_scalar(h)); // [batch, 1]
+            let dd = (moved - logit_real).div_scalar(h); // [batch, 1]
+            let r1 = dd.powi_scalar(2).mean(); // |grad D|^2 estimate
+            let penalty = r1
+                .clone()
+                .mul_scalar(cfg.r1_gamma * 0.5 * cfg.r1_interval as f32);
+            (
+                loss_d.clone() + penalty,
+                Some(r1.inner().into_scalar::<f32>()),
+            )
+        } else {
+            (loss_d.clone(), None)
+        };
+        if r1.is_some() {
+            self.last_r1 = r1;
+        }
+        let grads = loss_d_total.backward();
+        let grads = GradientsParams::from_grads(grads, &self.d);
+        self.d = self.opt_d.step(cfg.lr, self.d.clone(), grads);
+
+        // Adaptive augmentation: move p towards E[sign(D(real))] = target.
+        self.state.ada_acc += d_real.iter().map(|v| v.signum()).sum::<f32>();
+        self.state.ada_count += d_real.len() as u64;
+        if self.state.step.is_multiple_of(cfg.ada_interval as u64) && self.state.ada_count > 0 {
+            let rt = self.state.ada_acc / self.state.ada_count as f32;
+            let delta = (cfg.batch_size * cfg.ada_interval) as f64 / cfg.ada_speed_images;
+            let p = self.state.ada_p + (rt - cfg.ada_target).signum() * delta as f32;
+            self.state.ada_p = p.clamp(0.0, 1.0);
+            self.state.ada_acc = 0.0;
+            self.state.ada_count = 0;
+        }
+
+        // ---- G step: D without autodiff on its weights still passes gradients to its input.
+        let z = self.z(&device);
+        let shift = self.subgrid();
+        let (fake, w) = self.g.generate(z, self.grid.as_ref(), shift.as_deref());
+        let fake = self.measure(fake);
+        let fake = self.d_input(fake);
+        let d_frozen = self.d.valid();
+        let logit = d_frozen.forward(fake);
+        let loss_g = softplus(logit.neg(), 1.0).mean();
+        let grads = loss_g.backward();
+        let grads = GradientsParams::from_grads(grads, &self.g);
+        let g = self.opt_g.step(cfg.lr, self.g.clone(), grads);
+        self.g = match (g, w) {
+            (AnyGenerator::Implicit(mut generator), Some(w)) => {
+                generator.mapping = generator.mapping.track_w_avg(&w);
+                AnyGenerator::Implicit(generator)
+            }
+            (g, _) => g,
+        };
+
+        // ---- EMA of the generator (inference model).
+        let half_life = cfg
+            .ema_half_life_images
+            .min(self.state.images as f64 * cfg.ema_rampup)
+            .max(1.0);
+        let beta = 0.5f64.powf(cfg.batch_size as f64 / half_life) as f32;
+        self.g_ema = ema_update(self.g_ema.clone(), &self.g, beta);
+
+        Ok(StepMetrics {
+            loss_d: loss_d.inner().into_scalar::<f32>(),
+            loss_g: loss_g.inner().into_scalar::<f32>(),
+            r1,
+            d_real: d_real.iter().sum::<f32>() / d_real.len() as f32,
+            d_fake: tensor_to_vec(logit_fake.inner()).iter().sum::<f32>() / cfg.batch_size as f32,
+            pixel_drop: self.pixel_drop(),
+        })
+    }
+
+    /// Write the checkpoint to a temp folder, then swap it in (a kill never leaves half a one).
+    fn checkpoint(&self, run_dir: &Path) -> Result<()> {
+        let tmp = run_dir.join("checkpoint.tmp");
+        let old = run_dir.join("checkpoint.old");
+        let dst = run_dir.join(CHECKPOINT);
+        let _ = std::fs::remove_dir_all(&tmp);
+        std::fs::create_dir_all(&tmp)?;
+        let save_err =
+            |what: &str, e: burn::store::RecordError| anyhow::anyhow!("failed to save {what}: {e}");
+        self.g
+            .clone()
+            .save_file(tmp.join("g.bpk"))
+            .map_err(|e| save_err("g", e))?;
+        self.g_ema
+            .clone()
+            .save_file(tmp.join("g_ema.bpk"))
+            .map_err(|e| save_err("g_ema", e))?;
+        self.d
+            .clone()
+            .save_file(tmp.join("d.bpk"))
+            .map_err(|e| save_err("d", e))?;
+        self.opt_g
+            .save(tmp.join("opt_g.bpk"))
+            .map_err(|e| save_err("opt_g", e))?;
+        self.opt_d
+            .save(tmp.join("opt_d.bpk"))
+            .map_err(|e| save_err("opt_d", e))?;
+        std::fs::write(
+            tmp.join("state.json"),
+            serde_json::to_string_pretty(&self.state)?,
+        )?;
+        let _ = std::fs::remove_dir_all(&old);
+        if dst.exists() {
+            std::fs::rename(&dst, &old)?;
+        }
+        std::fs::rename(&tmp, &dst)?;
+        let _ = std::fs::remove_dir_all(&old);
+        Ok(())
+    }
+
+    /// PNG: for 4 fixed latents (EMA generator) the rows x_d | x_n (drop prob) | x_G, then
+    /// 2 real scans.
+    fn snapshot(&mut self, opts: &TrainOptions, data: &RangeDataset) -> Result<()> {
+        let (h, w) = (data.height, data.width);
+        let (out, _) = self
+            .g_ema
+            .generate(self.snapshot_z.clone(), self.grid_inner.as_ref(), None);
+        let x_d = tensor_to_vec(out.x_d.clone());
+        let (x_n, x_g) = match out.keep_logit.clone() {
+            Some(logit) => {
+                let keep = tensor_to_vec(burn::tensor::activation::sigmoid(logit.clone()));
+                let x_n: Vec<f32> = keep.iter().map(|k| 2.0 * (1.0 - k) - 1.0).collect();
+                let mut rng = Rng::new(self.state.step);
+                let m = self.config.measurement.measure(out.x_d, logit, &mut rng);
+                (x_n, tensor_to_vec(m.x_measured))
+            }
+            None => (vec![-1.0; x_d.len()], x_d.clone()),
+        };
+        let n = h * w;
+        let mut rows: Vec<&[f32]> = Vec::new();
+        for i in 0..4 {
+            rows.push(&x_d[i * n..(i + 1) * n]);
+            rows.push(&x_n[i * n..(i + 1) * n]);
+            rows.push(&x_g[i * n..(i + 1) * n]);
+        }
+        rows.push(data.image(0));
+        rows.push(data.image(data.len() / 2));
+        let path = opts
+            .run_dir
+            .join("snapshots")
+            .join(format!("{:09}.png", self.state.images));
+        write_png(&path, &rows, h, w)
+    }
+}
+
+struct StepMetrics {
+    loss_d: f32,
+    loss_g: f32,
+    r1: Option<f32>,
+    d_real: f32,
+    d_fake: f32,
+    pixel_drop: f32,
+}
+
+/// Stack `[H, W]` images (network units, -1 = black) vertically into one grayscale PNG,
+/// with a gamma that keeps far (small inverse depth) pixels visible.
+pub fn write_png(path: &Path, images: &[&[f32]], h: usize, w: usize) -> Result<()> {
+    let mut pixels = Vec::with_capacity(images.len() * (h + 2) * w);
+    for img in images {
+        for v in img.iter() {
+            let x = ((v + 1.0) * 0.5).clamp(0.0, 1.0).sqrt();
+            pixels.push((x * 255.0).round() as u8);
+        }
+        pixels.extend(std::iter::repeat_n(128u8, 2 * w)); // separator
+    }
+    let file = std::fs::File::create(path)
+        .with_context(|| format!("failed to create '{}'", path.display()))?;
+    let mut enc = png::Encoder::new(
+        std::io::BufWriter::new(file),
+        w as u32,
+        (images.len() * (h + 2)) as u32,
+    );
+    enc.set_color(png::ColorType::Grayscale);
+    enc.set_depth(png::BitDepth::Eight);
+    let mut writer = enc.write_header()?;
+    writer.write_image_data(&pixels)?;
+    writer.finish()?;
+    Ok(())
+}
+
+/// Random augmentation with probability `p` per operation and sample. Only operations that
+/// keep the circular structure: circular translation and mirroring along azimuth, vertical
+/// scaling, brightness and contrast of the returns (dropped pixels stay -1). Geometric parts
+/// are one batched `A_b x_b B_b` product with host-built matrices, so gradients flow to fakes.
+///
+/// # Shapes
+/// - x: `[batch, 1, H, W]` -> `[batch, 1, H, W]`
+pub fn augment(x: Tensor<4>, p: f32, rng: &mut Rng) -> Tensor<4> {
+    let [b, c, h, w] = x.dims();
+    let device = x.device();
+    let mut rows = vec![0f32; b * h * h];
+    let mut cols = vec![0f32; b * w * w];
+    let mut gain = vec![1f32; b];
+    let mut offset = vec![0f32; b];
+    for i in 0..b {
+        // columns: out[j] = x[src(j)]
+        let flip = rng.uniform() < p;
+        let shift = if rng.uniform() < p { rng.below(w) } else { 0 };
+        for j in 0..w {
+            let k = (j + w - shift) % w;
+            let src = if flip { w - 1 - k } else { k };
+            cols[i * w * w + src * w + j] = 1.0;
+        }
+        // rows: vertical scale about the centre, linear interpolation, clamped borders
+        let scale = if rng.uniform() < p {
+            (rng.normal() * 0.2 * std::f32::consts::LN_2).exp()
+        } else {
+            1.0
+        };
+        let centre = (h as f32 - 1.0) * 0.5;
+        for r in 0..h {
+            let y = ((r as f32 - centre) / scale + centre).clamp(0.0, (h - 1) as f32);
+            let y0 = y.floor() as usize;
+            let y1 = (y0 + 1).min(h - 1);
+            let t = y - y0 as f32;
+            rows[i * h * h + r * h + y0] += 1.0 - t;
+            rows[i * h * h + r * h + y1] += t;
+        }
+        if rng.uniform() < p {
+            offset[i] = rng.normal() * 0.2;
+        }
+        if rng.uniform() < p {
+            gain[i] = (rng.normal() * 0.5 * std::f32::consts::LN_2).exp();
+        }
+    }
+    let a = tensor_from(rows, [b, 1, h, h], &device);
+    let m = tensor_from(cols, [b, 1, w, w], &device);
+    let valid = x.clone().greater_elem(-1.0 + 1e-4).float(); // [batch, 1, H, W]
+    let x = a.clone().matmul(x).matmul(m.clone()); // [batch, 1, H, W]
+    let valid = a.matmul(valid).matmul(m).greater_elem(0.5).float();
+    let gain = tensor_from(gain, [b, 1, 1, 1], &device);
+    let offset = tensor_from(offset, [b, 1, 1, 1], &device);
+    // contrast scales the inverse depth of returns, brightness shifts it
+    let y = (x.add_scalar(1.0) * gain).sub_scalar(1.0) + offset;
+    let y = (y.add_scalar(1.0) * valid).sub_scalar(1.0);
+    debug_assert_eq!(c, 1);
+    y
+}
+
+/// Collects a module's float parameters (flattened, no autodiff) in visit order.
+struct Collect(Vec<(Tensor<1>, bool)>);
+
+impl ModuleVisitor for Collect {
+    fn visit_float<const D: usize>(&mut self, param: &Param<Tensor<D>>) {
+        let t = param.val();
+        let trainable = t.is_require_grad();
+        self.0.push((t.inner().reshape([-1]), trainable));
+    }
+}
+
+/// ema <- beta ema + (1 - beta) g for trainable tensors; fixed tensors (Fourier frequencies,
+/// w_avg) are copied.
+struct Lerp {
+    src: std::vec::IntoIter<(Tensor<1>, bool)>,
+    beta: f32,
+}
+
+impl ModuleMapper for Lerp {
+    fn map_float<const D: usize>(&mut self, param: Param<Tensor<D>>) -> Param<Tensor<D>> {
+        let Some((src, trainable)) = self.src.next() else {
+            return param;
+        };
+        let beta = self.beta;
+        param.map(|e| {
+            let src = src.reshape(e.shape());
+            if trainable {
+                e.mul_scalar(beta) + src.mul_scalar(1.0 - beta)
+            } else {
+                src
+            }
+        })
+    }
+}
+
+/// `g` must live on an autodiff device (the training module): trainability is read from it.
+pub fn ema_update<M: Module>(ema: M, g: &M, beta: f32) -> M {
+    let mut c = Collect(Vec::new());
+    g.visit(&mut c);
+    ema.map(&mut Lerp {
+        src: c.0.into_iter(),
+        beta,
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::lidar::SensorProfile;
+
+    #[test]
+    fn old_configs_load_with_new_fields_defaulted() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        let path = dir.path().join("config.json");
+        let mut v = serde_json::to_value(TrainConfig::new().with_batch_size(3)).expect("json");
+        let obj = v.as_object_mut().expect("object");
+        obj.remove("ema_rampup");
+        obj.get_mut("generator")
+            .and_then(|g| g.as_object_mut())
+            .map(|g| g.remove("output_gain"));
+        std::fs::write(&path, v.to_string()).expect("write");
+        assert!(
+            TrainConfig::load(&path).is_err(),
+            "burn's loader needs every field"
+        );
+        let c = load_config(&path).expect("load");
+        assert_eq!(c.batch_size, 3);
+        assert_eq!(c.ema_rampup, 0.05);
+        assert_eq!(c.generator.output_gain, 0.25);
+    }
+
+    #[test]
+    fn augment_keeps_drops_and_identity_at_p0() {
+        let dev = Device::flex();
+        let mut rng = Rng::new(1);
+        let mut v = rng.uniform_vec(2 * 8 * 16);
+        for (i, x) in v.iter_mut().enumerate() {
+            if i % 5 == 0 {
+                *x = -1.0;
+            }
+        }
+        let x = tensor_from(v.clone(), [2, 1, 8, 16], &dev);
+        let same = tensor_to_vec(augment(x.clone(), 0.0, &mut rng));
+        assert!(same.iter().zip(&v).all(|(a, b)| (a - b).abs() < 1e-6));
+        // A pure circular shift/flip keeps the number of dropped pixels.
+        let y = tensor_to_vec(augment(x, 1.0, &mut rng));
+        assert_eq!(y.len(), v.len());
+        assert!(y.iter().all(|v| *v >= -1.0 - 1e-6));
+    }
+
+    #[test]
+    fn ema_moves_towards_the_generator() {
+        // The source is a training (autodiff) module: that is where trainability is known.
+        let dev = Device::flex().autodiff();
+        let cfg = TrainConfig::new().with_generator(
+            GeneratorConfig::new()
+                .with_mapping(
+                    super::super::generator::MappingConfig::new()
+                        .with_d_z(4)
+                        .with_d_w(4),
+                )
+                .with_channels(vec![4])
+                .with_n_freq(vec![2])
+                .with_lh(vec![3])
+                .with_lw(vec![2]),
+        );
+        let a = init_generator(&cfg, &dev);
+        let b = init_generator(
+            &cfg.clone()
+                .with_generator(cfg.generator.clone().with_seed(9)),
+            &dev,
+        );
+        let mid = ema_update(a.clone(), &b, 0.5);
+        let (AnyGenerator::Implicit(a), AnyGenerator::Implicit(b), AnyGenerator::Implicit(m)) =
+            (a, b, mid)
+        else {
+            panic!("implicit expected");
+        };
+        let wa = tensor_to_vec(a.blocks[0].conv0.weight.val());
+        let wb = tensor_to_vec(b.blocks[0].conv0.weight.val());
+        let wm = tensor_to_vec(m.blocks[0].conv0.weight.val());
+        for i in 0..wa.len() {
+            assert!((wm[i] - 0.5 * (wa[i] + wb[i])).abs() < 1e-6);
+        }
+        // Fixed tensors are copied, not averaged.
+        assert_eq!(
+            tensor_to_vec(m.blocks[0].fourier.b_theta.val()),
+            tensor_to_vec(b.blocks[0].fourier.b_theta.val())
+        );
+    }
+
+    /// The baselines run through the same loop (fixed 64x64 output here).
+    #[test]
+    fn baselines_train_a_few_steps() {
+        for arch in [Arch::Dusty1, Arch::Vanilla] {
+            let dir = tempfile::tempdir().expect("tempdir");
+            let grid = SensorProfile::kitti_hdl64e().with_columns(64).angle_grid();
+            let (h, w) = (grid.height, grid.width);
+            let mut rng = Rng::new(4);
+            let images: Vec<f32> = (0..4 * h * w)
+                .map(|_| {
+                    if rng.uniform() < 0.2 {
+                        -1.0
+                    } else {
+                        rng.uniform() - 0.5
+                    }
+                })
+                .collect();
+            let data = RangeDataset {
+                height: h,
+                width: w,
+                images,
+                angles: grid,
+            };
+            let cache = dir.path().join("ds.bin");
+            data.save(&cache).expect("cache");
+            let config = TrainConfig::new()
+                .with_arch(arch)
+                .with_conv_generator(
+                    ConvGeneratorConfig::new()
+                        .with_d_z(8)
+                        .with_channels(vec![8, 8, 8, 8, 8])
+                        .with_base_width(4),
+                )
+                .with_discriminator(DiscriminatorConfig::new().with_channels(vec![4, 8, 8]))
+                .with_batch_size(2)
+                .with_r1_interval(1)
+                .with_total_images(4)
+                .with_snapshot_every_images(4);
+            let opts = TrainOptions {
+                run_dir: dir.path().join("run"),
+                dataset_cache: cache,
+                scans: vec![],
+                config,
+                backend: Backend::Flex,
+                total_images: None,
+                max_duration: None,
+                progress: false,
+            };
+            run(&opts).expect("train");
+            let (g, c) = load_generator(&opts.run_dir, &Device::flex()).expect("load");
+            assert_eq!(c.arch, arch);
+            let AnyGenerator::Conv(g) = g else {
+                panic!("conv generator expected")
+            };
+            let z = Rng::new(1).normal_tensor([1, 8], &Device::flex());
+            let channels = if arch == Arch::Vanilla { 1 } else { 2 };
+            assert_eq!(g.forward(z).dims(), [1, channels, h, w]);
+        }
+    }
+
+    /// A few steps on synthetic data, a checkpoint, and a resume that continues the count.
+    #[test]
+    fn trains_checkpoints_and_resumes() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        let grid = SensorProfile::kitti_hdl64e().with_columns(64).angle_grid();
+        let (h, w) = (grid.height, grid.width);
+        let mut rng = Rng::new(3);
+        let images: Vec<f32> = (0..8 * h * w)
+            .map(|i| {
+                if rng.uniform() < 0.2 {
+                    -1.0
+                } else {
+                    ((i % w) as f32 / w as f32) - 0.5
+                }
+            })
+            .collect();
+        let data = RangeDataset {
+            height: h,
+            width: w,
+            images,
+            angles: grid,
+        };
+        let cache = dir.path().join("ds.bin");
+        data.save(&cache).expect("cache");
+        let generator = GeneratorConfig::new()
+            .with_mapping(
+                super::super::generator::MappingConfig::new()
+                    .with_d_z(8)
+                    .with_d_w(8),
+            )
+            .with_channels(vec![8, 8])
+            .with_n_freq(vec![4, 4])
+            .with_lh(vec![4, 5])
+            .with_lw(vec![3, 4]);
+        let config = TrainConfig::new()
+            .with_generator(generator)
+            .with_discriminator(DiscriminatorConfig::new().with_channels(vec![4, 8, 8]))
+            .with_batch_size(2)
+            .with_r1_interval(2)
+            .with_total_images(8)
+            .with_snapshot_every_images(4)
+            .with_ada_interval(1)
+            .with_ada_speed_images(10.0);
+        let mut opts = TrainOptions {
+            run_dir: dir.path().join("run"),
+            dataset_cache: cache,
+            scans: vec![],
+            config,
+            backend: Backend::Flex,
+            total_images: None,
+            max_duration: None,
+            progress: false,
+        };
+        run(&opts).expect("train");
+        let state: TrainState = serde_json::from_str(
+            &std::fs::read_to_string(opts.run_dir.join("checkpoint/state.json")).expect("state"),
+        )
+        .expect("json");
+        assert_eq!(state.images, 8);
+        let log = std::fs::read_to_string(opts.run_dir.join("log.jsonl")).expect("log");
+        assert!(log.lines().count() >= 1 || state.step < 10);
+        // Resume with a larger budget: continues from 8, not from 0.
+        opts.total_images = Some(12);
+        run(&opts).expect("resume");
+        let state: TrainState = serde_json::from_str(
+            &std::fs::read_to_string(opts.run_dir.join("checkpoint/state.json")).expect("state"),
+        )
+        .expect("json");
+        assert_eq!(state.images, 12);
+        assert!(
+            std::fs::read_dir(opts.run_dir.join("snapshots"))
+                .expect("snapshots")
+                .count()
+                >= 2
+        );
+        let (g, _) = load_generator(&opts.run_dir, &Device::flex()).expect("load ema");
+        assert_eq!(g.d_z(), 8);
+        // Sampling from the run, on the training grid and on a 2x denser one.
+        let mut sopts = super::super::sample::SampleOptions {
+            n: 3,
+            seed: 1,
+            truncation: 1.0,
+            grid: Some(data.angles.clone()),
+        };
+        let scans =
+            super::super::sample::sample(&opts.run_dir, &sopts, &Device::flex()).expect("sample");
+        assert_eq!(scans.len(), 3);
+        let s = &scans[0];
+        assert_eq!(s.range_m.len(), h * w);
+        assert!(s.drop_prob.iter().all(|p| (0.0..=1.0).contains(p)));
+        assert!(s.range_m.iter().zip(&s.mask).all(|(r, m)| (*r > 0.0) == *m));
+        assert_eq!(s.points().len(), s.mask.iter().filter(|m| **m).count());
+        sopts.grid = Some(super::super::layers::AngleGridExt::resample(
+            &data.angles,
+            2 * h,
+            2 * w,
+        ));
+        let dense =
+            super::super::sample::sample(&opts.run_dir, &sopts, &Device::flex()).expect("dense");
+        assert_eq!(dense[0].range_m.len(), 4 * h * w);
+        // SWD of the run against the real set, and the real set against itself (floor 0).
+        let cfg = super::super::metrics::SwdConfig {
+            patches_per_image: 16,
+            projections: 8,
+            ..Default::default()
+        };
+        let report =
+            super::super::metrics::swd_of_run(&opts.run_dir, &data, 4, &cfg, &Device::flex())
+                .expect("swd");
+        assert_eq!(report.per_level.len(), 3);
+        assert!(report.mean > 0.0 && report.mean.is_finite());
+        let floor = super::super::metrics::swd_between(&data, &data, &cfg);
+        assert!(
+            floor.mean < report.mean,
+            "floor {} run {}",
+            floor.mean,
+            report.mean
+        );
+    }
+}
