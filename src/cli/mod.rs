@@ -5,6 +5,7 @@
 mod convert;
 mod import;
 mod info;
+mod simulate;
 mod train;
 
 use std::process::ExitCode;
@@ -43,6 +44,8 @@ pub enum Command {
     Info(info::InfoArgs),
     /// Turn a KITTI / SemanticKITTI folder into an MCAP of ROS 2 PointCloud2 messages.
     Import(import::ImportArgs),
+    /// Simulate a LiDAR drive through a procedural street scene, with switchable sensor physics.
+    Simulate(simulate::SimulateArgs),
     /// Train the range-image GAN on KITTI scans (resumes an existing run directory).
     Train(train::TrainArgs),
 }
@@ -76,6 +79,7 @@ pub fn run(args: Args) -> anyhow::Result<Outcome> {
         Command::Convert(a) => convert::run(&args.global, a),
         Command::Info(a) => info::run(&args.global, a),
         Command::Import(a) => import::run(&args.global, a),
+        Command::Simulate(a) => simulate::run(&args.global, a),
         Command::Train(a) => train::run_train(&args.global, a),
     }
 }

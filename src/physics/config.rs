@@ -104,7 +104,14 @@ impl Preset {
         }
     }
 
+    /// The preset for KITTI's 64-beam HDL-64E.
     pub fn config(self) -> PhysicsConfig {
+        self.config_for_beams(64)
+    }
+
+    /// The preset for a sensor with `beams` beams (per-beam lists get one entry
+    /// per beam: the upper half of the beams as KITTI's upper laser block).
+    pub fn config_for_beams(self, beams: usize) -> PhysicsConfig {
         match self {
             Preset::Ideal => PhysicsConfig {
                 description: Some("ideal: no sensor physics".into()),
@@ -127,13 +134,13 @@ impl Preset {
                 }),
                 ..Default::default()
             },
-            Preset::Realistic => realistic(),
+            Preset::Realistic => realistic(beams),
         }
     }
 }
 
 /// The `realistic` preset: KITTI HDL-64E-like values (tuning in docs/simulator.md).
-fn realistic() -> PhysicsConfig {
+fn realistic(beams: usize) -> PhysicsConfig {
     let mut material = BTreeMap::new();
     material.insert(Material::Glass, 0.35);
     material.insert(Material::DarkPaint, 0.1);
@@ -152,13 +159,21 @@ fn realistic() -> PhysicsConfig {
                 sector(-13.0, 13.0, -20.5, 0.6),
                 sector(126.0, 142.0, -19.3, 0.7),
                 sector(-146.0, -126.0, -19.3, 0.7),
+                // The lowest three beams clip the bonnet and the roof edges widely.
+                sector(-45.0, 45.0, -21.9, 0.45),
+                sector(120.0, 150.0, -21.9, 0.8),
+                sector(-150.0, -120.0, -21.9, 0.8),
             ],
             boxes: vec![],
         }),
         // Upper-block lasers (rows 0-31) drop more than lower-block ones.
         beam_dropout: Some(BeamDropout {
             enabled: true,
-            rates: Some((0..64).map(|row| if row < 32 { 0.025 } else { 0.008 } * (1.0 + 0.5 * gaussian(&[64, row as u64]).clamp(-1.8, 1.8))).collect()),
+            rates: Some(
+                (0..beams)
+                    .map(|row| if row < beams / 2 { 0.025 } else { 0.008 } * (1.0 + 0.5 * gaussian(&[64, row as u64]).clamp(-1.8, 1.8)))
+                    .collect(),
+            ),
             mean_rate: 0.0,
             spread: 0.0,
             beam_seed: 0,
@@ -220,8 +235,13 @@ fn prob(p: f32) -> bool {
 impl PhysicsConfig {
     /// A preset name or a path to a physics JSON file.
     pub fn resolve(name_or_path: &str) -> Result<Self, PhysicsError> {
+        Self::resolve_for_beams(name_or_path, 64)
+    }
+
+    /// As [`PhysicsConfig::resolve`], presets made for a sensor with `beams` beams.
+    pub fn resolve_for_beams(name_or_path: &str, beams: usize) -> Result<Self, PhysicsError> {
         match Preset::from_name(name_or_path) {
-            Some(p) => Ok(p.config()),
+            Some(p) => Ok(p.config_for_beams(beams)),
             None if Path::new(name_or_path).exists() => Self::load(Path::new(name_or_path)),
             None => Err(PhysicsError::UnknownPreset(name_or_path.into())),
         }
@@ -520,6 +540,12 @@ mod tests {
             assert_eq!(back, c);
         }
         assert!(Preset::Ideal.config().effects().is_ideal());
+        let vlp16 = PhysicsConfig::resolve_for_beams("realistic", 16).unwrap();
+        vlp16.validate("realistic", Some(16)).unwrap();
+        assert_eq!(
+            vlp16.beam_dropout.and_then(|b| b.rates).map(|r| r.len()),
+            Some(16)
+        );
         assert_eq!(
             Preset::CarlaLike.config().effects().ids(),
             ["uniform_dropout", "intensity_dropout"]

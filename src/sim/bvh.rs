@@ -65,7 +65,7 @@ impl Bvh {
         self.nodes[0].bounds.hit(ray, t_max)?;
         // Stack of (node, entry distance); children are tested at their parent so
         // the nearer one is visited first and a missed box is never pushed.
-        let mut stack = [(0u32, 0f32); 64];
+        let mut stack = [(0u32, 0f32); 128];
         let mut sp = 0usize;
         let mut node_idx = 0u32;
         loop {

@@ -307,4 +307,68 @@ mod tests {
         assert!(s.rows_keep(0..4) < s.rows_keep(20..40));
         assert!(s.class_share().get("road").copied().unwrap_or(0.0) > 0.05);
     }
+
+    #[test]
+    fn realistic_physics_brings_the_keep_pattern_close_to_real_kitti() {
+        let dir = Path::new("../shared/real_lidar/semantickitti_mini");
+        if !dir.exists() {
+            eprintln!(
+                "skipped: {} is absent (real data lives beside the repo)",
+                dir.display()
+            );
+            return;
+        }
+        let profile = SensorProfile::kitti_hdl64e().with_columns(512);
+        let mut real = RealismStats::new("real", 64, 512);
+        for (bin, labels) in find_kitti_scans(dir).into_iter().step_by(5) {
+            real.add(
+                &real_range_image(&bin, labels.as_deref(), &profile).unwrap(),
+                labels.is_some(),
+            );
+        }
+        let physics = crate::physics::Preset::Realistic.config().effects();
+        let (mut ideal, mut realistic) = (
+            RealismStats::new("ideal", 64, 512),
+            RealismStats::new("realistic", 64, 512),
+        );
+        for seed in 1..=4 {
+            let sim = crate::sim::Simulator::new(
+                crate::sim::SceneConfig {
+                    seed,
+                    duration_s: 2.0,
+                    ..Default::default()
+                },
+                profile.clone(),
+            );
+            for index in [0, 10] {
+                let mut scan = sim.scan(index);
+                ideal.add(&scan.image, true);
+                physics.apply(&mut scan, seed);
+                realistic.add(&scan.image, true);
+            }
+        }
+        let mad = |s: &RealismStats| {
+            s.row_keep()
+                .iter()
+                .zip(real.row_keep())
+                .map(|(a, b)| (a - b).abs())
+                .sum::<f64>()
+                / 64.0
+        };
+        assert!(
+            mad(&realistic) < 0.5 * mad(&ideal),
+            "row keep: realistic {} vs ideal {}",
+            mad(&realistic),
+            mad(&ideal)
+        );
+        assert!(
+            (realistic.keep_rate() - real.keep_rate()).abs() < 0.04,
+            "{} vs {}",
+            realistic.keep_rate(),
+            real.keep_rate()
+        );
+        // The ego vehicle's blind spots: the bottom rows lose a third of their rays in both.
+        assert!((realistic.rows_keep(56..64) - real.rows_keep(56..64)).abs() < 0.1);
+        assert!(ideal.rows_keep(56..64) > 0.95);
+    }
 }
