@@ -93,6 +93,9 @@ pub enum EstimateError {
     },
 }
 
+/// Valid range of an estimated profile: beyond any automotive LiDAR.
+const AUTO_MAX_RANGE_M: f32 = 1000.0;
+
 /// Fewest beams accepted as a sensor.
 const MIN_BEAMS: usize = 2;
 
@@ -189,13 +192,15 @@ pub fn estimate_profile(scans: &[Scan]) -> Result<SensorEstimate, EstimateError>
         (min_range_m * 100.0).floor() / 100.0,
         (max_range_m * 100.0).ceil() / 100.0,
     );
+    // The ranges seen in a few scans are not the sensor's limits: later scans
+    // reach nearer and farther, so the profile keeps every return the sensor gave.
     let profile = SensorProfile {
         name: "auto".into(),
         elevation_deg: beams.iter().map(|b| b.elevation_deg).collect(),
         azimuth_offset_deg: None,
         columns,
-        min_range_m,
-        max_range_m: max_range_m.max(min_range_m + 0.01),
+        min_range_m: 0.0,
+        max_range_m: AUTO_MAX_RANGE_M.max(max_range_m),
     };
     Ok(SensorEstimate {
         method,
