@@ -37,7 +37,9 @@ fn cloud(i: u64) -> Scan {
         let r = 5.0 + ((k as u64 * 7919 + i * 13) % 600) as f32 / 10.0;
         let [x, y, z] = grid.direction(k);
         scan.xyz.push([x * r, y * r, z * r]);
-        scan.intensity.as_mut().map(|v| v.push((k % 100) as f32));
+        if let Some(v) = scan.intensity.as_mut() {
+            v.push((k % 100) as f32);
+        }
     }
     scan.height = 1;
     scan.width = scan.xyz.len();

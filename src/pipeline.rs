@@ -38,6 +38,8 @@ pub struct ConvertOptions {
     pub on_error: OnError,
     /// Scans decoded in parallel per batch.
     pub batch_scans: usize,
+    /// Entries of the `rangegan` metadata record written to the output.
+    pub metadata: BTreeMap<String, String>,
 }
 
 impl Default for ConvertOptions {
@@ -49,6 +51,7 @@ impl Default for ConvertOptions {
             strategy: Strategy::Auto,
             on_error: OnError::Fail,
             batch_scans: 2 * rayon::current_num_threads().max(1),
+            metadata: BTreeMap::new(),
         }
     }
 }
@@ -270,22 +273,21 @@ impl Converter<'_> {
         }
         // Copy first: the input record reaches the output whatever happens to its scan.
         self.out.copy_record(record)?;
-        if let Record::Message { header, data } = record {
-            if let Some(ChannelInfo {
+        if let Record::Message { header, data } = record
+            && let Some(ChannelInfo {
                 topic,
                 format: Some(format),
             }) = self.channels.get(&header.channel_id)
-            {
-                self.batch.push(Pending {
-                    topic: topic.clone(),
-                    format: *format,
-                    log_time: header.log_time,
-                    publish_time: header.publish_time,
-                    data: data.to_vec(),
-                });
-                if self.batch.len() >= self.opts.batch_scans.max(1) {
-                    self.flush()?;
-                }
+        {
+            self.batch.push(Pending {
+                topic: topic.clone(),
+                format: *format,
+                log_time: header.log_time,
+                publish_time: header.publish_time,
+                data: data.to_vec(),
+            });
+            if self.batch.len() >= self.opts.batch_scans.max(1) {
+                self.flush()?;
             }
         }
         Ok(())
@@ -346,10 +348,9 @@ pub fn convert(
     mut out: McapOutput,
     opts: &ConvertOptions,
     stages: &[&Stage<'_>],
-    metadata: BTreeMap<String, String>,
     mut progress: impl FnMut(Progress),
 ) -> anyhow::Result<ConvertReport> {
-    out.write_metadata("rangegan", metadata)?;
+    out.write_metadata("rangegan", opts.metadata.clone())?;
     let mut conv = Converter {
         out,
         opts,

@@ -90,15 +90,6 @@ pub fn run(global: &GlobalArgs, args: ConvertArgs) -> anyhow::Result<Outcome> {
     let file = std::fs::File::open(&args.input)
         .with_context(|| format!("cannot open {}", args.input.display()))?;
     let len = file.metadata().ok().map(|m| m.len());
-    let opts = ConvertOptions {
-        topics: (!args.topic.is_empty()).then(|| args.topic.clone()),
-        sensor: sensor_choice(&args.sensor)?,
-        columns: args.columns,
-        strategy: args.projection.into(),
-        on_error: args.on_error,
-        ..ConvertOptions::default()
-    };
-    let out = McapOutput::create(&args.output, args.force)?;
     let metadata = BTreeMap::from([
         ("tool".to_string(), "rangegan-mcap".to_string()),
         ("version".to_string(), env!("CARGO_PKG_VERSION").to_string()),
@@ -108,28 +99,30 @@ pub fn run(global: &GlobalArgs, args: ConvertArgs) -> anyhow::Result<Outcome> {
         ),
         ("input".to_string(), args.input.display().to_string()),
     ]);
+    let opts = ConvertOptions {
+        topics: (!args.topic.is_empty()).then(|| args.topic.clone()),
+        sensor: sensor_choice(&args.sensor)?,
+        columns: args.columns,
+        strategy: args.projection.into(),
+        on_error: args.on_error,
+        metadata,
+        ..ConvertOptions::default()
+    };
+    let out = McapOutput::create(&args.output, args.force)?;
+
     let bar = super::progress_bar(global, len.unwrap_or(0));
     let started = std::time::Instant::now();
     let stages: [&Stage<'_>; 1] = [&pipeline::range_stage];
     let reader = std::io::BufReader::with_capacity(1 << 20, file);
-    let report = pipeline::convert(
-        &args.input,
-        reader,
-        len,
-        out,
-        &opts,
-        &stages,
-        metadata,
-        |p| {
-            bar.set_position(p.bytes_read);
-            let secs = started.elapsed().as_secs_f64().max(1e-3);
-            bar.set_message(format!(
-                "{} scans, {:.1} scans/s",
-                p.scans,
-                p.scans as f64 / secs
-            ));
-        },
-    )?;
+    let report = pipeline::convert(&args.input, reader, len, out, &opts, &stages, |p| {
+        bar.set_position(p.bytes_read);
+        let secs = started.elapsed().as_secs_f64().max(1e-3);
+        bar.set_message(format!(
+            "{} scans, {:.1} scans/s",
+            p.scans,
+            p.scans as f64 / secs
+        ));
+    })?;
     bar.finish_and_clear();
     let secs = started.elapsed().as_secs_f64();
 

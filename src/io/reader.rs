@@ -136,11 +136,11 @@ pub fn read_records(
         seen_any = true;
         report.bytes_read += 9 + data.len() as u64;
         if opcode == op::MESSAGE_INDEX {
-            if let Some((_, channels, indexed)) = pending_bad.as_mut() {
-                if let Ok(Record::MessageIndex(index)) = mcap::parse_record(opcode, data) {
-                    channels.insert(index.channel_id);
-                    *indexed += index.records.len() as u64;
-                }
+            if let Some((_, channels, indexed)) = pending_bad.as_mut()
+                && let Ok(Record::MessageIndex(index)) = mcap::parse_record(opcode, data)
+            {
+                channels.insert(index.channel_id);
+                *indexed += index.records.len() as u64;
             }
         } else {
             settle_bad_chunk(&mut pending_bad, &topics, on_error, &mut report)?;

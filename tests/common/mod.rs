@@ -34,7 +34,11 @@ pub fn synthetic_scan(range_m: f32, seed: u32) -> Scan {
         ..Default::default()
     };
     for k in 0..grid.len() {
-        if (k as u32).wrapping_mul(2_654_435_761).wrapping_add(seed) % 10 == 0 {
+        if (k as u32)
+            .wrapping_mul(2_654_435_761)
+            .wrapping_add(seed)
+            .is_multiple_of(10)
+        {
             continue; // dropped ray
         }
         let [x, y, z] = grid.direction(k);
