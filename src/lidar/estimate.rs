@@ -93,6 +93,20 @@ pub enum EstimateError {
     },
 }
 
+/// Column counts of common LiDAR modes (Ouster 512-4096, Velodyne at 5/10/20 Hz)
+/// and of the reference implementation's grids.
+const STANDARD_COLUMNS: [usize; 8] = [256, 512, 900, 1024, 1800, 2048, 3600, 4096];
+
+/// A measured column count moved to a standard one within 2 %: the median azimuth
+/// step of real and subsampled scans is a little off the sensor's mode (KITTI's
+/// ~2010 points per ring are imaged at 2048 columns, as in the reference).
+fn snap_columns(measured: usize) -> usize {
+    STANDARD_COLUMNS
+        .into_iter()
+        .find(|&c| (c as f32 - measured as f32).abs() <= 0.02 * c as f32)
+        .unwrap_or(measured)
+}
+
 /// Valid range of an estimated profile: beyond any automotive LiDAR.
 const AUTO_MAX_RANGE_M: f32 = 1000.0;
 
@@ -174,7 +188,7 @@ pub fn estimate_profile(scans: &[Scan]) -> Result<SensorEstimate, EstimateError>
 
     let azimuth_step = (!steps.is_empty()).then(|| median_in_place(&mut steps));
     let columns = match azimuth_step {
-        Some(step) if step > 0.0 => (TAU / step).round() as usize,
+        Some(step) if step > 0.0 => snap_columns((TAU / step).round() as usize),
         _ => scans[0].width.max(1),
     };
     let (mut min_range_m, mut max_range_m) = (f32::INFINITY, 0.0f32);
@@ -511,6 +525,24 @@ impl fmt::Display for SensorEstimate {
             }
         }
         Ok(())
+    }
+}
+
+#[cfg(test)]
+mod snap_tests {
+    use super::snap_columns;
+
+    #[test]
+    fn measured_columns_snap_to_standard_modes_only_when_close() {
+        assert_eq!(snap_columns(508), 512);
+        assert_eq!(snap_columns(2011), 2048);
+        assert_eq!(snap_columns(1800), 1800);
+        assert_eq!(
+            snap_columns(1084),
+            1084,
+            "nuScenes' HDL-32E mode is not standard"
+        );
+        assert_eq!(snap_columns(360), 360);
     }
 }
 
