@@ -16,6 +16,7 @@
 //! (Issue 6's diagnosis lives beside this in `diagnose*.rs`.)
 
 pub mod config;
+pub mod diagnose_features;
 pub mod dropout;
 pub mod perturb;
 
