@@ -17,6 +17,7 @@
 
 pub mod config;
 pub mod diagnose_features;
+pub mod diagnose_fit;
 pub mod diagnose_stats;
 pub mod dropout;
 pub mod perturb;
