@@ -54,7 +54,8 @@ pub struct ScanFeatures {
     /// Pixel distance to the nearest depth edge, capped at
     /// [`FeatureOptions::max_edge_px`]; the cap where no edge is near or no geometry.
     pub edge_px: Vec<u8>,
-    /// Class label; 0 = unknown.
+    /// Semantic class (the low 16 bits of a SemanticKITTI label, the instance id
+    /// dropped); 0 = unknown.
     pub class: Vec<u32>,
     /// Whether the pixel holds a return.
     pub kept: Vec<bool>,
@@ -160,7 +161,7 @@ fn neighbour_fill(
         .map(|k| if kept[k] { image.range_m[k] } else { f32::NAN })
         .collect();
     let mut class: Vec<u32> = (0..n)
-        .map(|k| if kept[k] { image.label[k] } else { 0 })
+        .map(|k| if kept[k] { image.label[k] & 0xffff } else { 0 })
         .collect();
     for _ in 0..passes {
         let mut next_range = range.clone();
@@ -343,7 +344,8 @@ mod tests {
         for k in 0..img.len() {
             let phi = img.angles.elevation_rad[k];
             img.range_m[k] = height_m / (-phi).sin();
-            img.label[k] = 40;
+            // Class 40 (road), instance 3 in the high bits.
+            img.label[k] = 40 | (3 << 16);
         }
         img
     }

@@ -505,4 +505,73 @@ mod tests {
             "incidence unknown (no geometry)"
         );
     }
+
+    /// Features of scans `0..scans` of a simulated drive from `seed` under `effects`.
+    fn sim_recording(
+        seed: u64,
+        scans: u32,
+        effects: Vec<Box<dyn crate::physics::Effect>>,
+    ) -> Vec<ScanFeatures> {
+        use crate::lidar::SensorProfile;
+        use crate::physics::Physics;
+        use crate::physics::diagnose_features::FeatureOptions;
+        use crate::sim::{SceneConfig, Simulator};
+        let sim = Simulator::new(
+            SceneConfig {
+                seed,
+                duration_s: 0.1 * scans as f32 + 0.1,
+                ..Default::default()
+            },
+            SensorProfile::kitti_hdl64e().with_columns(512),
+        );
+        let physics = Physics { effects };
+        (0..scans)
+            .map(|i| {
+                let mut scan = sim.scan(i);
+                physics.apply(&mut scan, seed);
+                ScanFeatures::from_image(&scan.image, &FeatureOptions::default())
+            })
+            .collect()
+    }
+
+    fn all_counts(scans: &[ScanFeatures]) -> DropCounts {
+        let mut c = DropCounts::default();
+        for s in scans {
+            c.add(s, &BinOptions::default());
+        }
+        c
+    }
+
+    #[test]
+    fn simulated_concealed_range_dropout_diverges_most_in_range() {
+        use crate::physics::dropout::{RangeDropout, UniformDropout};
+        let real = all_counts(&sim_recording(
+            101,
+            6,
+            vec![Box::new(RangeDropout {
+                enabled: true,
+                range_50_m: 40.0,
+                softness: 0.3,
+            })],
+        ));
+        let ideal = all_counts(&sim_recording(202, 6, vec![]));
+        let (r, s0) = (real.drop_rate(), ideal.drop_rate());
+        let prob = ((r - s0) / (1.0 - s0)) as f32;
+        let sim = all_counts(&sim_recording(
+            202,
+            6,
+            vec![Box::new(UniformDropout {
+                enabled: true,
+                prob,
+            })],
+        ));
+        assert!((sim.drop_rate() - r).abs() < 0.01, "concealed");
+        let cmp = compare(&sim, &real, &BinOptions::default(), &TestOptions::default());
+        let top = cmp.strongest().expect("a significant bin");
+        assert_eq!(top.feature, Feature::Range, "{top:?}");
+        assert!(
+            top.rate_diff() > 0.0,
+            "far range drops more in real: {top:?}"
+        );
+    }
 }
