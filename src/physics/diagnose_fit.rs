@@ -262,8 +262,7 @@ pub fn fit_effect(
     train: &[ScanFeatures],
     test: &[ScanFeatures],
 ) -> Result<EffectFit, FitError> {
-    let reach_m = REACH_FRACTION
-        * kept_range_quantile(sim, REACH_QUANTILE).min(kept_range_quantile(train, REACH_QUANTILE));
+    let reach_m = reach_m(sim, train);
     let h_sim = candidate.histogram(sim, reach_m);
     let h_train = candidate.histogram(train, reach_m);
     let h_test = candidate.histogram(test, reach_m);
@@ -315,6 +314,13 @@ pub fn fit_effect(
 /// `REACH_QUANTILE` quantile of kept ranges (the smaller of the two sides).
 pub const REACH_QUANTILE: f64 = 0.995;
 pub const REACH_FRACTION: f32 = 0.85;
+
+/// The range beyond which completed pixels are left out: [`REACH_FRACTION`] of
+/// the smaller of the two sides' [`REACH_QUANTILE`] kept-range quantiles.
+pub fn reach_m(sim: &[ScanFeatures], real: &[ScanFeatures]) -> f32 {
+    REACH_FRACTION
+        * kept_range_quantile(sim, REACH_QUANTILE).min(kept_range_quantile(real, REACH_QUANTILE))
+}
 
 /// The `q` quantile of kept ranges over scans (infinity when none is kept).
 pub fn kept_range_quantile(scans: &[ScanFeatures], q: f64) -> f32 {
