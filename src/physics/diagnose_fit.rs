@@ -436,21 +436,28 @@ mod tests {
 
     #[test]
     fn concealed_range_dropout_is_named_and_fitted() {
-        let truth = (45.0f32, 0.4f32);
-        let (sim, real) = concealed(Candidate::RangeDropout.effect(truth.0, truth.1));
-        let (train, test) = split(&real);
-        let fits = rank_effects(&sim, &train, &test).expect("fits");
-        let top = &fits[0];
-        assert_eq!(top.candidate, Candidate::RangeDropout, "{fits:#?}");
-        assert!(top.significant(), "{top:?}");
-        let range_50 = top.params[0].1;
-        assert!(
-            (range_50 / f64::from(truth.0)).ln().abs() < 0.35,
-            "range_50_m {range_50} vs {}",
-            truth.0
-        );
-        assert!(top.nll < top.before_nll, "{top:?}");
-        assert!(!fits[1].significant() || fits[1].gain() < top.gain());
+        // Parameters drawn from a fixed seed across a plausible sensor range.
+        for case in 0..3u64 {
+            let u = |salt: u64| crate::sim::rng::uniform(&[0xd1a9, case, salt]);
+            let truth = (30.0 + 40.0 * u(1), 0.2 + 0.4 * u(2));
+            let (sim, real) = concealed(Candidate::RangeDropout.effect(truth.0, truth.1));
+            let (train, test) = split(&real);
+            let fits = rank_effects(&sim, &train, &test).expect("fits");
+            let top = &fits[0];
+            assert_eq!(
+                top.candidate,
+                Candidate::RangeDropout,
+                "{truth:?}: {fits:#?}"
+            );
+            assert!(top.significant(), "{truth:?}: {top:?}");
+            let range_50 = top.params[0].1;
+            assert!(
+                (range_50 / f64::from(truth.0)).ln().abs() < 0.35,
+                "range_50_m {range_50} vs {truth:?}"
+            );
+            assert!(top.nll < top.before_nll, "{top:?}");
+            assert!(!fits[1].significant() || fits[1].gain() < top.gain());
+        }
     }
 
     #[test]
