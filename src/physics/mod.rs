@@ -16,6 +16,9 @@
 //! (Issue 6's diagnosis lives beside this in `diagnose*.rs`.)
 
 pub mod config;
+pub mod diagnose_features;
+pub mod diagnose_fit;
+pub mod diagnose_stats;
 pub mod dropout;
 pub mod perturb;
 

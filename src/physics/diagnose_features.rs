@@ -1,0 +1,443 @@
+//! Per-pixel features for Sim2Real diagnosis (issue 6), computed the same way on a
+//! real or a simulated scan projected onto a [`RangeImage`].
+//!
+//! This module owns the cheap geometry that the drop-rate comparisons condition
+//! on: a neighbour-fill completion of dropped pixels (the fallback until the GAN's
+//! completion is wired in), incidence angles from the normals of the completed
+//! depth, depth-edge proximity, and classes (labels where present, else the most
+//! common label among valid neighbours). It does no statistics (see
+//! `diagnose_stats`) and no I/O.
+
+use crate::lidar::RangeImage;
+
+/// Settings for [`ScanFeatures::from_image`].
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct FeatureOptions {
+    /// Neighbour-fill passes: a dropped pixel is completed if a valid pixel lies
+    /// within this many 8-neighbour steps; farther ones stay without geometry.
+    pub fill_passes: usize,
+    /// A pixel is on a depth edge when a 4-neighbour's range differs from its own
+    /// by more than this fraction of the nearer range.
+    pub edge_relative_jump: f32,
+    /// Edge proximity is counted in pixels up to this cap.
+    pub max_edge_px: u8,
+    /// Whether the columns wrap around (a full-turn scan).
+    pub wrap_azimuth: bool,
+}
+
+impl Default for FeatureOptions {
+    fn default() -> Self {
+        FeatureOptions {
+            fill_passes: 3,
+            edge_relative_jump: 0.1,
+            max_edge_px: 8,
+            wrap_azimuth: true,
+        }
+    }
+}
+
+/// Features of every pixel of one scan, row-major `H x W` (struct of arrays).
+#[derive(Debug, Clone, PartialEq)]
+pub struct ScanFeatures {
+    pub height: usize,
+    pub width: usize,
+    /// Beam row of each pixel.
+    pub row: Vec<u32>,
+    /// Pixel azimuth, radians (reference convention of [`crate::lidar::AngleGrid`]).
+    pub azimuth_rad: Vec<f32>,
+    /// Measured range where kept, neighbour-filled range where dropped, NaN where
+    /// no valid pixel was close enough to complete it.
+    pub range_m: Vec<f32>,
+    /// Angle between the ray and the completed surface normal, in [0, pi/2];
+    /// NaN where the normal is undefined.
+    pub incidence_rad: Vec<f32>,
+    /// Pixel distance to the nearest depth edge, capped at
+    /// [`FeatureOptions::max_edge_px`]; the cap where no edge is near or no geometry.
+    pub edge_px: Vec<u8>,
+    /// Semantic class (the low 16 bits of a SemanticKITTI label, the instance id
+    /// dropped); 0 = unknown.
+    pub class: Vec<u32>,
+    /// Whether the pixel holds a return.
+    pub kept: Vec<bool>,
+}
+
+impl ScanFeatures {
+    pub fn len(&self) -> usize {
+        self.kept.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.kept.is_empty()
+    }
+
+    /// Fraction of pixels without a return.
+    pub fn drop_rate(&self) -> f64 {
+        if self.is_empty() {
+            return 0.0;
+        }
+        self.kept.iter().filter(|k| !**k).count() as f64 / self.len() as f64
+    }
+
+    /// Computes the features of a projected scan.
+    pub fn from_image(image: &RangeImage, options: &FeatureOptions) -> Self {
+        let (h, w) = (image.height, image.width);
+        let n = h * w;
+        let kept: Vec<bool> = (0..n).map(|k| image.is_valid(k)).collect();
+        let grid = Grid {
+            h,
+            w,
+            wrap: options.wrap_azimuth,
+        };
+        let (range_m, class) = neighbour_fill(&grid, image, &kept, options.fill_passes);
+        let dirs: Vec<[f32; 3]> = (0..n).map(|k| image.angles.direction(k)).collect();
+        let incidence_rad = incidence(&grid, &range_m, &dirs);
+        let edge_px = edge_proximity(
+            &grid,
+            &range_m,
+            options.edge_relative_jump,
+            options.max_edge_px,
+        );
+        ScanFeatures {
+            height: h,
+            width: w,
+            row: (0..n).map(|k| (k / w.max(1)) as u32).collect(),
+            azimuth_rad: image.angles.azimuth_rad.clone(),
+            range_m,
+            incidence_rad,
+            edge_px,
+            class,
+            kept,
+        }
+    }
+}
+
+/// Neighbour arithmetic on an `h x w` grid whose columns may wrap.
+struct Grid {
+    h: usize,
+    w: usize,
+    wrap: bool,
+}
+
+impl Grid {
+    /// Pixel at offset (di, dj) from (i, j), if inside the grid.
+    fn at(&self, i: usize, j: usize, di: isize, dj: isize) -> Option<usize> {
+        let ii = i as isize + di;
+        if ii < 0 || ii >= self.h as isize {
+            return None;
+        }
+        let mut jj = j as isize + dj;
+        if self.wrap {
+            jj = jj.rem_euclid(self.w as isize);
+        } else if jj < 0 || jj >= self.w as isize {
+            return None;
+        }
+        Some(ii as usize * self.w + jj as usize)
+    }
+}
+
+const EIGHT: [(isize, isize); 8] = [
+    (-1, -1),
+    (-1, 0),
+    (-1, 1),
+    (0, -1),
+    (0, 1),
+    (1, -1),
+    (1, 0),
+    (1, 1),
+];
+
+/// Completes dropped pixels pass by pass: each takes the mean range of its
+/// already-known same-row neighbours, else of its known 8-neighbours (and the most
+/// common nonzero label of the latter). Kept pixels keep their
+/// own range and label, but an unlabelled kept pixel takes its neighbours' label.
+fn neighbour_fill(
+    grid: &Grid,
+    image: &RangeImage,
+    kept: &[bool],
+    passes: usize,
+) -> (Vec<f32>, Vec<u32>) {
+    let n = kept.len();
+    let mut range: Vec<f32> = (0..n)
+        .map(|k| if kept[k] { image.range_m[k] } else { f32::NAN })
+        .collect();
+    let mut class: Vec<u32> = (0..n)
+        .map(|k| if kept[k] { image.label[k] & 0xffff } else { 0 })
+        .collect();
+    for _ in 0..passes {
+        let mut next_range = range.clone();
+        let mut next_class = class.clone();
+        let mut changed = false;
+        for i in 0..grid.h {
+            for j in 0..grid.w {
+                let k = i * grid.w + j;
+                let need_range = range[k].is_nan();
+                if !need_range && class[k] != 0 {
+                    continue;
+                }
+                let (mut sum, mut count) = (0.0f32, 0usize);
+                let mut labels: Vec<u32> = Vec::new();
+                for (di, dj) in EIGHT {
+                    if let Some(m) = grid.at(i, j, di, dj)
+                        && !range[m].is_nan()
+                    {
+                        sum += range[m];
+                        count += 1;
+                        if class[m] != 0 {
+                            labels.push(class[m]);
+                        }
+                    }
+                }
+                if need_range && count > 0 {
+                    // Same-row neighbours first: along a beam the range varies
+                    // slowly on the ground, across beams it jumps.
+                    let same_row: Vec<f32> = [-1isize, 1]
+                        .iter()
+                        .filter_map(|&dj| grid.at(i, j, 0, dj))
+                        .map(|m| range[m])
+                        .filter(|r| !r.is_nan())
+                        .collect();
+                    next_range[k] = if same_row.is_empty() {
+                        sum / count as f32
+                    } else {
+                        same_row.iter().sum::<f32>() / same_row.len() as f32
+                    };
+                    changed = true;
+                }
+                if let Some(label) = most_common(&mut labels) {
+                    next_class[k] = label;
+                    changed = true;
+                }
+            }
+        }
+        range = next_range;
+        class = next_class;
+        if !changed {
+            break;
+        }
+    }
+    (range, class)
+}
+
+/// The most frequent value (smallest on ties), or None for an empty slice.
+fn most_common(values: &mut [u32]) -> Option<u32> {
+    values.sort_unstable();
+    let mut best: Option<(u32, usize)> = None;
+    let mut i = 0;
+    while i < values.len() {
+        let mut j = i;
+        while j < values.len() && values[j] == values[i] {
+            j += 1;
+        }
+        if best.is_none_or(|(_, c)| j - i > c) {
+            best = Some((values[i], j - i));
+        }
+        i = j;
+    }
+    best.map(|(v, _)| v)
+}
+
+fn sub(a: [f32; 3], b: [f32; 3]) -> [f32; 3] {
+    [a[0] - b[0], a[1] - b[1], a[2] - b[2]]
+}
+
+fn cross(a: [f32; 3], b: [f32; 3]) -> [f32; 3] {
+    [
+        a[1] * b[2] - a[2] * b[1],
+        a[2] * b[0] - a[0] * b[2],
+        a[0] * b[1] - a[1] * b[0],
+    ]
+}
+
+fn dot(a: [f32; 3], b: [f32; 3]) -> f32 {
+    a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+}
+
+/// Incidence from the normal of the completed depth. Along each image axis the
+/// tangent is the one-sided difference towards the neighbour with the smaller
+/// range jump, so a normal does not straddle a depth edge.
+fn incidence(grid: &Grid, range: &[f32], dirs: &[[f32; 3]]) -> Vec<f32> {
+    let point = |k: usize| {
+        let d = dirs[k];
+        [range[k] * d[0], range[k] * d[1], range[k] * d[2]]
+    };
+    let tangent = |i: usize, j: usize, k: usize, axis: (isize, isize)| -> Option<[f32; 3]> {
+        let fwd = grid
+            .at(i, j, axis.0, axis.1)
+            .filter(|&m| !range[m].is_nan());
+        let back = grid
+            .at(i, j, -axis.0, -axis.1)
+            .filter(|&m| !range[m].is_nan());
+        let jump = |m: usize| (range[m] - range[k]).abs();
+        match (fwd, back) {
+            (Some(f), Some(b)) if jump(f) <= jump(b) => Some(sub(point(f), point(k))),
+            (Some(_), Some(b)) | (None, Some(b)) => Some(sub(point(k), point(b))),
+            (Some(f), None) => Some(sub(point(f), point(k))),
+            (None, None) => None,
+        }
+    };
+    (0..range.len())
+        .map(|k| {
+            if range[k].is_nan() {
+                return f32::NAN;
+            }
+            let (i, j) = (k / grid.w, k % grid.w);
+            let (Some(tu), Some(tv)) = (tangent(i, j, k, (0, 1)), tangent(i, j, k, (1, 0))) else {
+                return f32::NAN;
+            };
+            let normal = cross(tu, tv);
+            let norm = dot(normal, normal).sqrt();
+            if norm <= f32::EPSILON * range[k] * range[k] {
+                return f32::NAN;
+            }
+            (dot(normal, dirs[k]).abs() / norm).clamp(0.0, 1.0).acos()
+        })
+        .collect()
+}
+
+/// Pixel distance (4-connected steps) to the nearest depth-edge pixel, capped.
+fn edge_proximity(grid: &Grid, range: &[f32], relative_jump: f32, cap: u8) -> Vec<u8> {
+    let four = [(-1, 0), (1, 0), (0, -1), (0, 1)];
+    let n = range.len();
+    let mut dist = vec![cap; n];
+    for k in 0..n {
+        if range[k].is_nan() {
+            continue;
+        }
+        let (i, j) = (k / grid.w, k % grid.w);
+        let on_edge = four.iter().any(|&(di, dj)| {
+            grid.at(i, j, di, dj).is_some_and(|m| {
+                !range[m].is_nan()
+                    && (range[m] - range[k]).abs() > relative_jump * range[m].min(range[k])
+            })
+        });
+        if on_edge {
+            dist[k] = 0;
+        }
+    }
+    for d in 1..cap {
+        let prev = dist.clone();
+        for k in 0..n {
+            if prev[k] <= d || range[k].is_nan() {
+                continue;
+            }
+            let (i, j) = (k / grid.w, k % grid.w);
+            if four
+                .iter()
+                .any(|&(di, dj)| grid.at(i, j, di, dj).is_some_and(|m| prev[m] == d - 1))
+            {
+                dist[k] = d;
+            }
+        }
+    }
+    dist
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::lidar::AngleGrid;
+
+    /// An image of a flat ground plane `height_m` below the sensor, rows looking down.
+    fn ground_image(h: usize, w: usize, height_m: f32) -> RangeImage {
+        let angles = AngleGrid::regular_columns(h, w, |i| -0.05 - 0.02 * i as f32);
+        let mut img = RangeImage::empty(angles);
+        for k in 0..img.len() {
+            let phi = img.angles.elevation_rad[k];
+            img.range_m[k] = height_m / (-phi).sin();
+            // Class 40 (road), instance 3 in the high bits.
+            img.label[k] = 40 | (3 << 16);
+        }
+        img
+    }
+
+    #[test]
+    fn incidence_of_flat_ground_matches_elevation() {
+        let img = ground_image(8, 64, 1.7);
+        let f = ScanFeatures::from_image(&img, &FeatureOptions::default());
+        for k in 0..f.len() {
+            // The ray meets a horizontal plane at incidence pi/2 - |phi|.
+            let expected = std::f32::consts::FRAC_PI_2 + img.angles.elevation_rad[k];
+            assert!(
+                (f.incidence_rad[k] - expected).abs() < 0.02,
+                "k={k}: {} vs {expected}",
+                f.incidence_rad[k]
+            );
+        }
+    }
+
+    #[test]
+    fn dropped_pixels_are_filled_from_neighbours() {
+        let mut img = ground_image(8, 64, 1.7);
+        let truth = img.clone();
+        let holes = [3 * 64 + 10, 3 * 64 + 11, 5 * 64 + 63];
+        for k in holes {
+            img.range_m[k] = 0.0;
+            img.label[k] = 0;
+        }
+        let f = ScanFeatures::from_image(&img, &FeatureOptions::default());
+        for k in holes {
+            assert!(!f.kept[k]);
+            let rel = (f.range_m[k] - truth.range_m[k]).abs() / truth.range_m[k];
+            // Same-row neighbours fill exactly on ground (rows differ in range).
+            assert!(
+                rel < 1e-6,
+                "k={k}: {} vs {}",
+                f.range_m[k],
+                truth.range_m[k]
+            );
+            assert_eq!(f.class[k], 40, "class from neighbours");
+            assert!(f.incidence_rad[k].is_finite());
+        }
+        assert_eq!(f.kept.iter().filter(|k| !**k).count(), holes.len());
+        assert!((f.drop_rate() - 3.0 / 512.0).abs() < 1e-9);
+        assert_eq!(f.row[5 * 64 + 63], 5);
+    }
+
+    #[test]
+    fn far_holes_stay_without_geometry() {
+        let mut img = ground_image(8, 64, 1.7);
+        // Blank the top three rows entirely (a sky): beyond one fill pass from row 3.
+        for k in 0..3 * 64 {
+            img.range_m[k] = 0.0;
+        }
+        let options = FeatureOptions {
+            fill_passes: 1,
+            ..FeatureOptions::default()
+        };
+        let f = ScanFeatures::from_image(&img, &options);
+        assert!(f.range_m[2 * 64 + 5].is_finite(), "adjacent row filled");
+        assert!(f.range_m[5].is_nan(), "top row too far to fill");
+        assert!(f.incidence_rad[5].is_nan());
+    }
+
+    #[test]
+    fn edge_proximity_counts_steps_from_a_depth_jump() {
+        let angles = AngleGrid::regular_columns(4, 32, |i| 0.01 * i as f32);
+        let mut img = RangeImage::empty(angles);
+        for k in 0..img.len() {
+            // A wall at 10 m on columns 0..16, at 30 m beyond.
+            img.range_m[k] = if k % 32 < 16 { 10.0 } else { 30.0 };
+        }
+        let options = FeatureOptions {
+            wrap_azimuth: false,
+            ..FeatureOptions::default()
+        };
+        let f = ScanFeatures::from_image(&img, &options);
+        assert_eq!(f.edge_px[15], 0);
+        assert_eq!(f.edge_px[16], 0);
+        assert_eq!(f.edge_px[12], 3);
+        assert_eq!(f.edge_px[20], 4);
+        assert_eq!(f.edge_px[0], 8, "capped far from the edge");
+        // With wrapping, column 0 sits next to column 31: another edge.
+        let wrapped = ScanFeatures::from_image(&img, &FeatureOptions::default());
+        assert_eq!(wrapped.edge_px[0], 0);
+        assert_eq!(wrapped.edge_px[1], 1);
+    }
+
+    #[test]
+    fn most_common_prefers_frequency_then_smallest() {
+        assert_eq!(most_common(&mut []), None);
+        assert_eq!(most_common(&mut [7, 3, 7, 3, 9]), Some(3));
+        assert_eq!(most_common(&mut [7, 3, 7]), Some(7));
+    }
+}
