@@ -332,6 +332,35 @@ fn edge_proximity(grid: &Grid, range: &[f32], relative_jump: f32, cap: u8) -> Ve
     dist
 }
 
+/// Features of scans `0..scans` of a simulated drive (HDL-64E at 64 x 512) from
+/// scene `seed` under `effects`: the fixture the diagnosis tests share.
+#[cfg(test)]
+pub(crate) fn simulated_recording(
+    seed: u64,
+    scans: u32,
+    effects: Vec<Box<dyn crate::physics::Effect>>,
+) -> Vec<ScanFeatures> {
+    use crate::lidar::SensorProfile;
+    use crate::physics::Physics;
+    use crate::sim::{SceneConfig, Simulator};
+    let sim = Simulator::new(
+        SceneConfig {
+            seed,
+            duration_s: 0.1 * scans as f32 + 0.1,
+            ..Default::default()
+        },
+        SensorProfile::kitti_hdl64e().with_columns(512),
+    );
+    let physics = Physics { effects };
+    (0..scans)
+        .map(|i| {
+            let mut scan = sim.scan(i);
+            physics.apply(&mut scan, seed);
+            ScanFeatures::from_image(&scan.image, &FeatureOptions::default())
+        })
+        .collect()
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -361,31 +361,9 @@ pub fn rank_effects(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::lidar::SensorProfile;
-    use crate::physics::Physics;
-    use crate::physics::diagnose_features::FeatureOptions;
     use crate::physics::dropout::UniformDropout;
-    use crate::sim::{SceneConfig, Simulator};
 
-    /// Features of scans `0..scans` of a drive from `seed` under `effects`.
-    fn recording(seed: u64, scans: u32, effects: Vec<Box<dyn Effect>>) -> Vec<ScanFeatures> {
-        let sim = Simulator::new(
-            SceneConfig {
-                seed,
-                duration_s: 0.1 * scans as f32 + 0.1,
-                ..Default::default()
-            },
-            SensorProfile::kitti_hdl64e().with_columns(512),
-        );
-        let physics = Physics { effects };
-        (0..scans)
-            .map(|i| {
-                let mut scan = sim.scan(i);
-                physics.apply(&mut scan, seed);
-                ScanFeatures::from_image(&scan.image, &FeatureOptions::default())
-            })
-            .collect()
-    }
+    use crate::physics::diagnose_features::simulated_recording as recording;
 
     fn drop_rate(scans: &[ScanFeatures]) -> f64 {
         scans.iter().map(|s| s.drop_rate()).sum::<f64>() / scans.len() as f64

@@ -514,33 +514,7 @@ mod tests {
         );
     }
 
-    /// Features of scans `0..scans` of a simulated drive from `seed` under `effects`.
-    fn sim_recording(
-        seed: u64,
-        scans: u32,
-        effects: Vec<Box<dyn crate::physics::Effect>>,
-    ) -> Vec<ScanFeatures> {
-        use crate::lidar::SensorProfile;
-        use crate::physics::Physics;
-        use crate::physics::diagnose_features::FeatureOptions;
-        use crate::sim::{SceneConfig, Simulator};
-        let sim = Simulator::new(
-            SceneConfig {
-                seed,
-                duration_s: 0.1 * scans as f32 + 0.1,
-                ..Default::default()
-            },
-            SensorProfile::kitti_hdl64e().with_columns(512),
-        );
-        let physics = Physics { effects };
-        (0..scans)
-            .map(|i| {
-                let mut scan = sim.scan(i);
-                physics.apply(&mut scan, seed);
-                ScanFeatures::from_image(&scan.image, &FeatureOptions::default())
-            })
-            .collect()
-    }
+    use crate::physics::diagnose_features::simulated_recording;
 
     fn all_counts(scans: &[ScanFeatures]) -> DropCounts {
         let mut c = DropCounts::default();
@@ -553,7 +527,7 @@ mod tests {
     #[test]
     fn simulated_concealed_range_dropout_diverges_most_in_range() {
         use crate::physics::dropout::{RangeDropout, UniformDropout};
-        let real = all_counts(&sim_recording(
+        let real = all_counts(&simulated_recording(
             101,
             6,
             vec![Box::new(RangeDropout {
@@ -562,10 +536,10 @@ mod tests {
                 softness: 0.3,
             })],
         ));
-        let ideal = all_counts(&sim_recording(202, 6, vec![]));
+        let ideal = all_counts(&simulated_recording(202, 6, vec![]));
         let (r, s0) = (real.drop_rate(), ideal.drop_rate());
         let prob = ((r - s0) / (1.0 - s0)) as f32;
-        let sim = all_counts(&sim_recording(
+        let sim = all_counts(&simulated_recording(
             202,
             6,
             vec![Box::new(UniformDropout {
@@ -594,8 +568,8 @@ mod tests {
             })]
         };
         let (sim, real) = (
-            sim_recording(7, 6, uniform()),
-            sim_recording(8, 6, uniform()),
+            simulated_recording(7, 6, uniform()),
+            simulated_recording(8, 6, uniform()),
         );
         let bins = BinOptions {
             reach_m: reach_m(&sim, &real),
