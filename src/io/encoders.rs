@@ -102,44 +102,48 @@ fn foxglove_schema<T: Encode>() -> SchemaDef {
     }
 }
 
-/// The schema of a `kind` channel in `family`.
-pub fn schema(family: Family, kind: Kind) -> SchemaDef {
-    let ros = |name: &str, encoding: &str, text: &str| SchemaDef {
-        name: name.into(),
-        encoding: encoding.into(),
-        data: text.as_bytes().to_vec(),
-    };
-    match (family, kind) {
-        (Family::Ros2, Kind::Image) => ros(
-            "sensor_msgs/msg/Image",
-            "ros2msg",
+/// A kind's ROS package and type, with its ROS 2 and ROS 1 definitions.
+fn ros_type(kind: Kind) -> (&'static str, &'static str, &'static str, &'static str) {
+    match kind {
+        Kind::Image => (
+            "sensor_msgs",
+            "Image",
             include_str!("../../schemas/ros2/sensor_msgs__Image.msg"),
-        ),
-        (Family::Ros2, Kind::Cloud) => ros(
-            "sensor_msgs/msg/PointCloud2",
-            "ros2msg",
-            include_str!("../../schemas/ros2/sensor_msgs__PointCloud2.msg"),
-        ),
-        (Family::Ros2, Kind::Transforms) => ros(
-            "tf2_msgs/msg/TFMessage",
-            "ros2msg",
-            include_str!("../../schemas/ros2/tf2_msgs__TFMessage.msg"),
-        ),
-        (Family::Ros1, Kind::Image) => ros(
-            "sensor_msgs/Image",
-            "ros1msg",
             include_str!("../../schemas/ros1/sensor_msgs__Image.msg"),
         ),
-        (Family::Ros1, Kind::Cloud) => ros(
-            "sensor_msgs/PointCloud2",
-            "ros1msg",
+        Kind::Cloud => (
+            "sensor_msgs",
+            "PointCloud2",
+            include_str!("../../schemas/ros2/sensor_msgs__PointCloud2.msg"),
             include_str!("../../schemas/ros1/sensor_msgs__PointCloud2.msg"),
         ),
-        (Family::Ros1, Kind::Transforms) => ros(
-            "tf2_msgs/TFMessage",
-            "ros1msg",
+        Kind::Transforms => (
+            "tf2_msgs",
+            "TFMessage",
+            include_str!("../../schemas/ros2/tf2_msgs__TFMessage.msg"),
             include_str!("../../schemas/ros1/tf2_msgs__TFMessage.msg"),
         ),
+    }
+}
+
+/// The schema of a `kind` channel in `family`.
+pub fn schema(family: Family, kind: Kind) -> SchemaDef {
+    let ros = |ros2: bool| {
+        let (package, name, text2, text1) = ros_type(kind);
+        let (name, encoding, text) = if ros2 {
+            (format!("{package}/msg/{name}"), "ros2msg", text2)
+        } else {
+            (format!("{package}/{name}"), "ros1msg", text1)
+        };
+        SchemaDef {
+            name,
+            encoding: encoding.into(),
+            data: text.as_bytes().to_vec(),
+        }
+    };
+    match (family, kind) {
+        (Family::Ros2, _) => ros(true),
+        (Family::Ros1, _) => ros(false),
         (Family::Foxglove, Kind::Image) => foxglove_schema::<foxglove::messages::RawImage>(),
         (Family::Foxglove, Kind::Cloud) => foxglove_schema::<foxglove::messages::PointCloud>(),
         (Family::Foxglove, Kind::Transforms) => {
