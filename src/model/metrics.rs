@@ -228,10 +228,10 @@ fn inverse_depth(images: &[f32]) -> Vec<f32> {
     images.iter().map(|v| ((v + 1.0) * 0.5).max(0.0)).collect()
 }
 
-/// SWD between `n_fake` samples (after ray drop) of the run in `run_dir` and the scans of
+/// SWD between `n_fake` samples (after ray drop) of `model` and the scans of
 /// `real` (e.g. the held-out sequences), on the inverse depth.
-pub fn swd_of_run(
-    run_dir: &std::path::Path,
+pub fn swd_of_model(
+    model: &super::weights::Model,
     real: &super::data::RangeDataset,
     n_fake: usize,
     cfg: &SwdConfig,
@@ -243,7 +243,7 @@ pub fn swd_of_run(
         truncation: 1.0,
         grid: Some(real.angles.clone()),
     };
-    let fakes: Vec<Vec<f32>> = super::sample::sample(run_dir, &opts, device)?
+    let fakes: Vec<Vec<f32>> = super::sample::sample(model, &opts, device)?
         .into_iter()
         .map(|s| {
             s.x_d

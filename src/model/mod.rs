@@ -6,6 +6,8 @@
 //! - [`measurement`]: the differentiable ray-drop model (keep/drop probability, sampled masks).
 //! - [`discriminator`]: circular residual discriminator.
 //! - [`data`], [`train`]: dataset cache and the GAN training loop with checkpoints.
+//! - [`weights`]: the shipped model and loading trained generators.
+//! - [`sample`], [`metrics`]: drawing scans, SWD.
 //!
 //! Images are in network units: inverse depth x_d = 1.45 m / depth in [0.018, 1] mapped to
 //! 2 x_d - 1, no return = -1. The backend/device is chosen by the caller.
@@ -20,6 +22,7 @@ pub mod metrics;
 pub mod rng;
 pub mod sample;
 pub mod train;
+pub mod weights;
 
 use burn::module::Module;
 use burn::tensor::Tensor;

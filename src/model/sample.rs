@@ -2,8 +2,6 @@
 //! drop probability, a sampled ray-drop mask and the resulting range image, on the training
 //! grid or on any other grid (e.g. 2x denser) for the implicit generator.
 
-use std::path::Path;
-
 use anyhow::{Result, bail};
 use burn::tensor::Device;
 use burn::tensor::activation::sigmoid;
@@ -11,7 +9,7 @@ use burn::tensor::activation::sigmoid;
 use super::AnyGenerator;
 use super::data::{MIN_DEPTH_M, RangeDataset};
 use super::rng::{Rng, tensor_to_vec};
-use super::train::load_generator;
+use super::weights::Model;
 use crate::lidar::{AngleGrid, SensorProfile};
 
 /// One generated scan, row-major `[H, W]`.
@@ -53,9 +51,9 @@ pub struct SampleOptions {
     pub grid: Option<AngleGrid>,
 }
 
-/// Draw `opts.n` scans from the EMA generator of `run_dir`.
-pub fn sample(run_dir: &Path, opts: &SampleOptions, device: &Device) -> Result<Vec<SampledScan>> {
-    let (g, config) = load_generator(run_dir, device)?;
+/// Draw `opts.n` scans from a trained generator.
+pub fn sample(model: &Model, opts: &SampleOptions, device: &Device) -> Result<Vec<SampledScan>> {
+    let (g, config) = (&model.generator, &model.config);
     let grid = opts
         .grid
         .clone()
@@ -67,7 +65,7 @@ pub fn sample(run_dir: &Path, opts: &SampleOptions, device: &Device) -> Result<V
     while done < opts.n {
         let b = batch.min(opts.n - done);
         let z = rng.normal_tensor([b, g.d_z()], device);
-        let (x_d, keep_logit, angles) = match &g {
+        let (x_d, keep_logit, angles) = match g {
             AnyGenerator::Implicit(generator) => {
                 if !grid.height.is_multiple_of(generator.resolution_step())
                     || !grid.width.is_multiple_of(generator.resolution_step())

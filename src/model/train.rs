@@ -156,7 +156,7 @@ pub struct TrainState {
     pub ada_count: u64,
 }
 
-const CHECKPOINT: &str = "checkpoint";
+pub const CHECKPOINT: &str = "checkpoint";
 
 /// Build the generator of `arch`.
 pub fn init_generator(config: &TrainConfig, device: &Device) -> AnyGenerator {
@@ -181,12 +181,8 @@ pub fn init_generator(config: &TrainConfig, device: &Device) -> AnyGenerator {
 
 /// Load the EMA generator of a run (inference); returns it with the run's config.
 pub fn load_generator(run_dir: &Path, device: &Device) -> Result<(AnyGenerator, TrainConfig)> {
-    let config = load_config(&run_dir.join("config.json"))?;
-    let path = run_dir.join(CHECKPOINT).join("g_ema.bpk");
-    let g = init_generator(&config, device)
-        .try_load_file(&path)
-        .map_err(|e| anyhow::anyhow!("failed to load '{}': {e}", path.display()))?;
-    Ok((g, config))
+    let m = super::weights::Model::from_dir(run_dir, device)?;
+    Ok((m.generator, m.config))
 }
 
 /// Read a run's `config.json`; fields added to [`TrainConfig`] after the run started take
@@ -194,11 +190,15 @@ pub fn load_generator(run_dir: &Path, device: &Device) -> Result<(AnyGenerator, 
 pub fn load_config(path: &Path) -> Result<TrainConfig> {
     let text = std::fs::read_to_string(path)
         .with_context(|| format!("failed to read '{}'", path.display()))?;
-    let saved: serde_json::Value =
-        serde_json::from_str(&text).with_context(|| format!("'{}' is not JSON", path.display()))?;
+    parse_config(&text).with_context(|| format!("bad config '{}'", path.display()))
+}
+
+/// [`load_config`] on text.
+pub fn parse_config(text: &str) -> Result<TrainConfig> {
+    let saved: serde_json::Value = serde_json::from_str(text).context("not JSON")?;
     let mut merged = serde_json::to_value(TrainConfig::new())?;
     merge_json(&mut merged, saved);
-    serde_json::from_value(merged).with_context(|| format!("bad config '{}'", path.display()))
+    Ok(serde_json::from_value(merged)?)
 }
 
 fn merge_json(base: &mut serde_json::Value, over: serde_json::Value) {
@@ -1020,8 +1020,9 @@ mod tests {
             truncation: 1.0,
             grid: Some(data.angles.clone()),
         };
-        let scans =
-            super::super::sample::sample(&opts.run_dir, &sopts, &Device::flex()).expect("sample");
+        let model =
+            super::super::weights::Model::from_dir(&opts.run_dir, &Device::flex()).expect("model");
+        let scans = super::super::sample::sample(&model, &sopts, &Device::flex()).expect("sample");
         assert_eq!(scans.len(), 3);
         let s = &scans[0];
         assert_eq!(s.range_m.len(), h * w);
@@ -1033,8 +1034,7 @@ mod tests {
             2 * h,
             2 * w,
         ));
-        let dense =
-            super::super::sample::sample(&opts.run_dir, &sopts, &Device::flex()).expect("dense");
+        let dense = super::super::sample::sample(&model, &sopts, &Device::flex()).expect("dense");
         assert_eq!(dense[0].range_m.len(), 4 * h * w);
         // SWD of the run against the real set, and the real set against itself (floor 0).
         let cfg = super::super::metrics::SwdConfig {
@@ -1042,9 +1042,8 @@ mod tests {
             projections: 8,
             ..Default::default()
         };
-        let report =
-            super::super::metrics::swd_of_run(&opts.run_dir, &data, 4, &cfg, &Device::flex())
-                .expect("swd");
+        let report = super::super::metrics::swd_of_model(&model, &data, 4, &cfg, &Device::flex())
+            .expect("swd");
         assert_eq!(report.per_level.len(), 3);
         assert!(report.mean > 0.0 && report.mean.is_finite());
         let floor = super::super::metrics::swd_between(&data, &data, &cfg);
