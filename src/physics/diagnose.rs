@@ -146,7 +146,9 @@ pub struct Diagnosis {
 /// Errors of a diagnosis.
 #[derive(Debug, thiserror::Error, PartialEq)]
 pub enum DiagnoseError {
-    #[error("the real recording needs at least 2 scans (one to fit on, one to test on); it has {0}")]
+    #[error(
+        "the real recording needs at least 2 scans (one to fit on, one to test on); it has {0}"
+    )]
     TooFewRealScans(usize),
     #[error("the simulated recording has no scans")]
     NoSimScans,
@@ -339,9 +341,8 @@ pub fn diagnose(
         before: selection.before_nll + residual_before / test_pixels,
         after: selection.after_nll + residual_after / test_pixels,
     };
-    let drop_rate = |s: &[ScanFeatures]| {
-        s.iter().map(|f| f.drop_rate()).sum::<f64>() / s.len().max(1) as f64
-    };
+    let drop_rate =
+        |s: &[ScanFeatures]| s.iter().map(|f| f.drop_rate()).sum::<f64>() / s.len().max(1) as f64;
     let inputs = InputsReport {
         sim_scans: sim.len(),
         real_scans: real.len(),
@@ -356,7 +357,13 @@ pub fn diagnose(
     };
 
     let keep_after = diagnose_fit::keep_under(&families, &selection, &baseline, &px_test);
-    let keep_before = baseline.keep_of(&px_test);
+    // "Before" for the maps: the sim with the fitted keep scale but no effect, so
+    // the maps show where the effects act rather than the overall rate.
+    let keep_before: Vec<f64> = baseline
+        .keep_of(&px_test)
+        .iter()
+        .map(|k| (k * selection.keep_scale).min(1.0))
+        .collect();
     let curves = curves(&px_sim, &px_test, &keep_after);
     let maps = maps(
         &px_sim,
@@ -501,7 +508,11 @@ fn maps(
     // The example scan: every pixel (not only those within reach).
     let px = Pixels::collect(std::slice::from_ref(example), f32::INFINITY);
     let after = diagnose_fit::keep_under(families, selection, baseline, &px);
-    let before = baseline.keep_of(&px);
+    let before: Vec<f64> = baseline
+        .keep_of(&px)
+        .iter()
+        .map(|k| (k * selection.keep_scale).min(1.0))
+        .collect();
     let mut highlight = vec![0.0f32; h * w];
     for i in 0..px.len() {
         let k = px.row[i] as usize * w + px.column[i] as usize;
@@ -526,7 +537,13 @@ fn maps(
         sim_drop,
         fitted_extra_drop,
         example_range_m: (0..example.len())
-            .map(|k| if example.kept[k] { example.range_m[k] } else { 0.0 })
+            .map(|k| {
+                if example.kept[k] {
+                    example.range_m[k]
+                } else {
+                    0.0
+                }
+            })
             .collect(),
         example_highlight: highlight,
     }

@@ -89,9 +89,7 @@ impl DropFamily for RangeFamily {
             .then(|| ((r.max(0.0) / RANGE_BIN_M) as usize).min(RANGE_BINS - 1))
     }
     fn fit(&self, table: &QTable, _: &Pixels) -> Option<DropFit> {
-        let grid_a: Vec<f32> = (0..40)
-            .map(|i| 5.0 * 60f32.powf(i as f32 / 39.0))
-            .collect();
+        let grid_a: Vec<f32> = (0..40).map(|i| 5.0 * 60f32.powf(i as f32 / 39.0)).collect();
         let probs = |a: f32, b: f32| {
             let e = RangeDropout {
                 enabled: true,
@@ -209,7 +207,20 @@ impl DropFamily for BeamFamily {
         if table.bins == 0 {
             return None;
         }
-        let drop_prob: Vec<f64> = (0..table.bins).map(|b| table.best_bin_prob(b)).collect();
+        // Per-laser differences, not a smooth trend over rows: a trend is what
+        // range, incidence or sky change, and a constant is the keep scale. The
+        // rate above the running median of its 7 neighbouring rows is the beam's.
+        let free: Vec<f64> = (0..table.bins).map(|b| table.best_bin_prob(b)).collect();
+        let drop_prob: Vec<f64> = (0..free.len())
+            .map(|r| {
+                let lo = r.saturating_sub(3);
+                let hi = (r + 4).min(free.len());
+                let mut window: Vec<f64> = free[lo..hi].to_vec();
+                window.sort_by(f64::total_cmp);
+                let median = window[window.len() / 2];
+                ((free[r] - median) / (1.0 - median).max(1e-6)).max(0.0)
+            })
+            .collect();
         let rates: Vec<f64> = drop_prob.iter().map(|p| round3(*p)).collect();
         let items: Vec<(String, f64)> = drop_prob
             .iter()
@@ -292,7 +303,7 @@ pub struct SelfOcclusionFamily;
 /// Azimuth sectors over the turn.
 const SECTORS: usize = 64;
 /// A blocked sector must drop at least this share of its rays.
-const MIN_BLOCK_PROB: f64 = 0.2;
+const MIN_BLOCK_PROB: f64 = 0.4;
 
 impl SelfOcclusionFamily {
     fn sectors(px: &Pixels) -> usize {

@@ -357,10 +357,13 @@ pub(crate) fn simulated_recording_with(
 ) -> Vec<ScanFeatures> {
     use crate::physics::Physics;
     use crate::sim::{SceneConfig, Simulator};
+    // Scans 0.3 s apart: a short drive whose scene objects do not sit at the
+    // same pixels in every scan (as they would in consecutive scans).
+    const STRIDE: u32 = 3;
     let sim = Simulator::new(
         SceneConfig {
             seed,
-            duration_s: 0.1 * scans as f32 + 0.1,
+            duration_s: 0.1 * (STRIDE * scans) as f32 + 0.1,
             ..Default::default()
         },
         profile.clone(),
@@ -368,7 +371,7 @@ pub(crate) fn simulated_recording_with(
     let physics = Physics { effects };
     (0..scans)
         .map(|i| {
-            let mut scan = sim.scan(i);
+            let mut scan = sim.scan(STRIDE * i);
             physics.apply(&mut scan, seed);
             ScanFeatures::from_image(&scan.image, &FeatureOptions::default())
         })

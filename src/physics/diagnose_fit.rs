@@ -135,14 +135,26 @@ impl Pixels {
 }
 
 /// The sim's keep rate per (row, range cell); the last range cell holds pixels
-/// without geometry.
+/// without geometry. Times an azimuth factor per (row, sector) where the sim's
+/// own drop rate there differs from its row's beyond doubt (|z| > 4: the sim's
+/// own blind spots), else 1.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Baseline {
     cells: usize,
     keep: Vec<f64>,
+    sectors: usize,
+    width: usize,
+    azimuth: Vec<f64>,
 }
 
+/// Azimuth sectors of the baseline's azimuth factor.
+const BASELINE_SECTORS: usize = 64;
+
 impl Baseline {
+    fn sector(&self, px: &Pixels, i: usize) -> usize {
+        px.row[i] as usize * self.sectors + px.column[i] as usize * self.sectors / self.width.max(1)
+    }
+
     fn cell(&self, px: &Pixels, i: usize) -> usize {
         let r = px.range_m[i];
         let c = if r.is_finite() {
@@ -161,9 +173,13 @@ impl Baseline {
         };
         let cells = finite_cells.clamp(1, 200) + 1;
         let rows = sim.height.max(1);
+        let sectors = BASELINE_SECTORS.min(sim.width.max(1));
         let mut b = Baseline {
             cells,
             keep: Vec::new(),
+            sectors,
+            width: sim.width,
+            azimuth: vec![1.0; rows * sectors],
         };
         let mut n = vec![0f64; rows * cells];
         let mut k = vec![0f64; rows * cells];
@@ -183,13 +199,44 @@ impl Baseline {
         b.keep = (0..rows * cells)
             .map(|i| (k[i] + SMOOTHING_PIXELS * range_keep[i % cells]) / (n[i] + SMOOTHING_PIXELS))
             .collect();
+        let mut sn = vec![0f64; rows * sectors];
+        let mut sk = vec![0f64; rows * sectors];
+        for i in 0..sim.len() {
+            let s = b.sector(sim, i);
+            sn[s] += 1.0;
+            sk[s] += f64::from(u8::from(sim.kept[i]));
+        }
+        for row in 0..rows {
+            let cells = row * sectors..(row + 1) * sectors;
+            let (n_row, k_row): (f64, f64) = (
+                sn[cells.clone()].iter().sum(),
+                sk[cells.clone()].iter().sum(),
+            );
+            if n_row == 0.0 {
+                continue;
+            }
+            let p_row = k_row / n_row;
+            for s in cells {
+                if sn[s] < 10.0 {
+                    continue;
+                }
+                let p = sk[s] / sn[s];
+                let sd = (p_row * (1.0 - p_row) / sn[s]).sqrt().max(1e-9);
+                if ((p - p_row) / sd).abs() > 4.0 && p_row > 0.0 {
+                    b.azimuth[s] = p / p_row;
+                }
+            }
+        }
         b
     }
 
     /// Baseline keep probability of every pixel of `px`.
     pub fn keep_of(&self, px: &Pixels) -> Vec<f64> {
         (0..px.len())
-            .map(|i| self.keep.get(self.cell(px, i)).copied().unwrap_or(1.0))
+            .map(|i| {
+                let a = self.azimuth.get(self.sector(px, i)).copied().unwrap_or(1.0);
+                (self.keep.get(self.cell(px, i)).copied().unwrap_or(1.0) * a).min(1.0)
+            })
             .collect()
     }
 }
@@ -459,17 +506,21 @@ pub fn select(
     let base_train = baseline.keep_of(train);
     let base_test = baseline.keep_of(test);
     let before_nll = mask_nll(test, &model_keep(test, &base_test, 1.0, &[]));
+    // The null (only the overall rate differs) is adopted only where it beats
+    // the sim as given on held-out scans.
     let mut c = best_scale(train, &base_train);
-    let null_nll = mask_nll(test, &model_keep(test, &base_test, c, &[]));
+    let mut null_nll = mask_nll(test, &model_keep(test, &base_test, c, &[]));
+    if before_nll - null_nll <= MIN_GAIN_NATS {
+        c = 1.0;
+        null_nll = before_nll;
+    }
     let n = train.len() as f64;
     let mut chosen: Vec<(usize, DropFit, Selected)> = Vec::new();
     let mut current_nll = null_nll;
     let mut tried = Vec::new();
     for round in 0..max_effects {
-        let effects: Vec<(&dyn DropFamily, &DropFit)> = chosen
-            .iter()
-            .map(|(i, f, _)| (families[*i], f))
-            .collect();
+        let effects: Vec<(&dyn DropFamily, &DropFit)> =
+            chosen.iter().map(|(i, f, _)| (families[*i], f)).collect();
         let mut best: Option<(usize, DropFit, f64, f64, f64)> = None;
         for (fi, family) in families.iter().enumerate() {
             if chosen.iter().any(|(i, ..)| *i == fi) {
@@ -492,7 +543,11 @@ pub fn select(
                 });
             }
             let margin = gain - penalty;
-            if margin > 0.0 && best.as_ref().is_none_or(|b| margin > current_nll - b.2 - b.3) {
+            if margin > 0.0
+                && best
+                    .as_ref()
+                    .is_none_or(|b| margin > current_nll - b.2 - b.3)
+            {
                 best = Some((fi, fit, nll, penalty, c_fit));
             }
         }

@@ -14,7 +14,6 @@
 use serde_json::{Map, json};
 
 use super::diagnose_features::ScanFeatures;
-use super::diagnose_fit::MIN_GAIN_NATS;
 use super::diagnose_stats::erfc;
 
 /// Observations of one statistic: (value, covariate), pooled over scans.
@@ -70,9 +69,14 @@ pub fn families() -> Vec<Box<dyn ResidualFamily>> {
     ]
 }
 
+/// Smallest held-out gain (nats per observation) of a residual effect: the
+/// statistics vary with the scene (vegetation, slanted surfaces) more than a
+/// drop mask does.
+pub const MIN_RESIDUAL_GAIN_NATS: f64 = 5e-3;
+
 fn penalty(n_params: usize, n_train: usize) -> f64 {
     let n = n_train.max(2) as f64;
-    (n_params as f64 * n.ln() / (2.0 * n)).max(MIN_GAIN_NATS)
+    (n_params as f64 * n.ln() / (2.0 * n)).max(MIN_RESIDUAL_GAIN_NATS)
 }
 
 fn round4(x: f64) -> f64 {
@@ -172,7 +176,13 @@ impl Binned {
         }
         b.refs = per
             .into_iter()
-            .map(|hst| if hst.total() < 200.0 { pooled.clone() } else { hst })
+            .map(|hst| {
+                if hst.total() < 200.0 {
+                    pooled.clone()
+                } else {
+                    hst
+                }
+            })
             .collect();
         b
     }
@@ -236,13 +246,7 @@ impl ResidualFamily for RangeNoiseFamily {
         }
         obs
     }
-    fn fit(
-        &self,
-        sim: &Obs,
-        train: &Obs,
-        test: &Obs,
-        _: &ResidualContext,
-    ) -> Option<ResidualFit> {
+    fn fit(&self, sim: &Obs, train: &Obs, test: &Obs, _: &ResidualContext) -> Option<ResidualFit> {
         if sim.len() < 500 || train.len() < 500 || test.len() < 500 {
             return None;
         }
@@ -319,13 +323,7 @@ impl ResidualFamily for MixedPixelsFamily {
         }
         obs
     }
-    fn fit(
-        &self,
-        sim: &Obs,
-        train: &Obs,
-        test: &Obs,
-        _: &ResidualContext,
-    ) -> Option<ResidualFit> {
+    fn fit(&self, sim: &Obs, train: &Obs, test: &Obs, _: &ResidualContext) -> Option<ResidualFit> {
         if sim.len() < 100 || train.len() < 100 || test.len() < 100 {
             return None;
         }
@@ -418,7 +416,8 @@ impl ResidualFamily for MotionFamily {
     ) -> Option<ResidualFit> {
         // Reference: every step the sim makes near the seam (no motion there);
         // observations: the real seam steps only.
-        let seam = |o: &Obs| -> Obs { o.iter().filter(|x| x.1 > 0.5).map(|x| (x.0, 0.0)).collect() };
+        let seam =
+            |o: &Obs| -> Obs { o.iter().filter(|x| x.1 > 0.5).map(|x| (x.0, 0.0)).collect() };
         let reference: Obs = sim.iter().map(|x| (x.0, 0.0)).collect();
         let (train, test) = (seam(train), seam(test));
         if reference.len() < 100 || train.len() < 20 || test.len() < 20 {
@@ -437,7 +436,11 @@ impl ResidualFamily for MotionFamily {
         }
         let m = best.0;
         let speed = ctx.speed_mps.unwrap_or(10.0).max(0.1);
-        let period = if ctx.period_s > 0.0 { ctx.period_s } else { 0.1 };
+        let period = if ctx.period_s > 0.0 {
+            ctx.period_s
+        } else {
+            0.1
+        };
         let scale = m / (speed * period);
         let mut params = Map::new();
         params.insert("seam_shift_m".into(), json!(round4(m)));

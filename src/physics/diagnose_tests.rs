@@ -9,6 +9,7 @@ use std::collections::BTreeMap;
 
 use serde_json::Map;
 
+use super::Effect;
 use super::diagnose::{DiagnoseOptions, Diagnosis, diagnose};
 use super::diagnose_features::{ScanFeatures, simulated_recording_with};
 use super::dropout::{
@@ -16,7 +17,6 @@ use super::dropout::{
     UniformDropout,
 };
 use super::perturb::{MixedPixels, MotionDistortion, RangeNoise};
-use super::Effect;
 use crate::lidar::SensorProfile;
 use crate::sim::Material;
 use crate::sim::rng::uniform;
@@ -305,7 +305,9 @@ fn two_concealed_effects_are_both_named() {
     let d = run(&sim, &real);
     let ids: Vec<&str> = d.report.effects.iter().map(|e| e.id.as_str()).collect();
     assert!(
-        ids.len() >= 2 && ids[..2].contains(&"range_dropout") && ids[..2].contains(&"self_occlusion"),
+        ids.len() >= 2
+            && ids[..2].contains(&"range_dropout")
+            && ids[..2].contains(&"self_occlusion"),
         "{}",
         summary(&d)
     );

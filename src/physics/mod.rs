@@ -21,9 +21,9 @@ pub mod diagnose_drop;
 pub mod diagnose_features;
 pub mod diagnose_fit;
 pub mod diagnose_residual;
+pub mod diagnose_stats;
 #[cfg(test)]
 mod diagnose_tests;
-pub mod diagnose_stats;
 pub mod dropout;
 pub mod perturb;
 
