@@ -445,11 +445,11 @@ fn curves(sim: &Pixels, test: &Pixels, keep_after: &[f64]) -> Vec<Curve> {
                     acc[b][1] += f64::from(u8::from(!sim.kept[i]));
                 }
             }
-            for i in 0..test.len() {
+            for (i, keep) in keep_after.iter().enumerate().take(test.len()) {
                 if let Some(b) = bin(test, i).filter(|&b| b < n) {
                     acc[b][2] += 1.0;
                     acc[b][3] += f64::from(u8::from(!test.kept[i]));
-                    acc[b][4] += 1.0 - keep_after[i];
+                    acc[b][4] += 1.0 - keep;
                 }
             }
             let x0 = if feature == "azimuth" { -180.0 } else { 0.0 };

@@ -134,14 +134,18 @@ impl DropFamily for IncidenceFamily {
     fn bins(&self, _: &Pixels) -> usize {
         COS_BINS
     }
+    /// Normals beyond ~89 deg (cos < 0.02) come from fill and edge artefacts
+    /// more than from surfaces: left out (unknown).
     fn bin(&self, px: &Pixels, i: usize) -> Option<usize> {
         let c = px.cos_incidence[i];
-        c.is_finite()
-            .then(|| ((c.clamp(0.0, 1.0) * COS_BINS as f32) as usize).min(COS_BINS - 1))
+        (c.is_finite() && c >= 1.0 / COS_BINS as f32)
+            .then(|| ((c.min(1.0) * COS_BINS as f32) as usize).min(COS_BINS - 1))
     }
     fn fit(&self, table: &QTable, _: &Pixels) -> Option<DropFit> {
+        // cos_50 from 0.03 (88 deg) to 0.6: a curve that only bites in the
+        // last bin would fit the normals' artefacts.
         let grid_a: Vec<f32> = (0..40)
-            .map(|i| 0.005 * 120f32.powf(i as f32 / 39.0))
+            .map(|i| 0.03 * 20f32.powf(i as f32 / 39.0))
             .collect();
         let probs = |a: f32, b: f32| {
             let e = IncidenceDropout {
@@ -247,6 +251,8 @@ pub struct ClassFamily;
 const CLASSES: usize = 260;
 /// A class needs this many training pixels to get a rate of its own.
 const MIN_CLASS_PIXELS: f64 = 200.0;
+/// Smallest extra drop rate of a class that is attributed to its material.
+const MIN_CLASS_PROB: f64 = 0.08;
 
 impl DropFamily for ClassFamily {
     fn id(&self) -> &'static str {
@@ -270,7 +276,12 @@ impl DropFamily for ClassFamily {
                 continue;
             }
             n_params += 1;
+            // Small class differences are what scenes differ by (materials per
+            // class vary: car paints, window shares); only marked ones count.
             *p = table.best_bin_prob(b);
+            if *p < MIN_CLASS_PROB {
+                *p = 0.0;
+            }
             if *p > 0.005 {
                 by_class.insert(b.to_string(), json!(round3(*p)));
                 items.push((format!("{} ({b})", label::name(b as u32)), *p));

@@ -26,7 +26,7 @@ use super::diagnose_features::ScanFeatures;
 
 /// Smallest held-out gain (nats per pixel) an effect must show: pixels of a scan
 /// are correlated, so the BIC term alone (which assumes independence) is too lax.
-pub const MIN_GAIN_NATS: f64 = 1e-3;
+pub const MIN_GAIN_NATS: f64 = 3e-3;
 
 /// Pixels completed to near the sensor's reach are ambiguous: "no surface within
 /// reach" (scene) or "dropped" (physics); their share depends on the scene, so
@@ -510,7 +510,8 @@ pub fn select(
     // the sim as given on held-out scans.
     let mut c = best_scale(train, &base_train);
     let mut null_nll = mask_nll(test, &model_keep(test, &base_test, c, &[]));
-    if before_nll - null_nll <= MIN_GAIN_NATS {
+    let fit_scale = before_nll - null_nll > MIN_GAIN_NATS;
+    if !fit_scale {
         c = 1.0;
         null_nll = before_nll;
     }
@@ -526,7 +527,8 @@ pub fn select(
             if chosen.iter().any(|(i, ..)| *i == fi) {
                 continue;
             }
-            let Some((fit, c_fit)) = fit_given(*family, train, &base_train, c, &effects) else {
+            let Some((fit, c_fit)) = fit_given(*family, train, &base_train, c, fit_scale, &effects)
+            else {
                 continue;
             };
             let mut with = effects.clone();
@@ -582,12 +584,13 @@ pub fn select(
 }
 
 /// Fits `family` on `train` given the chosen `effects`, alternating with the
-/// keep scale: (fit, scale).
+/// keep scale where `fit_scale` (the null was adopted): (fit, scale).
 fn fit_given(
     family: &dyn DropFamily,
     train: &Pixels,
     base: &[f64],
     c0: f64,
+    fit_scale: bool,
     effects: &[(&dyn DropFamily, &DropFit)],
 ) -> Option<(DropFit, f64)> {
     let rest_unit = model_keep(train, base, 1.0, effects);
@@ -610,7 +613,9 @@ fn fit_given(
                 rest_unit[i] * (1.0 - p)
             })
             .collect();
-        c = best_scale(train, &with_effect);
+        if fit_scale {
+            c = best_scale(train, &with_effect);
+        }
         fit = Some(f);
     }
     fit.map(|f| (f, c))

@@ -292,6 +292,8 @@ const MIXED_MIN_GAP_M: f32 = 1.0;
 /// Share of a mixed pixel's uniform range that lies strictly between its
 /// neighbours (margins of 10 % of the gap on both sides).
 const MIXED_INSIDE: f64 = 0.8;
+/// Smallest fitted share of mixed edge pixels that is claimed.
+const MIN_MIXED_SHARE: f64 = 0.1;
 
 /// `mixed_pixels`: returns between the two surfaces of a depth edge.
 pub struct MixedPixelsFamily;
@@ -336,6 +338,9 @@ impl ResidualFamily for MixedPixelsFamily {
         };
         // ML on train: p = max(b, train rate) gives a in [0, 1].
         let a = ((rate(train) - b) / (1.0 - b)).clamp(0.0, 1.0);
+        // Scenes differ in slanted surfaces between edges: a share below
+        // MIN_MIXED_SHARE is not attributed to mixed pixels.
+        let a = if a < MIN_MIXED_SHARE { 0.0 } else { a };
         let p_after = b + (1.0 - b) * a;
         let prob = (a / MIXED_INSIDE).min(1.0);
         let mut params = Map::new();
@@ -414,27 +419,33 @@ impl ResidualFamily for MotionFamily {
         test: &Obs,
         ctx: &ResidualContext,
     ) -> Option<ResidualFit> {
-        // Reference: every step the sim makes near the seam (no motion there);
-        // observations: the real seam steps only.
-        let seam =
-            |o: &Obs| -> Obs { o.iter().filter(|x| x.1 > 0.5).map(|x| (x.0, 0.0)).collect() };
-        let reference: Obs = sim.iter().map(|x| (x.0, 0.0)).collect();
-        let (train, test) = (seam(train), seam(test));
-        if reference.len() < 100 || train.len() < 20 || test.len() < 20 {
+        // Reference: the sim's column steps beside the seam; the sim's own seam
+        // shift `m_sim` (its physics as given) is the "before", the real one
+        // fitted on training scans the "after".
+        let pick = |o: &Obs, seam: bool| -> Obs {
+            o.iter()
+                .filter(|x| (x.1 > 0.5) == seam)
+                .map(|x| (x.0, 0.0))
+                .collect()
+        };
+        let reference = pick(sim, false);
+        let (sim_seam, train, test) = (pick(sim, true), pick(train, true), pick(test, true));
+        if reference.len() < 100 || sim_seam.len() < 20 || train.len() < 20 || test.len() < 20 {
             return None;
         }
         let binned = Binned::new(&reference, vec![0.0], -5.0, 0.05, 200);
-        let (h_train, h_test) = (binned.observe(&train), binned.observe(&test));
         let nll = |h: &[Hist], m: f64| binned.nll(h, |_| 0.0, -m);
         let shifts: Vec<f64> = (-10..=60).map(|i| 0.05 * i as f64).collect();
-        let mut best = (0.0, nll(&h_train, 0.0));
-        for &m in &shifts {
-            let v = nll(&h_train, m);
-            if v < best.1 {
-                best = (m, v);
-            }
-        }
-        let m = best.0;
+        let fit_shift = |h: &[Hist]| {
+            shifts
+                .iter()
+                .map(|&m| (m, nll(h, m)))
+                .fold((0.0, f64::INFINITY), |b, x| if x.1 < b.1 { x } else { b })
+                .0
+        };
+        let m_sim = fit_shift(&binned.observe(&sim_seam));
+        let (h_train, h_test) = (binned.observe(&train), binned.observe(&test));
+        let m = fit_shift(&h_train);
         let speed = ctx.speed_mps.unwrap_or(10.0).max(0.1);
         let period = if ctx.period_s > 0.0 {
             ctx.period_s
@@ -449,14 +460,14 @@ impl ResidualFamily for MotionFamily {
         physics.insert("motion_distortion".into(), json!({ "scale": scale }));
         Some(ResidualFit {
             id: self.id(),
-            before_nll: nll(&h_test, 0.0),
+            before_nll: nll(&h_test, m_sim),
             after_nll: nll(&h_test, m),
             penalty: penalty(1, train.len()),
             test_obs: test.len(),
             params,
             physics,
             location: format!(
-                "the scan seam straight ahead (azimuth 0): last-measured returns {m:.2} m nearer than the first ({})",
+                "the scan seam straight ahead (azimuth 0): last-measured returns {m:.2} m nearer than the first (sim {m_sim:.2} m; {})",
                 match ctx.speed_mps {
                     Some(v) => format!("scale from the recording's speed {v:.1} m/s"),
                     None => "scale assumes 10 m/s: the real speed is unknown".into(),
