@@ -5,6 +5,7 @@
 mod convert;
 mod import;
 mod info;
+mod sample;
 mod simulate;
 mod train;
 
@@ -48,6 +49,8 @@ pub enum Command {
     Simulate(simulate::SimulateArgs),
     /// Train the range-image GAN on KITTI scans (resumes an existing run directory).
     Train(train::TrainArgs),
+    /// Draw scans from the trained GAN: depth, drop probability, mask, range, points.
+    Sample(sample::SampleArgs),
 }
 
 /// How a command ended when it did not fail outright.
@@ -81,6 +84,7 @@ pub fn run(args: Args) -> anyhow::Result<Outcome> {
         Command::Import(a) => import::run(&args.global, a),
         Command::Simulate(a) => simulate::run(&args.global, a),
         Command::Train(a) => train::run_train(&args.global, a),
+        Command::Sample(a) => sample::run(&args.global, a),
     }
 }
 
