@@ -7,6 +7,7 @@ mod diagnose;
 mod import;
 mod info;
 mod render;
+mod sample;
 mod simulate;
 mod train;
 
@@ -54,6 +55,8 @@ pub enum Command {
     Simulate(simulate::SimulateArgs),
     /// Train the range-image GAN on KITTI scans (resumes an existing run directory).
     Train(train::TrainArgs),
+    /// Draw scans from the trained GAN: depth, drop probability, mask, range, points.
+    Sample(sample::SampleArgs),
 }
 
 /// How a command ended when it did not fail outright.
@@ -89,6 +92,7 @@ pub fn run(args: Args) -> anyhow::Result<Outcome> {
         Command::Import(a) => import::run(&args.global, a),
         Command::Simulate(a) => simulate::run(&args.global, a),
         Command::Train(a) => train::run_train(&args.global, a),
+        Command::Sample(a) => sample::run(&args.global, a),
     }
 }
 
