@@ -80,12 +80,7 @@ fn grid(g: &Generator, device: &Device) -> GridCache {
     )
 }
 
-fn plain(
-    cfg: &GeneratorConfig,
-    batch: usize,
-    reps: usize,
-    backward: bool,
-) -> (Vec<f64>, Vec<f64>) {
+fn plain(cfg: &GeneratorConfig, batch: usize, reps: usize, backward: bool) -> (Vec<f64>, Vec<f64>) {
     let device = if backward {
         Device::flex().autodiff()
     } else {
@@ -121,10 +116,7 @@ fn inversion(cfg: &GeneratorConfig, reps: usize, tune_weights: bool) -> (Vec<f64
         g,
         w: Param::from_tensor(w),
     };
-    let mut opt = AdamConfig::new()
-        .with_beta_1(0.9)
-        .with_beta_2(0.999)
-        .init();
+    let mut opt = AdamConfig::new().with_beta_1(0.9).with_beta_2(0.999).init();
     let lr = if tune_weights { 5e-4 } else { 0.05 };
     times(reps, || {
         let out = model.g.render(model.w.val(), &grid, None);
@@ -152,7 +144,10 @@ fn main() {
         "\"impl\": \"rangegan-mcap (burn flex)\"".to_string(),
         format!("\"threads\": {}", rayon::current_num_threads()),
         format!("\"params\": {}", cfg.init(&Device::flex()).num_params()),
-        format!("\"gmac_per_image\": {:.4}", cfg.macs_per_image(64, 512) as f64 * 1e-9),
+        format!(
+            "\"gmac_per_image\": {:.4}",
+            cfg.macs_per_image(64, 512) as f64 * 1e-9
+        ),
     ];
     for op in &ops {
         let (t, c) = match op.as_str() {

@@ -325,13 +325,10 @@ impl Generator {
         for (block, level) in self.blocks.iter().zip(&grid.levels) {
             let (h, wd) = (level.height, level.width);
             let rotation = azimuth_shift.clone().map(|s| block.fourier.rotation(s));
-            let x_up = x.map(|x| {
-                let up = upsample2x(x); // [batch, h, w, ch]
-                let c = up.dims()[3];
-                up.reshape([b, h * wd, c]) // [batch, h*w, ch]
-            });
+            // x is at the previous level; conv0 upsamples it (after its product, see there).
             let y = block.conv0.forward_fourier(
-                x_up,
+                x,
+                true,
                 level.basis.clone(),
                 rotation.as_ref(),
                 w.clone(),
