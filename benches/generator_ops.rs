@@ -135,6 +135,10 @@ fn main() {
             .and_then(|i| args.get(i + 1))
             .cloned()
     };
+    // `--default-malloc` keeps glibc's default thresholds (for the before/after comparison).
+    if !args.iter().any(|a| a == "--default-malloc") {
+        rangegan_mcap::model::tune_allocator();
+    }
     let reps: usize = arg("--reps").and_then(|r| r.parse().ok()).unwrap_or(3);
     let ops: Vec<String> = arg("--ops")
         .map(|s| s.split(',').map(str::to_string).collect())
