@@ -10,7 +10,8 @@
 #        [--rounds 3] [--reps 3] [--ops fwd_b1,fwd_b8,fwdbwd_b1,fwdbwd_b8,inv_w_b1,pti_b1]
 #        [--out DIR]
 #
-# Needs: torch (CPU) + numpy + pyyaml in --python; cargo (release bench build).
+# Needs: torch (CPU) + numpy + pyyaml in --python; cargo (release bench build; set
+# CARGO_TARGET_DIR to reuse an existing build, the first one compiles burn).
 set -euo pipefail
 
 REFERENCE=""
@@ -79,14 +80,16 @@ for s in ("ours", "theirs"):
     print(f"{s}: {m['impl']}, {m['params']} params, {m['threads']} threads")
 print("load averages (1/5/15 min) before each process: " + "; ".join(f"{r['side']} r{r['round']} {r['load']}" for r in rows))
 print()
-print("Wall time, median over all rounds (images/s); CPU = process CPU seconds per call, all threads.")
+print("Seconds per call: wall median over all rounds (images/s), wall best (least disturbed call),")
+print("and the median process CPU time (all threads) of the same calls.")
 print()
-print("| operation | ours wall s (img/s) | reference wall s (img/s) | ref / ours (wall) | ours CPU s | reference CPU s | ref / ours (CPU) | samples |")
-print("|---|---|---|---|---|---|---|---|")
+print("| operation | ours median (img/s) | reference median (img/s) | ref / ours | ours best | reference best | ref / ours, best | ours CPU | reference CPU | ref / ours, CPU | calls |")
+print("|---|---|---|---|---|---|---|---|---|---|---|")
 for op in ops:
     a, b = med(t["ours"][op]), med(t["theirs"][op])
+    am, bm = min(t["ours"][op]), min(t["theirs"][op])
     ac, bc = med(t["ours"][op + "_cpu"]), med(t["theirs"][op + "_cpu"])
     n = batch(op)
-    print(f"| {op} | {a:.3f} ({n/a:.1f}) | {b:.3f} ({n/b:.1f}) | {b/a:.2f}x | {ac:.3f} | {bc:.3f} | {bc/ac:.2f}x | {len(t['ours'][op])}+{len(t['theirs'][op])} |")
+    print(f"| {op} | {a:.3f} ({n/a:.1f}) | {b:.3f} ({n/b:.2f}) | {b/a:.1f}x | {am:.3f} | {bm:.3f} | {bm/am:.1f}x | {ac:.3f} | {bc:.3f} | {bc/ac:.1f}x | {len(t['ours'][op])}+{len(t['theirs'][op])} |")
 print(f"\nraw: {sys.argv[1]}")
 EOF
