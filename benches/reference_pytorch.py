@@ -154,7 +154,7 @@ def main():
             loss = (o["image"] - target).abs().mean()
             loss.backward()
             opt.step()
-            float(w.sum())
+            float(w.detach().sum())
 
         return times(args.reps, step)
 
