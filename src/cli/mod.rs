@@ -7,6 +7,7 @@ mod import;
 mod info;
 mod simulate;
 mod train;
+mod train_encoder;
 
 use std::process::ExitCode;
 
@@ -48,6 +49,8 @@ pub enum Command {
     Simulate(simulate::SimulateArgs),
     /// Train the range-image GAN on KITTI scans (resumes an existing run directory).
     Train(train::TrainArgs),
+    /// Train the amortised encoder of `convert --quality fast` against the frozen generator.
+    TrainEncoder(train_encoder::TrainEncoderArgs),
 }
 
 /// How a command ended when it did not fail outright.
@@ -81,6 +84,7 @@ pub fn run(args: Args) -> anyhow::Result<Outcome> {
         Command::Import(a) => import::run(&args.global, a),
         Command::Simulate(a) => simulate::run(&args.global, a),
         Command::Train(a) => train::run_train(&args.global, a),
+        Command::TrainEncoder(a) => train_encoder::run_train_encoder(&args.global, a),
     }
 }
 
