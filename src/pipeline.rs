@@ -43,6 +43,11 @@ pub struct ConvertOptions {
     pub metadata: BTreeMap<String, String>,
 }
 
+/// Scans per parallel batch. Fixed rather than tied to the thread count: outputs of a batch are
+/// written after its last input record, so the batch size decides how copied and new records
+/// interleave, and the output file must be the same bytes whatever the thread count.
+pub const DEFAULT_BATCH_SCANS: usize = 16;
+
 impl Default for ConvertOptions {
     fn default() -> Self {
         ConvertOptions {
@@ -51,7 +56,7 @@ impl Default for ConvertOptions {
             columns: None,
             strategy: Strategy::Auto,
             on_error: OnError::Fail,
-            batch_scans: 2 * rayon::current_num_threads().max(1),
+            batch_scans: DEFAULT_BATCH_SCANS,
             metadata: BTreeMap::new(),
         }
     }

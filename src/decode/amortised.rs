@@ -21,6 +21,10 @@ use crate::model::discriminator::pad_circular;
 use crate::model::layers::{EqualLinear, EqualLinearConfig};
 use crate::model::rng::Rng;
 
+/// The shipped encoder's configuration and weights (trained against `models/dusty2`).
+const SHIPPED_CONFIG: &str = include_str!("../../models/encoder/config.json");
+const SHIPPED_WEIGHTS: &[u8] = include_bytes!("../../models/encoder/encoder.bpk");
+
 /// 3x3 convolution with circular-W / replicate-H padding and a stride, equalised learning rate.
 #[derive(Config, Debug)]
 pub struct StridedConvConfig {
@@ -163,7 +167,24 @@ pub struct TrainedEncoder {
 }
 
 impl TrainedEncoder {
-    /// A model directory (`encoder.json`, `encoder.bpk`) or an encoder run directory
+    /// The weights shipped in `models/encoder`, compiled into the binary.
+    pub fn shipped(device: &Device) -> Result<Self> {
+        let config: EncoderConfig =
+            serde_json::from_str(SHIPPED_CONFIG).context("the shipped encoder's config.json")?;
+        let record = ModuleRecord::from_bytes(Bytes::from_bytes_vec(SHIPPED_WEIGHTS.to_vec()))
+            .map_err(|e| anyhow::anyhow!("the shipped encoder weights are unreadable: {e}"))?;
+        let encoder = config
+            .init(device)
+            .try_load_record(record)
+            .map_err(|e| anyhow::anyhow!("the shipped encoder weights do not fit: {e}"))?;
+        Ok(Self {
+            encoder,
+            config,
+            source: "shipped".into(),
+        })
+    }
+
+    /// A model directory (`config.json` = [`EncoderConfig`], `encoder.bpk`) or an encoder run directory
     /// (`config.json` with an `encoder` entry, `checkpoint/encoder.bpk`).
     pub fn from_dir(dir: &Path, device: &Device) -> Result<Self> {
         let direct = dir.join("encoder.bpk");
@@ -209,5 +230,12 @@ mod tests {
         let m = x.clone().greater_elem(-0.5).float();
         let w = enc.forward(x, m);
         assert_eq!(w.dims(), [2, 6]);
+    }
+
+    #[test]
+    fn shipped_encoder_loads() {
+        let dev = Device::flex();
+        let e = TrainedEncoder::shipped(&dev).expect("shipped encoder");
+        assert_eq!((e.config.height, e.config.width), (64, 512));
     }
 }

@@ -230,7 +230,7 @@ impl Decoder {
             grid,
         };
         let encoder = match opts.quality {
-            Quality::Fast => None, // TEMP until the first encoder checkpoint ships
+            Quality::Fast => Some(TrainedEncoder::shipped(&device)?),
             Quality::Paper => None,
         };
         let mut d = Decoder {
@@ -289,8 +289,9 @@ impl Decoder {
     /// larger divisible size and resampled back (bilinear).
     pub fn prepare(&self, grid: &AngleGrid) -> PreparedGrid {
         let step = self.generator.resolution_step();
-        let round = |n: usize| n.div_ceil(step).max(1) * step;
-        let render_grid = if grid.height % step == 0 && grid.width % step == 0 {
+        // At least two rows and columns at the coarsest level (the [1,3,3,1] filters need them).
+        let round = |n: usize| n.div_ceil(step).max(2) * step;
+        let render_grid = if round(grid.height) == grid.height && round(grid.width) == grid.width {
             grid.clone()
         } else {
             grid.resized(round(grid.height), round(grid.width))
