@@ -143,3 +143,36 @@ fn bad_decoding_flags_are_clear_errors() {
     }
     assert!(!output.exists(), "no partial output");
 }
+
+#[test]
+fn the_foxglove_layout_names_only_written_channels() {
+    let layout: serde_json::Value = serde_json::from_str(
+        &std::fs::read_to_string("layouts/rangegan.foxglove-layout.json").unwrap(),
+    )
+    .unwrap();
+    let mut wanted = std::collections::BTreeSet::new();
+    for panel in layout["configById"].as_object().unwrap().values() {
+        if let Some(t) = panel["imageMode"]["imageTopic"].as_str() {
+            wanted.insert(t.to_string());
+        }
+        if let Some(topics) = panel["topics"].as_object() {
+            wanted.extend(topics.keys().cloned());
+        }
+    }
+    assert!(wanted.len() >= 8, "{wanted:?}");
+    let dir = tempfile::tempdir().unwrap();
+    let output = dir.path().join("out.mcap");
+    convert(
+        Path::new("sample_logs/drive_realistic.mcap"),
+        &output,
+        &["--upsample", "2", "--target-sensor", "vlp32c"],
+        "2",
+    );
+    let bytes = std::fs::read(&output).unwrap();
+    let written: std::collections::BTreeSet<String> = mcap::MessageStream::new(&bytes)
+        .unwrap()
+        .map(|m| m.unwrap().channel.topic.clone())
+        .collect();
+    let missing: Vec<_> = wanted.difference(&written).collect();
+    assert!(missing.is_empty(), "layout topics not written: {missing:?}");
+}
