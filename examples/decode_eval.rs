@@ -218,9 +218,18 @@ fn scattered_baselines(observed: &[f32], h: usize, w: usize) -> (Vec<f32>, Vec<f
 fn decoder(
     model: &Option<PathBuf>,
     encoder: &Option<PathBuf>,
-    opts: DecodeOptions,
+    mut opts: DecodeOptions,
+    fast_schedule: &Option<rangegan_mcap::decode::Schedule>,
 ) -> Result<Decoder> {
     let dev = burn::tensor::Device::flex();
+    if let (Some(s), Quality::Fast) = (fast_schedule, opts.quality) {
+        let keep_off = opts.schedule.steps() == 0;
+        opts.schedule = s.clone();
+        if keep_off {
+            opts.schedule.w_steps = 0;
+            opts.schedule.tune_steps = 0;
+        }
+    }
     let quality = opts.quality;
     let mut d = Decoder::new(Model::load(model.as_deref(), &dev)?, opts)?;
     if let (Some(e), Quality::Fast) = (encoder, quality) {
