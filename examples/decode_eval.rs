@@ -31,8 +31,10 @@ struct Args {
     encoder: Option<PathBuf>,
     model: Option<PathBuf>,
     out: Option<PathBuf>,
-    /// `w_steps,w_lr,tune_steps,tune_lr` of the fast path (default: `Schedule::fast()`).
+    /// `w_steps,w_lr,tune_steps,tune_lr,tune_decay` of the fast path (default: `Schedule::fast()`).
     fast_schedule: Option<rangegan_mcap::decode::Schedule>,
+    /// Stop after the reconstruction numbers (for tuning the fast schedule).
+    only_reconstruction: bool,
 }
 
 fn parse_args() -> Result<Args> {
@@ -44,6 +46,7 @@ fn parse_args() -> Result<Args> {
         model: None,
         out: None,
         fast_schedule: None,
+        only_reconstruction: false,
     };
     let mut it = std::env::args().skip(1);
     while let Some(flag) = it.next() {
@@ -55,17 +58,19 @@ fn parse_args() -> Result<Args> {
             "--encoder" => a.encoder = Some(PathBuf::from(value()?)),
             "--model" => a.model = Some(PathBuf::from(value()?)),
             "--out" => a.out = Some(PathBuf::from(value()?)),
+            "--only-reconstruction" => a.only_reconstruction = true,
             "--fast-schedule" => {
                 let v = value()?;
                 let p: Vec<&str> = v.split(',').collect();
-                if p.len() != 4 {
-                    bail!("--fast-schedule w_steps,w_lr,tune_steps,tune_lr");
+                if p.len() != 5 {
+                    bail!("--fast-schedule w_steps,w_lr,tune_steps,tune_lr,tune_decay(0|1)");
                 }
                 a.fast_schedule = Some(rangegan_mcap::decode::Schedule {
                     w_steps: p[0].parse()?,
                     w_lr: p[1].parse()?,
                     tune_steps: p[2].parse()?,
                     tune_lr: p[3].parse()?,
+                    tune_decay: p[4] == "1",
                     pyramid_levels: 2,
                 });
             }
@@ -337,6 +342,10 @@ fn main() -> Result<()> {
         "w_avg_plus_fast_steps_rel_l1": mean(&ablation.iter().map(|a| a.1).collect::<Vec<_>>()),
     });
     eprintln!("reconstruction: {reconstruction}");
+    if args.only_reconstruction {
+        println!("{}", serde_json::to_string_pretty(&reconstruction)?);
+        return Ok(());
+    }
 
     // ---- Ray-drop calibration (fast decodes of the full scans) ---------------------------
     let bins = 10;

@@ -43,7 +43,7 @@ pub struct ConvertArgs {
     /// Overwrite an existing OUT.
     #[arg(long)]
     pub force: bool,
-    /// Auto-decoding with the range-image GAN: `fast` (amortised encoder + 20 refinement
+    /// Auto-decoding with the range-image GAN: `fast` (amortised encoder + 20 pivotal-tuning
     /// steps), `paper` (the paper's 1000-step pivotal tuning inversion, minutes per scan) or
     /// `off` (range images only).
     #[arg(long, value_enum, default_value = "fast")]
@@ -56,10 +56,10 @@ pub struct ConvertArgs {
     /// shipped weights).
     #[arg(long)]
     pub encoder: Option<PathBuf>,
-    /// Override the optimisation steps on w (fast: 8, paper: 500).
+    /// Override the optimisation steps on w (fast: 0, paper: 500).
     #[arg(long)]
     pub w_steps: Option<usize>,
-    /// Override the pivotal-tuning steps on the generator weights (fast: 12, paper: 500).
+    /// Override the pivotal-tuning steps on the generator weights (fast: 20, paper: 500).
     #[arg(long)]
     pub tune_steps: Option<usize>,
     /// Bernoulli ray-drop masks written per scan (`raydrop_mask`, `raydrop_mask_1`, ...).
