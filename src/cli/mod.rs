@@ -5,6 +5,7 @@
 mod convert;
 mod import;
 mod info;
+mod sample;
 mod simulate;
 mod train;
 mod train_encoder;
@@ -51,6 +52,8 @@ pub enum Command {
     Train(train::TrainArgs),
     /// Train the amortised encoder of `convert --quality fast` against the frozen generator.
     TrainEncoder(train_encoder::TrainEncoderArgs),
+    /// Draw scans from the trained GAN: depth, drop probability, mask, range, points.
+    Sample(sample::SampleArgs),
 }
 
 /// How a command ended when it did not fail outright.
@@ -85,6 +88,7 @@ pub fn run(args: Args) -> anyhow::Result<Outcome> {
         Command::Simulate(a) => simulate::run(&args.global, a),
         Command::Train(a) => train::run_train(&args.global, a),
         Command::TrainEncoder(a) => train_encoder::run_train_encoder(&args.global, a),
+        Command::Sample(a) => sample::run(&args.global, a),
     }
 }
 

@@ -1,0 +1,120 @@
+//! GAN quality on held-out real scans (issue 4): SWD of inverse depth (paper protocol:
+//! 3-level Laplacian pyramid, 7x7 patches, 128 per image per level, 4 x 128 projections)
+//! between each model's samples and the held-out KITTI scans (SemanticKITTI 00 and 07), with
+//! the training set's own SWD against the same scans as the floor; plus each model's keep rate
+//! and a picture of samples (x_G) next to real scans.
+//!
+//! ```text
+//! cargo run --release --example gan_eval -- --data ../shared/real_lidar \
+//!     --cache RUN/dataset.bin --png docs/img/gan_samples.png LABEL=MODEL_DIR ...
+//! ```
+//! A MODEL_DIR is a model directory (config.json + g_ema.bpk) or a training run directory;
+//! `shipped` is the compiled-in model. Prints one JSON object.
+
+use std::path::PathBuf;
+
+use anyhow::{Context, Result, bail};
+use burn::tensor::Device;
+use rangegan_mcap::model::data::{RangeDataset, kitti_heldout_files, kitti_training_files};
+use rangegan_mcap::model::metrics::{SwdConfig, swd_between, swd_of_model};
+use rangegan_mcap::model::sample::{SampleOptions, sample};
+use rangegan_mcap::model::train::write_png;
+use rangegan_mcap::model::weights::Model;
+
+struct Args {
+    data: PathBuf,
+    cache: Option<PathBuf>,
+    png: Option<PathBuf>,
+    models: Vec<(String, Option<PathBuf>)>,
+}
+
+fn parse_args() -> Result<Args> {
+    let mut it = std::env::args().skip(1);
+    let mut args = Args {
+        data: "../shared/real_lidar".into(),
+        cache: None,
+        png: None,
+        models: Vec::new(),
+    };
+    while let Some(a) = it.next() {
+        match a.as_str() {
+            "--data" => args.data = it.next().context("--data needs a value")?.into(),
+            "--cache" => args.cache = Some(it.next().context("--cache needs a value")?.into()),
+            "--png" => args.png = Some(it.next().context("--png needs a value")?.into()),
+            m => {
+                let (label, dir) = m.split_once('=').unwrap_or((m, m));
+                let dir = (dir != "shipped").then(|| PathBuf::from(dir));
+                args.models.push((label.to_string(), dir));
+            }
+        }
+    }
+    if args.models.is_empty() {
+        bail!("usage: gan_eval [--data DIR] [--cache FILE] [--png FILE] LABEL=MODEL_DIR ...");
+    }
+    Ok(args)
+}
+
+fn keep_rate(images: &[f32]) -> f64 {
+    images.iter().filter(|v| **v > -1.0).count() as f64 / images.len().max(1) as f64
+}
+
+fn main() -> Result<()> {
+    let args = parse_args()?;
+    let device = Device::flex();
+    let heldout = RangeDataset::from_kitti_files(&kitti_heldout_files(&args.data)?, 512)?;
+    let train_files = kitti_training_files(&args.data)?;
+    let train = match &args.cache {
+        Some(c) => RangeDataset::load_or_build(c, &train_files, 512)?,
+        None => RangeDataset::from_kitti_files(&train_files, 512)?,
+    };
+    let cfg = SwdConfig::default();
+    let floor = swd_between(&train, &heldout, &cfg);
+    let mut rows = vec![serde_json::json!({
+        "label": "training set (floor)", "images": train.len(), "swd_mean": floor.mean,
+        "swd_per_level": floor.per_level, "keep_rate": keep_rate(&train.images),
+    })];
+    let n = heldout.height * heldout.width;
+    let mut picture: Vec<Vec<f32>> = Vec::new();
+    for (label, dir) in &args.models {
+        let model = Model::load(dir.as_deref(), &device).with_context(|| label.clone())?;
+        // as many samples as training scans, so the floor and the models compare equal set sizes
+        let report = swd_of_model(&model, &heldout, train.len(), &cfg, &device)?;
+        let opts = SampleOptions {
+            n: 64,
+            seed: 1,
+            truncation: 1.0,
+            grid: Some(heldout.angles.clone()),
+        };
+        let samples = sample(&model, &opts, &device)?;
+        let kept =
+            samples.iter().flat_map(|s| &s.mask).filter(|m| **m).count() as f64 / (64 * n) as f64;
+        for s in samples.iter().take(3) {
+            // x_G in network units: 2 x_d - 1 where kept, -1 (black) where dropped
+            picture.push(
+                s.x_d
+                    .iter()
+                    .zip(&s.mask)
+                    .map(|(x, &m)| if m { 2.0 * x - 1.0 } else { -1.0 })
+                    .collect(),
+            );
+        }
+        rows.push(serde_json::json!({
+            "label": label, "model": model.source, "arch": model.config.arch,
+            "swd_mean": report.mean, "swd_per_level": report.per_level, "keep_rate": kept,
+        }));
+    }
+    if let Some(png) = &args.png {
+        for i in 0..3.min(heldout.len()) {
+            picture.push(heldout.image(i * heldout.len() / 3).to_vec());
+        }
+        let refs: Vec<&[f32]> = picture.iter().map(|p| p.as_slice()).collect();
+        write_png(png, &refs, heldout.height, heldout.width)?;
+    }
+    println!(
+        "{}",
+        serde_json::to_string_pretty(&serde_json::json!({
+            "heldout_images": heldout.len(), "swd_config": format!("{cfg:?}"), "results": rows,
+        }))?
+    );
+    Ok(())
+}
