@@ -19,7 +19,7 @@ pub mod encoder_train;
 pub mod invert;
 pub mod loss;
 
-use std::sync::Arc;
+use std::sync::{Arc, Condvar, Mutex};
 
 use anyhow::{Result, bail};
 use burn::module::Module;
@@ -157,8 +157,63 @@ impl Rendered {
     }
 }
 
+/// One-thread rayon pools, one per worker of the caller's pool. A decode borrows one, so its
+/// tensor work runs on a single thread (bit-identical results whatever the thread count) and
+/// at most as many scans are decoded at once as there are pools. (Installing a fresh pool per
+/// scan would let the waiting worker pick up further scans, starting all of a batch at once.)
+///
+/// A pool is handed back by its own thread when the decode ends, never by the waiting caller:
+/// a caller that waits for a pool may itself be blocked inside work it picked up meanwhile.
+struct Pools {
+    pools: Vec<rayon::ThreadPool>,
+    free: Mutex<Vec<usize>>,
+    returned: Condvar,
+}
+
+impl Pools {
+    fn new(n: usize) -> Result<Self> {
+        let pools = (0..n.max(1))
+            .map(|_| rayon::ThreadPoolBuilder::new().num_threads(1).build())
+            .collect::<Result<Vec<_>, _>>()?;
+        Ok(Pools {
+            free: Mutex::new((0..pools.len()).collect()),
+            pools,
+            returned: Condvar::new(),
+        })
+    }
+
+    fn run<R: Send>(&self, op: impl FnOnce() -> R + Send) -> R {
+        let index = {
+            let mut free = self.free.lock().unwrap_or_else(|e| e.into_inner());
+            loop {
+                if let Some(i) = free.pop() {
+                    break i;
+                }
+                free = self.returned.wait(free).unwrap_or_else(|e| e.into_inner());
+            }
+        };
+        // Runs on the pool's thread when `op` ends (also on a panic).
+        struct Release<'a>(&'a Pools, usize);
+        impl Drop for Release<'_> {
+            fn drop(&mut self) {
+                self.0
+                    .free
+                    .lock()
+                    .unwrap_or_else(|e| e.into_inner())
+                    .push(self.1);
+                self.0.returned.notify_one();
+            }
+        }
+        self.pools[index].install(|| {
+            let _release = Release(self, index);
+            op()
+        })
+    }
+}
+
 /// Decoder state shared by all workers (read-only after construction).
 pub struct Decoder {
+    pools: Pools,
     generator: Generator,
     encoder: Option<TrainedEncoder>,
     opts: DecodeOptions,
@@ -234,6 +289,7 @@ impl Decoder {
             Quality::Paper => None,
         };
         let mut d = Decoder {
+            pools: Pools::new(rayon::current_num_threads())?,
             source: model.source,
             generator,
             encoder: None,
@@ -331,7 +387,8 @@ impl Decoder {
     }
 
     /// Decode one observed scan (any grid; resampled to the model grid, nearest). `seed` drives
-    /// every random draw (use [`scan_seed`]). Runs on the calling thread only.
+    /// every random draw (use [`scan_seed`]). Runs on one thread; call it from several rayon
+    /// workers to decode scans in parallel.
     pub fn decode(&self, observed: &RangeImage, seed: u64) -> Result<Decoded> {
         if observed.range_m.len() != observed.len() || observed.angles.len() != observed.len() {
             bail!(
@@ -342,8 +399,7 @@ impl Decoder {
                 observed.angles.len()
             );
         }
-        let pool = rayon::ThreadPoolBuilder::new().num_threads(1).build()?;
-        pool.install(|| self.decode_here(observed, seed))
+        self.pools.run(|| self.decode_here(observed, seed))
     }
 
     fn decode_here(&self, observed: &RangeImage, seed: u64) -> Result<Decoded> {
