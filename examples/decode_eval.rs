@@ -31,7 +31,7 @@ struct Args {
     encoder: Option<PathBuf>,
     model: Option<PathBuf>,
     out: Option<PathBuf>,
-    /// `w_steps,w_lr,tune_steps,tune_lr,tune_decay` of the fast path (default: `Schedule::fast()`).
+    /// `w_steps,w_lr,tune_steps,tune_lr,tune_decay,tune_w_lr` of the fast path (default: `Schedule::fast()`).
     fast_schedule: Option<rangegan_mcap::decode::Schedule>,
     /// Stop after the reconstruction numbers (for tuning the fast schedule).
     only_reconstruction: bool,
@@ -62,8 +62,10 @@ fn parse_args() -> Result<Args> {
             "--fast-schedule" => {
                 let v = value()?;
                 let p: Vec<&str> = v.split(',').collect();
-                if p.len() != 5 {
-                    bail!("--fast-schedule w_steps,w_lr,tune_steps,tune_lr,tune_decay(0|1)");
+                if p.len() != 6 {
+                    bail!(
+                        "--fast-schedule w_steps,w_lr,tune_steps,tune_lr,tune_decay(0|1),tune_w_lr"
+                    );
                 }
                 a.fast_schedule = Some(rangegan_mcap::decode::Schedule {
                     w_steps: p[0].parse()?,
@@ -71,6 +73,7 @@ fn parse_args() -> Result<Args> {
                     tune_steps: p[2].parse()?,
                     tune_lr: p[3].parse()?,
                     tune_decay: p[4] == "1",
+                    tune_w_lr: p[5].parse()?,
                     pyramid_levels: 2,
                 });
             }

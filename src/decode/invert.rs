@@ -25,6 +25,9 @@ pub struct Schedule {
     /// Cosine decay of the tuning learning rate from `tune_lr` to 0 (few-step schedules).
     #[serde(default)]
     pub tune_decay: bool,
+    /// Learning rate of w while tuning (0 = w frozen, the paper's pivotal tuning).
+    #[serde(default)]
+    pub tune_w_lr: f64,
     /// Masked 2x2-pooled pyramid levels added to the loss.
     pub pyramid_levels: usize,
 }
@@ -38,6 +41,7 @@ impl Schedule {
             tune_steps: 500,
             tune_lr: 5e-4,
             tune_decay: false,
+            tune_w_lr: 0.0,
             pyramid_levels: 2,
         }
     }
@@ -53,6 +57,7 @@ impl Schedule {
             tune_steps: 20,
             tune_lr: 5e-3,
             tune_decay: false,
+            tune_w_lr: 0.0,
             pyramid_levels: 2,
         }
     }
@@ -151,7 +156,8 @@ pub fn invert(
     // Step 2: pivotal tuning of every weight with w frozen.
     let mut tuned = generator.clone().fork(ad).train();
     if schedule.tune_steps > 0 {
-        let w_t = tensor_from(w.clone(), [1, d_w], ad); // [1, d_w], constant
+        let joint = schedule.tune_w_lr > 0.0;
+        let mut adam_w = LatentAdam::new(d_w);
         let mut opt = AdamConfig::new().with_epsilon(1e-8).init();
         for step in 0..schedule.tune_steps {
             let lr = if schedule.tune_decay {
@@ -160,10 +166,16 @@ pub fn invert(
             } else {
                 schedule.tune_lr
             };
+            let w_t = tensor_from(w.clone(), [1, d_w], ad); // [1, d_w]
+            let w_t = if joint { w_t.require_grad() } else { w_t };
             let x_d = tuned.render(w_t.clone(), cache_ad, None).x_d; // [1, 1, H, W]
             let loss = reconstruction_loss(x_d, target.clone(), mask.clone(), levels).sum();
             losses.push(loss.clone().inner().into_scalar::<f32>());
-            let grads = GradientsParams::from_grads(loss.backward(), &tuned);
+            let mut grads = loss.backward();
+            if joint && let Some(g) = w_t.grad_remove(&mut grads) {
+                adam_w.step(&mut w, &tensor_to_vec(g), schedule.tune_w_lr as f32);
+            }
+            let grads = GradientsParams::from_grads(grads, &tuned);
             tuned = opt.step(lr, tuned, grads);
         }
     }
@@ -216,6 +228,7 @@ mod tests {
             tune_steps: 30,
             tune_lr: 3e-3,
             tune_decay: false,
+            tune_w_lr: 0.0,
             pyramid_levels: 1,
         };
         let inv = invert(
