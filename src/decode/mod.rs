@@ -4,7 +4,7 @@
 //!
 //! - [`Decoder`] (shareable across rayon workers) holds the trained generator, the optional
 //!   amortised encoder ([`amortised`]) and the per-grid Fourier caches.
-//! - [`Decoder::decode`] projects the observation onto the model grid, optionally makes it sparse
+//! - [`Decoder::decode`] reprojects the observation onto the model grid, optionally makes it sparse
 //!   ([`Sparsify`], the paper's restoration), predicts or initialises w, and runs
 //!   [`invert::invert`] (w steps, then pivotal tuning on a private copy of the weights).
 //! - [`Decoded`] holds the result: completed depth x_d and drop probability x_n on the model grid,
@@ -376,7 +376,7 @@ impl Decoder {
         let range = if same {
             observed.range_m.clone()
         } else {
-            resample_image(observed, grid, Interpolation::Nearest).range_m
+            reproject(observed, grid)
         };
         let net = range_to_network(&range);
         let mask = net
@@ -386,7 +386,7 @@ impl Decoder {
         (net, mask)
     }
 
-    /// Decode one observed scan (any grid; resampled to the model grid, nearest). `seed` drives
+    /// Decode one observed scan (any grid; its returns are reprojected onto the model grid). `seed` drives
     /// every random draw (use [`scan_seed`]). Runs on one thread; call it from several rayon
     /// workers to decode scans in parallel.
     pub fn decode(&self, observed: &RangeImage, seed: u64) -> Result<Decoded> {
@@ -468,6 +468,60 @@ impl Decoder {
             .and_then(|_| relative_depth_error(&decoded.model.depth_m, &decoded.held_out_m));
         Ok(decoded)
     }
+}
+
+/// The returns of `observed` on another grid: each measured pixel goes to the grid pixel of
+/// its direction (the measured xyz where stored, else the pixel's angles): row = the nearest
+/// beam within half a beam spacing, column by azimuth; the nearest return wins. Unlike
+/// resampling, no return is lost when the source is sparser or denser than the grid.
+fn reproject(observed: &RangeImage, grid: &AngleGrid) -> Vec<f32> {
+    let rows = grid.row_elevations(); // top first, decreasing
+    let mut out = vec![0.0f32; grid.len()];
+    let h = rows.len();
+    if h == 0 || grid.width == 0 {
+        return out;
+    }
+    for k in 0..observed.len() {
+        let d = observed.range_m[k];
+        if d <= 0.0 {
+            continue;
+        }
+        let [x, y, z] = observed.xyz.get(k).copied().unwrap_or([0.0; 3]);
+        let (phi, theta) = if x != 0.0 || y != 0.0 || z != 0.0 {
+            (z.atan2((x * x + y * y).sqrt()), y.atan2(x))
+        } else {
+            (
+                observed.angles.elevation_rad[k],
+                observed.angles.azimuth_rad[k],
+            )
+        };
+        // Nearest row, accepted within half the spacing to its neighbour (one row: 1 degree).
+        let i = rows.partition_point(|&e| e > phi);
+        let candidates = [i.checked_sub(1), (i < h).then_some(i)];
+        let Some(r) = candidates
+            .into_iter()
+            .flatten()
+            .min_by(|a, b| (rows[*a] - phi).abs().total_cmp(&(rows[*b] - phi).abs()))
+        else {
+            continue;
+        };
+        let spacing = if h > 1 {
+            let n = if r + 1 < h { r + 1 } else { r - 1 };
+            (rows[r] - rows[n]).abs()
+        } else {
+            ELEVATION_MARGIN_RAD * 2.0
+        };
+        if (rows[r] - phi).abs() > 0.5 * spacing {
+            continue;
+        }
+        let c = crate::lidar::range_image::azimuth_column(theta, grid.width).round() as usize
+            % grid.width;
+        let slot = &mut out[r * grid.width + c];
+        if *slot == 0.0 || d < *slot {
+            *slot = d;
+        }
+    }
+    out
 }
 
 fn observed_depth(net: f32) -> f32 {

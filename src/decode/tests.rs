@@ -157,3 +157,67 @@ fn an_empty_scan_is_a_clear_error() {
     let e = d.decode(&empty, 1).unwrap_err().to_string();
     assert!(e.contains("nothing to decode"), "{e}");
 }
+
+/// The held-out real scans, if the shared data folder is here.
+fn real_lidar() -> Option<std::path::PathBuf> {
+    let found = ["../shared/real_lidar", "/work/shared/real_lidar"]
+        .iter()
+        .map(std::path::PathBuf::from)
+        .find(|p| p.exists());
+    if found.is_none() {
+        eprintln!("skipping: no ../shared/real_lidar folder with held-out KITTI scans");
+    }
+    found
+}
+
+#[test]
+fn fast_decoding_of_a_held_out_kitti_scan_improves_on_the_encoder() {
+    let Some(root) = real_lidar() else { return };
+    let file = crate::model::data::kitti_heldout_files(&root).expect("held-out files")[0].clone();
+    let scan = crate::lidar::kitti::read_bin(&file).expect("read");
+    // The scan's own 2048-column projection: decode resamples it to the model grid.
+    let image = crate::lidar::project(
+        &scan,
+        &SensorProfile::kitti_hdl64e(),
+        crate::lidar::Strategy::Auto,
+    )
+    .expect("project");
+    let model = || Model::shipped(&Device::flex()).expect("shipped model");
+    let mut opts = DecodeOptions::new(Quality::Fast);
+    opts.schedule.tune_steps = 0;
+    let encoder_only = Decoder::new(model(), opts.clone()).expect("decoder");
+    opts.schedule.tune_steps = 6;
+    let refined = Decoder::new(model(), opts).expect("decoder");
+    let a = encoder_only.decode(&image, 1).expect("decode");
+    let b = refined.decode(&image, 1).expect("decode");
+    let (ea, eb) = (a.error.unwrap(), b.error.unwrap());
+    assert!(eb < ea, "{}: error {ea} -> {eb}", file.display());
+    let measured = a.observed_m.iter().filter(|d| **d > 0.0).count();
+    assert!(
+        measured > 20_000,
+        "{measured} measured pixels on the model grid"
+    );
+}
+
+#[test]
+fn a_sparse_dense_grid_observation_keeps_every_return_on_the_model_grid() {
+    // A 64 x 2048 scan with a return in every 4th column only (KITTI subsampled like
+    // semantickitti_mini): each return must land on the 64 x 512 model grid.
+    let grid = model_grid();
+    let dense = SensorProfile::kitti_hdl64e().angle_grid();
+    let mut img = RangeImage::empty(dense);
+    for i in 0..64 {
+        for j in (1..2048).step_by(4) {
+            img.range_m[i * 2048 + j] = 10.0 + (i % 3) as f32;
+        }
+    }
+    let out = reproject(&img, &grid);
+    let filled = out.iter().filter(|d| **d > 0.0).count();
+    assert_eq!(filled, 64 * 512);
+    // Row i of the source stays row i; its range comes along.
+    assert_eq!(out[5 * 512 + 100], 12.0);
+    // A direction far above the beams is not forced onto the top row.
+    let mut high = RangeImage::empty(AngleGrid::regular_columns(1, 4, |_| 0.3));
+    high.range_m[0] = 5.0;
+    assert!(reproject(&high, &grid).iter().all(|d| *d == 0.0));
+}
