@@ -11,8 +11,9 @@ use std::sync::Mutex;
 use mcap::records::Record;
 use rayon::prelude::*;
 
+use crate::decode::{Decoder, PreparedGrid, Rendered, scan_seed};
 use crate::error::Location;
-use crate::io::encoders::{Kind, Payload, PixelFormat, encode};
+use crate::io::encoders::{Kind, Payload, PixelFormat, encode, encode_points};
 use crate::io::{
     CloudFormat, DecodedCloud, Family, McapOutput, OnError, ReadReport, decode_cloud, read_records,
 };
@@ -42,6 +43,11 @@ pub struct ConvertOptions {
     pub metadata: BTreeMap<String, String>,
 }
 
+/// Scans per parallel batch. Fixed rather than tied to the thread count: outputs of a batch are
+/// written after its last input record, so the batch size decides how copied and new records
+/// interleave, and the output file must be the same bytes whatever the thread count.
+pub const DEFAULT_BATCH_SCANS: usize = 16;
+
 impl Default for ConvertOptions {
     fn default() -> Self {
         ConvertOptions {
@@ -50,7 +56,7 @@ impl Default for ConvertOptions {
             columns: None,
             strategy: Strategy::Auto,
             on_error: OnError::Fail,
-            batch_scans: 2 * rayon::current_num_threads().max(1),
+            batch_scans: DEFAULT_BATCH_SCANS,
             metadata: BTreeMap::new(),
         }
     }
@@ -96,6 +102,145 @@ pub fn range_stage(input: &ScanInput<'_>) -> anyhow::Result<Vec<StageOutput>> {
         kind: Kind::Image,
         data: bytes,
     }])
+}
+
+/// The auto-decoding stage: for every scan, the completed depth, the ray-drop probability,
+/// sampled ray-drop masks and the completed point cloud on the model grid, plus depth and points
+/// on extra grids (denser or another sensor's).
+pub struct DecodeStage<'d> {
+    decoder: &'d Decoder,
+    mask_samples: usize,
+    /// `(suffix, grid)`: written as `depth_<suffix>` and `points_<suffix>`.
+    extra_grids: Vec<(String, PreparedGrid)>,
+}
+
+/// What [`DecodeStage`] adds beyond the model-grid channels.
+#[derive(Debug, Clone, Default)]
+pub struct DecodeOutputs {
+    /// Bernoulli ray-drop masks per scan (`raydrop_mask`, `raydrop_mask_1`, ...).
+    pub mask_samples: usize,
+    /// Upsampling factors of the model grid (2 -> 128 x 1024).
+    pub upsample: Vec<usize>,
+    /// Other sensors to render for (their own grids).
+    pub target_sensors: Vec<SensorProfile>,
+}
+
+impl<'d> DecodeStage<'d> {
+    /// Prepares every extra grid once (their Fourier bases are shared by all scans).
+    pub fn new(decoder: &'d Decoder, outputs: &DecodeOutputs) -> anyhow::Result<Self> {
+        let model = decoder.model_grid();
+        let mut extra_grids = Vec::new();
+        for &f in &outputs.upsample {
+            if !(1..=8).contains(&f) {
+                anyhow::bail!("--upsample {f}: factors from 1 to 8 are supported");
+            }
+            let grid = model.resized(model.height * f, model.width * f);
+            extra_grids.push((
+                format!("{}x{}", grid.height, grid.width),
+                decoder.prepare(&grid),
+            ));
+        }
+        for p in &outputs.target_sensors {
+            let name: String = p
+                .name
+                .chars()
+                .map(|c| {
+                    if c.is_ascii_alphanumeric() {
+                        c.to_ascii_lowercase()
+                    } else {
+                        '_'
+                    }
+                })
+                .collect();
+            extra_grids.push((name, decoder.prepare(&p.angle_grid())));
+        }
+        Ok(DecodeStage {
+            decoder,
+            mask_samples: outputs.mask_samples,
+            extra_grids,
+        })
+    }
+
+    /// Decode one scan and encode its channels.
+    pub fn run(&self, input: &ScanInput<'_>) -> anyhow::Result<Vec<StageOutput>> {
+        let seed = scan_seed(input.topic, input.log_time);
+        let decoded = self.decoder.decode(input.image, seed)?;
+        let (family, stamp, frame) = (
+            input.family,
+            input.cloud.stamp_nanos,
+            input.cloud.frame_id.as_str(),
+        );
+        let image = |suffix: String, r: &Rendered, values: &[f32]| {
+            let data: Vec<u8> = values.iter().flat_map(|v| v.to_le_bytes()).collect();
+            StageOutput {
+                suffix,
+                kind: Kind::Image,
+                data: encode(
+                    family,
+                    stamp,
+                    frame,
+                    &Payload::Image {
+                        width: r.grid.width as u32,
+                        height: r.grid.height as u32,
+                        format: PixelFormat::F32,
+                        data: &data,
+                    },
+                ),
+            }
+        };
+        let points = |suffix: String, r: &Rendered| {
+            let keep: Vec<usize> = (0..r.grid.len()).filter(|&k| r.depth_m[k] > 0.0).collect();
+            let all = r.points();
+            let xyz = keep.iter().map(|&k| all[k]).collect();
+            let range: Vec<f32> = keep.iter().map(|&k| r.depth_m[k]).collect();
+            let drop: Vec<f32> = keep.iter().map(|&k| r.drop_prob[k]).collect();
+            StageOutput {
+                suffix,
+                kind: Kind::Cloud,
+                data: encode_points(
+                    family,
+                    stamp,
+                    frame,
+                    xyz,
+                    &[("range", &range), ("raydrop_prob", &drop)],
+                ),
+            }
+        };
+        let m = &decoded.model;
+        let mut out = vec![
+            image("depth".into(), m, &m.depth_m),
+            image("raydrop_prob".into(), m, &m.drop_prob),
+        ];
+        for (i, mask) in decoded.sample_masks(self.mask_samples).iter().enumerate() {
+            let data: Vec<u8> = mask.iter().map(|&k| if k { 255 } else { 0 }).collect();
+            out.push(StageOutput {
+                suffix: if i == 0 {
+                    "raydrop_mask".into()
+                } else {
+                    format!("raydrop_mask_{i}")
+                },
+                kind: Kind::Image,
+                data: encode(
+                    family,
+                    stamp,
+                    frame,
+                    &Payload::Image {
+                        width: m.grid.width as u32,
+                        height: m.grid.height as u32,
+                        format: PixelFormat::Mono8,
+                        data: &data,
+                    },
+                ),
+            });
+        }
+        out.push(points("points".into(), m));
+        for (suffix, grid) in &self.extra_grids {
+            let r = decoded.render_prepared(grid);
+            out.push(image(format!("depth_{suffix}"), &r, &r.depth_m));
+            out.push(points(format!("points_{suffix}"), &r));
+        }
+        Ok(out)
+    }
 }
 
 /// Per-topic results for the summary.

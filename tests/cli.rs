@@ -154,6 +154,8 @@ fn real_semantickitti_imports_and_converts() {
     );
     let o = run(&[
         "convert",
+        "--quality",
+        "off",
         mcap.to_str().unwrap(),
         out.to_str().unwrap(),
         "--json",

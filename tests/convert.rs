@@ -23,6 +23,8 @@ fn converts_every_family_and_copies_every_record() {
     let before = hash(&input);
     let o = run(&[
         "convert",
+        "--quality",
+        "off",
         input.to_str().unwrap(),
         output.to_str().unwrap(),
         "--json",
@@ -86,16 +88,24 @@ fn refuses_to_overwrite_input_or_existing_output() {
     let (input, output) = (dir.path().join("in.mcap"), dir.path().join("out.mcap"));
     write_recording(&input, &[Family::Ros2], 1, None);
     let i = input.to_str().unwrap();
-    let o = run(&["convert", i, i]);
+    let o = run(&["convert", "--quality", "off", i, i]);
     assert_eq!(o.status.code(), Some(1));
     assert!(stderr(&o).contains("output is the input"), "{}", stderr(&o));
 
     std::fs::write(&output, b"keep me").unwrap();
-    let o = run(&["convert", i, output.to_str().unwrap()]);
+    let o = run(&["convert", "--quality", "off", i, output.to_str().unwrap()]);
     assert_eq!(o.status.code(), Some(1));
     assert!(stderr(&o).contains("--force"));
     assert_eq!(std::fs::read(&output).unwrap(), b"keep me");
-    let o = run(&["convert", i, output.to_str().unwrap(), "--force", "--quiet"]);
+    let o = run(&[
+        "convert",
+        "--quality",
+        "off",
+        i,
+        output.to_str().unwrap(),
+        "--force",
+        "--quiet",
+    ]);
     assert!(o.status.success(), "{}", stderr(&o));
     assert_ne!(std::fs::read(&output).unwrap(), b"keep me");
 }
@@ -115,6 +125,8 @@ fn truncated_recordings_keep_every_complete_message() {
         std::fs::write(&cut, &bytes[..(bytes.len() as f64 * fraction) as usize]).unwrap();
         let o = run(&[
             "convert",
+            "--quality",
+            "off",
             cut.to_str().unwrap(),
             out.to_str().unwrap(),
             "--json",
@@ -142,6 +154,8 @@ fn truncated_recordings_keep_every_complete_message() {
         last = scans;
         let strict = run(&[
             "convert",
+            "--quality",
+            "off",
             cut.to_str().unwrap(),
             out.to_str().unwrap(),
             "--force",
@@ -179,7 +193,13 @@ fn corrupt_chunks_are_named_and_can_be_skipped() {
     bytes[start + 9 + len - 10] ^= 0xff;
     std::fs::write(&input, &bytes).unwrap();
 
-    let o = run(&["convert", input.to_str().unwrap(), output.to_str().unwrap()]);
+    let o = run(&[
+        "convert",
+        "--quality",
+        "off",
+        input.to_str().unwrap(),
+        output.to_str().unwrap(),
+    ]);
     assert_eq!(o.status.code(), Some(1));
     let err = stderr(&o);
     assert!(err.contains("/lidar_ros2"), "{err}");
@@ -197,6 +217,8 @@ fn corrupt_chunks_are_named_and_can_be_skipped() {
 
     let o = run(&[
         "convert",
+        "--quality",
+        "off",
         input.to_str().unwrap(),
         output.to_str().unwrap(),
         "--on-error",
@@ -261,6 +283,8 @@ fn malformed_clouds_are_copied_and_reported() {
     drop(w);
     let o = run(&[
         "convert",
+        "--quality",
+        "off",
         input.to_str().unwrap(),
         output.to_str().unwrap(),
         "--json",
@@ -278,6 +302,8 @@ fn malformed_clouds_are_copied_and_reported() {
     assert_eq!(s["report"]["copied"]["messages"], 8);
     let strict = run(&[
         "convert",
+        "--quality",
+        "off",
         input.to_str().unwrap(),
         output.to_str().unwrap(),
         "--force",
@@ -294,6 +320,8 @@ fn not_an_mcap_is_a_clear_error() {
     std::fs::write(&input, b"hello, this is not a recording").unwrap();
     let o = run(&[
         "convert",
+        "--quality",
+        "off",
         input.to_str().unwrap(),
         dir.path().join("o.mcap").to_str().unwrap(),
     ]);

@@ -1,4 +1,5 @@
-//! `rangegan-mcap convert IN OUT`: copy every record, add range-image channels.
+//! `rangegan-mcap convert IN OUT`: copy every record, add range-image channels and (unless
+//! `--quality off`) the auto-decoded depth, ray-drop and completed-cloud channels.
 
 use std::collections::BTreeMap;
 use std::path::PathBuf;
@@ -6,9 +7,12 @@ use std::path::PathBuf;
 use anyhow::{Context, bail};
 
 use super::{GlobalArgs, Outcome};
+use crate::decode::amortised::TrainedEncoder;
+use crate::decode::{DecodeOptions, Decoder, Quality, Sparsify};
 use crate::io::{McapOutput, OnError};
 use crate::lidar::{SensorProfile, Strategy};
-use crate::pipeline::{self, ConvertOptions, SensorChoice, Stage};
+use crate::model::weights::Model;
+use crate::pipeline::{self, ConvertOptions, DecodeOutputs, DecodeStage, SensorChoice, Stage};
 
 #[derive(Debug, clap::Args)]
 pub struct ConvertArgs {
@@ -39,6 +43,105 @@ pub struct ConvertArgs {
     /// Overwrite an existing OUT.
     #[arg(long)]
     pub force: bool,
+    /// Auto-decoding with the range-image GAN: `fast` (amortised encoder + 20 pivotal-tuning
+    /// steps), `paper` (the paper's 1000-step pivotal tuning inversion, minutes per scan) or
+    /// `off` (range images only).
+    #[arg(long, value_enum, default_value = "fast")]
+    pub quality: QualityArg,
+    /// Generator: a model directory (config.json + g_ema.bpk) or a training run directory
+    /// (default: the shipped weights).
+    #[arg(long)]
+    pub model: Option<PathBuf>,
+    /// Encoder of `--quality fast`: a `train-encoder` run or model directory (default: the
+    /// shipped weights).
+    #[arg(long)]
+    pub encoder: Option<PathBuf>,
+    /// Override the optimisation steps on w (fast: 0, paper: 500).
+    #[arg(long)]
+    pub w_steps: Option<usize>,
+    /// Override the pivotal-tuning steps on the generator weights (fast: 20, paper: 500).
+    #[arg(long)]
+    pub tune_steps: Option<usize>,
+    /// Bernoulli ray-drop masks written per scan (`raydrop_mask`, `raydrop_mask_1`, ...).
+    #[arg(long, default_value_t = 1)]
+    pub mask_samples: usize,
+    /// Also render the decoded scene on the model grid upsampled by these factors, e.g.
+    /// `2,4` -> `depth_128x1024`, `points_128x1024`, `depth_256x2048`, `points_256x2048`.
+    #[arg(long, value_delimiter = ',')]
+    pub upsample: Vec<usize>,
+    /// Also render it on another sensor's grid (built-in name or profile JSON), e.g.
+    /// `vlp32c` -> `depth_vlp32c`, `points_vlp32c` (repeatable).
+    #[arg(long)]
+    pub target_sensor: Vec<String>,
+    /// Decode from only N evenly spaced rows of the 64-row model grid (restoration).
+    #[arg(long, conflicts_with = "restore_fraction")]
+    pub restore_lines: Option<usize>,
+    /// Decode from a random fraction (0..1) of the measured points (restoration).
+    #[arg(long)]
+    pub restore_fraction: Option<f32>,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum QualityArg {
+    Fast,
+    Paper,
+    Off,
+}
+
+/// The decoder and its extra outputs, from the decoding flags (`None` for `--quality off`).
+fn resolve_decoding(args: &ConvertArgs) -> anyhow::Result<Option<(Decoder, DecodeOutputs)>> {
+    let quality = match args.quality {
+        QualityArg::Off => {
+            let used = args.mask_samples != 1
+                || !args.upsample.is_empty()
+                || !args.target_sensor.is_empty()
+                || args.restore_lines.is_some()
+                || args.restore_fraction.is_some();
+            if used {
+                bail!(
+                    "--upsample, --target-sensor, --restore-* and --mask-samples need decoding; drop --quality off"
+                );
+            }
+            return Ok(None);
+        }
+        QualityArg::Fast => Quality::Fast,
+        QualityArg::Paper => Quality::Paper,
+    };
+    let mut opts = DecodeOptions::new(quality);
+    if let Some(n) = args.w_steps {
+        opts.schedule.w_steps = n;
+    }
+    if let Some(n) = args.tune_steps {
+        opts.schedule.tune_steps = n;
+    }
+    opts.restore = match (args.restore_lines, args.restore_fraction) {
+        (Some(n), _) if n == 0 || n > 64 => bail!("--restore-lines {n}: give 1 to 64 rows"),
+        (Some(n), _) => Some(Sparsify::Lines(n)),
+        (_, Some(f)) if !(f > 0.0 && f <= 1.0) => {
+            bail!("--restore-fraction {f}: give a fraction in (0, 1]")
+        }
+        (_, Some(f)) => Some(Sparsify::Fraction(f)),
+        _ => None,
+    };
+    let device = burn::tensor::Device::flex();
+    let model = Model::load(args.model.as_deref(), &device)?;
+    let mut decoder = Decoder::new(model, opts)?;
+    if let (Some(dir), Quality::Fast) = (&args.encoder, quality) {
+        decoder = decoder.with_encoder(TrainedEncoder::from_dir(dir, &device)?)?;
+    }
+    let target_sensors = args
+        .target_sensor
+        .iter()
+        .map(|s| SensorProfile::resolve(s).map_err(anyhow::Error::from))
+        .collect::<anyhow::Result<Vec<_>>>()?;
+    Ok(Some((
+        decoder,
+        DecodeOutputs {
+            mask_samples: args.mask_samples,
+            upsample: args.upsample.clone(),
+            target_sensors,
+        },
+    )))
 }
 
 #[derive(Debug, Clone, Copy, clap::ValueEnum)]
@@ -108,11 +211,20 @@ pub fn run(global: &GlobalArgs, args: ConvertArgs) -> anyhow::Result<Outcome> {
         metadata,
         ..ConvertOptions::default()
     };
+    let decoding = resolve_decoding(&args)?;
+    let decode_stage = match &decoding {
+        Some((decoder, outputs)) => Some(DecodeStage::new(decoder, outputs)?),
+        None => None,
+    };
     let out = McapOutput::create(&args.output, args.force)?;
 
     let bar = super::progress_bar(global, len.unwrap_or(0));
     let started = std::time::Instant::now();
-    let stages: [&Stage<'_>; 1] = [&pipeline::range_stage];
+    let decode_fn = |input: &pipeline::ScanInput<'_>| match &decode_stage {
+        Some(s) => s.run(input),
+        None => Ok(Vec::new()),
+    };
+    let stages: [&Stage<'_>; 2] = [&pipeline::range_stage, &decode_fn];
     let reader = std::io::BufReader::with_capacity(1 << 20, file);
     let report = pipeline::convert(&args.input, reader, len, out, &opts, &stages, |p| {
         bar.set_position(p.bytes_read);

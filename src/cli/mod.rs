@@ -10,6 +10,7 @@ mod render;
 mod sample;
 mod simulate;
 mod train;
+mod train_encoder;
 
 use std::process::ExitCode;
 
@@ -55,6 +56,8 @@ pub enum Command {
     Simulate(simulate::SimulateArgs),
     /// Train the range-image GAN on KITTI scans (resumes an existing run directory).
     Train(train::TrainArgs),
+    /// Train the amortised encoder of `convert --quality fast` against the frozen generator.
+    TrainEncoder(train_encoder::TrainEncoderArgs),
     /// Draw scans from the trained GAN: depth, drop probability, mask, range, points.
     Sample(sample::SampleArgs),
 }
@@ -92,6 +95,7 @@ pub fn run(args: Args) -> anyhow::Result<Outcome> {
         Command::Import(a) => import::run(&args.global, a),
         Command::Simulate(a) => simulate::run(&args.global, a),
         Command::Train(a) => train::run_train(&args.global, a),
+        Command::TrainEncoder(a) => train_encoder::run_train_encoder(&args.global, a),
         Command::Sample(a) => sample::run(&args.global, a),
     }
 }

@@ -303,6 +303,29 @@ pub fn encode_scan(family: Family, cloud: &DecodedCloud, extra: &[(&str, &[f32])
     )
 }
 
+/// Encodes bare points (x, y, z, then `extra` float channels, one value per point) as an
+/// unorganized point-cloud message of `family`, e.g. a completed scan with `range` and
+/// `raydrop_prob`.
+pub fn encode_points(
+    family: Family,
+    stamp_nanos: u64,
+    frame_id: &str,
+    xyz: Vec<[f32; 3]>,
+    extra: &[(&str, &[f32])],
+) -> Vec<u8> {
+    let scan = crate::lidar::Scan::from_xyz(xyz);
+    let (layout, data) = super::pointcloud::encode(&scan, extra);
+    encode(
+        family,
+        stamp_nanos,
+        frame_id,
+        &Payload::Cloud {
+            layout: &layout,
+            data: &data,
+        },
+    )
+}
+
 #[cfg(test)]
 mod tests {
     use super::super::decoders::{CloudFormat, decode_cloud};
@@ -335,6 +358,29 @@ mod tests {
                 CloudFormat::detect(message_encoding(family), &s.name),
                 Some(format)
             );
+        }
+    }
+
+    #[test]
+    fn bare_points_round_trip_with_extra_fields() {
+        let xyz = vec![[1.0, 2.0, 3.0], [-4.0, 0.5, 0.0]];
+        let range = [3.74f32, 4.03];
+        let drop = [0.1f32, 0.9];
+        for (family, format) in [
+            (Family::Ros2, CloudFormat::Ros2Cdr),
+            (Family::Ros1, CloudFormat::Ros1),
+            (Family::Foxglove, CloudFormat::FoxgloveProtobuf),
+        ] {
+            let bytes = encode_points(
+                family,
+                7,
+                "lidar",
+                xyz.clone(),
+                &[("range", &range), ("raydrop_prob", &drop)],
+            );
+            let back = decode_cloud(format, &bytes).unwrap();
+            assert_eq!(back.scan.xyz, xyz, "{family:?}");
+            assert_eq!((back.stamp_nanos, back.frame_id.as_str()), (7, "lidar"));
         }
     }
 

@@ -21,7 +21,27 @@ reader.append(readFileSync(path));
 const schemas = new Map();
 const channels = new Map();
 const decoders = new Map();
-const report = { topics: {}, decoded: 0, failures: [], images: {}, clouds: {} };
+const report = { topics: {}, decoded: 0, failures: [], images: {}, clouds: {}, values: {} };
+
+// Range of pixel values per image topic ([min, max] of 32FC1 floats, sorted distinct bytes
+// of mono8), so tests can check units (e.g. a probability stays in 0..1).
+function trackValues(topic, msg) {
+  const bytes = msg.data instanceof Uint8Array ? msg.data : new Uint8Array(msg.data);
+  if (msg.encoding === "32FC1") {
+    const view = new DataView(bytes.buffer, bytes.byteOffset, bytes.byteLength);
+    let [lo, hi] = report.values[topic] ?? [Infinity, -Infinity];
+    for (let i = 0; i + 4 <= bytes.length; i += 4) {
+      const v = view.getFloat32(i, true);
+      if (v < lo) lo = v;
+      if (v > hi) hi = v;
+    }
+    report.values[topic] = [lo, hi];
+  } else if (msg.encoding === "mono8") {
+    const seen = new Set(report.values[topic] ?? []);
+    for (const b of bytes) seen.add(b);
+    report.values[topic] = [...seen].sort((a, b) => a - b);
+  }
+}
 
 function decoderFor(channel) {
   if (decoders.has(channel.id)) return decoders.get(channel.id);
@@ -59,9 +79,14 @@ for (let record; (record = reader.nextRecord()); ) {
       report.decoded += 1;
       if (msg.encoding !== undefined && msg.step !== undefined) {
         report.images[channel.topic] ??= [msg.height, msg.width, msg.encoding, msg.step, msg.data.length];
+        trackValues(channel.topic, msg);
       }
       if (msg.fields !== undefined && msg.data !== undefined) {
         report.clouds[channel.topic] ??= msg.fields.map((f) => f.name);
+        const stride = msg.point_step ?? msg.point_stride ?? msg.pointStride;
+        if (!stride || msg.data.length % stride !== 0) {
+          report.failures.push(`${channel.topic} @ ${record.logTime}: ${msg.data.length} bytes of points with stride ${stride}`);
+        }
       }
     } catch (e) {
       report.failures.push(`${channel.topic} @ ${record.logTime}: ${e.message}`);

@@ -1,0 +1,522 @@
+//! The numbers of issue 5 on held-out real KITTI scans (none used in training): reconstruction
+//! error of `fast` and `paper`, upsampling (16 -> 64 beams, 512 -> 2048 columns), restoration
+//! (8 of 64 lines, 10 % of points) against nearest / bilinear interpolation, and ray-drop
+//! calibration. Prints a JSON report (and Markdown tables on stderr).
+//!
+//!     cargo run --release --example decode_eval -- --data ../shared/real_lidar \
+//!         [--paper-scans 2] [--fast-scans 26] [--encoder DIR] [--model DIR] [--out eval.json]
+//!
+//! Held out: `semantickitti_mini/00`, `/07` (every 4th point, ~512 per ring) and the
+//! full-resolution `semantickitti_ssv3`, `patchworkpp` (~2010 per ring; ground truth for the
+//! 512 -> 2048 column test). Scans are decoded in parallel (rayon over scans, one thread each).
+
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use anyhow::{Context, Result, bail};
+use rangegan_mcap::decode::amortised::TrainedEncoder;
+use rangegan_mcap::decode::{DecodeOptions, Decoded, Decoder, Quality, Sparsify, model_grid};
+use rangegan_mcap::lidar::{
+    self, AngleGrid, Interpolation, RangeImage, SensorProfile, Strategy, resample_image,
+};
+use rangegan_mcap::model::data::{MAX_DEPTH_M, MIN_DEPTH_M, kitti_training_files};
+use rangegan_mcap::model::weights::Model;
+use rayon::prelude::*;
+use serde_json::json;
+
+struct Args {
+    data: PathBuf,
+    paper_scans: usize,
+    fast_scans: usize,
+    encoder: Option<PathBuf>,
+    model: Option<PathBuf>,
+    out: Option<PathBuf>,
+    /// `w_steps,w_lr,tune_steps,tune_lr,tune_decay,tune_w_lr` of the fast path (default: `Schedule::fast()`).
+    fast_schedule: Option<rangegan_mcap::decode::Schedule>,
+    /// Stop after the reconstruction numbers (for tuning the fast schedule).
+    only_reconstruction: bool,
+}
+
+fn parse_args() -> Result<Args> {
+    let mut a = Args {
+        data: PathBuf::from("../shared/real_lidar"),
+        paper_scans: 2,
+        fast_scans: usize::MAX,
+        encoder: None,
+        model: None,
+        out: None,
+        fast_schedule: None,
+        only_reconstruction: false,
+    };
+    let mut it = std::env::args().skip(1);
+    while let Some(flag) = it.next() {
+        let mut value = || it.next().with_context(|| format!("{flag} needs a value"));
+        match flag.as_str() {
+            "--data" => a.data = PathBuf::from(value()?),
+            "--paper-scans" => a.paper_scans = value()?.parse()?,
+            "--fast-scans" => a.fast_scans = value()?.parse()?,
+            "--encoder" => a.encoder = Some(PathBuf::from(value()?)),
+            "--model" => a.model = Some(PathBuf::from(value()?)),
+            "--out" => a.out = Some(PathBuf::from(value()?)),
+            "--only-reconstruction" => a.only_reconstruction = true,
+            "--fast-schedule" => {
+                let v = value()?;
+                let p: Vec<&str> = v.split(',').collect();
+                if p.len() != 6 {
+                    bail!(
+                        "--fast-schedule w_steps,w_lr,tune_steps,tune_lr,tune_decay(0|1),tune_w_lr"
+                    );
+                }
+                a.fast_schedule = Some(rangegan_mcap::decode::Schedule {
+                    w_steps: p[0].parse()?,
+                    w_lr: p[1].parse()?,
+                    tune_steps: p[2].parse()?,
+                    tune_lr: p[3].parse()?,
+                    tune_decay: p[4] == "1",
+                    tune_w_lr: p[5].parse()?,
+                    pyramid_levels: 2,
+                });
+            }
+            other => bail!("unknown flag {other}"),
+        }
+    }
+    Ok(a)
+}
+
+/// One held-out scan: its 64 x 512 projection and, for full-resolution scans, 64 x 2048.
+struct Scan {
+    name: String,
+    image: RangeImage,
+    full: Option<RangeImage>,
+}
+
+fn valid_range(img: &mut RangeImage) {
+    for r in &mut img.range_m {
+        if !(MIN_DEPTH_M..=MAX_DEPTH_M).contains(r) {
+            *r = 0.0;
+        }
+    }
+}
+
+fn load_scans(data: &Path) -> Result<Vec<Scan>> {
+    let p512 = SensorProfile::kitti_hdl64e().with_columns(512);
+    let p2048 = SensorProfile::kitti_hdl64e().with_columns(2048);
+    let mut out = Vec::new();
+    let mut add = |path: PathBuf, full: bool| -> Result<()> {
+        let scan = lidar::kitti::read_bin(&path)?;
+        let mut image = lidar::project(&scan, &p512, Strategy::Auto)?;
+        valid_range(&mut image);
+        let full = if full {
+            let mut f = lidar::project(&scan, &p2048, Strategy::Auto)?;
+            valid_range(&mut f);
+            Some(f)
+        } else {
+            None
+        };
+        let name = path
+            .strip_prefix(data)
+            .unwrap_or(&path)
+            .display()
+            .to_string();
+        out.push(Scan { name, image, full });
+        Ok(())
+    };
+    for dir in ["semantickitti_ssv3", "patchworkpp"] {
+        let mut files: Vec<PathBuf> = std::fs::read_dir(data.join(dir))
+            .with_context(|| format!("failed to list {dir}"))?
+            .filter_map(|e| e.ok().map(|e| e.path()))
+            .filter(|p| p.extension().is_some_and(|e| e == "bin"))
+            .collect();
+        files.sort();
+        for f in files {
+            add(f, true)?;
+        }
+    }
+    for f in rangegan_mcap::model::data::kitti_heldout_files(data)? {
+        add(f, false)?;
+    }
+    Ok(out)
+}
+
+/// Mean absolute error in meters over pixels where `truth` is measured, `mask` allows and
+/// every prediction has a value.
+fn mae(truth: &[f32], preds: &[&[f32]], mask: &dyn Fn(usize) -> bool) -> (Vec<f64>, usize) {
+    let mut sums = vec![0.0f64; preds.len()];
+    let mut n = 0;
+    for k in 0..truth.len() {
+        if truth[k] <= 0.0 || !mask(k) || preds.iter().any(|p| p[k] <= 0.0) {
+            continue;
+        }
+        for (s, p) in sums.iter_mut().zip(preds) {
+            *s += f64::from((p[k] - truth[k]).abs());
+        }
+        n += 1;
+    }
+    (sums.iter().map(|s| s / n.max(1) as f64).collect(), n)
+}
+
+/// The kept rows of `img` as their own image (with their angles), for row interpolation.
+fn rows_image(img: &RangeImage, rows: &[usize]) -> RangeImage {
+    let w = img.width;
+    let grid = AngleGrid {
+        height: rows.len(),
+        width: w,
+        elevation_rad: rows
+            .iter()
+            .flat_map(|r| img.angles.elevation_rad[r * w..(r + 1) * w].to_vec())
+            .collect(),
+        azimuth_rad: rows
+            .iter()
+            .flat_map(|r| img.angles.azimuth_rad[r * w..(r + 1) * w].to_vec())
+            .collect(),
+    };
+    let mut out = RangeImage::empty(grid);
+    for (i, r) in rows.iter().enumerate() {
+        for j in 0..w {
+            out.range_m[i * w + j] = img.range_m[r * w + j];
+            let [x, y, z] = img.angles.direction(r * w + j);
+            let d = img.range_m[r * w + j];
+            out.xyz[i * w + j] = [x * d, y * d, z * d];
+        }
+    }
+    out
+}
+
+/// Scattered-point baselines on the image grid: nearest observed pixel and inverse-distance
+/// weighting of the observed pixels within twice the nearest distance (search radius 8 px).
+fn scattered_baselines(observed: &[f32], h: usize, w: usize) -> (Vec<f32>, Vec<f32>) {
+    let mut nearest = vec![0.0; h * w];
+    let mut idw = vec![0.0; h * w];
+    let r = 8isize;
+    for i in 0..h as isize {
+        for j in 0..w as isize {
+            let mut found: Vec<(f32, f32)> = Vec::new();
+            for di in -r..=r {
+                let ii = i + di;
+                if ii < 0 || ii >= h as isize {
+                    continue;
+                }
+                for dj in -r..=r {
+                    let jj = (j + dj).rem_euclid(w as isize);
+                    let v = observed[ii as usize * w + jj as usize];
+                    if v > 0.0 {
+                        found.push((((di * di + dj * dj) as f32).sqrt(), v));
+                    }
+                }
+            }
+            let Some(&(d0, v0)) = found.iter().min_by(|a, b| a.0.total_cmp(&b.0)) else {
+                continue;
+            };
+            let k = i as usize * w + j as usize;
+            nearest[k] = v0;
+            let (mut s, mut ws) = (0.0, 0.0);
+            for (d, v) in &found {
+                if *d <= 2.0 * d0.max(0.5) {
+                    let wt = 1.0 / d.max(0.5);
+                    s += wt * v;
+                    ws += wt;
+                }
+            }
+            idw[k] = s / ws;
+        }
+    }
+    (nearest, idw)
+}
+
+fn decoder(
+    model: &Option<PathBuf>,
+    encoder: &Option<PathBuf>,
+    mut opts: DecodeOptions,
+    fast_schedule: &Option<rangegan_mcap::decode::Schedule>,
+) -> Result<Decoder> {
+    let dev = burn::tensor::Device::flex();
+    if let (Some(s), Quality::Fast) = (fast_schedule, opts.quality) {
+        let keep_off = opts.schedule.steps() == 0;
+        opts.schedule = s.clone();
+        if keep_off {
+            opts.schedule.w_steps = 0;
+            opts.schedule.tune_steps = 0;
+        }
+    }
+    let quality = opts.quality;
+    let mut d = Decoder::new(Model::load(model.as_deref(), &dev)?, opts)?;
+    if let (Some(e), Quality::Fast) = (encoder, quality) {
+        d = d.with_encoder(TrainedEncoder::from_dir(e, &dev)?)?;
+    }
+    Ok(d)
+}
+
+fn mean(v: &[f64]) -> f64 {
+    v.iter().sum::<f64>() / v.len().max(1) as f64
+}
+
+fn main() -> Result<()> {
+    let args = parse_args()?;
+    if !args.data.exists() {
+        eprintln!("skipped: {} not found", args.data.display());
+        return Ok(());
+    }
+    let scans = load_scans(&args.data)?;
+    let fast_n = args.fast_scans.min(scans.len());
+    let paper_n = args.paper_scans.min(scans.len());
+    eprintln!(
+        "{} held-out scans ({} fast, {} paper)",
+        scans.len(),
+        fast_n,
+        paper_n
+    );
+    let model_source = Model::load(args.model.as_deref(), &burn::tensor::Device::flex())?.source;
+    let fast = decoder(
+        &args.model,
+        &args.encoder,
+        DecodeOptions::new(Quality::Fast),
+        &args.fast_schedule,
+    )?;
+    let paper = decoder(
+        &args.model,
+        &None,
+        DecodeOptions::new(Quality::Paper),
+        &None,
+    )?;
+    let mut no_enc_opts = DecodeOptions::new(Quality::Paper);
+    no_enc_opts.schedule = args
+        .fast_schedule
+        .clone()
+        .unwrap_or_else(rangegan_mcap::decode::Schedule::fast);
+    let no_encoder = decoder(&args.model, &None, no_enc_opts, &None)?;
+    let mut encoder_only_opts = DecodeOptions::new(Quality::Fast);
+    encoder_only_opts.schedule.w_steps = 0;
+    encoder_only_opts.schedule.tune_steps = 0;
+    let encoder_only = decoder(&args.model, &args.encoder, encoder_only_opts, &None)?;
+
+    // ---- Reconstruction ----------------------------------------------------------------
+    // Per-scan times include waiting for a free worker; throughput is scans / wall time.
+    let timed = |d: &Decoder, s: &Scan, seed: u64| -> Result<(Decoded, f64)> {
+        let t = Instant::now();
+        let r = d.decode(&s.image, seed)?;
+        Ok((r, t.elapsed().as_secs_f64()))
+    };
+    let t0 = Instant::now();
+    let fast_res: Vec<(Decoded, f64)> = scans[..fast_n]
+        .par_iter()
+        .enumerate()
+        .map(|(i, s)| timed(&fast, s, i as u64))
+        .collect::<Result<_>>()?;
+    let fast_wall = t0.elapsed().as_secs_f64();
+    let ablation: Vec<(f64, f64)> = scans[..fast_n]
+        .par_iter()
+        .enumerate()
+        .map(|(i, s)| -> Result<(f64, f64)> {
+            let a = encoder_only
+                .decode(&s.image, i as u64)?
+                .error
+                .unwrap_or(f32::NAN);
+            let b = no_encoder
+                .decode(&s.image, i as u64)?
+                .error
+                .unwrap_or(f32::NAN);
+            Ok((f64::from(a), f64::from(b)))
+        })
+        .collect::<Result<_>>()?;
+    let t1 = Instant::now();
+    let paper_res: Vec<(Decoded, f64)> = scans[..paper_n]
+        .par_iter()
+        .enumerate()
+        .map(|(i, s)| timed(&paper, s, i as u64))
+        .collect::<Result<_>>()?;
+    let paper_wall = t1.elapsed().as_secs_f64();
+    let err = |r: &[(Decoded, f64)]| -> Vec<f64> {
+        r.iter()
+            .map(|(d, _)| f64::from(d.error.unwrap_or(f32::NAN)))
+            .collect()
+    };
+    let fast_err = err(&fast_res);
+    let paper_err = err(&paper_res);
+    let fast_on_paper_scans = mean(&fast_err[..paper_n.min(fast_n)]);
+    let speedup = (fast_n as f64 / fast_wall) / (paper_n as f64 / paper_wall);
+    let reconstruction = json!({
+        "threads": rayon::current_num_threads(),
+        "fast_speedup_over_paper": speedup,
+        "fast": {"scans": fast_n, "rel_l1_mean": mean(&fast_err), "rel_l1_per_scan": fast_err,
+                  "scans_per_sec": fast_n as f64 / fast_wall, "wall_secs": fast_wall,
+                  "steps": fast.options().schedule.steps()},
+        "fast_on_paper_scans": fast_on_paper_scans,
+        "paper": {"scans": paper_n, "rel_l1_mean": mean(&paper_err), "rel_l1_per_scan": paper_err,
+                   "scans_per_sec": paper_n as f64 / paper_wall, "wall_secs": paper_wall,
+                   "steps": paper.options().schedule.steps()},
+        "encoder_only_rel_l1": mean(&ablation.iter().map(|a| a.0).collect::<Vec<_>>()),
+        "w_avg_plus_fast_steps_rel_l1": mean(&ablation.iter().map(|a| a.1).collect::<Vec<_>>()),
+    });
+    eprintln!("reconstruction: {reconstruction}");
+    if args.only_reconstruction {
+        println!("{}", serde_json::to_string_pretty(&reconstruction)?);
+        return Ok(());
+    }
+
+    // ---- Ray-drop calibration (fast decodes of the full scans) ---------------------------
+    let bins = 10;
+    let mut rel = vec![(0.0f64, 0.0f64, 0usize); bins];
+    let (mut nll, mut n_pix) = (0.0f64, 0usize);
+    let mut rows_drop = vec![(0.0f64, 0usize); 64];
+    for (s, (d, _)) in scans[..fast_n].iter().zip(&fast_res) {
+        for k in 0..s.image.len() {
+            let dropped = s.image.range_m[k] <= 0.0;
+            let p = f64::from(d.model.drop_prob[k]).clamp(1e-4, 1.0 - 1e-4);
+            nll -= if dropped { p.ln() } else { (1.0 - p).ln() };
+            n_pix += 1;
+            let b = ((p * bins as f64) as usize).min(bins - 1);
+            rel[b].0 += p;
+            rel[b].1 += f64::from(u8::from(dropped));
+            rel[b].2 += 1;
+            let row = k / s.image.width;
+            rows_drop[row].0 += f64::from(u8::from(dropped));
+            rows_drop[row].1 += 1;
+        }
+    }
+    // Baselines from the training scans: one global drop rate and one per row.
+    let train = rangegan_mcap::model::data::RangeDataset::from_kitti_files(
+        &kitti_training_files(&args.data)?,
+        512,
+    )?;
+    let mut row_rate = vec![(0.0f64, 0.0f64); 64];
+    for i in 0..train.len() {
+        for (k, v) in train.image(i).iter().enumerate() {
+            let row = k / 512;
+            row_rate[row].0 += f64::from(u8::from(*v <= -1.0));
+            row_rate[row].1 += 1.0;
+        }
+    }
+    let global =
+        row_rate.iter().map(|r| r.0).sum::<f64>() / row_rate.iter().map(|r| r.1).sum::<f64>();
+    let (mut nll_global, mut nll_row) = (0.0f64, 0.0f64);
+    for s in &scans[..fast_n] {
+        for k in 0..s.image.len() {
+            let dropped = s.image.range_m[k] <= 0.0;
+            let pr = (row_rate[k / 512].0 / row_rate[k / 512].1).clamp(1e-4, 1.0 - 1e-4);
+            let pg = global.clamp(1e-4, 1.0 - 1e-4);
+            let f = |p: f64| if dropped { -p.ln() } else { -(1.0 - p).ln() };
+            nll_global += f(pg);
+            nll_row += f(pr);
+        }
+    }
+    let n = n_pix.max(1) as f64;
+    let calibration = json!({
+        "nll_xn": nll / n, "nll_global_rate": nll_global / n, "nll_per_row_rate": nll_row / n,
+        "drop_rate_heldout": rows_drop.iter().map(|r| r.0).sum::<f64>() / n,
+        "drop_rate_train": global,
+        "reliability": rel.iter().enumerate().map(|(i, (sp, sd, c))| json!({
+            "bin": format!("{:.1}-{:.1}", i as f64 / bins as f64, (i + 1) as f64 / bins as f64),
+            "pixels": c, "mean_xn": sp / (*c).max(1) as f64, "observed_drop_rate": sd / (*c).max(1) as f64,
+        })).collect::<Vec<_>>(),
+    });
+    eprintln!("calibration: {calibration}");
+
+    // ---- Upsampling and restoration (fast decoding from sparse observations) -------------
+    let grid512 = model_grid();
+    let lines_case = |n_lines: usize| -> Result<serde_json::Value> {
+        let mut opts = DecodeOptions::new(Quality::Fast);
+        opts.restore = Some(Sparsify::Lines(n_lines));
+        let d = decoder(&args.model, &args.encoder, opts, &args.fast_schedule)?;
+        let kept = Sparsify::kept_rows(n_lines, 64);
+        let per: Vec<(Vec<f64>, usize)> = scans[..fast_n]
+            .par_iter()
+            .enumerate()
+            .map(|(i, s)| -> Result<(Vec<f64>, usize)> {
+                let dec = d.decode(&s.image, i as u64)?;
+                let sparse = rows_image(&s.image, &kept);
+                let near = resample_image(&sparse, &grid512, Interpolation::Nearest).range_m;
+                let bil = resample_image(&sparse, &grid512, Interpolation::Bilinear).range_m;
+                let held = |k: usize| !kept.contains(&(k / 512));
+                Ok(mae(
+                    &s.image.range_m,
+                    &[&dec.model.depth_m, &near, &bil],
+                    &held,
+                ))
+            })
+            .collect::<Result<_>>()?;
+        Ok(summarize(&per, &["gan_fast", "nearest", "bilinear"]))
+    };
+    let rows16 = lines_case(16)?;
+    eprintln!("upsample rows 16->64: {rows16}");
+    let rows8 = lines_case(8)?;
+    eprintln!("restore 8 of 64 lines: {rows8}");
+
+    let fraction = {
+        let mut opts = DecodeOptions::new(Quality::Fast);
+        opts.restore = Some(Sparsify::Fraction(0.1));
+        let d = decoder(&args.model, &args.encoder, opts, &args.fast_schedule)?;
+        let per: Vec<(Vec<f64>, usize)> = scans[..fast_n]
+            .par_iter()
+            .enumerate()
+            .map(|(i, s)| -> Result<(Vec<f64>, usize)> {
+                let dec = d.decode(&s.image, i as u64)?;
+                let (near, idw) = scattered_baselines(&dec.observed_m, 64, 512);
+                let held = |k: usize| dec.held_out_m[k] > 0.0;
+                Ok(mae(
+                    &s.image.range_m,
+                    &[&dec.model.depth_m, &near, &idw],
+                    &held,
+                ))
+            })
+            .collect::<Result<_>>()?;
+        summarize(&per, &["gan_fast", "nearest", "idw"])
+    };
+    eprintln!("restore 10 % of points: {fraction}");
+
+    let columns = {
+        let grid2048 = SensorProfile::kitti_hdl64e()
+            .with_columns(2048)
+            .angle_grid();
+        let full: Vec<&Scan> = scans.iter().filter(|s| s.full.is_some()).collect();
+        let prepared = fast.prepare(&grid2048);
+        let per: Vec<(Vec<f64>, usize)> = full
+            .par_iter()
+            .enumerate()
+            .map(|(i, s)| -> Result<(Vec<f64>, usize)> {
+                let truth = s
+                    .full
+                    .as_ref()
+                    .map(|f| f.range_m.clone())
+                    .unwrap_or_default();
+                let dec = fast.decode(&s.image, 1000 + i as u64)?;
+                let dense = dec.render_prepared(&prepared);
+                let near = resample_image(&s.image, &grid2048, Interpolation::Nearest).range_m;
+                let bil = resample_image(&s.image, &grid2048, Interpolation::Bilinear).range_m;
+                Ok(mae(&truth, &[&dense.depth_m, &near, &bil], &|_| true))
+            })
+            .collect::<Result<_>>()?;
+        summarize(&per, &["gan_fast", "nearest", "bilinear"])
+    };
+    eprintln!("upsample columns 512->2048: {columns}");
+
+    let report = json!({
+        "model": model_source,
+        "encoder": args.encoder.as_ref().map_or("shipped".to_string(), |p| p.display().to_string()),
+        "scans": scans.iter().map(|s| s.name.clone()).collect::<Vec<_>>(),
+        "reconstruction": reconstruction,
+        "calibration": calibration,
+        "upsample_rows_16_to_64_mae_m": rows16,
+        "upsample_columns_512_to_2048_mae_m": columns,
+        "restore_8_of_64_lines_mae_m": rows8,
+        "restore_10_percent_points_mae_m": fraction,
+    });
+    let text = serde_json::to_string_pretty(&report)?;
+    if let Some(out) = &args.out {
+        std::fs::write(out, &text).with_context(|| format!("failed to write {}", out.display()))?;
+    }
+    println!("{text}");
+    Ok(())
+}
+
+/// Pixel-weighted mean MAE per method over scans.
+fn summarize(per: &[(Vec<f64>, usize)], names: &[&str]) -> serde_json::Value {
+    let total: usize = per.iter().map(|p| p.1).sum();
+    let mut m = serde_json::Map::new();
+    for (i, name) in names.iter().enumerate() {
+        let v = per.iter().map(|(e, n)| e[i] * *n as f64).sum::<f64>() / total.max(1) as f64;
+        m.insert((*name).into(), json!(v));
+    }
+    m.insert("pixels".into(), json!(total));
+    m.insert("scans".into(), json!(per.len()));
+    serde_json::Value::Object(m)
+}

@@ -1,0 +1,250 @@
+//! Optimisation-based inversion (reference section 5): Adam on the latent w with a cosine
+//! learning-rate ramp, then pivotal tuning (PTI): w frozen, every generator weight fine-tuned.
+//! Used with the paper's schedule (`--quality paper`, 500 + 500 steps from w_avg) and, with a
+//! few steps, to refine the encoder's prediction (`--quality fast`).
+
+use burn::module::Module;
+use burn::optim::{AdamConfig, GradientsParams};
+use burn::tensor::{Device, Tensor};
+
+use super::loss::reconstruction_loss;
+use crate::model::generator::{Generator, GridCache};
+use crate::model::rng::{tensor_from, tensor_to_vec};
+
+/// Steps and learning rates of one inversion.
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct Schedule {
+    /// Adam steps on w.
+    pub w_steps: usize,
+    /// Peak learning rate on w.
+    pub w_lr: f64,
+    /// Pivotal-tuning steps on the generator weights (w frozen).
+    pub tune_steps: usize,
+    /// Learning rate of pivotal tuning (constant, or the peak with `tune_decay`).
+    pub tune_lr: f64,
+    /// Cosine decay of the tuning learning rate from `tune_lr` to 0 (few-step schedules).
+    #[serde(default)]
+    pub tune_decay: bool,
+    /// Learning rate of w while tuning (0 = w frozen, the paper's pivotal tuning).
+    #[serde(default)]
+    pub tune_w_lr: f64,
+    /// Masked 2x2-pooled pyramid levels added to the loss.
+    pub pyramid_levels: usize,
+}
+
+impl Schedule {
+    /// The paper's: 500 steps on w (lr 0.05, cosine ramp-down), 500 of pivotal tuning (lr 5e-4).
+    pub fn paper() -> Self {
+        Schedule {
+            w_steps: 500,
+            w_lr: 0.05,
+            tune_steps: 500,
+            tune_lr: 5e-4,
+            tune_decay: false,
+            tune_w_lr: 0.0,
+            pyramid_levels: 2,
+        }
+    }
+
+    /// The fast path's refinement after the encoder: 20 steps of pivotal tuning at a 10x
+    /// higher learning rate, no steps on w (1/50 of the paper's 1000 steps). Chosen on 4
+    /// held-out scans among 10 schedules of 20 steps (BENCHMARKS.md): steps on w after the
+    /// encoder made the result worse, tuning lr 5e-3..7e-3 was best, a cosine decay did not help.
+    pub fn fast() -> Self {
+        Schedule {
+            w_steps: 0,
+            w_lr: 0.02,
+            tune_steps: 20,
+            tune_lr: 5e-3,
+            tune_decay: false,
+            tune_w_lr: 0.0,
+            pyramid_levels: 2,
+        }
+    }
+
+    /// Total optimisation steps (each one forward + backward pass of the generator).
+    pub fn steps(&self) -> usize {
+        self.w_steps + self.tune_steps
+    }
+}
+
+/// The StyleGAN2 projector's ramp: linear ramp-up over the first 5 %, cosine ramp-down over the
+/// last 25 % of `t` in [0, 1].
+pub fn lr_ramp(t: f64) -> f64 {
+    let down = ((1.0 - t) / 0.25).min(1.0);
+    let down = 0.5 - 0.5 * (down * std::f64::consts::PI).cos();
+    down * (t / 0.05).min(1.0)
+}
+
+/// A tuned generator and its pivot latent, on the inference device.
+#[derive(Debug, Clone)]
+pub struct Inverted {
+    pub generator: Generator,
+    /// `[1, d_w]`
+    pub w: Vec<f32>,
+    /// Loss after each step (w steps, then tuning steps).
+    pub losses: Vec<f32>,
+}
+
+/// Host-side Adam for the latent (one `[d_w]` vector; torch defaults beta (0.9, 0.999)).
+struct LatentAdam {
+    m: Vec<f32>,
+    v: Vec<f32>,
+    t: i32,
+}
+
+impl LatentAdam {
+    fn new(n: usize) -> Self {
+        LatentAdam {
+            m: vec![0.0; n],
+            v: vec![0.0; n],
+            t: 0,
+        }
+    }
+
+    fn step(&mut self, x: &mut [f32], grad: &[f32], lr: f32) {
+        let (b1, b2, eps) = (0.9f32, 0.999f32, 1e-8f32);
+        self.t += 1;
+        let c1 = 1.0 - b1.powi(self.t);
+        let c2 = 1.0 - b2.powi(self.t);
+        for i in 0..x.len() {
+            let g = grad[i];
+            self.m[i] = b1 * self.m[i] + (1.0 - b1) * g;
+            self.v[i] = b2 * self.v[i] + (1.0 - b2) * g * g;
+            x[i] -= lr * (self.m[i] / c1) / ((self.v[i] / c2).sqrt() + eps);
+        }
+    }
+}
+
+/// Invert one observation.
+///
+/// `generator` lives on the inference device, `cache_ad` is its grid cache on `ad` (the
+/// autodiff device); target and mask are `[1, 1, H, W]` on `ad` (network units, {0, 1}).
+/// Starts at `w0`. The caller's generator is not modified: pivotal tuning works on a copy.
+pub fn invert(
+    generator: &Generator,
+    cache_ad: &GridCache,
+    target: Tensor<4>,
+    mask: Tensor<4>,
+    w0: Vec<f32>,
+    schedule: &Schedule,
+    ad: &Device,
+) -> Inverted {
+    let d_w = w0.len();
+    let mut w = w0;
+    let mut losses = Vec::with_capacity(schedule.steps());
+    let levels = schedule.pyramid_levels;
+
+    // Step 1: w only; the weights are constants (no weight gradients are computed).
+    if schedule.w_steps > 0 {
+        let frozen = generator.clone().fork(ad).no_grad();
+        let mut adam = LatentAdam::new(d_w);
+        for step in 0..schedule.w_steps {
+            let t = step as f64 / schedule.w_steps as f64;
+            let lr = (schedule.w_lr * lr_ramp(t)) as f32;
+            let w_t = tensor_from(w.clone(), [1, d_w], ad).require_grad(); // [1, d_w]
+            let x_d = frozen.render(w_t.clone(), cache_ad, None).x_d; // [1, 1, H, W]
+            let loss = reconstruction_loss(x_d, target.clone(), mask.clone(), levels).sum();
+            losses.push(loss.clone().inner().into_scalar::<f32>());
+            let grads = loss.backward();
+            let Some(g) = w_t.grad(&grads) else { break };
+            let g = tensor_to_vec(g);
+            adam.step(&mut w, &g, lr);
+        }
+    }
+
+    // Step 2: pivotal tuning of every weight with w frozen.
+    let mut tuned = generator.clone().fork(ad).train();
+    if schedule.tune_steps > 0 {
+        let joint = schedule.tune_w_lr > 0.0;
+        let mut adam_w = LatentAdam::new(d_w);
+        let mut opt = AdamConfig::new().with_epsilon(1e-8).init();
+        for step in 0..schedule.tune_steps {
+            let lr = if schedule.tune_decay {
+                let t = step as f64 / schedule.tune_steps as f64;
+                schedule.tune_lr * 0.5 * (1.0 + (std::f64::consts::PI * t).cos())
+            } else {
+                schedule.tune_lr
+            };
+            let w_t = tensor_from(w.clone(), [1, d_w], ad); // [1, d_w]
+            let w_t = if joint { w_t.require_grad() } else { w_t };
+            let x_d = tuned.render(w_t.clone(), cache_ad, None).x_d; // [1, 1, H, W]
+            let loss = reconstruction_loss(x_d, target.clone(), mask.clone(), levels).sum();
+            losses.push(loss.clone().inner().into_scalar::<f32>());
+            let mut grads = loss.backward();
+            if joint && let Some(g) = w_t.grad_remove(&mut grads) {
+                adam_w.step(&mut w, &tensor_to_vec(g), schedule.tune_w_lr as f32);
+            }
+            let grads = GradientsParams::from_grads(grads, &tuned);
+            tuned = opt.step(lr, tuned, grads);
+        }
+    }
+    Inverted {
+        generator: tuned.valid(),
+        w,
+        losses,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::model::generator::{GeneratorConfig, MappingConfig};
+    use crate::model::layers::kitti_like_grid;
+    use crate::model::rng::Rng;
+
+    #[test]
+    fn ramp_rises_then_falls_to_zero() {
+        assert_eq!(lr_ramp(0.0), 0.0);
+        assert!((lr_ramp(0.5) - 1.0).abs() < 1e-12);
+        assert!(lr_ramp(0.9) < 1.0 && lr_ramp(0.9) > 0.0);
+        assert!(lr_ramp(1.0).abs() < 1e-12);
+    }
+
+    #[test]
+    fn both_stages_lower_the_loss_and_leave_the_input_generator_alone() {
+        let dev = Device::flex();
+        let ad = dev.clone().autodiff();
+        let g = GeneratorConfig::new()
+            .with_mapping(MappingConfig::new().with_d_z(8).with_d_w(8))
+            .with_channels(vec![8, 8])
+            .with_n_freq(vec![4, 4])
+            .with_lh(vec![3, 4])
+            .with_lw(vec![2, 3])
+            .with_seed(3)
+            .init(&dev);
+        let grid = kitti_like_grid(8, 32);
+        let cache = g.prepare(&grid, &dev);
+        let cache_ad = g.prepare(&grid, &ad);
+        // The target: another latent's image.
+        let mut rng = Rng::new(4);
+        let w_true = g.mapping.forward(rng.normal_tensor([1, 8], &dev));
+        let target = g.render(w_true, &cache, None).x_d;
+        let before = tensor_to_vec(g.render(Tensor::zeros([1, 8], &dev), &cache, None).x_d);
+        let mask = target.ones_like();
+        let sched = Schedule {
+            w_steps: 30,
+            w_lr: 0.1,
+            tune_steps: 30,
+            tune_lr: 3e-3,
+            tune_decay: false,
+            tune_w_lr: 0.0,
+            pyramid_levels: 1,
+        };
+        let inv = invert(
+            &g,
+            &cache_ad,
+            target.clone().autodiff(),
+            mask.autodiff(),
+            vec![0.0; 8],
+            &sched,
+            &ad,
+        );
+        let l = &inv.losses;
+        assert_eq!(l.len(), 60);
+        assert!(l[29] < l[0], "w stage: {} -> {}", l[0], l[29]);
+        assert!(l[59] < l[30], "tuning stage: {} -> {}", l[30], l[59]);
+        let after = tensor_to_vec(g.render(Tensor::zeros([1, 8], &dev), &cache, None).x_d);
+        assert_eq!(before, after, "the shared generator must not be tuned");
+    }
+}

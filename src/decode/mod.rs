@@ -1,0 +1,604 @@
+//! Auto-decoding (GAN inversion, seed paper section 3.3, reference section 5): turns an
+//! observed range image into a tuned generator and its latent, and renders that scene on any
+//! angle grid (the model grid, a denser one, another sensor's).
+//!
+//! - [`Decoder`] (shareable across rayon workers) holds the trained generator, the optional
+//!   amortised encoder ([`amortised`]) and the per-grid Fourier caches.
+//! - [`Decoder::decode`] reprojects the observation onto the model grid, optionally makes it sparse
+//!   ([`Sparsify`], the paper's restoration), predicts or initialises w, and runs
+//!   [`invert::invert`] (w steps, then pivotal tuning on a private copy of the weights).
+//! - [`Decoded`] holds the result: completed depth x_d and drop probability x_n on the model grid,
+//!   the reconstruction error, Bernoulli ray-drop masks, and [`Decoded::render`] for other grids.
+//!
+//! Every random draw comes from the caller's seed (derive it with [`scan_seed`] from topic and
+//! log time) and each decode runs its tensor work on one thread, so results are bit-identical
+//! whatever the thread count. Loading and encoding messages is left to `io` and `pipeline`.
+
+pub mod amortised;
+pub mod encoder_train;
+pub mod invert;
+pub mod loss;
+
+use std::sync::{Arc, Condvar, Mutex};
+
+use anyhow::{Result, bail};
+use burn::module::Module;
+use burn::tensor::activation::sigmoid;
+use burn::tensor::{Device, Tensor};
+
+use crate::lidar::{AngleGrid, Interpolation, RangeImage, SensorProfile, resample_image};
+use crate::model::AnyGenerator;
+use crate::model::data::range_to_network;
+use crate::model::generator::{Generator, GridCache};
+use crate::model::rng::{Rng, tensor_from, tensor_to_vec};
+use crate::model::weights::Model;
+use amortised::TrainedEncoder;
+pub use invert::Schedule;
+use loss::{network_to_depth, relative_depth_error};
+
+/// How hard to work per scan.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Quality {
+    /// Encoder prediction + a few refinement steps ([`Schedule::fast`]).
+    Fast,
+    /// The paper's pivotal tuning inversion from w_avg ([`Schedule::paper`]).
+    Paper,
+}
+
+/// Keep only part of the observation before decoding (the paper's restoration experiment).
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
+pub enum Sparsify {
+    /// `n` evenly spaced rows of the model grid (e.g. 8 of 64).
+    Lines(usize),
+    /// Each measured pixel kept with this probability (seeded).
+    Fraction(f32),
+}
+
+impl Sparsify {
+    /// The kept rows for [`Sparsify::Lines`]: `round(k H / n)` for k < n.
+    pub fn kept_rows(n: usize, height: usize) -> Vec<usize> {
+        let n = n.clamp(1, height.max(1));
+        (0..n)
+            .map(|k| ((k * height) as f64 / n as f64).round() as usize)
+            .filter(|r| *r < height)
+            .collect()
+    }
+
+    /// Apply to a validity mask of a `height x width` grid; `rng` is used by `Fraction`.
+    pub fn apply(&self, mask: &mut [f32], height: usize, width: usize, rng: &mut Rng) {
+        match *self {
+            Sparsify::Lines(n) => {
+                let keep = Self::kept_rows(n, height);
+                for r in 0..height {
+                    if !keep.contains(&r) {
+                        mask[r * width..(r + 1) * width].fill(0.0);
+                    }
+                }
+            }
+            Sparsify::Fraction(f) => {
+                for m in mask.iter_mut() {
+                    if *m > 0.0 && rng.uniform() >= f {
+                        *m = 0.0;
+                    }
+                }
+            }
+        }
+    }
+}
+
+/// Options of a [`Decoder`].
+#[derive(Debug, Clone, PartialEq)]
+pub struct DecodeOptions {
+    pub quality: Quality,
+    /// Steps and learning rates (default: the quality's).
+    pub schedule: Schedule,
+    /// Decode from a sparse version of each observation.
+    pub restore: Option<Sparsify>,
+}
+
+impl DecodeOptions {
+    pub fn new(quality: Quality) -> Self {
+        DecodeOptions {
+            quality,
+            schedule: match quality {
+                Quality::Fast => Schedule::fast(),
+                Quality::Paper => Schedule::paper(),
+            },
+            restore: None,
+        }
+    }
+}
+
+/// A grid with its Fourier cache, ready to render on (compute once, render many scans).
+#[derive(Debug, Clone)]
+pub struct PreparedGrid {
+    /// The grid asked for.
+    pub grid: AngleGrid,
+    /// The grid actually rendered (`grid`, or the nearest size divisible by the generator's
+    /// step, resampled back to `grid` afterwards).
+    render_grid: AngleGrid,
+    cache: Arc<GridCache>,
+    /// Elevations (radians, low, high) the model knows, with a margin; pixels outside are
+    /// extrapolations and are left empty.
+    elevation_range: (f32, f32),
+}
+
+/// How far beyond the training grid's top and bottom beams a rendered pixel may look.
+const ELEVATION_MARGIN_RAD: f32 = 0.0175; // 1 degree
+
+fn elevation_range(grid: &AngleGrid) -> (f32, f32) {
+    let lo = grid.elevation_rad.iter().cloned().fold(f32::MAX, f32::min);
+    let hi = grid.elevation_rad.iter().cloned().fold(f32::MIN, f32::max);
+    (lo - ELEVATION_MARGIN_RAD, hi + ELEVATION_MARGIN_RAD)
+}
+
+/// A decoded scene rendered on a grid, row-major `H x W`.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Rendered {
+    pub grid: AngleGrid,
+    /// Completed depth x_d in meters (clamped to 1.45-80 m), before ray drop; 0 where the
+    /// pixel looks more than 1 degree above or below the beams the model was trained on.
+    pub depth_m: Vec<f32>,
+    /// x_n: probability that the ray is DROPPED, 0..1 (1 where `depth_m` is 0).
+    pub drop_prob: Vec<f32>,
+}
+
+impl Rendered {
+    /// Points along each pixel's direction at the completed depth (every pixel).
+    pub fn points(&self) -> Vec<[f32; 3]> {
+        (0..self.grid.len())
+            .map(|k| {
+                let [x, y, z] = self.grid.direction(k);
+                let d = self.depth_m[k];
+                [d * x, d * y, d * z]
+            })
+            .collect()
+    }
+}
+
+/// One-thread rayon pools, one per worker of the caller's pool. A decode borrows one, so its
+/// tensor work runs on a single thread (bit-identical results whatever the thread count) and
+/// at most as many scans are decoded at once as there are pools. (Installing a fresh pool per
+/// scan would let the waiting worker pick up further scans, starting all of a batch at once.)
+///
+/// A pool is handed back by its own thread when the decode ends, never by the waiting caller:
+/// a caller that waits for a pool may itself be blocked inside work it picked up meanwhile.
+struct Pools {
+    pools: Vec<rayon::ThreadPool>,
+    free: Mutex<Vec<usize>>,
+    returned: Condvar,
+}
+
+impl Pools {
+    fn new(n: usize) -> Result<Self> {
+        let pools = (0..n.max(1))
+            .map(|_| rayon::ThreadPoolBuilder::new().num_threads(1).build())
+            .collect::<Result<Vec<_>, _>>()?;
+        Ok(Pools {
+            free: Mutex::new((0..pools.len()).collect()),
+            pools,
+            returned: Condvar::new(),
+        })
+    }
+
+    fn run<R: Send>(&self, op: impl FnOnce() -> R + Send) -> R {
+        let index = {
+            let mut free = self.free.lock().unwrap_or_else(|e| e.into_inner());
+            loop {
+                if let Some(i) = free.pop() {
+                    break i;
+                }
+                free = self.returned.wait(free).unwrap_or_else(|e| e.into_inner());
+            }
+        };
+        // Runs on the pool's thread when `op` ends (also on a panic).
+        struct Release<'a>(&'a Pools, usize);
+        impl Drop for Release<'_> {
+            fn drop(&mut self) {
+                self.0
+                    .free
+                    .lock()
+                    .unwrap_or_else(|e| e.into_inner())
+                    .push(self.1);
+                self.0.returned.notify_one();
+            }
+        }
+        self.pools[index].install(|| {
+            let _release = Release(self, index);
+            op()
+        })
+    }
+}
+
+/// Decoder state shared by all workers (read-only after construction).
+pub struct Decoder {
+    pools: Pools,
+    generator: Generator,
+    encoder: Option<TrainedEncoder>,
+    opts: DecodeOptions,
+    device: Device,
+    ad: Device,
+    model: PreparedGrid,
+    cache_ad: GridCache,
+    /// Where the generator and encoder came from.
+    pub source: String,
+}
+
+/// The result of decoding one scan.
+#[derive(Debug, Clone)]
+pub struct Decoded {
+    generator: Generator,
+    w: Tensor<2>,
+    /// On the model grid.
+    pub model: Rendered,
+    /// The observation used (model grid, meters, 0 = not observed), after [`Sparsify`].
+    pub observed_m: Vec<f32>,
+    /// Measured pixels of the full observation that decoding did not see (restoration).
+    pub held_out_m: Vec<f32>,
+    /// Mean |d - d_obs| / d_obs over the observed pixels.
+    pub error: Option<f32>,
+    /// The same on the held-out pixels (`None` without [`Sparsify`]).
+    pub held_out_error: Option<f32>,
+    /// Loss after each optimisation step.
+    pub losses: Vec<f32>,
+    pub seed: u64,
+}
+
+/// A seed for one scan from its topic and log time (FNV-1a of the topic mixed with the time),
+/// so every random draw is the same whatever the thread count or file order.
+pub fn scan_seed(topic: &str, log_time_nanos: u64) -> u64 {
+    let mut h: u64 = 0xcbf2_9ce4_8422_2325;
+    for b in topic.bytes() {
+        h ^= u64::from(b);
+        h = h.wrapping_mul(0x0100_0000_01b3);
+    }
+    let mut r = Rng::new(h ^ log_time_nanos.rotate_left(17));
+    r.next_u64()
+}
+
+/// The grid the shipped model was trained on: KITTI HDL-64E at 512 columns.
+pub fn model_grid() -> AngleGrid {
+    SensorProfile::kitti_hdl64e().with_columns(512).angle_grid()
+}
+
+impl Decoder {
+    /// A decoder for `model` (must be the implicit DUSty v2 generator). `Fast` uses the shipped
+    /// encoder unless [`Decoder::with_encoder`] gives another.
+    pub fn new(model: Model, opts: DecodeOptions) -> Result<Decoder> {
+        let AnyGenerator::Implicit(generator) = model.generator else {
+            bail!(
+                "model '{}' is a fixed-resolution {:?} generator; auto-decoding needs the implicit dusty2 generator",
+                model.source,
+                model.config.arch
+            );
+        };
+        let device = Device::flex();
+        let ad = device.clone().autodiff();
+        let generator = generator.to_device(&device);
+        let grid = model_grid();
+        let cache_ad = generator.prepare(&grid, &ad);
+        let model_grid = PreparedGrid {
+            render_grid: grid.clone(),
+            cache: Arc::new(generator.prepare(&grid, &device)),
+            elevation_range: elevation_range(&grid),
+            grid,
+        };
+        let encoder = match opts.quality {
+            Quality::Fast => Some(TrainedEncoder::shipped(&device)?),
+            Quality::Paper => None,
+        };
+        let mut d = Decoder {
+            pools: Pools::new(rayon::current_num_threads())?,
+            source: model.source,
+            generator,
+            encoder: None,
+            opts,
+            device,
+            ad,
+            model: model_grid,
+            cache_ad,
+        };
+        if let Some(e) = encoder {
+            d = d.with_encoder(e)?;
+        }
+        Ok(d)
+    }
+
+    /// Use this encoder for the fast path (e.g. one from `train-encoder`).
+    pub fn with_encoder(mut self, encoder: TrainedEncoder) -> Result<Decoder> {
+        let d_w = self.generator.d_w();
+        if encoder.config.d_w != d_w
+            || encoder.config.height != self.model.grid.height
+            || encoder.config.width != self.model.grid.width
+        {
+            bail!(
+                "encoder '{}' predicts w of size {} from {}x{} images; the generator needs {} from {}x{}",
+                encoder.source,
+                encoder.config.d_w,
+                encoder.config.height,
+                encoder.config.width,
+                d_w,
+                self.model.grid.height,
+                self.model.grid.width
+            );
+        }
+        self.source = format!("{} + encoder {}", self.source, encoder.source);
+        self.encoder = Some(TrainedEncoder {
+            encoder: encoder.encoder.to_device(&self.device),
+            ..encoder
+        });
+        Ok(self)
+    }
+
+    pub fn options(&self) -> &DecodeOptions {
+        &self.opts
+    }
+
+    /// The model grid (64 x 512 KITTI HDL-64E).
+    pub fn model_grid(&self) -> &AngleGrid {
+        &self.model.grid
+    }
+
+    /// Prepare a grid for [`Decoded::render_prepared`] (host sin/cos; do it once per grid).
+    /// Grids whose size does not divide by the generator's step are rendered on the nearest
+    /// larger divisible size and resampled back (bilinear).
+    pub fn prepare(&self, grid: &AngleGrid) -> PreparedGrid {
+        let step = self.generator.resolution_step();
+        // At least two rows and columns at the coarsest level (the [1,3,3,1] filters need them).
+        let round = |n: usize| n.div_ceil(step).max(2) * step;
+        let render_grid = if round(grid.height) == grid.height && round(grid.width) == grid.width {
+            grid.clone()
+        } else {
+            grid.resized(round(grid.height), round(grid.width))
+        };
+        PreparedGrid {
+            cache: Arc::new(self.generator.prepare(&render_grid, &self.device)),
+            render_grid,
+            grid: grid.clone(),
+            elevation_range: self.model.elevation_range,
+        }
+    }
+
+    /// Observation on the model grid: network units and validity mask.
+    fn observe(&self, observed: &RangeImage) -> (Vec<f32>, Vec<f32>) {
+        let grid = &self.model.grid;
+        let same = observed.height == grid.height
+            && observed.width == grid.width
+            && observed.angles.len() == grid.len()
+            && observed
+                .angles
+                .elevation_rad
+                .iter()
+                .zip(&grid.elevation_rad)
+                .chain(observed.angles.azimuth_rad.iter().zip(&grid.azimuth_rad))
+                .all(|(a, b)| (a - b).abs() < 1e-4);
+        let range = if same {
+            observed.range_m.clone()
+        } else {
+            reproject(observed, grid)
+        };
+        let net = range_to_network(&range);
+        let mask = net
+            .iter()
+            .map(|v| if *v > -1.0 { 1.0 } else { 0.0 })
+            .collect();
+        (net, mask)
+    }
+
+    /// Decode one observed scan (any grid; its returns are reprojected onto the model grid). `seed` drives
+    /// every random draw (use [`scan_seed`]). Runs on one thread; call it from several rayon
+    /// workers to decode scans in parallel.
+    pub fn decode(&self, observed: &RangeImage, seed: u64) -> Result<Decoded> {
+        if observed.range_m.len() != observed.len() || observed.angles.len() != observed.len() {
+            bail!(
+                "range image {}x{} has {} ranges and {} angles",
+                observed.height,
+                observed.width,
+                observed.range_m.len(),
+                observed.angles.len()
+            );
+        }
+        self.pools.run(|| self.decode_here(observed, seed))
+    }
+
+    fn decode_here(&self, observed: &RangeImage, seed: u64) -> Result<Decoded> {
+        let grid = &self.model.grid;
+        let (h, w) = (grid.height, grid.width);
+        let mut rng = Rng::new(seed);
+        let (net, full_mask) = self.observe(observed);
+        let mut mask = full_mask.clone();
+        if let Some(s) = &self.opts.restore {
+            s.apply(&mut mask, h, w, &mut rng.fork());
+        }
+        let measured = mask.iter().filter(|m| **m > 0.0).count();
+        if measured == 0 {
+            bail!("no return of the scan falls on the model grid (1.45-80 m); nothing to decode");
+        }
+        let target = tensor_from(net.clone(), [1, 1, h, w], &self.device);
+        let mask_t = tensor_from(mask.clone(), [1, 1, h, w], &self.device);
+        let w_avg = tensor_to_vec(self.generator.mapping.w_avg.val());
+        let w0 = match &self.encoder {
+            Some(e) => {
+                let target_seen = target.clone() * mask_t.clone() - mask_t.clone().sub_scalar(1.0);
+                let delta = tensor_to_vec(e.encoder.forward(target_seen, mask_t.clone()));
+                w_avg.iter().zip(&delta).map(|(a, d)| a + d).collect()
+            }
+            None => w_avg,
+        };
+        let inv = invert::invert(
+            &self.generator,
+            &self.cache_ad,
+            target.autodiff(),
+            mask_t.autodiff(),
+            w0,
+            &self.opts.schedule,
+            &self.ad,
+        );
+        let d_w = inv.w.len();
+        let w_t = tensor_from(inv.w, [1, d_w], &self.device);
+        let depth_obs = |keep: &dyn Fn(usize) -> bool| -> Vec<f32> {
+            net.iter()
+                .enumerate()
+                .map(|(k, _)| if keep(k) { observed_depth(net[k]) } else { 0.0 })
+                .collect()
+        };
+        let observed_m = depth_obs(&|k| mask[k] > 0.0);
+        let held_out_m = depth_obs(&|k| full_mask[k] > 0.0 && mask[k] == 0.0);
+        let mut decoded = Decoded {
+            generator: inv.generator,
+            w: w_t,
+            model: Rendered {
+                grid: grid.clone(),
+                depth_m: Vec::new(),
+                drop_prob: Vec::new(),
+            },
+            observed_m,
+            held_out_m,
+            error: None,
+            held_out_error: None,
+            losses: inv.losses,
+            seed,
+        };
+        decoded.model = decoded.render_prepared(&self.model);
+        decoded.error = relative_depth_error(&decoded.model.depth_m, &decoded.observed_m);
+        decoded.held_out_error = self
+            .opts
+            .restore
+            .and_then(|_| relative_depth_error(&decoded.model.depth_m, &decoded.held_out_m));
+        Ok(decoded)
+    }
+}
+
+/// The returns of `observed` on another grid: each measured pixel goes to the grid pixel of
+/// its direction (the measured xyz where stored, else the pixel's angles): row = the nearest
+/// beam within half a beam spacing, column by azimuth; the nearest return wins. Unlike
+/// resampling, no return is lost when the source is sparser or denser than the grid.
+fn reproject(observed: &RangeImage, grid: &AngleGrid) -> Vec<f32> {
+    let rows = grid.row_elevations(); // top first, decreasing
+    let mut out = vec![0.0f32; grid.len()];
+    let h = rows.len();
+    if h == 0 || grid.width == 0 {
+        return out;
+    }
+    for k in 0..observed.len() {
+        let d = observed.range_m[k];
+        if d <= 0.0 {
+            continue;
+        }
+        let [x, y, z] = observed.xyz.get(k).copied().unwrap_or([0.0; 3]);
+        let (phi, theta) = if x != 0.0 || y != 0.0 || z != 0.0 {
+            (z.atan2((x * x + y * y).sqrt()), y.atan2(x))
+        } else {
+            (
+                observed.angles.elevation_rad[k],
+                observed.angles.azimuth_rad[k],
+            )
+        };
+        // Nearest row, accepted within half the spacing to its neighbour (one row: 1 degree).
+        let i = rows.partition_point(|&e| e > phi);
+        let candidates = [i.checked_sub(1), (i < h).then_some(i)];
+        let Some(r) = candidates
+            .into_iter()
+            .flatten()
+            .min_by(|a, b| (rows[*a] - phi).abs().total_cmp(&(rows[*b] - phi).abs()))
+        else {
+            continue;
+        };
+        let spacing = if h > 1 {
+            let n = if r + 1 < h { r + 1 } else { r - 1 };
+            (rows[r] - rows[n]).abs()
+        } else {
+            ELEVATION_MARGIN_RAD * 2.0
+        };
+        if (rows[r] - phi).abs() > 0.5 * spacing {
+            continue;
+        }
+        let c = crate::lidar::range_image::azimuth_column(theta, grid.width).round() as usize
+            % grid.width;
+        let slot = &mut out[r * grid.width + c];
+        if *slot == 0.0 || d < *slot {
+            *slot = d;
+        }
+    }
+    out
+}
+
+fn observed_depth(net: f32) -> f32 {
+    if net > -1.0 {
+        crate::model::data::MIN_DEPTH_M / ((net + 1.0) * 0.5)
+    } else {
+        0.0
+    }
+}
+
+impl Decoded {
+    /// Render the tuned scene on a prepared grid (from [`Decoder::prepare`]).
+    pub fn render_prepared(&self, grid: &PreparedGrid) -> Rendered {
+        let out = self.generator.render(self.w.clone(), &grid.cache, None);
+        let x_d = tensor_to_vec(out.x_d);
+        let keep = tensor_to_vec(sigmoid(out.keep_logit));
+        let rendered = Rendered {
+            grid: grid.render_grid.clone(),
+            depth_m: network_to_depth(&x_d),
+            drop_prob: keep.iter().map(|k| (1.0 - k).clamp(0.0, 1.0)).collect(),
+        };
+        let mut r = if grid.render_grid == grid.grid {
+            rendered
+        } else {
+            resample_rendered(&rendered, &grid.grid)
+        };
+        let (lo, hi) = grid.elevation_range;
+        for k in 0..r.grid.len() {
+            let e = r.grid.elevation_rad[k];
+            if e < lo || e > hi {
+                r.depth_m[k] = 0.0;
+                r.drop_prob[k] = 1.0;
+            }
+        }
+        r
+    }
+
+    /// Render on any grid (prepares it; prefer [`Decoder::prepare`] + [`Decoded::render_prepared`]
+    /// when rendering many scans on the same grid).
+    pub fn render(&self, decoder: &Decoder, grid: &AngleGrid) -> Rendered {
+        self.render_prepared(&decoder.prepare(grid))
+    }
+
+    /// `k` Bernoulli samples of the ray-drop mask on the model grid (true = return kept),
+    /// drawn from this scan's seed.
+    pub fn sample_masks(&self, k: usize) -> Vec<Vec<bool>> {
+        sample_masks(&self.model.drop_prob, k, self.seed)
+    }
+}
+
+/// `k` Bernoulli samples of keep = 1 - drop_prob, from `seed`.
+pub fn sample_masks(drop_prob: &[f32], k: usize, seed: u64) -> Vec<Vec<bool>> {
+    let mut rng = Rng::new(seed ^ 0x6d61_736b); // "mask"
+    (0..k)
+        .map(|_| drop_prob.iter().map(|p| rng.uniform() >= *p).collect())
+        .collect()
+}
+
+/// Bilinear resampling of a rendered depth / drop-probability pair onto another grid (both are
+/// defined everywhere, so every target pixel inside the source's rows gets a value).
+fn resample_rendered(r: &Rendered, target: &AngleGrid) -> Rendered {
+    let mut src = RangeImage::empty(r.grid.clone());
+    src.range_m = r.depth_m.clone();
+    src.intensity = r.drop_prob.clone();
+    let out = resample_image(&src, target, Interpolation::Bilinear);
+    let drop_prob = out
+        .intensity
+        .iter()
+        .zip(&out.range_m)
+        .map(|(p, d)| if *d > 0.0 { *p } else { 1.0 })
+        .collect();
+    Rendered {
+        grid: target.clone(),
+        depth_m: out.range_m,
+        drop_prob,
+    }
+}
+
+#[cfg(test)]
+mod tests;

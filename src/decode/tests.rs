@@ -1,0 +1,223 @@
+use super::*;
+use crate::model::sample::{SampleOptions, sample};
+
+#[test]
+fn scan_seed_depends_on_topic_and_time() {
+    assert_eq!(scan_seed("/a", 5), scan_seed("/a", 5));
+    assert_ne!(scan_seed("/a", 5), scan_seed("/b", 5));
+    assert_ne!(scan_seed("/a", 5), scan_seed("/a", 6));
+}
+
+#[test]
+fn sparsify_keeps_evenly_spaced_rows_or_a_fraction() {
+    assert_eq!(
+        Sparsify::kept_rows(8, 64),
+        vec![0, 8, 16, 24, 32, 40, 48, 56]
+    );
+    assert_eq!(Sparsify::kept_rows(16, 64).len(), 16);
+    let (h, w) = (8, 100);
+    let mut mask = vec![1.0; h * w];
+    Sparsify::Lines(2).apply(&mut mask, h, w, &mut Rng::new(1));
+    assert_eq!(mask.iter().sum::<f32>(), 200.0);
+    assert_eq!(mask[0], 1.0);
+    assert_eq!(mask[w], 0.0);
+    let mut mask = vec![1.0; h * w];
+    mask[3] = 0.0;
+    Sparsify::Fraction(0.1).apply(&mut mask, h, w, &mut Rng::new(1));
+    let kept = mask.iter().sum::<f32>();
+    assert!((40.0..120.0).contains(&kept), "kept {kept}");
+    assert_eq!(mask[3], 0.0, "an unmeasured pixel stays unmeasured");
+}
+
+#[test]
+fn masks_follow_the_drop_probability_and_the_seed() {
+    let p: Vec<f32> = (0..20_000)
+        .map(|i| if i % 2 == 0 { 0.9 } else { 0.1 })
+        .collect();
+    let a = sample_masks(&p, 2, 7);
+    assert_eq!(a, sample_masks(&p, 2, 7));
+    assert_ne!(a[0], a[1], "samples differ from each other");
+    let kept_even = a[0].iter().step_by(2).filter(|k| **k).count() as f32 / 10_000.0;
+    let kept_odd = a[0].iter().skip(1).step_by(2).filter(|k| **k).count() as f32 / 10_000.0;
+    assert!((kept_even - 0.1).abs() < 0.02, "{kept_even}");
+    assert!((kept_odd - 0.9).abs() < 0.02, "{kept_odd}");
+}
+
+/// A generated scan of the shipped model on the model grid, as a range image.
+fn generated_scan(model: &Model, seed: u64) -> RangeImage {
+    let s = sample(
+        model,
+        &SampleOptions {
+            n: 1,
+            seed,
+            truncation: 0.7,
+            grid: Some(model_grid()),
+        },
+        &Device::flex(),
+    )
+    .expect("sample")
+    .remove(0);
+    let mut img = RangeImage::empty(s.angles.clone());
+    img.range_m = s.range_m;
+    img
+}
+
+fn decoder(w_steps: usize, tune_steps: usize, restore: Option<Sparsify>) -> Decoder {
+    let model = Model::shipped(&Device::flex()).expect("shipped model");
+    let mut opts = DecodeOptions::new(Quality::Paper);
+    opts.schedule.w_steps = w_steps;
+    opts.schedule.tune_steps = tune_steps;
+    opts.restore = restore;
+    Decoder::new(model, opts).expect("decoder")
+}
+
+#[test]
+fn a_few_steps_reduce_the_error_and_renders_any_grid() {
+    let model = Model::shipped(&Device::flex()).expect("shipped model");
+    let scan = generated_scan(&model, 3);
+    let start = decoder(0, 0, None).decode(&scan, 1).expect("decode");
+    let d = decoder(6, 6, None);
+    let tuned = d.decode(&scan, 1).expect("decode");
+    let (e0, e1) = (start.error.unwrap(), tuned.error.unwrap());
+    assert!(e1 < e0, "error {e0} -> {e1}");
+    assert_eq!(tuned.losses.len(), 12);
+    // Same seed, same result; the model-grid outputs are complete.
+    let again = d.decode(&scan, 1).expect("decode");
+    assert_eq!(again.model, tuned.model);
+    assert_eq!(tuned.model.depth_m.len(), 64 * 512);
+    assert!(
+        tuned
+            .model
+            .depth_m
+            .iter()
+            .all(|v| (1.45..=80.0).contains(v))
+    );
+    assert!(
+        tuned
+            .model
+            .drop_prob
+            .iter()
+            .all(|p| (0.0..=1.0).contains(p))
+    );
+    // 2x denser grid: same scene, so its 2x2 means follow the model-grid render.
+    let grid = d.model_grid().resized(128, 1024);
+    let dense = tuned.render(&d, &grid);
+    assert_eq!(dense.depth_m.len(), 128 * 1024);
+    let mut close = 0;
+    for i in 0..64 {
+        for j in 0..512 {
+            let m = tuned.model.depth_m[i * 512 + j];
+            let pooled = (0..4)
+                .map(|k| dense.depth_m[(2 * i + k / 2) * 1024 + 2 * j + k % 2])
+                .sum::<f32>()
+                / 4.0;
+            if ((pooled - m) / m).abs() < 0.2 {
+                close += 1;
+            }
+        }
+    }
+    assert!(
+        close > 64 * 512 * 7 / 10,
+        "{close} of {} pixels agree",
+        64 * 512
+    );
+    // Another sensor's grid, not divisible by 16: rendered and resampled; beams far above
+    // the KITTI field of view stay empty.
+    let vlp = SensorProfile::builtin("vlp32c").unwrap().angle_grid();
+    let r = tuned.render(&d, &vlp);
+    assert_eq!(r.depth_m.len(), 32 * 1800);
+    assert_eq!(r.depth_m[0], 0.0, "+15 deg is outside the model's beams");
+    assert!(r.depth_m[20 * 1800] > 0.0, "-3 deg is inside");
+}
+
+#[test]
+fn restoration_reports_the_error_on_held_out_pixels() {
+    let model = Model::shipped(&Device::flex()).expect("shipped model");
+    let scan = generated_scan(&model, 4);
+    let d = decoder(2, 2, Some(Sparsify::Lines(8)));
+    let r = d.decode(&scan, 9).expect("decode");
+    let seen_rows: Vec<usize> = (0..64)
+        .filter(|i| {
+            r.observed_m[i * 512..(i + 1) * 512]
+                .iter()
+                .any(|v| *v > 0.0)
+        })
+        .collect();
+    assert!(seen_rows.iter().all(|i| i % 8 == 0), "{seen_rows:?}");
+    assert!(r.held_out_error.is_some());
+    let held = r.held_out_m.iter().filter(|v| **v > 0.0).count();
+    let seen = r.observed_m.iter().filter(|v| **v > 0.0).count();
+    assert!(held > 5 * seen, "held {held} seen {seen}");
+}
+
+#[test]
+fn an_empty_scan_is_a_clear_error() {
+    let d = decoder(1, 1, None);
+    let empty = RangeImage::empty(model_grid());
+    let e = d.decode(&empty, 1).unwrap_err().to_string();
+    assert!(e.contains("nothing to decode"), "{e}");
+}
+
+/// The held-out real scans, if the shared data folder is here.
+fn real_lidar() -> Option<std::path::PathBuf> {
+    let found = ["../shared/real_lidar", "/work/shared/real_lidar"]
+        .iter()
+        .map(std::path::PathBuf::from)
+        .find(|p| p.exists());
+    if found.is_none() {
+        eprintln!("skipping: no ../shared/real_lidar folder with held-out KITTI scans");
+    }
+    found
+}
+
+#[test]
+fn fast_decoding_of_a_held_out_kitti_scan_improves_on_the_encoder() {
+    let Some(root) = real_lidar() else { return };
+    let file = crate::model::data::kitti_heldout_files(&root).expect("held-out files")[0].clone();
+    let scan = crate::lidar::kitti::read_bin(&file).expect("read");
+    // The scan's own 2048-column projection: decode resamples it to the model grid.
+    let image = crate::lidar::project(
+        &scan,
+        &SensorProfile::kitti_hdl64e(),
+        crate::lidar::Strategy::Auto,
+    )
+    .expect("project");
+    let model = || Model::shipped(&Device::flex()).expect("shipped model");
+    let mut opts = DecodeOptions::new(Quality::Fast);
+    opts.schedule.tune_steps = 0;
+    let encoder_only = Decoder::new(model(), opts.clone()).expect("decoder");
+    opts.schedule.tune_steps = 6;
+    let refined = Decoder::new(model(), opts).expect("decoder");
+    let a = encoder_only.decode(&image, 1).expect("decode");
+    let b = refined.decode(&image, 1).expect("decode");
+    let (ea, eb) = (a.error.unwrap(), b.error.unwrap());
+    assert!(eb < ea, "{}: error {ea} -> {eb}", file.display());
+    let measured = a.observed_m.iter().filter(|d| **d > 0.0).count();
+    assert!(
+        measured > 20_000,
+        "{measured} measured pixels on the model grid"
+    );
+}
+
+#[test]
+fn a_sparse_dense_grid_observation_keeps_every_return_on_the_model_grid() {
+    // A 64 x 2048 scan with a return in every 4th column only (KITTI subsampled like
+    // semantickitti_mini): each return must land on the 64 x 512 model grid.
+    let grid = model_grid();
+    let dense = SensorProfile::kitti_hdl64e().angle_grid();
+    let mut img = RangeImage::empty(dense);
+    for i in 0..64 {
+        for j in (1..2048).step_by(4) {
+            img.range_m[i * 2048 + j] = 10.0 + (i % 3) as f32;
+        }
+    }
+    let out = reproject(&img, &grid);
+    let filled = out.iter().filter(|d| **d > 0.0).count();
+    assert_eq!(filled, 64 * 512);
+    // Row i of the source stays row i; its range comes along.
+    assert_eq!(out[5 * 512 + 100], 12.0);
+    // A direction far above the beams is not forced onto the top row.
+    let mut high = RangeImage::empty(AngleGrid::regular_columns(1, 4, |_| 0.3));
+    high.range_m[0] = 5.0;
+    assert!(reproject(&high, &grid).iter().all(|d| *d == 0.0));
+}

@@ -1,0 +1,178 @@
+//! End-to-end auto-decoding through `convert` (issue 5): the new channels open in Foxglove's
+//! own readers, outputs do not depend on the thread count, and bad decoding flags are clear
+//! errors. Few optimisation steps keep these fast; the quality is measured by
+//! `examples/decode_eval.rs` (BENCHMARKS.md).
+
+mod common;
+
+use std::path::Path;
+
+use common::*;
+use rangegan_mcap::io::Family;
+
+const FAMILIES: [Family; 3] = [Family::Ros2, Family::Ros1, Family::Foxglove];
+
+/// Quick decoding flags: 2 + 2 optimisation steps.
+const QUICK: [&str; 4] = ["--w-steps", "2", "--tune-steps", "2"];
+
+fn convert(input: &Path, output: &Path, extra: &[&str], threads: &str) -> serde_json::Value {
+    let mut args = vec![
+        "convert",
+        input.to_str().unwrap(),
+        output.to_str().unwrap(),
+        "--json",
+        "--quiet",
+    ];
+    args.extend_from_slice(&QUICK);
+    args.extend_from_slice(extra);
+    let o = bin()
+        .args(&args)
+        .env("RAYON_NUM_THREADS", threads)
+        .output()
+        .expect("binary runs");
+    assert!(o.status.success(), "{}", stderr(&o));
+    serde_json::from_slice(&o.stdout).unwrap()
+}
+
+#[test]
+fn decoded_channels_open_in_foxglove_readers() {
+    let dir = tempfile::tempdir().unwrap();
+    let (input, output) = (dir.path().join("in.mcap"), dir.path().join("out.mcap"));
+    let messages = write_recording(&input, &FAMILIES, 2, None);
+    let summary = convert(
+        &input,
+        &output,
+        &[
+            "--mask-samples",
+            "2",
+            "--upsample",
+            "2",
+            "--target-sensor",
+            "vlp16",
+        ],
+        "2",
+    );
+    // Per scan: range, depth, raydrop_prob, 2 masks, points, depth/points at 128x1024 and
+    // for the VLP-16.
+    let per_scan = 10;
+    let scans = 2 * FAMILIES.len() as u64;
+    assert_eq!(summary["report"]["outputs_written"], scans * per_scan);
+    let Some(node) = node() else { return };
+    let r = node_read(&node, &output);
+    assert_eq!(r["decoded"], messages + scans * per_scan, "{r}");
+    for family in FAMILIES {
+        let t = format!("/lidar_{family:?}/rangegan").to_lowercase();
+        let image = |s: &str| r["images"][format!("{t}/{s}")].clone();
+        assert_eq!(
+            image("depth"),
+            serde_json::json!([64, 512, "32FC1", 2048, 64 * 2048])
+        );
+        assert_eq!(image("raydrop_prob"), image("depth"));
+        assert_eq!(
+            image("raydrop_mask_1"),
+            serde_json::json!([64, 512, "mono8", 512, 64 * 512])
+        );
+        assert_eq!(
+            image("depth_128x1024"),
+            serde_json::json!([128, 1024, "32FC1", 4096, 128 * 4096])
+        );
+        assert_eq!(image("depth_vlp16")[0], 16);
+        let values = |s: &str| r["values"][format!("{t}/{s}")].clone();
+        let [lo, hi] = [0, 1].map(|i| values("raydrop_prob")[i].as_f64().unwrap());
+        assert!(lo >= 0.0 && hi <= 1.0, "x_n in 0..1: {lo}..{hi}");
+        let [lo, hi] = [0, 1].map(|i| values("depth")[i].as_f64().unwrap());
+        assert!(lo >= 1.44 && hi <= 80.01, "depth in meters: {lo}..{hi}");
+        assert_eq!(values("raydrop_mask"), serde_json::json!([0, 255]));
+        for cloud in ["points", "points_128x1024", "points_vlp16"] {
+            assert_eq!(
+                r["clouds"][format!("{t}/{cloud}")],
+                serde_json::json!(["x", "y", "z", "range", "raydrop_prob"]),
+                "{t}/{cloud}"
+            );
+        }
+    }
+}
+
+#[test]
+fn decoding_is_identical_with_one_and_two_threads() {
+    let dir = tempfile::tempdir().unwrap();
+    let input = dir.path().join("in.mcap");
+    write_recording(&input, &[Family::Ros2, Family::Foxglove], 3, None);
+    // Same command line (the metadata record holds it), only the thread count differs.
+    let out = dir.path().join("out.mcap");
+    let outs: Vec<Vec<u8>> = ["1", "2"]
+        .iter()
+        .map(|threads| {
+            convert(
+                &input,
+                &out,
+                &["--restore-fraction", "0.5", "--force"],
+                threads,
+            );
+            std::fs::read(&out).unwrap()
+        })
+        .collect();
+    assert!(outs[0].len() > 100_000);
+    assert!(
+        outs[0] == outs[1],
+        "1 and 2 threads must give the same bytes"
+    );
+}
+
+#[test]
+fn bad_decoding_flags_are_clear_errors() {
+    let dir = tempfile::tempdir().unwrap();
+    let (input, output) = (dir.path().join("in.mcap"), dir.path().join("out.mcap"));
+    write_recording(&input, &[Family::Ros2], 1, None);
+    let (i, o) = (input.to_str().unwrap(), output.to_str().unwrap());
+    for (args, expected) in [
+        (vec!["--quality", "off", "--upsample", "2"], "need decoding"),
+        (vec!["--restore-lines", "0"], "1 to 64 rows"),
+        (vec!["--restore-fraction", "1.5"], "fraction in (0, 1]"),
+        (vec!["--model", "/nonexistent/model"], "/nonexistent/model"),
+        (vec!["--target-sensor", "nosuchlidar"], "nosuchlidar"),
+        (vec!["--upsample", "16"], "factors from 1 to 8"),
+    ] {
+        let mut all = vec!["convert", i, o, "--force"];
+        all.extend(args.iter().copied());
+        let out = run(&all);
+        assert_eq!(out.status.code(), Some(1), "{args:?}");
+        let e = stderr(&out);
+        assert!(e.contains(expected), "{args:?}: {e}");
+        assert!(!e.contains("panicked"), "{e}");
+    }
+    assert!(!output.exists(), "no partial output");
+}
+
+#[test]
+fn the_foxglove_layout_names_only_written_channels() {
+    let layout: serde_json::Value = serde_json::from_str(
+        &std::fs::read_to_string("layouts/rangegan.foxglove-layout.json").unwrap(),
+    )
+    .unwrap();
+    let mut wanted = std::collections::BTreeSet::new();
+    for panel in layout["configById"].as_object().unwrap().values() {
+        if let Some(t) = panel["imageMode"]["imageTopic"].as_str() {
+            wanted.insert(t.to_string());
+        }
+        if let Some(topics) = panel["topics"].as_object() {
+            wanted.extend(topics.keys().cloned());
+        }
+    }
+    assert!(wanted.len() >= 8, "{wanted:?}");
+    let dir = tempfile::tempdir().unwrap();
+    let output = dir.path().join("out.mcap");
+    convert(
+        Path::new("sample_logs/drive_realistic.mcap"),
+        &output,
+        &["--upsample", "2", "--target-sensor", "vlp32c"],
+        "2",
+    );
+    let bytes = std::fs::read(&output).unwrap();
+    let written: std::collections::BTreeSet<String> = mcap::MessageStream::new(&bytes)
+        .unwrap()
+        .map(|m| m.unwrap().channel.topic.clone())
+        .collect();
+    let missing: Vec<_> = wanted.difference(&written).collect();
+    assert!(missing.is_empty(), "layout topics not written: {missing:?}");
+}
