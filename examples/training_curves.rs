@@ -11,6 +11,8 @@ use std::path::{Path, PathBuf};
 use plotters::prelude::*;
 
 type Res<T> = Result<T, Box<dyn std::error::Error>>;
+/// (run index, points, solid line?)
+type Curve = (usize, Vec<(f64, f64)>, bool);
 
 /// One logged quantity of one run: (images, value), smoothed over `window` log lines.
 fn series(lines: &[serde_json::Value], key: &str, window: usize) -> Vec<(f64, f64)> {
@@ -86,7 +88,7 @@ fn main() -> Res<()> {
         let root = BitMapBackend::with_buffer(&mut buf, size).into_drawing_area();
         root.fill(&WHITE)?;
         for (area, (title, key)) in root.split_evenly((2, 3)).iter().zip(panels) {
-            let mut all: Vec<(usize, Vec<(f64, f64)>, bool)> = Vec::new();
+            let mut all: Vec<Curve> = Vec::new();
             for (i, (_, lines)) in runs.iter().enumerate() {
                 all.push((i, series(lines, key, 20), true));
                 if key == "d_real" {
