@@ -77,6 +77,7 @@ fn disc_step(cfg: &DiscriminatorConfig, device: &Device, batch: usize, reps: usi
 }
 
 fn main() {
+    rangegan_mcap::model::tune_allocator();
     let quick = std::env::args().any(|a| a == "--quick");
     // `--candidates` runs only the CPU-size section.
     let only_candidates = std::env::args().any(|a| a == "--candidates");

@@ -18,4 +18,6 @@ pub mod lidar;
 pub mod model;
 pub mod physics;
 pub mod pipeline;
+pub mod recording;
+pub mod report;
 pub mod sim;

@@ -3,8 +3,10 @@
 //! clap types (each subcommand resolves its arguments into library options).
 
 mod convert;
+mod diagnose;
 mod import;
 mod info;
+mod render;
 mod sample;
 mod simulate;
 mod train;
@@ -42,10 +44,14 @@ pub struct GlobalArgs {
 pub enum Command {
     /// Copy a recording and add range-image channels for its point-cloud topics.
     Convert(convert::ConvertArgs),
+    /// Find the physics a simulated recording leaves out, compared with a real one; fit it and report.
+    Diagnose(diagnose::DiagnoseArgs),
     /// Channels, schemas, message counts, point-cloud topics and their sensor layout.
     Info(info::InfoArgs),
     /// Turn a KITTI / SemanticKITTI folder into an MCAP of ROS 2 PointCloud2 messages.
     Import(import::ImportArgs),
+    /// Apply (fitted) physics or a baseline ray-drop model to a simulated recording.
+    Render(render::RenderArgs),
     /// Simulate a LiDAR drive through a procedural street scene, with switchable sensor physics.
     Simulate(simulate::SimulateArgs),
     /// Train the range-image GAN on KITTI scans (resumes an existing run directory).
@@ -83,7 +89,9 @@ pub fn run(args: Args) -> anyhow::Result<Outcome> {
     }
     match args.command {
         Command::Convert(a) => convert::run(&args.global, a),
+        Command::Diagnose(a) => diagnose::run(&args.global, a),
         Command::Info(a) => info::run(&args.global, a),
+        Command::Render(a) => render::run(&args.global, a),
         Command::Import(a) => import::run(&args.global, a),
         Command::Simulate(a) => simulate::run(&args.global, a),
         Command::Train(a) => train::run_train(&args.global, a),

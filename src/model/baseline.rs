@@ -5,7 +5,6 @@
 
 use burn::config::Config;
 use burn::module::{Module, Param};
-use burn::tensor::activation::leaky_relu;
 use burn::tensor::module::conv_transpose2d;
 use burn::tensor::ops::ConvTransposeOptions;
 use burn::tensor::{Device, Tensor};
@@ -61,7 +60,7 @@ impl UpConv {
             Some(self.bias.val()),
             ConvTransposeOptions::new([2, 2], [1, 1], [0, 0], [1, 1], 1),
         );
-        leaky_relu(y, 0.2).mul_scalar(std::f32::consts::SQRT_2)
+        super::layers::lrelu_gain(y)
     }
 }
 

@@ -4,17 +4,12 @@
 
 use burn::config::Config;
 use burn::module::{Module, Param};
-use burn::tensor::activation::leaky_relu;
 use burn::tensor::module::conv2d;
 use burn::tensor::ops::ConvOptions;
 use burn::tensor::{Device, Tensor};
 
-use super::layers::{EqualLinear, EqualLinearConfig, roll, shift_replicate};
+use super::layers::{EqualLinear, EqualLinearConfig, lrelu_gain, roll, shift_replicate};
 use super::rng::Rng;
-
-fn lrelu4(x: Tensor<4>) -> Tensor<4> {
-    leaky_relu(x, 0.2).mul_scalar(std::f32::consts::SQRT_2)
-}
 
 /// Pad `[batch, ch, H, W]` by `p` on every side: circular along W, replicate along H.
 pub fn pad_circular(x: Tensor<4>, p: usize) -> Tensor<4> {
@@ -120,7 +115,7 @@ impl EqualConv {
             self.bias.as_ref().map(|b| b.val()),
             ConvOptions::new([1, 1], [0, 0], [1, 1], 1),
         );
-        if self.activate { lrelu4(y) } else { y }
+        if self.activate { lrelu_gain(y) } else { y }
     }
 }
 

@@ -31,6 +31,23 @@ use serde::{Deserialize, Serialize};
 use baseline::ConvGenerator;
 use generator::{Generator, GridCache};
 
+/// Make glibc's malloc keep freed tensor buffers for reuse instead of handing them back to the
+/// kernel. By default every buffer above 128 KiB (the threshold then adapts, up to 32 MiB) is
+/// its own mmap, and the top of the heap is trimmed at 128 KiB of free space, so each training
+/// or inversion step re-faults and re-zeroes tens of MB of fresh pages: 20 % of the CPU time of
+/// a reference-size inversion step (docs/model_benchmarks.md). With the thresholds raised,
+/// buffers up to 32 MiB come from the heap and stay mapped; the cost is that the process keeps
+/// its peak heap size until exit. No-op outside Linux/glibc. Call once, before the first tensor.
+pub fn tune_allocator() {
+    #[cfg(all(target_os = "linux", target_env = "gnu"))]
+    // SAFETY: mallopt only changes malloc tunables; both values are in range (glibc caps
+    // M_MMAP_THRESHOLD at 32 MiB on 64-bit).
+    unsafe {
+        libc::mallopt(libc::M_MMAP_THRESHOLD, 32 << 20);
+        libc::mallopt(libc::M_TRIM_THRESHOLD, 1 << 30);
+    }
+}
+
 /// Which generator family (the paper's comparison).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase")]

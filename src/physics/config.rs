@@ -181,7 +181,7 @@ fn realistic(beams: usize) -> PhysicsConfig {
         }),
         range_dropout: Some(RangeDropout { enabled: true, range_50_m: 150.0, softness: 0.6 }),
         incidence_dropout: Some(IncidenceDropout { enabled: true, cos_50: 0.03, softness: 0.3 }),
-        material_dropout: Some(MaterialDropout { enabled: true, drop_prob: material }),
+        material_dropout: Some(MaterialDropout { enabled: true, drop_prob: material, drop_prob_by_class: BTreeMap::new() }),
         // KITTI's HDL-64E fires ~2010 times per turn: at 512 columns ~2 % of the
         // pixels stay empty whatever the scene.
         uniform_dropout: Some(UniformDropout { enabled: true, prob: 0.02 }),
@@ -386,6 +386,15 @@ impl PhysicsConfig {
                     prob(*p),
                     o,
                     &format!("material_dropout.drop_prob.{}", m.name()),
+                    p,
+                    "must be in [0, 1]",
+                )?;
+            }
+            for (c, p) in &e.drop_prob_by_class {
+                check(
+                    prob(*p),
+                    o,
+                    &format!("material_dropout.drop_prob_by_class.{c}"),
                     p,
                     "must be in [0, 1]",
                 )?;

@@ -45,6 +45,8 @@ pub struct ScanFeatures {
     pub row: Vec<u32>,
     /// Pixel azimuth, radians (reference convention of [`crate::lidar::AngleGrid`]).
     pub azimuth_rad: Vec<f32>,
+    /// Pixel elevation, radians.
+    pub elevation_rad: Vec<f32>,
     /// Measured range where kept, neighbour-filled range where dropped, NaN where
     /// no valid pixel was close enough to complete it.
     pub range_m: Vec<f32>,
@@ -102,6 +104,7 @@ impl ScanFeatures {
             width: w,
             row: (0..n).map(|k| (k / w.max(1)) as u32).collect(),
             azimuth_rad: image.angles.azimuth_rad.clone(),
+            elevation_rad: image.angles.elevation_rad.clone(),
             range_m,
             incidence_rad,
             edge_px,
@@ -340,21 +343,35 @@ pub(crate) fn simulated_recording(
     scans: u32,
     effects: Vec<Box<dyn crate::physics::Effect>>,
 ) -> Vec<ScanFeatures> {
-    use crate::lidar::SensorProfile;
+    let profile = crate::lidar::SensorProfile::kitti_hdl64e().with_columns(512);
+    simulated_recording_with(&profile, seed, scans, effects)
+}
+
+/// As [`simulated_recording`] with any sensor profile.
+#[cfg(test)]
+pub(crate) fn simulated_recording_with(
+    profile: &crate::lidar::SensorProfile,
+    seed: u64,
+    scans: u32,
+    effects: Vec<Box<dyn crate::physics::Effect>>,
+) -> Vec<ScanFeatures> {
     use crate::physics::Physics;
     use crate::sim::{SceneConfig, Simulator};
+    // Scans 0.3 s apart: a short drive whose scene objects do not sit at the
+    // same pixels in every scan (as they would in consecutive scans).
+    const STRIDE: u32 = 3;
     let sim = Simulator::new(
         SceneConfig {
             seed,
-            duration_s: 0.1 * scans as f32 + 0.1,
+            duration_s: 0.1 * (STRIDE * scans) as f32 + 0.1,
             ..Default::default()
         },
-        SensorProfile::kitti_hdl64e().with_columns(512),
+        profile.clone(),
     );
     let physics = Physics { effects };
     (0..scans)
         .map(|i| {
-            let mut scan = sim.scan(i);
+            let mut scan = sim.scan(STRIDE * i);
             physics.apply(&mut scan, seed);
             ScanFeatures::from_image(&scan.image, &FeatureOptions::default())
         })

@@ -1,312 +1,32 @@
-//! Maximum-likelihood fits of candidate drop effects on real-side pixels
-//! (issue 6): which left-out physics explains the real ray-drop masks?
+//! Maximum-likelihood selection of the drop models a simulator left out (issue 6).
 //!
-//! This module owns, per candidate effect, a histogram of (pixels, dropped) over
-//! the effect's feature (completed range, or cos incidence of the completed
-//! normals, from [`ScanFeatures`]), and a grid + golden-section maximum-likelihood
-//! fit of the effect's parameters using the physics module's own
-//! [`Effect::drop_prob`] formula. The baseline is the simulated recording itself:
-//! its conditional keep rate per bin `k_sim(x)` carries everything both sides
-//! share (no-hit sky, the sensor's range limit, neighbour-fill artefacts), so
-//! `keep(x) = c k_sim(x) (1 - p(x))`, with `c` absorbing a global rate offset
-//! (the sim's uniform dropout). `before` is the sim as given (`c = 1`, no effect),
-//! the null is `c` alone, and an effect is claimed only if its held-out gain over
-//! the null beats a penalty for its two extra parameters. Pixels whose feature is
-//! unknown (nothing to complete them from) are left out.
+//! Every pixel of a real scan is kept with probability
+//! `keep = c · B(x) · Π_e (1 − p_e(x))`:
+//! - `B(x)`, the **baseline**, is the simulated recording's own keep rate in the
+//!   pixel's (row, completed-range) cell, smoothed towards the range marginal. It
+//!   holds what both sides share (no-hit sky, the sensor's reach, fill artefacts)
+//!   and the simulator's physics as given.
+//! - `c` is a free keep-rate scale (the null model: "only the overall rate differs").
+//! - `p_e` are candidate effects ([`DropFamily`]): each maps a pixel to one bin of
+//!   its own feature (range, cos incidence, row, class, row × azimuth cell) and
+//!   fits a drop probability per bin (a parametric curve or free rates).
+//!
+//! Selection is greedy forward: each round fits every remaining candidate on the
+//! real *training* scans given the effects already chosen, and keeps the one
+//! whose held-out gain (NLL per pixel on the real *test* scans, over the current
+//! model with `c` refitted) beats its penalty (BIC term, at least
+//! [`MIN_GAIN_NATS`]). Nothing is claimed that does not beat the null on held-out
+//! data.
+//!
+//! Fitting one candidate given the others is cheap: pixels are pooled into a
+//! [`QTable`] by (candidate bin, level of the rest-of-model keep probability `q`),
+//! and the likelihood of any per-bin drop curve is a sum over its cells.
 
 use super::diagnose_features::ScanFeatures;
-use super::dropout::{IncidenceDropout, RangeDropout};
-use super::{Effect, RayFeatures};
-use crate::sim::Material;
 
-/// A drop effect the diagnosis can fit.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord)]
-pub enum Candidate {
-    RangeDropout,
-    IncidenceDropout,
-}
-
-/// Histogram resolution per candidate: range in 0.5 m bins up to 150 m,
-/// cos(incidence) in 100 bins.
-const RANGE_BIN_M: f32 = 0.5;
-const RANGE_BINS: usize = 300;
-const COS_BINS: usize = 100;
-
-impl Candidate {
-    pub const ALL: [Candidate; 2] = [Candidate::RangeDropout, Candidate::IncidenceDropout];
-
-    /// The catalogue id.
-    pub fn id(self) -> &'static str {
-        match self {
-            Candidate::RangeDropout => "range_dropout",
-            Candidate::IncidenceDropout => "incidence_dropout",
-        }
-    }
-
-    /// Names of the two fitted shape parameters.
-    pub fn param_names(self) -> [&'static str; 2] {
-        match self {
-            Candidate::RangeDropout => ["range_50_m", "softness"],
-            Candidate::IncidenceDropout => ["cos_50", "softness"],
-        }
-    }
-
-    /// The effect with shape parameters `(a, b)`.
-    pub fn effect(self, a: f32, b: f32) -> Box<dyn Effect> {
-        match self {
-            Candidate::RangeDropout => Box::new(RangeDropout {
-                enabled: true,
-                range_50_m: a,
-                softness: b,
-            }),
-            Candidate::IncidenceDropout => Box::new(IncidenceDropout {
-                enabled: true,
-                cos_50: a,
-                softness: b,
-            }),
-        }
-    }
-
-    /// Search grid for the first shape parameter.
-    fn grid_a(self) -> Vec<f32> {
-        match self {
-            // Geometric 5 m .. 300 m.
-            Candidate::RangeDropout => (0..40)
-                .map(|i| 5.0 * (60.0f32).powf(i as f32 / 39.0))
-                .collect(),
-            Candidate::IncidenceDropout => (1..=40).map(|i| 0.6 * i as f32 / 40.0).collect(),
-        }
-    }
-
-    fn grid_b(self) -> Vec<f32> {
-        vec![0.05, 0.1, 0.15, 0.2, 0.3, 0.4, 0.5, 0.7, 1.0]
-    }
-
-    /// Histogram bin of pixel `k`, or None where the feature is unknown.
-    fn bin(self, f: &ScanFeatures, k: usize) -> Option<usize> {
-        match self {
-            Candidate::RangeDropout => {
-                let r = f.range_m[k];
-                r.is_finite()
-                    .then(|| ((r.max(0.0) / RANGE_BIN_M) as usize).min(RANGE_BINS - 1))
-            }
-            Candidate::IncidenceDropout => {
-                let c = f.incidence_rad[k].cos();
-                c.is_finite()
-                    .then(|| ((c.clamp(0.0, 1.0) * COS_BINS as f32) as usize).min(COS_BINS - 1))
-            }
-        }
-    }
-
-    fn bins(self) -> usize {
-        match self {
-            Candidate::RangeDropout => RANGE_BINS,
-            Candidate::IncidenceDropout => COS_BINS,
-        }
-    }
-
-    /// The ray a histogram bin stands for (its centre).
-    fn ray(self, bin: usize) -> RayFeatures {
-        let (range_m, incidence_rad) = match self {
-            Candidate::RangeDropout => ((bin as f32 + 0.5) * RANGE_BIN_M, 0.0),
-            Candidate::IncidenceDropout => (10.0, ((bin as f32 + 0.5) / COS_BINS as f32).acos()),
-        };
-        RayFeatures {
-            row: 0,
-            column: 0,
-            range_m,
-            incidence_rad,
-            material: Material::Concrete,
-            reflectivity: 0.5,
-            intensity: 0.5,
-            azimuth_rad: 0.0,
-            elevation_rad: 0.0,
-        }
-    }
-
-    /// (pixels, dropped) per bin over scans, pixels with a completed range above
-    /// `reach_m` left out.
-    pub fn histogram(self, scans: &[ScanFeatures], reach_m: f32) -> Histogram {
-        let mut counts = vec![(0u64, 0u64); self.bins()];
-        for f in scans {
-            for k in 0..f.len() {
-                if f.range_m[k] > reach_m {
-                    continue;
-                }
-                if let Some(b) = self.bin(f, k) {
-                    counts[b].0 += 1;
-                    counts[b].1 += u64::from(!f.kept[k]);
-                }
-            }
-        }
-        Histogram { counts }
-    }
-}
-
-/// (pixels, dropped) per feature bin.
-#[derive(Debug, Clone, PartialEq)]
-pub struct Histogram {
-    pub counts: Vec<(u64, u64)>,
-}
-
-impl Histogram {
-    pub fn pixels(&self) -> u64 {
-        self.counts.iter().map(|c| c.0).sum()
-    }
-
-    pub fn drop_rate(&self) -> f64 {
-        let dropped: u64 = self.counts.iter().map(|c| c.1).sum();
-        dropped as f64 / self.pixels().max(1) as f64
-    }
-
-    /// Mean per-pixel negative log-likelihood when bin `b` drops with `drop_prob[b]`.
-    pub fn nll(&self, drop_prob: &[f64]) -> f64 {
-        let mut total = 0.0;
-        for (&(n, d), &p) in self.counts.iter().zip(drop_prob) {
-            let p = p.clamp(1e-9, 1.0 - 1e-9);
-            total -= d as f64 * p.ln() + (n - d) as f64 * (1.0 - p).ln();
-        }
-        total / self.pixels().max(1) as f64
-    }
-}
-
-/// One candidate's fit and its held-out evaluation.
-#[derive(Debug, Clone, PartialEq)]
-pub struct EffectFit {
-    pub candidate: Candidate,
-    /// Fitted (name, value): the two shape parameters, then `keep_scale` (`c`).
-    pub params: Vec<(&'static str, f64)>,
-    /// Held-out per-pixel NLL of the sim as given (`c = 1`, no effect).
-    pub before_nll: f64,
-    /// Held-out per-pixel NLL of the null (`c` fitted, no effect).
-    pub null_nll: f64,
-    /// Held-out per-pixel NLL with the fitted effect.
-    pub nll: f64,
-    /// Penalty per pixel for the two extra parameters: the BIC term, at least
-    /// [`MIN_GAIN_NATS`].
-    pub penalty: f64,
-    /// Held-out pixels the comparison used.
-    pub test_pixels: u64,
-}
-
-impl EffectFit {
-    /// Held-out NLL gain over the null, nats per pixel.
-    pub fn gain(&self) -> f64 {
-        self.null_nll - self.nll
-    }
-
-    /// Whether the effect beats the null on held-out data after the penalty.
-    pub fn significant(&self) -> bool {
-        self.gain() > self.penalty
-    }
-}
-
-/// Errors of a fit.
-#[derive(Debug, thiserror::Error, PartialEq)]
-pub enum FitError {
-    #[error("{0}: no pixel with a known feature in the {1} scans; nothing to fit")]
-    NoPixels(&'static str, &'static str),
-}
-
-/// Sim keep rate per bin, smoothed towards the sim's global keep rate with the
-/// weight of [`SMOOTHING_PIXELS`] pixels (bins the sim hardly visits).
-fn sim_keep(sim: &Histogram) -> Vec<f64> {
-    let global = 1.0 - sim.drop_rate();
-    sim.counts
-        .iter()
-        .map(|&(n, d)| ((n - d) as f64 + SMOOTHING_PIXELS * global) / (n as f64 + SMOOTHING_PIXELS))
-        .collect()
-}
-
-/// Prior weight (pixels) of the sim's global keep rate in each bin's baseline.
-const SMOOTHING_PIXELS: f64 = 20.0;
-
-/// Drop probability per bin: `1 - c k_sim (1 - p)`.
-fn drop_probs(keep_sim: &[f64], shape: &[f64], c: f64) -> Vec<f64> {
-    keep_sim
-        .iter()
-        .zip(shape)
-        .map(|(k, p)| 1.0 - c * k * (1.0 - p))
-        .collect()
-}
-
-fn shape_probs(candidate: Candidate, a: f32, b: f32) -> Vec<f64> {
-    let effect = candidate.effect(a, b);
-    (0..candidate.bins())
-        .map(|bin| f64::from(effect.drop_prob(&candidate.ray(bin)).clamp(0.0, 1.0)))
-        .collect()
-}
-
-/// The keep-rate scale `c` in [0.5, 2] minimising the NLL (golden section).
-fn best_scale(hist: &Histogram, keep_sim: &[f64], shape: &[f64]) -> (f64, f64) {
-    let f = |c: f64| hist.nll(&drop_probs(keep_sim, shape, c));
-    let (mut lo, mut hi) = (0.5f64, 2.0f64);
-    let g = (5f64.sqrt() - 1.0) / 2.0;
-    for _ in 0..48 {
-        let (m1, m2) = (hi - g * (hi - lo), lo + g * (hi - lo));
-        if f(m1) <= f(m2) {
-            hi = m2;
-        } else {
-            lo = m1;
-        }
-    }
-    let c = 0.5 * (lo + hi);
-    (c, f(c))
-}
-
-/// Fits `candidate` on the real `train` scans against the simulated recording
-/// `sim`, and evaluates it on the held-out real `test` scans.
-pub fn fit_effect(
-    candidate: Candidate,
-    sim: &[ScanFeatures],
-    train: &[ScanFeatures],
-    test: &[ScanFeatures],
-) -> Result<EffectFit, FitError> {
-    let reach_m = reach_m(sim, train);
-    let h_sim = candidate.histogram(sim, reach_m);
-    let h_train = candidate.histogram(train, reach_m);
-    let h_test = candidate.histogram(test, reach_m);
-    for (h, which) in [
-        (&h_sim, "simulated"),
-        (&h_train, "training"),
-        (&h_test, "held-out"),
-    ] {
-        if h.pixels() == 0 {
-            return Err(FitError::NoPixels(candidate.id(), which));
-        }
-    }
-    let keep_sim = sim_keep(&h_sim);
-    let no_effect = vec![0.0; candidate.bins()];
-    let mut best: Option<(f64, f32, f32, f64)> = None;
-    for a in candidate.grid_a() {
-        for b in candidate.grid_b() {
-            let shape = shape_probs(candidate, a, b);
-            let (c, nll) = best_scale(&h_train, &keep_sim, &shape);
-            if best.is_none_or(|(n, ..)| nll < n) {
-                best = Some((nll, a, b, c));
-            }
-        }
-    }
-    let Some((_, a, b, c)) = best else {
-        return Err(FitError::NoPixels(candidate.id(), "training"));
-    };
-    let (c_null, _) = best_scale(&h_train, &keep_sim, &no_effect);
-    let n = h_train.pixels() as f64;
-    let [name_a, name_b] = candidate.param_names();
-    Ok(EffectFit {
-        candidate,
-        params: vec![
-            (name_a, f64::from(a)),
-            (name_b, f64::from(b)),
-            ("keep_scale", c),
-        ],
-        before_nll: h_test.nll(&drop_probs(&keep_sim, &no_effect, 1.0)),
-        null_nll: h_test.nll(&drop_probs(&keep_sim, &no_effect, c_null)),
-        nll: h_test.nll(&drop_probs(&keep_sim, &shape_probs(candidate, a, b), c)),
-        penalty: (2.0 * n.ln() / (2.0 * n)).max(MIN_GAIN_NATS),
-        test_pixels: h_test.pixels(),
-    })
-}
+/// Smallest held-out gain (nats per pixel) an effect must show: pixels of a scan
+/// are correlated, so the BIC term alone (which assumes independence) is too lax.
+pub const MIN_GAIN_NATS: f64 = 3e-3;
 
 /// Pixels completed to near the sensor's reach are ambiguous: "no surface within
 /// reach" (scene) or "dropped" (physics); their share depends on the scene, so
@@ -314,6 +34,16 @@ pub fn fit_effect(
 /// `REACH_QUANTILE` quantile of kept ranges (the smaller of the two sides).
 pub const REACH_QUANTILE: f64 = 0.995;
 pub const REACH_FRACTION: f32 = 0.85;
+
+/// Width of the baseline's range cells, meters.
+const BASELINE_RANGE_BIN_M: f32 = 2.0;
+/// Prior weight (pixels) of the coarser rate in each baseline cell.
+const SMOOTHING_PIXELS: f64 = 20.0;
+/// Levels of `1 - q` (log scale) in a [`QTable`].
+const Q_LEVELS: usize = 96;
+const Q_FLOOR: f64 = 1e-5;
+/// Largest keep probability a model may give (keeps logs finite).
+const KEEP_MAX: f64 = 1.0 - 1e-7;
 
 /// The range beyond which completed pixels are left out: [`REACH_FRACTION`] of
 /// the smaller of the two sides' [`REACH_QUANTILE`] kept-range quantiles.
@@ -336,132 +66,608 @@ pub fn kept_range_quantile(scans: &[ScanFeatures], q: f64) -> f32 {
     *ranges.select_nth_unstable_by(i, f32::total_cmp).1
 }
 
-/// Smallest held-out gain (nats per pixel) an effect must show: pixels of a scan
-/// are correlated, so the BIC term alone (which assumes independence) is too lax.
-pub const MIN_GAIN_NATS: f64 = 1e-3;
+/// The pixels a fit uses, pooled over scans (struct of arrays). Left out: pixels
+/// completed beyond the reach, and pixels without geometry in the upper half of
+/// the image (sky: whether a scene has sky there is not physics).
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct Pixels {
+    pub height: usize,
+    pub width: usize,
+    pub row: Vec<u16>,
+    pub column: Vec<u16>,
+    /// Completed range (NaN = no geometry).
+    pub range_m: Vec<f32>,
+    /// cos(incidence) of the completed surface (NaN = unknown).
+    pub cos_incidence: Vec<f32>,
+    pub class: Vec<u16>,
+    pub kept: Vec<bool>,
+    /// Elevation of each row, radians (from the first scan).
+    pub row_elevation_rad: Vec<f32>,
+    /// Azimuth of each column, radians.
+    pub column_azimuth_rad: Vec<f32>,
+}
 
-/// Fits every candidate; significant ones first, by held-out gain.
-pub fn rank_effects(
-    sim: &[ScanFeatures],
-    train: &[ScanFeatures],
-    test: &[ScanFeatures],
-) -> Result<Vec<EffectFit>, FitError> {
-    let mut fits = Candidate::ALL
+impl Pixels {
+    pub fn collect(scans: &[ScanFeatures], reach_m: f32) -> Self {
+        let mut px = Pixels::default();
+        if let Some(f) = scans.first() {
+            px.height = f.height;
+            px.width = f.width;
+            px.row_elevation_rad = (0..f.height)
+                .map(|i| f.elevation_rad.get(i * f.width).copied().unwrap_or(0.0))
+                .collect();
+            px.column_azimuth_rad = (0..f.width)
+                .map(|j| f.azimuth_rad.get(j).copied().unwrap_or(0.0))
+                .collect();
+        }
+        for f in scans {
+            if f.height != px.height || f.width != px.width {
+                continue;
+            }
+            for k in 0..f.len() {
+                let r = f.range_m[k];
+                let row = f.row[k] as usize;
+                if r > reach_m || (r.is_nan() && row < f.height / 2) {
+                    continue;
+                }
+                px.row.push(row as u16);
+                px.column.push((k % f.width.max(1)) as u16);
+                px.range_m.push(r);
+                px.cos_incidence.push(f.incidence_rad[k].cos());
+                px.class.push((f.class[k] & 0xffff) as u16);
+                px.kept.push(f.kept[k]);
+            }
+        }
+        px
+    }
+
+    pub fn len(&self) -> usize {
+        self.kept.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.kept.is_empty()
+    }
+
+    pub fn drop_rate(&self) -> f64 {
+        self.kept.iter().filter(|k| !**k).count() as f64 / self.len().max(1) as f64
+    }
+}
+
+/// The sim's keep rate per (row, range cell); the last range cell holds pixels
+/// without geometry. Times an azimuth factor per (row, sector) where the sim's
+/// own drop rate there differs from its row's beyond doubt (|z| > 4: the sim's
+/// own blind spots), else 1.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Baseline {
+    cells: usize,
+    keep: Vec<f64>,
+    sectors: usize,
+    width: usize,
+    azimuth: Vec<f64>,
+}
+
+/// Azimuth sectors of the baseline's azimuth factor.
+const BASELINE_SECTORS: usize = 64;
+
+impl Baseline {
+    fn sector(&self, px: &Pixels, i: usize) -> usize {
+        px.row[i] as usize * self.sectors + px.column[i] as usize * self.sectors / self.width.max(1)
+    }
+
+    fn cell(&self, px: &Pixels, i: usize) -> usize {
+        let r = px.range_m[i];
+        let c = if r.is_finite() {
+            ((r.max(0.0) / BASELINE_RANGE_BIN_M) as usize).min(self.cells - 2)
+        } else {
+            self.cells - 1
+        };
+        px.row[i] as usize * self.cells + c
+    }
+
+    pub fn from_sim(sim: &Pixels, reach_m: f32) -> Self {
+        let finite_cells = if reach_m.is_finite() {
+            (reach_m / BASELINE_RANGE_BIN_M) as usize + 1
+        } else {
+            80
+        };
+        let cells = finite_cells.clamp(1, 200) + 1;
+        let rows = sim.height.max(1);
+        let sectors = BASELINE_SECTORS.min(sim.width.max(1));
+        let mut b = Baseline {
+            cells,
+            keep: Vec::new(),
+            sectors,
+            width: sim.width,
+            azimuth: vec![1.0; rows * sectors],
+        };
+        let mut n = vec![0f64; rows * cells];
+        let mut k = vec![0f64; rows * cells];
+        for i in 0..sim.len() {
+            let c = b.cell(sim, i);
+            n[c] += 1.0;
+            k[c] += f64::from(u8::from(sim.kept[i]));
+        }
+        let global = 1.0 - sim.drop_rate();
+        let mut range_keep = vec![global; cells];
+        for (c, rk) in range_keep.iter_mut().enumerate() {
+            let (nn, kk) = (0..rows).fold((0.0, 0.0), |(a, b), r| {
+                (a + n[r * cells + c], b + k[r * cells + c])
+            });
+            *rk = (kk + SMOOTHING_PIXELS * global) / (nn + SMOOTHING_PIXELS);
+        }
+        b.keep = (0..rows * cells)
+            .map(|i| (k[i] + SMOOTHING_PIXELS * range_keep[i % cells]) / (n[i] + SMOOTHING_PIXELS))
+            .collect();
+        let mut sn = vec![0f64; rows * sectors];
+        let mut sk = vec![0f64; rows * sectors];
+        for i in 0..sim.len() {
+            let s = b.sector(sim, i);
+            sn[s] += 1.0;
+            sk[s] += f64::from(u8::from(sim.kept[i]));
+        }
+        for row in 0..rows {
+            let cells = row * sectors..(row + 1) * sectors;
+            let (n_row, k_row): (f64, f64) = (
+                sn[cells.clone()].iter().sum(),
+                sk[cells.clone()].iter().sum(),
+            );
+            if n_row == 0.0 {
+                continue;
+            }
+            let p_row = k_row / n_row;
+            for s in cells {
+                if sn[s] < 10.0 {
+                    continue;
+                }
+                let p = sk[s] / sn[s];
+                let sd = (p_row * (1.0 - p_row) / sn[s]).sqrt().max(1e-9);
+                if ((p - p_row) / sd).abs() > 4.0 && p_row > 0.0 {
+                    b.azimuth[s] = p / p_row;
+                }
+            }
+        }
+        b
+    }
+
+    /// Baseline keep probability of every pixel of `px`.
+    pub fn keep_of(&self, px: &Pixels) -> Vec<f64> {
+        (0..px.len())
+            .map(|i| {
+                let a = self.azimuth.get(self.sector(px, i)).copied().unwrap_or(1.0);
+                (self.keep.get(self.cell(px, i)).copied().unwrap_or(1.0) * a).min(1.0)
+            })
+            .collect()
+    }
+}
+
+/// One fitted drop model: a drop probability per bin of its family.
+#[derive(Debug, Clone, PartialEq)]
+pub struct DropFit {
+    pub drop_prob: Vec<f64>,
+    /// Fitted parameters, as the report shows them.
+    pub params: serde_json::Map<String, serde_json::Value>,
+    /// The effect as physics-config entries (catalogue id -> parameters), so the
+    /// fitted physics can be rendered.
+    pub physics: serde_json::Map<String, serde_json::Value>,
+    /// Number of free parameters (for the penalty).
+    pub n_params: usize,
+    /// Where the effect acts, in words.
+    pub location: String,
+}
+
+/// A candidate drop model: which bin of its feature a pixel falls in, and how the
+/// per-bin drop probabilities are fitted.
+pub trait DropFamily: Sync {
+    /// The catalogue id.
+    fn id(&self) -> &'static str;
+    /// Number of bins on this pixel set's grid.
+    fn bins(&self, px: &Pixels) -> usize;
+    /// Bin of pixel `i`, or None where the effect cannot act (unknown feature).
+    fn bin(&self, px: &Pixels, i: usize) -> Option<usize>;
+    /// Maximum-likelihood fit given the pooled table (None: nothing to fit).
+    fn fit(&self, table: &QTable, px: &Pixels) -> Option<DropFit>;
+}
+
+/// Pixels pooled by (bin, level of `1 − q`), `q` the keep probability of the rest
+/// of the model.
+#[derive(Debug, Clone, PartialEq)]
+pub struct QTable {
+    pub bins: usize,
+    /// Per (bin, level): (kept, dropped, sum of q).
+    cells: Vec<(f64, f64, f64)>,
+    /// All pixels of the set (the NLL is per pixel of the whole set).
+    pub pixels: f64,
+}
+
+fn q_level(q: f64) -> usize {
+    let u = (1.0 - q).max(Q_FLOOR);
+    let t = (u.ln() - Q_FLOOR.ln()) / -Q_FLOOR.ln();
+    ((t * Q_LEVELS as f64) as usize).min(Q_LEVELS - 1)
+}
+
+impl QTable {
+    pub fn build(family: &dyn DropFamily, px: &Pixels, rest_keep: &[f64]) -> Self {
+        let bins = family.bins(px);
+        let mut cells = vec![(0.0, 0.0, 0.0); bins * Q_LEVELS];
+        for (i, &q) in rest_keep.iter().enumerate() {
+            let Some(b) = family.bin(px, i).filter(|&b| b < bins) else {
+                continue;
+            };
+            let cell = &mut cells[b * Q_LEVELS + q_level(q)];
+            if px.kept[i] {
+                cell.0 += 1.0;
+            } else {
+                cell.1 += 1.0;
+            }
+            cell.2 += q;
+        }
+        QTable {
+            bins,
+            cells,
+            pixels: px.len().max(1) as f64,
+        }
+    }
+
+    /// (kept, dropped) pixels of bin `b`.
+    pub fn counts(&self, b: usize) -> (f64, f64) {
+        self.cells[b * Q_LEVELS..(b + 1) * Q_LEVELS]
+            .iter()
+            .fold((0.0, 0.0), |a, c| (a.0 + c.0, a.1 + c.1))
+    }
+
+    /// Total NLL (nats, not normalised) of bin `b` dropping with `p`.
+    pub fn bin_nll(&self, b: usize, p: f64) -> f64 {
+        let mut total = 0.0;
+        for &(kept, dropped, qs) in &self.cells[b * Q_LEVELS..(b + 1) * Q_LEVELS] {
+            let n = kept + dropped;
+            if n == 0.0 {
+                continue;
+            }
+            let keep = (qs / n * (1.0 - p)).clamp(1e-12, KEEP_MAX);
+            total -= kept * keep.ln() + dropped * (1.0 - keep).ln();
+        }
+        total
+    }
+
+    /// NLL per pixel of the whole set when bin `b` drops with `drop_prob[b]`
+    /// (pixels outside every bin are left out: constant in the fit).
+    pub fn nll(&self, drop_prob: &[f64]) -> f64 {
+        (0..self.bins)
+            .map(|b| self.bin_nll(b, drop_prob.get(b).copied().unwrap_or(0.0)))
+            .sum::<f64>()
+            / self.pixels
+    }
+
+    /// The drop probability in [0, 0.999] that minimises bin `b`'s NLL (convex:
+    /// golden section).
+    pub fn best_bin_prob(&self, b: usize) -> f64 {
+        golden(0.0, 0.999, 40, |p| self.bin_nll(b, p)).0
+    }
+}
+
+/// Golden-section minimum of `f` on [lo, hi]: (argmin, min).
+pub fn golden(mut lo: f64, mut hi: f64, iters: usize, f: impl Fn(f64) -> f64) -> (f64, f64) {
+    let g = (5f64.sqrt() - 1.0) / 2.0;
+    for _ in 0..iters {
+        let (m1, m2) = (hi - g * (hi - lo), lo + g * (hi - lo));
+        if f(m1) <= f(m2) {
+            hi = m2;
+        } else {
+            lo = m1;
+        }
+    }
+    let x = 0.5 * (lo + hi);
+    (x, f(x))
+}
+
+/// Per-pixel keep probability of a model: `c · baseline · Π (1 − p)`.
+fn model_keep(
+    px: &Pixels,
+    baseline: &[f64],
+    c: f64,
+    effects: &[(&dyn DropFamily, &DropFit)],
+) -> Vec<f64> {
+    (0..px.len())
+        .map(|i| {
+            let mut k = c * baseline[i];
+            for (family, fit) in effects {
+                if let Some(b) = family.bin(px, i) {
+                    k *= 1.0 - fit.drop_prob.get(b).copied().unwrap_or(0.0);
+                }
+            }
+            k.clamp(1e-12, KEEP_MAX)
+        })
+        .collect()
+}
+
+/// Mean per-pixel NLL of the kept/dropped masks under per-pixel keep probabilities.
+pub fn mask_nll(px: &Pixels, keep: &[f64]) -> f64 {
+    let total: f64 = px
+        .kept
         .iter()
-        .map(|&c| fit_effect(c, sim, train, test))
-        .collect::<Result<Vec<_>, _>>()?;
-    fits.sort_by(|x, y| {
-        y.significant()
-            .cmp(&x.significant())
-            .then(y.gain().total_cmp(&x.gain()))
-    });
-    Ok(fits)
+        .zip(keep)
+        .map(|(&kept, &k)| {
+            let k = k.clamp(1e-12, KEEP_MAX);
+            if kept { -k.ln() } else { -(1.0 - k).ln() }
+        })
+        .sum();
+    total / px.len().max(1) as f64
+}
+
+/// The keep scale `c` minimising the NLL of `keep = c · rest` (pooled by level).
+fn best_scale(px: &Pixels, rest: &[f64]) -> f64 {
+    struct One;
+    impl DropFamily for One {
+        fn id(&self) -> &'static str {
+            "scale"
+        }
+        fn bins(&self, _: &Pixels) -> usize {
+            1
+        }
+        fn bin(&self, _: &Pixels, _: usize) -> Option<usize> {
+            Some(0)
+        }
+        fn fit(&self, _: &QTable, _: &Pixels) -> Option<DropFit> {
+            None
+        }
+    }
+    let table = QTable::build(&One, px, rest);
+    // keep = c·q = q·(1 − p) with p = 1 − c; c above 1 allowed (1 − p > 1).
+    golden(0.3, 3.0, 48, |c| table.bin_nll(0, 1.0 - c)).0
+}
+
+/// One effect the selection kept, with its held-out numbers.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Selected {
+    pub id: &'static str,
+    pub fit: DropFit,
+    /// Held-out NLL per pixel of the model before this effect was added (c refitted).
+    pub nll_without: f64,
+    /// ... and with it.
+    pub nll_with: f64,
+    pub penalty: f64,
+    /// Selection round (0 = strongest).
+    pub round: usize,
+}
+
+impl Selected {
+    pub fn gain(&self) -> f64 {
+        self.nll_without - self.nll_with
+    }
+}
+
+/// A candidate's result in the last round it was tried (for the report).
+#[derive(Debug, Clone, PartialEq)]
+pub struct Tried {
+    pub id: &'static str,
+    pub gain: f64,
+    pub penalty: f64,
+    pub n_params: usize,
+}
+
+/// The outcome of forward selection.
+#[derive(Debug, Clone, PartialEq)]
+pub struct DropSelection {
+    pub selected: Vec<Selected>,
+    /// Every candidate's held-out gain when first tried (round 0), strongest first.
+    pub tried: Vec<Tried>,
+    /// Held-out NLL per pixel: the sim as given (c = 1), the null (c fitted) and
+    /// the final model.
+    pub before_nll: f64,
+    pub null_nll: f64,
+    pub after_nll: f64,
+    pub keep_scale: f64,
+    pub test_pixels: usize,
+}
+
+/// Errors of a fit.
+#[derive(Debug, thiserror::Error, PartialEq)]
+pub enum FitError {
+    #[error("no pixel within the sensor's reach in the {0} scans; nothing to fit")]
+    NoPixels(&'static str),
+}
+
+/// The fitted model's per-pixel keep probability on `px` (for curves and maps).
+pub fn keep_under(
+    families: &[&dyn DropFamily],
+    selection: &DropSelection,
+    baseline: &Baseline,
+    px: &Pixels,
+) -> Vec<f64> {
+    let base = baseline.keep_of(px);
+    let effects: Vec<(&dyn DropFamily, &DropFit)> = selection
+        .selected
+        .iter()
+        .filter_map(|s| {
+            families
+                .iter()
+                .find(|f| f.id() == s.id)
+                .map(|f| (*f, &s.fit))
+        })
+        .collect();
+    model_keep(px, &base, selection.keep_scale, &effects)
+}
+
+/// Greedy forward selection of `families` (at most `max_effects`).
+pub fn select(
+    families: &[&dyn DropFamily],
+    baseline: &Baseline,
+    train: &Pixels,
+    test: &Pixels,
+    max_effects: usize,
+) -> Result<DropSelection, FitError> {
+    if train.is_empty() {
+        return Err(FitError::NoPixels("training"));
+    }
+    if test.is_empty() {
+        return Err(FitError::NoPixels("held-out"));
+    }
+    let base_train = baseline.keep_of(train);
+    let base_test = baseline.keep_of(test);
+    let before_nll = mask_nll(test, &model_keep(test, &base_test, 1.0, &[]));
+    // The null (only the overall rate differs) is adopted only where it beats
+    // the sim as given on held-out scans.
+    let mut c = best_scale(train, &base_train);
+    let mut null_nll = mask_nll(test, &model_keep(test, &base_test, c, &[]));
+    let fit_scale = before_nll - null_nll > MIN_GAIN_NATS;
+    if !fit_scale {
+        c = 1.0;
+        null_nll = before_nll;
+    }
+    let n = train.len() as f64;
+    let mut chosen: Vec<(usize, DropFit, Selected)> = Vec::new();
+    let mut current_nll = null_nll;
+    let mut tried = Vec::new();
+    for round in 0..max_effects {
+        let effects: Vec<(&dyn DropFamily, &DropFit)> =
+            chosen.iter().map(|(i, f, _)| (families[*i], f)).collect();
+        let mut best: Option<(usize, DropFit, f64, f64, f64)> = None;
+        for (fi, family) in families.iter().enumerate() {
+            if chosen.iter().any(|(i, ..)| *i == fi) {
+                continue;
+            }
+            let Some((fit, c_fit)) = fit_given(*family, train, &base_train, c, fit_scale, &effects)
+            else {
+                continue;
+            };
+            let mut with = effects.clone();
+            with.push((*family, &fit));
+            let nll = mask_nll(test, &model_keep(test, &base_test, c_fit, &with));
+            let penalty = (fit.n_params as f64 * n.ln() / (2.0 * n)).max(MIN_GAIN_NATS);
+            let gain = current_nll - nll;
+            if round == 0 {
+                tried.push(Tried {
+                    id: family.id(),
+                    gain,
+                    penalty,
+                    n_params: fit.n_params,
+                });
+            }
+            let margin = gain - penalty;
+            if margin > 0.0
+                && best
+                    .as_ref()
+                    .is_none_or(|b| margin > current_nll - b.2 - b.3)
+            {
+                best = Some((fi, fit, nll, penalty, c_fit));
+            }
+        }
+        let Some((fi, fit, nll, penalty, c_fit)) = best else {
+            break;
+        };
+        chosen.push((
+            fi,
+            fit.clone(),
+            Selected {
+                id: families[fi].id(),
+                fit,
+                nll_without: current_nll,
+                nll_with: nll,
+                penalty,
+                round,
+            },
+        ));
+        current_nll = nll;
+        c = c_fit;
+    }
+    tried.sort_by(|a, b| (b.gain - b.penalty).total_cmp(&(a.gain - a.penalty)));
+    Ok(DropSelection {
+        selected: chosen.into_iter().map(|(.., s)| s).collect(),
+        tried,
+        before_nll,
+        null_nll,
+        after_nll: current_nll,
+        keep_scale: c,
+        test_pixels: test.len(),
+    })
+}
+
+/// Fits `family` on `train` given the chosen `effects`, alternating with the
+/// keep scale where `fit_scale` (the null was adopted): (fit, scale).
+fn fit_given(
+    family: &dyn DropFamily,
+    train: &Pixels,
+    base: &[f64],
+    c0: f64,
+    fit_scale: bool,
+    effects: &[(&dyn DropFamily, &DropFit)],
+) -> Option<(DropFit, f64)> {
+    let rest_unit = model_keep(train, base, 1.0, effects);
+    let mut c = c0;
+    let mut fit = None;
+    for _ in 0..2 {
+        let rest: Vec<f64> = rest_unit
+            .iter()
+            .map(|k| (k * c).clamp(1e-12, KEEP_MAX))
+            .collect();
+        let table = QTable::build(family, train, &rest);
+        let f = family.fit(&table, train)?;
+        let with_effect: Vec<f64> = (0..train.len())
+            .map(|i| {
+                let p = family
+                    .bin(train, i)
+                    .and_then(|b| f.drop_prob.get(b))
+                    .copied()
+                    .unwrap_or(0.0);
+                rest_unit[i] * (1.0 - p)
+            })
+            .collect();
+        if fit_scale {
+            c = best_scale(train, &with_effect);
+        }
+        fit = Some(f);
+    }
+    fit.map(|f| (f, c))
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::physics::dropout::UniformDropout;
-
-    use crate::physics::diagnose_features::simulated_recording as recording;
-
-    fn drop_rate(scans: &[ScanFeatures]) -> f64 {
-        scans.iter().map(|s| s.drop_rate()).sum::<f64>() / scans.len() as f64
-    }
-
-    /// Real side with `effect`; sim side (other scene) with uniform dropout raised
-    /// until the global drop rates match. Returns (sim, real) feature sets.
-    fn concealed(effect: Box<dyn Effect>) -> (Vec<ScanFeatures>, Vec<ScanFeatures>) {
-        let real = recording(101, 8, vec![effect]);
-        let ideal_sim = recording(202, 8, vec![]);
-        let (r, s0) = (drop_rate(&real), drop_rate(&ideal_sim));
-        assert!(r > s0, "the effect drops rays: real {r} vs ideal sim {s0}");
-        let prob = ((r - s0) / (1.0 - s0)) as f32;
-        let sim = recording(
-            202,
-            8,
-            vec![Box::new(UniformDropout {
-                enabled: true,
-                prob,
-            })],
-        );
-        assert!(
-            (drop_rate(&sim) - r).abs() < 0.01,
-            "concealed: {} vs {r}",
-            drop_rate(&sim)
-        );
-        (sim, real)
-    }
-
-    fn split(scans: &[ScanFeatures]) -> (Vec<ScanFeatures>, Vec<ScanFeatures>) {
-        let (mut train, mut test) = (Vec::new(), Vec::new());
-        for (i, s) in scans.iter().enumerate() {
-            if i % 2 == 0 { &mut train } else { &mut test }.push(s.clone());
-        }
-        (train, test)
-    }
 
     #[test]
-    fn histogram_nll_of_the_true_rate_is_the_binary_entropy() {
-        let h = Histogram {
-            counts: vec![(100, 25), (100, 25)],
-        };
-        let p = 0.25f64;
-        let entropy = -(p * p.ln() + (1.0 - p) * (1.0 - p).ln());
-        assert!((h.nll(&[0.25, 0.25]) - entropy).abs() < 1e-12);
-        assert!(h.nll(&[0.5, 0.5]) > entropy);
-    }
-
-    #[test]
-    fn concealed_range_dropout_is_named_and_fitted() {
-        // Parameters drawn from a fixed seed across a plausible sensor range.
-        for case in 0..3u64 {
-            let u = |salt: u64| crate::sim::rng::uniform(&[0xd1a9, case, salt]);
-            let truth = (30.0 + 40.0 * u(1), 0.2 + 0.4 * u(2));
-            let (sim, real) = concealed(Candidate::RangeDropout.effect(truth.0, truth.1));
-            let (train, test) = split(&real);
-            let fits = rank_effects(&sim, &train, &test).expect("fits");
-            let top = &fits[0];
-            assert_eq!(
-                top.candidate,
-                Candidate::RangeDropout,
-                "{truth:?}: {fits:#?}"
-            );
-            assert!(top.significant(), "{truth:?}: {top:?}");
-            let range_50 = top.params[0].1;
-            assert!(
-                (range_50 / f64::from(truth.0)).ln().abs() < 0.35,
-                "range_50_m {range_50} vs {truth:?}"
-            );
-            assert!(top.nll < top.before_nll, "{top:?}");
-            assert!(!fits[1].significant() || fits[1].gain() < top.gain());
-        }
-    }
-
-    #[test]
-    fn same_physics_claims_no_effect() {
-        let uniform = || -> Box<dyn Effect> {
-            Box::new(UniformDropout {
-                enabled: true,
-                prob: 0.1,
-            })
-        };
-        for (sim_seed, real_seed) in [(404, 303), (7, 8), (21, 12)] {
-            let sim = recording(sim_seed, 8, vec![uniform()]);
-            let real = recording(real_seed, 8, vec![uniform()]);
-            let (train, test) = split(&real);
-            let fits = rank_effects(&sim, &train, &test).expect("fits");
-            for fit in &fits {
-                assert!(!fit.significant(), "false alarm: {fit:?}");
+    fn q_table_nll_of_the_true_rate_is_the_binary_entropy() {
+        struct Halves;
+        impl DropFamily for Halves {
+            fn id(&self) -> &'static str {
+                "halves"
+            }
+            fn bins(&self, _: &Pixels) -> usize {
+                2
+            }
+            fn bin(&self, _: &Pixels, i: usize) -> Option<usize> {
+                Some(i % 2)
+            }
+            fn fit(&self, _: &QTable, _: &Pixels) -> Option<DropFit> {
+                None
             }
         }
+        let px = Pixels {
+            kept: (0..400).map(|i| (i / 2) % 4 != 0).collect(),
+            ..Default::default()
+        };
+        let table = QTable::build(&Halves, &px, &vec![1.0; 400]);
+        let p = 0.25f64;
+        let entropy = -(p * p.ln() + (1.0 - p) * (1.0 - p).ln());
+        assert!((table.nll(&[0.25, 0.25]) - entropy).abs() < 1e-9);
+        assert!(table.nll(&[0.5, 0.5]) > entropy);
+        assert!((table.best_bin_prob(0) - 0.25).abs() < 1e-4);
+        assert!((mask_nll(&px, &[0.75; 400]) - entropy).abs() < 1e-9);
+        assert_eq!(table.counts(1), (150.0, 50.0));
+    }
+
+    #[test]
+    fn golden_finds_a_parabola_minimum() {
+        let (x, fx) = golden(-3.0, 5.0, 60, |x| (x - 1.25) * (x - 1.25) + 2.0);
+        assert!((x - 1.25).abs() < 1e-6 && (fx - 2.0).abs() < 1e-9);
     }
 
     #[test]
     fn no_pixels_is_an_error_not_a_panic() {
+        let b = Baseline::from_sim(&Pixels::default(), 50.0);
         assert_eq!(
-            fit_effect(Candidate::RangeDropout, &[], &[], &[]),
-            Err(FitError::NoPixels("range_dropout", "simulated"))
+            select(&[], &b, &Pixels::default(), &Pixels::default(), 2),
+            Err(FitError::NoPixels("training"))
         );
     }
 }

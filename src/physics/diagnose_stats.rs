@@ -370,6 +370,7 @@ mod tests {
             width: n / 32,
             row: Vec::new(),
             azimuth_rad: Vec::new(),
+            elevation_rad: Vec::new(),
             range_m: Vec::new(),
             incidence_rad: Vec::new(),
             edge_px: Vec::new(),
@@ -381,6 +382,7 @@ mod tests {
             f.row.push((u(k, 2) * 32.0) as u32 % 32);
             f.azimuth_rad
                 .push(std::f32::consts::PI * (2.0 * u(k, 3) - 1.0));
+            f.elevation_rad.push(0.0);
             f.range_m.push(range_m);
             f.incidence_rad.push(1.5 * u(k, 4));
             f.edge_px.push((u(k, 5) * 8.0) as u8 % 8);

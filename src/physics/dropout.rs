@@ -79,7 +79,13 @@ impl Effect for IncidenceDropout {
 pub struct MaterialDropout {
     #[serde(default = "yes")]
     pub enabled: bool,
+    #[serde(default)]
     pub drop_prob: BTreeMap<Material, f32>,
+    /// Drop probability per semantic class (SemanticKITTI id), for data that has
+    /// classes but no materials (real scans; what `diagnose` fits). A ray takes
+    /// the larger of its material's and its class's probability.
+    #[serde(default, skip_serializing_if = "BTreeMap::is_empty")]
+    pub drop_prob_by_class: BTreeMap<u32, f32>,
 }
 
 impl Effect for MaterialDropout {
@@ -90,7 +96,13 @@ impl Effect for MaterialDropout {
         true
     }
     fn drop_prob(&self, f: &RayFeatures) -> f32 {
-        self.drop_prob.get(&f.material).copied().unwrap_or(0.0)
+        let by_material = self.drop_prob.get(&f.material).copied().unwrap_or(0.0);
+        let by_class = self
+            .drop_prob_by_class
+            .get(&f.class)
+            .copied()
+            .unwrap_or(0.0);
+        by_material.max(by_class)
     }
 }
 
@@ -312,6 +324,7 @@ pub(crate) mod tests {
             range_m,
             incidence_rad: incidence_deg.to_radians(),
             material,
+            class: 0,
             reflectivity: 0.3,
             intensity: 0.2,
             azimuth_rad: 0.0,
@@ -394,6 +407,7 @@ pub(crate) mod tests {
             Box::new(MaterialDropout {
                 enabled: true,
                 drop_prob,
+                drop_prob_by_class: BTreeMap::new(),
             }),
             3,
         );

@@ -16,9 +16,14 @@
 //! (Issue 6's diagnosis lives beside this in `diagnose*.rs`.)
 
 pub mod config;
+pub mod diagnose;
+pub mod diagnose_drop;
 pub mod diagnose_features;
 pub mod diagnose_fit;
+pub mod diagnose_residual;
 pub mod diagnose_stats;
+#[cfg(test)]
+mod diagnose_tests;
 pub mod dropout;
 pub mod perturb;
 
@@ -36,6 +41,9 @@ pub struct RayFeatures {
     pub range_m: f32,
     pub incidence_rad: f32,
     pub material: Material,
+    /// Semantic class of the surface (SemanticKITTI id, low 16 bits of the label;
+    /// 0 = unknown). Real data has classes where it has no materials.
+    pub class: u32,
     pub reflectivity: f32,
     /// Ideal intensity (reflectivity x cos(incidence) x range falloff).
     pub intensity: f32,
@@ -54,6 +62,7 @@ impl RayFeatures {
             range_m: scan.true_range_m[k],
             incidence_rad: scan.incidence_rad[k],
             material: scan.material[k],
+            class: scan.true_label[k] & 0xffff,
             reflectivity: scan.reflectivity[k],
             intensity: scan.image.intensity[k],
             azimuth_rad: scan.image.angles.azimuth_rad[k],

@@ -1,0 +1,360 @@
+//! `rangegan-mcap render (--physics FITTED.json | --raydrop global|pixel --real REAL.mcap) SIM.mcap OUT.mcap`:
+//! applies physics (typically what `diagnose` fitted) or a baseline ray-drop
+//! model to every scan of a simulated recording: the Sim2Real use, realistic
+//! ray drops on simulated training data. Every other record is copied unchanged.
+//!
+//! Baselines (the paper's Sim2Real configurations): `global` drops every ray
+//! with the real data's global drop frequency (config B), `pixel` with its
+//! per-pixel frequency (config C). `gan` (config E, the GAN's auto-decoded x_n per
+//! scan) needs the GAN inversion module, which is not in this build yet.
+
+use std::borrow::Cow;
+use std::collections::{BTreeMap, HashMap};
+use std::path::PathBuf;
+
+use anyhow::Context;
+use mcap::records::Record;
+
+use super::{GlobalArgs, Outcome};
+use crate::io::encoders::encode_scan;
+use crate::io::{CloudFormat, DecodedCloud, McapOutput, OnError, decode_cloud, read_records};
+use crate::lidar::projection::choose_strategy;
+use crate::lidar::{RangeImage, SensorProfile, project};
+use crate::physics::diagnose_features::{FeatureOptions, ScanFeatures};
+use crate::physics::{Effect, Physics, PhysicsConfig, RayFeatures};
+use crate::recording::{self, Grid};
+use crate::sim::geometry::v3;
+use crate::sim::{Material, SensorPose, SimScan, SweepTiming, label};
+
+/// A baseline ray-drop model.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum RayDrop {
+    /// The real data's global drop frequency (paper config B).
+    Global,
+    /// The real data's per-pixel drop frequency (paper config C).
+    Pixel,
+    /// The GAN's auto-decoded drop probability x_n per scan (paper config E).
+    Gan,
+}
+
+#[derive(Debug, clap::Args)]
+pub struct RenderArgs {
+    /// Physics to apply: a physics JSON file (e.g. DIR/fitted_physics.json from
+    /// `diagnose`) or a preset (ideal, carla-like, realistic).
+    #[arg(long, conflicts_with = "raydrop")]
+    pub physics: Option<String>,
+    /// A baseline ray-drop model instead of physics.
+    #[arg(long, value_enum)]
+    pub raydrop: Option<RayDrop>,
+    /// The real recording whose drop frequencies `--raydrop global|pixel` use.
+    #[arg(long)]
+    pub real: Option<PathBuf>,
+    /// Point-cloud topic (default: the first point-cloud topic).
+    #[arg(long)]
+    pub topic: Option<String>,
+    /// Sensor profile of the projection (default: the recording's `simulate`
+    /// metadata, else estimated).
+    #[arg(long)]
+    pub sensor: Option<String>,
+    /// Range-image columns (default: the profile's).
+    #[arg(long)]
+    pub columns: Option<usize>,
+    /// Seed of the random draws.
+    #[arg(long, default_value_t = 0)]
+    pub seed: u64,
+    /// Overwrite an existing OUT.
+    #[arg(long)]
+    pub force: bool,
+    /// Simulated input recording.
+    pub input: PathBuf,
+    /// Output recording.
+    pub output: PathBuf,
+}
+
+/// Drop probability per pixel of the grid (row-major), from real data.
+#[derive(Debug)]
+struct DropMap {
+    id: &'static str,
+    width: usize,
+    prob: Vec<f32>,
+}
+
+impl Effect for DropMap {
+    fn id(&self) -> &'static str {
+        self.id
+    }
+    fn drops(&self) -> bool {
+        true
+    }
+    fn drop_prob(&self, f: &RayFeatures) -> f32 {
+        self.prob
+            .get(f.row * self.width + f.column)
+            .copied()
+            .unwrap_or(0.0)
+    }
+}
+
+/// A typical material for a semantic class (effects keyed on material need one).
+fn material_of(class: u32) -> Material {
+    match class {
+        label::ROAD => Material::Asphalt,
+        label::SIDEWALK => Material::Concrete,
+        label::BUILDING => Material::Brick,
+        label::CAR => Material::BrightPaint,
+        label::VEGETATION => Material::Foliage,
+        label::TRUNK => Material::Bark,
+        label::TERRAIN => Material::Grass,
+        label::POLE | label::BICYCLE => Material::Metal,
+        label::TRAFFIC_SIGN => Material::RetroReflector,
+        label::FENCE => Material::Wood,
+        label::PERSON | label::BICYCLIST => Material::Cloth,
+        _ => Material::Concrete,
+    }
+}
+
+/// A projected scan as a [`SimScan`] the physics can act on: true range and label
+/// = the measured ones, incidence from the completed normals, time from the
+/// sweep, the ego moving straight ahead at `speed_mps`.
+fn as_sim_scan(image: RangeImage, index: u32, profile: &SensorProfile, speed_mps: f32) -> SimScan {
+    let f = ScanFeatures::from_image(&image, &FeatureOptions::default());
+    let n = image.len();
+    let timing = SweepTiming::default();
+    let class: Vec<u32> = image.label.iter().map(|l| l & 0xffff).collect();
+    SimScan {
+        material: (0..n)
+            .map(|k| {
+                if image.range_m[k] > 0.0 {
+                    material_of(class[k])
+                } else {
+                    Material::None
+                }
+            })
+            .collect(),
+        incidence_rad: f
+            .incidence_rad
+            .iter()
+            .map(|a| if a.is_finite() { *a } else { 0.0 })
+            .collect(),
+        reflectivity: image.intensity.iter().map(|i| i.clamp(0.0, 1.0)).collect(),
+        time_s: image
+            .angles
+            .azimuth_rad
+            .iter()
+            .map(|a| timing.time_at(*a))
+            .collect(),
+        true_range_m: image.range_m.clone(),
+        true_label: image.label.clone(),
+        index,
+        start_time_s: 0.1 * f64::from(index),
+        pose: SensorPose {
+            origin: v3(0.0, 0.0, 0.0),
+            axes: [v3(1.0, 0.0, 0.0), v3(0.0, 1.0, 0.0), v3(0.0, 0.0, 1.0)],
+            velocity_mps: [speed_mps, 0.0, 0.0],
+            yaw_rate_rps: 0.0,
+            yaw_rad: 0.0,
+        },
+        min_range_m: profile.min_range_m,
+        max_range_m: profile.max_range_m,
+        image,
+    }
+}
+
+/// The physics to apply, and words for the summary.
+fn resolve_physics(
+    args: &RenderArgs,
+    profile: &SensorProfile,
+) -> anyhow::Result<(Physics, String)> {
+    match (&args.physics, args.raydrop) {
+        (Some(p), None) => {
+            let config = PhysicsConfig::resolve_for_beams(p, profile.beams())
+                .with_context(|| format!("--physics {p}"))?;
+            config
+                .validate(p, Some(profile.beams()))
+                .with_context(|| format!("--physics {p} for sensor {}", profile.name))?;
+            let physics = config.effects();
+            let words = format!("physics [{}]", physics.ids().join(", "));
+            Ok((physics, words))
+        }
+        (None, Some(RayDrop::Gan)) => anyhow::bail!(
+            "--raydrop gan is not available yet: it needs the GAN inversion (crate::decode), which is not in this build; use --raydrop global|pixel or --physics"
+        ),
+        (None, Some(mode)) => {
+            let real_path = args.real.as_ref().context(
+                "--raydrop global|pixel needs --real REAL.mcap (the recording whose drop frequencies to use)",
+            )?;
+            let real = recording::read(
+                real_path,
+                args.topic.as_deref(),
+                &Grid::Fixed(profile.clone()),
+            )
+            .with_context(|| format!("reading --real {}", real_path.display()))?;
+            let n = profile.beams() * profile.columns;
+            let mut dropped = vec![0f64; n];
+            for img in &real.images {
+                for (k, d) in dropped.iter_mut().enumerate() {
+                    *d += f64::from(u8::from(!img.is_valid(k)));
+                }
+            }
+            let scans = real.images.len() as f64;
+            let (id, prob) = if mode == RayDrop::Global {
+                let rate = dropped.iter().sum::<f64>() / (scans * n as f64);
+                ("raydrop_global", vec![rate as f32; n])
+            } else {
+                (
+                    "raydrop_pixel",
+                    dropped.iter().map(|d| (d / scans) as f32).collect(),
+                )
+            };
+            let mean = prob.iter().map(|p| f64::from(*p)).sum::<f64>() / n.max(1) as f64;
+            let words = format!(
+                "{id} from {} scans of {} (mean drop probability {:.1} %)",
+                real.images.len(),
+                real_path.display(),
+                100.0 * mean
+            );
+            Ok((
+                Physics {
+                    effects: vec![Box::new(DropMap {
+                        id,
+                        width: profile.columns,
+                        prob,
+                    })],
+                },
+                words,
+            ))
+        }
+        (None, None) => anyhow::bail!("give --physics FILE or --raydrop global|pixel|gan"),
+        (Some(_), Some(_)) => anyhow::bail!("--physics and --raydrop exclude each other"),
+    }
+}
+
+pub fn run(global: &GlobalArgs, args: RenderArgs) -> anyhow::Result<Outcome> {
+    if args.raydrop == Some(RayDrop::Gan) {
+        // Fail before reading anything.
+        resolve_physics(&args, &SensorProfile::kitti_hdl64e())?;
+    }
+    let grid = match &args.sensor {
+        Some(s) => {
+            let p = SensorProfile::resolve(s).with_context(|| format!("--sensor {s}"))?;
+            Grid::Fixed(match args.columns {
+                Some(c) => p.with_columns(c),
+                None => p,
+            })
+        }
+        None => Grid::FromRecording {
+            columns: args.columns,
+        },
+    };
+    let input = recording::read(&args.input, args.topic.as_deref(), &grid)
+        .with_context(|| format!("reading {}", args.input.display()))?;
+    let profile = input.profile.clone();
+    let (physics, words) = resolve_physics(&args, &profile)?;
+    let speed = input.speed_mps().unwrap_or(0.0) as f32;
+
+    let mut out = McapOutput::create(&args.output, args.force)?;
+    out.write_metadata(
+        "rangegan.render",
+        BTreeMap::from([
+            ("tool".to_string(), "rangegan-mcap render".to_string()),
+            ("version".to_string(), env!("CARGO_PKG_VERSION").to_string()),
+            ("topic".to_string(), input.topic.clone()),
+            ("applied".to_string(), words.clone()),
+            ("seed".to_string(), args.seed.to_string()),
+        ]),
+    )?;
+    let mut schemas: HashMap<u16, String> = HashMap::new();
+    let mut cloud_channels: HashMap<u16, CloudFormat> = HashMap::new();
+    let mut strategy = None;
+    let (mut scans, mut kept, mut pixels, mut skipped) = (0u64, 0u64, 0u64, Vec::new());
+    let file = std::fs::File::open(&args.input)
+        .with_context(|| format!("cannot open {}", args.input.display()))?;
+    let len = file.metadata().ok().map(|m| m.len());
+    read_records(
+        std::io::BufReader::new(file),
+        len,
+        OnError::Fail,
+        |record| {
+            match record {
+                Record::Schema { header, .. } => {
+                    schemas.insert(header.id, header.name.clone());
+                }
+                Record::Channel(c) if c.topic == input.topic => {
+                    let schema = schemas.get(&c.schema_id).map_or("", String::as_str);
+                    if let Some(f) = CloudFormat::detect(&c.message_encoding, schema) {
+                        cloud_channels.insert(c.id, f);
+                    }
+                }
+                Record::Message { header, data } => {
+                    if let Some(format) = cloud_channels.get(&header.channel_id) {
+                        let rendered = decode_cloud(*format, data)
+                            .map_err(|e| e.to_string())
+                            .and_then(|cloud| {
+                                let s = *strategy
+                                    .get_or_insert_with(|| choose_strategy(&cloud.scan, &profile));
+                                let image =
+                                    project(&cloud.scan, &profile, s).map_err(|e| e.to_string())?;
+                                let mut scan = as_sim_scan(image, scans as u32, &profile, speed);
+                                physics.apply(&mut scan, args.seed);
+                                kept += scan.image.valid_count() as u64;
+                                pixels += scan.len() as u64;
+                                let out_cloud = DecodedCloud {
+                                    scan: scan.to_scan(cloud.scan.is_organized()),
+                                    stamp_nanos: cloud.stamp_nanos,
+                                    frame_id: cloud.frame_id,
+                                };
+                                Ok(encode_scan(format.family(), &out_cloud, &[]))
+                            });
+                        match rendered {
+                            Ok(bytes) => {
+                                scans += 1;
+                                out.copy_record(&Record::Message {
+                                    header: *header,
+                                    data: Cow::Owned(bytes),
+                                })?;
+                                return Ok(());
+                            }
+                            Err(e) => skipped.push(format!(
+                                "{}: {e}; message copied unchanged",
+                                crate::error::Location::message(
+                                    &args.input,
+                                    &input.topic,
+                                    header.log_time
+                                )
+                            )),
+                        }
+                    }
+                }
+                _ => {}
+            }
+            out.copy_record(record)?;
+            Ok(())
+        },
+        |_| {},
+    )
+    .map_err(|e| anyhow::anyhow!("{}: {e}", args.input.display()))?;
+    out.finish()?;
+    for s in &skipped {
+        if !global.quiet {
+            eprintln!("warning: {s}");
+        }
+    }
+    let keep = kept as f64 / pixels.max(1) as f64;
+    if global.json {
+        println!(
+            "{}",
+            serde_json::json!({"output": args.output, "scans": scans, "keep_rate": keep, "applied": words, "skipped": skipped.len()})
+        );
+    } else if !global.quiet {
+        eprintln!(
+            "{}: {scans} scans of {} rendered with {words}; {:.1} % of pixels keep a return",
+            args.output.display(),
+            input.topic,
+            100.0 * keep
+        );
+    }
+    Ok(if skipped.is_empty() {
+        Outcome::Success
+    } else {
+        Outcome::DataSkipped
+    })
+}

@@ -1,0 +1,550 @@
+//! Sim2Real diagnosis (issue 6), end to end on projected scans: features of both
+//! recordings, where the drop rates diverge (`diagnose_stats`), which left-out
+//! effects explain the divergence (`diagnose_fit` with the drop candidates of
+//! `diagnose_drop`, and `diagnose_residual` for effects that move returns), and
+//! the numbers the report and its plots show. No I/O: the CLI reads the
+//! recordings and writes the report (`crate::report`).
+
+use serde::Serialize;
+use serde_json::{Map, Value};
+
+use super::diagnose_drop;
+use super::diagnose_features::ScanFeatures;
+use super::diagnose_fit::{self, Baseline, DropFamily, DropSelection, FitError, Pixels};
+use super::diagnose_residual::{self, ResidualContext, ResidualFit};
+use super::diagnose_stats::{BinOptions, DropCounts, Feature, TestOptions, compare};
+
+/// Settings of a diagnosis.
+#[derive(Debug, Clone, PartialEq)]
+pub struct DiagnoseOptions {
+    /// Most drop effects the forward selection may add.
+    pub max_effects: usize,
+    pub tests: TestOptions,
+    pub residual: ResidualContext,
+}
+
+impl Default for DiagnoseOptions {
+    fn default() -> Self {
+        DiagnoseOptions {
+            max_effects: 3,
+            tests: TestOptions::default(),
+            residual: ResidualContext {
+                speed_mps: None,
+                period_s: 0.1,
+            },
+        }
+    }
+}
+
+/// A before/after pair of one metric on held-out real scans (lower is better).
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct FitMetric {
+    pub metric: String,
+    pub before: f64,
+    pub after: f64,
+}
+
+/// One effect judged significant.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct EffectReport {
+    pub id: String,
+    pub confidence: f64,
+    pub location: String,
+    pub params: Map<String, Value>,
+    pub fit: FitMetric,
+    /// Held-out gain, nats per held-out pixel (the ranking key).
+    pub gain_nats_per_pixel: f64,
+}
+
+/// A candidate that was tried, significant or not.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct CandidateReport {
+    pub id: String,
+    /// Held-out gain over the null in its own metric's units.
+    pub gain: f64,
+    pub penalty: f64,
+    pub significant: bool,
+}
+
+/// One significant bin of the drop-rate comparison.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct MismatchReport {
+    pub feature: String,
+    #[serde(rename = "where")]
+    pub location: String,
+    pub rate_sim: f64,
+    pub rate_real: f64,
+    pub q_value: f64,
+}
+
+/// Sizes and rates of the inputs.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct InputsReport {
+    pub sim_scans: usize,
+    pub real_scans: usize,
+    pub real_train_scans: usize,
+    pub real_test_scans: usize,
+    pub rows: usize,
+    pub columns: usize,
+    pub drop_rate_sim: f64,
+    pub drop_rate_real: f64,
+    pub reach_m: f32,
+    pub completion: String,
+}
+
+/// The report (`report.json`): `effects` and `fit` are the contract other
+/// programs read; the rest is detail.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct Report {
+    pub effects: Vec<EffectReport>,
+    pub fit: FitMetric,
+    /// The fitted keep-rate scale `c` (1 = the sim's overall rate is right).
+    pub keep_scale: f64,
+    pub candidates: Vec<CandidateReport>,
+    pub mismatch: Vec<MismatchReport>,
+    pub inputs: InputsReport,
+    /// The sim's physics plus the fitted effects, as a physics JSON entry set
+    /// (render it with `render --physics`).
+    pub fitted_physics: Map<String, Value>,
+}
+
+/// Drop rate against one feature: real, sim, and the fitted model.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Curve {
+    pub feature: &'static str,
+    pub unit: &'static str,
+    /// Bin centres.
+    pub x: Vec<f64>,
+    pub real: Vec<f64>,
+    pub sim: Vec<f64>,
+    pub fitted: Vec<f64>,
+}
+
+/// Per-pixel maps on the scan grid (row-major), for images.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Maps {
+    pub height: usize,
+    pub width: usize,
+    /// Drop frequency per pixel over the held-out real scans / the sim scans.
+    pub real_drop: Vec<f32>,
+    pub sim_drop: Vec<f32>,
+    /// Extra drop probability the fitted effects add, mean over held-out scans.
+    pub fitted_extra_drop: Vec<f32>,
+    /// One held-out real scan: range (0 = dropped) and the located mismatch.
+    pub example_range_m: Vec<f32>,
+    pub example_highlight: Vec<f32>,
+}
+
+/// Everything a report shows.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Diagnosis {
+    pub report: Report,
+    pub curves: Vec<Curve>,
+    pub maps: Maps,
+}
+
+/// Errors of a diagnosis.
+#[derive(Debug, thiserror::Error, PartialEq)]
+pub enum DiagnoseError {
+    #[error(
+        "the real recording needs at least 2 scans (one to fit on, one to test on); it has {0}"
+    )]
+    TooFewRealScans(usize),
+    #[error("the simulated recording has no scans")]
+    NoSimScans,
+    #[error(
+        "the scan grids differ: sim {sim_h}x{sim_w}, real {real_h}x{real_w}; project both onto one sensor profile (--sensor, --columns)"
+    )]
+    GridMismatch {
+        sim_h: usize,
+        sim_w: usize,
+        real_h: usize,
+        real_w: usize,
+    },
+    #[error(transparent)]
+    Fit(#[from] FitError),
+}
+
+fn confidence(gain: f64, penalty: f64) -> f64 {
+    if penalty <= 0.0 {
+        return 1.0;
+    }
+    (1.0 - (-(gain / penalty - 1.0)).exp()).clamp(0.0, 1.0)
+}
+
+fn stats_feature(id: &str) -> Option<Feature> {
+    match id {
+        "range_dropout" => Some(Feature::Range),
+        "incidence_dropout" => Some(Feature::Incidence),
+        "beam_dropout" => Some(Feature::Row),
+        "material_dropout" => Some(Feature::Class),
+        "self_occlusion" => Some(Feature::Azimuth),
+        _ => None,
+    }
+}
+
+/// Diagnoses `real` against `sim`: real scans alternate between fitting (even)
+/// and held-out testing (odd). `sim_physics` is the sim's own physics (JSON
+/// object of catalogue entries), the base the fitted effects are added to.
+pub fn diagnose(
+    sim: &[ScanFeatures],
+    real: &[ScanFeatures],
+    sim_physics: &Map<String, Value>,
+    completion: &str,
+    options: &DiagnoseOptions,
+) -> Result<Diagnosis, DiagnoseError> {
+    let (Some(s0), Some(r0)) = (sim.first(), real.first()) else {
+        return Err(if sim.is_empty() {
+            DiagnoseError::NoSimScans
+        } else {
+            DiagnoseError::TooFewRealScans(0)
+        });
+    };
+    if real.len() < 2 {
+        return Err(DiagnoseError::TooFewRealScans(real.len()));
+    }
+    if (s0.height, s0.width) != (r0.height, r0.width) {
+        return Err(DiagnoseError::GridMismatch {
+            sim_h: s0.height,
+            sim_w: s0.width,
+            real_h: r0.height,
+            real_w: r0.width,
+        });
+    }
+    let train: Vec<ScanFeatures> = real.iter().step_by(2).cloned().collect();
+    let test: Vec<ScanFeatures> = real.iter().skip(1).step_by(2).cloned().collect();
+    let reach_m = diagnose_fit::reach_m(sim, real);
+
+    // Where: conditional drop rates, BH-corrected.
+    let bins = BinOptions {
+        reach_m,
+        ..BinOptions::default()
+    };
+    let (mut c_sim, mut c_real) = (DropCounts::default(), DropCounts::default());
+    sim.iter().for_each(|f| c_sim.add(f, &bins));
+    real.iter().for_each(|f| c_real.add(f, &bins));
+    let comparison = compare(&c_sim, &c_real, &bins, &options.tests);
+
+    // What: drop candidates by forward selection.
+    let px_sim = Pixels::collect(sim, reach_m);
+    let px_train = Pixels::collect(&train, reach_m);
+    let px_test = Pixels::collect(&test, reach_m);
+    let baseline = Baseline::from_sim(&px_sim, reach_m);
+    let boxed = diagnose_drop::families();
+    let families: Vec<&dyn DropFamily> = boxed.iter().map(|b| b.as_ref()).collect();
+    let selection = diagnose_fit::select(
+        &families,
+        &baseline,
+        &px_train,
+        &px_test,
+        options.max_effects,
+    )?;
+
+    // What else: range-residual candidates.
+    let residual_fits: Vec<ResidualFit> = diagnose_residual::families()
+        .iter()
+        .filter_map(|family| {
+            family.fit(
+                &family.observations(sim),
+                &family.observations(&train),
+                &family.observations(&test),
+                &options.residual,
+            )
+        })
+        .collect();
+
+    let test_pixels = px_test.len().max(1) as f64;
+    let mut effects = Vec::new();
+    let mut fitted_physics = sim_physics.clone();
+    for s in &selection.selected {
+        let mut location = s.fit.location.clone();
+        if let Some(t) = stats_feature(s.id).and_then(|f| comparison.strongest_of(f)) {
+            location.push_str(&format!(
+                "; strongest divergence of this feature: {} (real {:.1} % vs sim {:.1} % dropped)",
+                t.description,
+                100.0 * t.rate_real,
+                100.0 * t.rate_sim
+            ));
+        }
+        effects.push(EffectReport {
+            id: s.id.to_string(),
+            confidence: confidence(s.gain(), s.penalty),
+            location,
+            params: s.fit.params.clone(),
+            fit: FitMetric {
+                metric: "drop_mask_nll_per_pixel".into(),
+                before: selection.before_nll,
+                after: s.nll_with,
+            },
+            gain_nats_per_pixel: s.gain(),
+        });
+        fitted_physics.extend(s.fit.physics.clone());
+    }
+    adjust_uniform(&mut fitted_physics, selection.keep_scale);
+    let mut residual_before = 0.0;
+    let mut residual_after = 0.0;
+    for r in &residual_fits {
+        let n = r.test_obs as f64;
+        residual_before += r.before_nll * n;
+        if r.significant() {
+            residual_after += r.after_nll * n;
+            effects.push(EffectReport {
+                id: r.id.to_string(),
+                confidence: confidence(r.gain(), r.penalty),
+                location: r.location.clone(),
+                params: r.params.clone(),
+                fit: FitMetric {
+                    metric: format!("{}_nll_per_observation", r.id),
+                    before: r.before_nll,
+                    after: r.after_nll,
+                },
+                gain_nats_per_pixel: r.gain() * n / test_pixels,
+            });
+            fitted_physics.extend(r.physics.clone());
+        } else {
+            residual_after += r.before_nll * n;
+        }
+    }
+    effects.sort_by(|a, b| b.gain_nats_per_pixel.total_cmp(&a.gain_nats_per_pixel));
+
+    let mut candidates: Vec<CandidateReport> = selection
+        .tried
+        .iter()
+        .map(|t| CandidateReport {
+            id: t.id.to_string(),
+            gain: t.gain,
+            penalty: t.penalty,
+            significant: selection.selected.iter().any(|s| s.id == t.id),
+        })
+        .collect();
+    candidates.extend(residual_fits.iter().map(|r| CandidateReport {
+        id: r.id.to_string(),
+        gain: r.gain(),
+        penalty: r.penalty,
+        significant: r.significant(),
+    }));
+
+    let mismatch = comparison
+        .significant()
+        .take(12)
+        .map(|t| MismatchReport {
+            feature: t.feature.name().into(),
+            location: t.description.clone(),
+            rate_sim: t.rate_sim,
+            rate_real: t.rate_real,
+            q_value: t.q_value,
+        })
+        .collect();
+
+    let fit = FitMetric {
+        metric: "nll_per_pixel (held-out real drop masks + range-residual statistics)".into(),
+        before: selection.before_nll + residual_before / test_pixels,
+        after: selection.after_nll + residual_after / test_pixels,
+    };
+    let drop_rate =
+        |s: &[ScanFeatures]| s.iter().map(|f| f.drop_rate()).sum::<f64>() / s.len().max(1) as f64;
+    let inputs = InputsReport {
+        sim_scans: sim.len(),
+        real_scans: real.len(),
+        real_train_scans: train.len(),
+        real_test_scans: test.len(),
+        rows: r0.height,
+        columns: r0.width,
+        drop_rate_sim: drop_rate(sim),
+        drop_rate_real: drop_rate(real),
+        reach_m,
+        completion: completion.into(),
+    };
+
+    let keep_after = diagnose_fit::keep_under(&families, &selection, &baseline, &px_test);
+    // "Before" for the maps: the sim with the fitted keep scale but no effect, so
+    // the maps show where the effects act rather than the overall rate.
+    let keep_before: Vec<f64> = baseline
+        .keep_of(&px_test)
+        .iter()
+        .map(|k| (k * selection.keep_scale).min(1.0))
+        .collect();
+    let curves = curves(&px_sim, &px_test, &keep_after);
+    let maps = maps(
+        &px_sim,
+        &px_test,
+        &keep_before,
+        &keep_after,
+        &test[0],
+        &families,
+        &selection,
+        &baseline,
+        reach_m,
+        &residual_fits,
+    );
+    Ok(Diagnosis {
+        report: Report {
+            effects,
+            fit,
+            keep_scale: selection.keep_scale,
+            candidates,
+            mismatch,
+            inputs,
+            fitted_physics,
+        },
+        curves,
+        maps,
+    })
+}
+
+/// Folds the fitted keep scale `c` into the physics' uniform dropout:
+/// keep `c (1 - u)` = `1 - u'`.
+fn adjust_uniform(physics: &mut Map<String, Value>, c: f64) {
+    let u = physics
+        .get("uniform_dropout")
+        .filter(|e| e.get("enabled").and_then(Value::as_bool) != Some(false))
+        .and_then(|e| e.get("prob"))
+        .and_then(Value::as_f64)
+        .unwrap_or(0.0);
+    let u_new = (1.0 - c * (1.0 - u)).clamp(0.0, 1.0);
+    if (u_new - u).abs() > 1e-3 {
+        physics.insert(
+            "uniform_dropout".into(),
+            serde_json::json!({ "prob": (u_new * 1e4).round() / 1e4 }),
+        );
+    }
+}
+
+/// Binned drop rates of sim, real (held-out) and the fitted model.
+fn curves(sim: &Pixels, test: &Pixels, keep_after: &[f64]) -> Vec<Curve> {
+    type Binner = fn(&Pixels, usize) -> Option<usize>;
+    let specs: [(&'static str, &'static str, usize, f64, Binner); 4] = [
+        ("range", "m", 32, 2.5, |p, i| {
+            let r = p.range_m[i];
+            r.is_finite().then(|| ((r / 2.5) as usize).min(31))
+        }),
+        ("incidence", "deg", 18, 5.0, |p, i| {
+            let c = p.cos_incidence[i];
+            c.is_finite()
+                .then(|| ((c.clamp(0.0, 1.0).acos().to_degrees() / 5.0) as usize).min(17))
+        }),
+        ("row", "", 0, 1.0, |p, i| Some(p.row[i] as usize)),
+        ("azimuth", "deg", 36, 10.0, |p, i| {
+            let a = p
+                .column_azimuth_rad
+                .get(p.column[i] as usize)
+                .copied()
+                .unwrap_or(0.0)
+                .to_degrees();
+            Some((((a + 180.0) / 10.0) as usize).min(35))
+        }),
+    ];
+    specs
+        .iter()
+        .map(|&(feature, unit, n, step, bin)| {
+            let n = if n == 0 { test.height.max(1) } else { n };
+            let mut acc = vec![[0.0f64; 5]; n]; // sim n, sim drop, real n, real drop, fitted drop
+            for i in 0..sim.len() {
+                if let Some(b) = bin(sim, i).filter(|&b| b < n) {
+                    acc[b][0] += 1.0;
+                    acc[b][1] += f64::from(u8::from(!sim.kept[i]));
+                }
+            }
+            for (i, keep) in keep_after.iter().enumerate().take(test.len()) {
+                if let Some(b) = bin(test, i).filter(|&b| b < n) {
+                    acc[b][2] += 1.0;
+                    acc[b][3] += f64::from(u8::from(!test.kept[i]));
+                    acc[b][4] += 1.0 - keep;
+                }
+            }
+            let x0 = if feature == "azimuth" { -180.0 } else { 0.0 };
+            let centre = |b: usize| {
+                if feature == "row" {
+                    b as f64
+                } else {
+                    x0 + (b as f64 + 0.5) * step
+                }
+            };
+            let rate = |d: f64, n: f64| if n >= 20.0 { d / n } else { f64::NAN };
+            Curve {
+                feature,
+                unit,
+                x: (0..n).map(centre).collect(),
+                sim: acc.iter().map(|a| rate(a[1], a[0])).collect(),
+                real: acc.iter().map(|a| rate(a[3], a[2])).collect(),
+                fitted: acc.iter().map(|a| rate(a[4], a[2])).collect(),
+            }
+        })
+        .collect()
+}
+
+#[allow(clippy::too_many_arguments)]
+fn maps(
+    sim: &Pixels,
+    test: &Pixels,
+    keep_before: &[f64],
+    keep_after: &[f64],
+    example: &ScanFeatures,
+    families: &[&dyn DropFamily],
+    selection: &DropSelection,
+    baseline: &Baseline,
+    reach_m: f32,
+    residual: &[ResidualFit],
+) -> Maps {
+    let (h, w) = (test.height, test.width);
+    let grid = |px: &Pixels, value: &dyn Fn(usize) -> f64| {
+        let mut sum = vec![0.0f64; h * w];
+        let mut n = vec![0.0f64; h * w];
+        for i in 0..px.len() {
+            let k = px.row[i] as usize * w + px.column[i] as usize;
+            if k < sum.len() {
+                sum[k] += value(i);
+                n[k] += 1.0;
+            }
+        }
+        sum.iter()
+            .zip(&n)
+            .map(|(s, n)| if *n > 0.0 { (s / n) as f32 } else { f32::NAN })
+            .collect::<Vec<f32>>()
+    };
+    let real_drop = grid(test, &|i| f64::from(u8::from(!test.kept[i])));
+    let sim_drop = grid(sim, &|i| f64::from(u8::from(!sim.kept[i])));
+    let fitted_extra_drop = grid(test, &|i| (keep_before[i] - keep_after[i]).max(0.0));
+    // The example scan: every pixel (not only those within reach).
+    let px = Pixels::collect(std::slice::from_ref(example), f32::INFINITY);
+    let after = diagnose_fit::keep_under(families, selection, baseline, &px);
+    let before: Vec<f64> = baseline
+        .keep_of(&px)
+        .iter()
+        .map(|k| (k * selection.keep_scale).min(1.0))
+        .collect();
+    let mut highlight = vec![0.0f32; h * w];
+    for i in 0..px.len() {
+        let k = px.row[i] as usize * w + px.column[i] as usize;
+        if k < highlight.len() && px.range_m[i] <= reach_m {
+            highlight[k] = (before[i] - after[i]).max(0.0) as f32;
+        }
+    }
+    if residual
+        .iter()
+        .any(|r| r.id == "motion_distortion" && r.significant())
+    {
+        for row in 0..h {
+            for j in [w / 2 - 1, w / 2] {
+                highlight[row * w + j] = 1.0;
+            }
+        }
+    }
+    Maps {
+        height: h,
+        width: w,
+        real_drop,
+        sim_drop,
+        fitted_extra_drop,
+        example_range_m: (0..example.len())
+            .map(|k| {
+                if example.kept[k] {
+                    example.range_m[k]
+                } else {
+                    0.0
+                }
+            })
+            .collect(),
+        example_highlight: highlight,
+    }
+}

@@ -1,0 +1,449 @@
+//! The candidate drop models of the diagnosis, one [`DropFamily`] each: what
+//! feature bin a pixel falls in and how the per-bin drop probabilities are fitted
+//! by maximum likelihood (see `diagnose_fit` for the model and the selection).
+//!
+//! | family | feature | model |
+//! |---|---|---|
+//! | `range_dropout` | completed range, 1 m bins | the physics module's log-logistic curve (range_50_m, softness) |
+//! | `incidence_dropout` | cos(incidence) of the completed normal, 0.02 bins | log-logistic in cos (cos_50, softness) |
+//! | `beam_dropout` | row | one free rate per row |
+//! | `material_dropout` | semantic class (labels, else neighbours' labels) | one free rate per class |
+//! | `self_occlusion` | (row, azimuth sector) in the lower half | per sector a "skyline" of blocked bottom rows and a probability |
+
+use serde_json::{Map, Value, json};
+
+use super::diagnose_fit::{DropFamily, DropFit, Pixels, QTable, golden};
+use super::dropout::{IncidenceDropout, RangeDropout};
+use super::{Effect, RayFeatures};
+use crate::sim::Material;
+use crate::sim::material::label;
+
+/// All drop candidates.
+pub fn families() -> Vec<Box<dyn DropFamily>> {
+    vec![
+        Box::new(RangeFamily),
+        Box::new(IncidenceFamily),
+        Box::new(BeamFamily),
+        Box::new(ClassFamily),
+        Box::new(SelfOcclusionFamily),
+    ]
+}
+
+fn ray(range_m: f32, incidence_rad: f32) -> RayFeatures {
+    RayFeatures {
+        row: 0,
+        column: 0,
+        range_m,
+        incidence_rad,
+        material: Material::Concrete,
+        class: 0,
+        reflectivity: 0.5,
+        intensity: 0.5,
+        azimuth_rad: 0.0,
+        elevation_rad: 0.0,
+    }
+}
+
+/// Grid search of a two-parameter curve: the (a, b, per-bin probs) with the
+/// smallest NLL.
+fn fit_curve(
+    table: &QTable,
+    grid_a: &[f32],
+    grid_b: &[f32],
+    probs: impl Fn(f32, f32) -> Vec<f64>,
+) -> Option<(f32, f32, Vec<f64>)> {
+    let mut best: Option<(f64, f32, f32, Vec<f64>)> = None;
+    for &a in grid_a {
+        for &b in grid_b {
+            let p = probs(a, b);
+            let nll = table.nll(&p);
+            if best.as_ref().is_none_or(|x| nll < x.0) {
+                best = Some((nll, a, b, p));
+            }
+        }
+    }
+    best.map(|(_, a, b, p)| (a, b, p))
+}
+
+const SOFTNESS: [f32; 9] = [0.05, 0.1, 0.15, 0.2, 0.3, 0.4, 0.5, 0.7, 1.0];
+
+fn round3(x: f64) -> f64 {
+    (x * 1000.0).round() / 1000.0
+}
+
+/// `range_dropout`: drop rate rising with the completed range.
+pub struct RangeFamily;
+const RANGE_BIN_M: f32 = 1.0;
+const RANGE_BINS: usize = 150;
+
+impl DropFamily for RangeFamily {
+    fn id(&self) -> &'static str {
+        "range_dropout"
+    }
+    fn bins(&self, _: &Pixels) -> usize {
+        RANGE_BINS
+    }
+    fn bin(&self, px: &Pixels, i: usize) -> Option<usize> {
+        let r = px.range_m[i];
+        r.is_finite()
+            .then(|| ((r.max(0.0) / RANGE_BIN_M) as usize).min(RANGE_BINS - 1))
+    }
+    fn fit(&self, table: &QTable, _: &Pixels) -> Option<DropFit> {
+        let grid_a: Vec<f32> = (0..40).map(|i| 5.0 * 60f32.powf(i as f32 / 39.0)).collect();
+        let probs = |a: f32, b: f32| {
+            let e = RangeDropout {
+                enabled: true,
+                range_50_m: a,
+                softness: b,
+            };
+            (0..RANGE_BINS)
+                .map(|bin| f64::from(e.drop_prob(&ray((bin as f32 + 0.5) * RANGE_BIN_M, 0.0))))
+                .collect()
+        };
+        let (a, b, drop_prob) = fit_curve(table, &grid_a, &SOFTNESS, probs)?;
+        // The range where 10 % of the rays drop: p = 0.1 <=> d = r50 · 9^(-s/2).
+        let onset = a * 9f32.powf(-b / 2.0);
+        let mut params = Map::new();
+        params.insert("range_50_m".into(), json!(round3(a.into())));
+        params.insert("softness".into(), json!(round3(b.into())));
+        let mut physics = Map::new();
+        physics.insert(
+            "range_dropout".into(),
+            json!({"range_50_m": a, "softness": b}),
+        );
+        Some(DropFit {
+            drop_prob,
+            params,
+            physics,
+            n_params: 2,
+            location: format!(
+                "ranges beyond ~{onset:.0} m (10 % of rays lost there, half at {a:.0} m)"
+            ),
+        })
+    }
+}
+
+/// `incidence_dropout`: drop rate rising as cos(incidence) falls.
+pub struct IncidenceFamily;
+const COS_BINS: usize = 50;
+
+impl DropFamily for IncidenceFamily {
+    fn id(&self) -> &'static str {
+        "incidence_dropout"
+    }
+    fn bins(&self, _: &Pixels) -> usize {
+        COS_BINS
+    }
+    /// Normals beyond ~89 deg (cos < 0.02) come from fill and edge artefacts
+    /// more than from surfaces: left out (unknown).
+    fn bin(&self, px: &Pixels, i: usize) -> Option<usize> {
+        let c = px.cos_incidence[i];
+        (c.is_finite() && c >= 1.0 / COS_BINS as f32)
+            .then(|| ((c.min(1.0) * COS_BINS as f32) as usize).min(COS_BINS - 1))
+    }
+    fn fit(&self, table: &QTable, _: &Pixels) -> Option<DropFit> {
+        // cos_50 from 0.03 (88 deg) to 0.6: a curve that only bites in the
+        // last bin would fit the normals' artefacts.
+        let grid_a: Vec<f32> = (0..40)
+            .map(|i| 0.03 * 20f32.powf(i as f32 / 39.0))
+            .collect();
+        let probs = |a: f32, b: f32| {
+            let e = IncidenceDropout {
+                enabled: true,
+                cos_50: a,
+                softness: b,
+            };
+            (0..COS_BINS)
+                .map(|bin| {
+                    let cos = (bin as f32 + 0.5) / COS_BINS as f32;
+                    f64::from(e.drop_prob(&ray(10.0, cos.acos())))
+                })
+                .collect()
+        };
+        let (a, b, drop_prob) = fit_curve(table, &grid_a, &SOFTNESS, probs)?;
+        let onset_deg = (a * 9f32.powf(b)).min(1.0).acos().to_degrees();
+        let mut params = Map::new();
+        params.insert("cos_50".into(), json!(round3(a.into())));
+        params.insert("softness".into(), json!(round3(b.into())));
+        let mut physics = Map::new();
+        physics.insert(
+            "incidence_dropout".into(),
+            json!({"cos_50": a, "softness": b}),
+        );
+        Some(DropFit {
+            drop_prob,
+            params,
+            physics,
+            n_params: 2,
+            location: format!(
+                "incidence angles above ~{onset_deg:.0} deg (grazing surfaces; half the rays lost at {:.0} deg)",
+                a.acos().to_degrees()
+            ),
+        })
+    }
+}
+
+/// Rows (or classes) by fitted rate, strongest first, as words.
+fn strongest(items: &[(String, f64)], n: usize) -> String {
+    let mut v: Vec<&(String, f64)> = items.iter().filter(|x| x.1 > 0.005).collect();
+    v.sort_by(|a, b| b.1.total_cmp(&a.1));
+    v.iter()
+        .take(n)
+        .map(|(name, p)| format!("{name} ({:.0} %)", 100.0 * p))
+        .collect::<Vec<_>>()
+        .join(", ")
+}
+
+/// `beam_dropout`: one free drop rate per row (laser).
+pub struct BeamFamily;
+
+impl DropFamily for BeamFamily {
+    fn id(&self) -> &'static str {
+        "beam_dropout"
+    }
+    fn bins(&self, px: &Pixels) -> usize {
+        px.height
+    }
+    fn bin(&self, px: &Pixels, i: usize) -> Option<usize> {
+        Some(px.row[i] as usize)
+    }
+    fn fit(&self, table: &QTable, _: &Pixels) -> Option<DropFit> {
+        if table.bins == 0 {
+            return None;
+        }
+        // Per-laser differences, not a smooth trend over rows: a trend is what
+        // range, incidence or sky change, and a constant is the keep scale. The
+        // rate above the running median of its 7 neighbouring rows is the beam's.
+        let free: Vec<f64> = (0..table.bins).map(|b| table.best_bin_prob(b)).collect();
+        let drop_prob: Vec<f64> = (0..free.len())
+            .map(|r| {
+                let lo = r.saturating_sub(3);
+                let hi = (r + 4).min(free.len());
+                let mut window: Vec<f64> = free[lo..hi].to_vec();
+                window.sort_by(f64::total_cmp);
+                let median = window[window.len() / 2];
+                ((free[r] - median) / (1.0 - median).max(1e-6)).max(0.0)
+            })
+            .collect();
+        let rates: Vec<f64> = drop_prob.iter().map(|p| round3(*p)).collect();
+        let items: Vec<(String, f64)> = drop_prob
+            .iter()
+            .enumerate()
+            .map(|(r, p)| (format!("row {r}"), *p))
+            .collect();
+        let mut params = Map::new();
+        params.insert("rates".into(), json!(rates));
+        let mut physics = Map::new();
+        physics.insert("beam_dropout".into(), json!({ "rates": rates }));
+        Some(DropFit {
+            n_params: table.bins,
+            drop_prob,
+            params,
+            physics,
+            location: format!("per-laser rates; weakest rows: {}", strongest(&items, 6)),
+        })
+    }
+}
+
+/// `material_dropout`: one free drop rate per semantic class (real data has
+/// classes, not materials; see docs/diagnose.md).
+pub struct ClassFamily;
+const CLASSES: usize = 260;
+/// A class needs this many training pixels to get a rate of its own.
+const MIN_CLASS_PIXELS: f64 = 200.0;
+/// Smallest extra drop rate of a class that is attributed to its material.
+const MIN_CLASS_PROB: f64 = 0.08;
+
+impl DropFamily for ClassFamily {
+    fn id(&self) -> &'static str {
+        "material_dropout"
+    }
+    fn bins(&self, _: &Pixels) -> usize {
+        CLASSES
+    }
+    fn bin(&self, px: &Pixels, i: usize) -> Option<usize> {
+        let c = px.class[i] as usize;
+        (c != 0 && c < CLASSES).then_some(c)
+    }
+    fn fit(&self, table: &QTable, _: &Pixels) -> Option<DropFit> {
+        let mut drop_prob = vec![0.0; table.bins];
+        let mut by_class = Map::new();
+        let mut items = Vec::new();
+        let mut n_params = 0;
+        for (b, p) in drop_prob.iter_mut().enumerate() {
+            let (kept, dropped) = table.counts(b);
+            if kept + dropped < MIN_CLASS_PIXELS {
+                continue;
+            }
+            n_params += 1;
+            // Small class differences are what scenes differ by (materials per
+            // class vary: car paints, window shares); only marked ones count.
+            *p = table.best_bin_prob(b);
+            if *p < MIN_CLASS_PROB {
+                *p = 0.0;
+            }
+            if *p > 0.005 {
+                by_class.insert(b.to_string(), json!(round3(*p)));
+                items.push((format!("{} ({b})", label::name(b as u32)), *p));
+            }
+        }
+        if n_params == 0 {
+            return None;
+        }
+        let mut params = Map::new();
+        params.insert("drop_prob_by_class".into(), Value::Object(by_class.clone()));
+        let mut physics = Map::new();
+        physics.insert(
+            "material_dropout".into(),
+            json!({ "drop_prob_by_class": by_class }),
+        );
+        Some(DropFit {
+            drop_prob,
+            params,
+            physics,
+            n_params,
+            location: format!("classes {}", strongest(&items, 5)),
+        })
+    }
+}
+
+/// `self_occlusion`: blocked bottom rows per azimuth sector, the same in every
+/// scan. Each sector gets a skyline (how many bottom rows are blocked) and one
+/// probability, chosen by likelihood with a BIC penalty per sector.
+pub struct SelfOcclusionFamily;
+/// Azimuth sectors over the turn.
+const SECTORS: usize = 64;
+/// A blocked sector must drop at least this share of its rays.
+const MIN_BLOCK_PROB: f64 = 0.4;
+
+impl SelfOcclusionFamily {
+    fn sectors(px: &Pixels) -> usize {
+        SECTORS.min(px.width.max(1))
+    }
+    fn sector_of_column(px: &Pixels, column: usize) -> usize {
+        column * Self::sectors(px) / px.width.max(1)
+    }
+}
+
+impl DropFamily for SelfOcclusionFamily {
+    fn id(&self) -> &'static str {
+        "self_occlusion"
+    }
+    fn bins(&self, px: &Pixels) -> usize {
+        px.height * Self::sectors(px)
+    }
+    fn bin(&self, px: &Pixels, i: usize) -> Option<usize> {
+        let row = px.row[i] as usize;
+        (row >= px.height / 2)
+            .then(|| row * Self::sectors(px) + Self::sector_of_column(px, px.column[i] as usize))
+    }
+    fn fit(&self, table: &QTable, px: &Pixels) -> Option<DropFit> {
+        let (h, g_count) = (px.height, Self::sectors(px));
+        if h < 2 || table.bins != h * g_count {
+            return None;
+        }
+        let mut drop_prob = vec![0.0; table.bins];
+        // Per sector: (blocked bottom rows, prob).
+        let mut skyline = vec![(0usize, 0.0f64); g_count];
+        for (g, sky) in skyline.iter_mut().enumerate() {
+            let bin = |row: usize| row * g_count + g;
+            let n: f64 = (h / 2..h)
+                .map(|r| {
+                    let c = table.counts(bin(r));
+                    c.0 + c.1
+                })
+                .sum();
+            if n < 1.0 {
+                continue;
+            }
+            let mut best = (0usize, 0.0f64, 0.0f64); // (rows, prob, gain - penalty)
+            for rows in 1..=h / 2 {
+                let cells: Vec<usize> = (h - rows..h).map(bin).collect();
+                let nll = |p: f64| cells.iter().map(|&b| table.bin_nll(b, p)).sum::<f64>();
+                let (p, at_p) = golden(0.0, 0.999, 30, nll);
+                let gain = nll(0.0) - at_p - n.ln();
+                if p >= MIN_BLOCK_PROB && gain > best.2 {
+                    best = (rows, p, gain);
+                }
+            }
+            *sky = (best.0, best.1);
+            for r in h - best.0..h {
+                drop_prob[bin(r)] = best.1;
+            }
+        }
+        let blocked = skyline.iter().filter(|s| s.0 > 0).count();
+        if blocked == 0 {
+            return Some(DropFit {
+                drop_prob,
+                params: Map::new(),
+                physics: Map::new(),
+                n_params: 0,
+                location: "nowhere".into(),
+            });
+        }
+        // Runs of neighbouring sectors with the same skyline and a similar
+        // probability become one occlusion sector.
+        let step = 360.0 / px.width.max(1) as f64;
+        let az_deg = |column: usize| {
+            px.column_azimuth_rad
+                .get(column)
+                .map_or(0.0, |a| f64::from(*a).to_degrees())
+        };
+        let elevation_deg = |row: usize| {
+            px.row_elevation_rad
+                .get(row)
+                .map_or(0.0, |e| f64::from(*e).to_degrees())
+        };
+        let mut sectors = Vec::new();
+        let mut words = Vec::new();
+        let mut g = 0;
+        while g < g_count {
+            let (rows, p) = skyline[g];
+            if rows == 0 {
+                g += 1;
+                continue;
+            }
+            let mut end = g + 1;
+            let mut sum_p = p;
+            while end < g_count && skyline[end].0 == rows && (skyline[end].1 - p).abs() < 0.1 {
+                sum_p += skyline[end].1;
+                end += 1;
+            }
+            let p_mean = sum_p / (end - g) as f64;
+            let first_col = g * px.width / g_count;
+            let last_col = end * px.width / g_count - 1;
+            // Columns run from azimuth +180 deg down to -180 deg.
+            let az_max = (az_deg(first_col) + 0.5 * step).min(180.0);
+            let az_min = (az_deg(last_col) - 0.5 * step).max(-180.0);
+            let top = h - rows;
+            let el_max = if top > 0 {
+                0.5 * (elevation_deg(top) + elevation_deg(top - 1))
+            } else {
+                90.0
+            };
+            sectors.push(json!({
+                "azimuth_min_deg": round3(az_min),
+                "azimuth_max_deg": round3(az_max),
+                "elevation_max_deg": round3(el_max),
+                "prob": round3(p_mean),
+            }));
+            words.push(format!(
+                "rows {top}-{} at azimuth [{az_min:.0}, {az_max:.0}] deg ({:.0} %)",
+                h - 1,
+                100.0 * p_mean
+            ));
+            g = end;
+        }
+        let mut params = Map::new();
+        params.insert("sectors".into(), Value::Array(sectors.clone()));
+        let mut physics = Map::new();
+        physics.insert("self_occlusion".into(), json!({ "sectors": sectors }));
+        Some(DropFit {
+            drop_prob,
+            params,
+            physics,
+            n_params: 2 * blocked,
+            location: format!("fixed region in the bottom rows: {}", words.join("; ")),
+        })
+    }
+}

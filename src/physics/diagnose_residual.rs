@@ -1,0 +1,478 @@
+//! Range-residual effects of the diagnosis (issue 6): effects that move returns
+//! instead of dropping them. Unpaired scenes have no per-pixel truth, so each
+//! family looks at a local statistic whose distribution the scene hardly changes,
+//! takes the simulated recording's empirical distribution of it as the
+//! reference, and fits the effect as a transformation of that reference by
+//! maximum likelihood on real training scans, judged on held-out real scans.
+//!
+//! | family | statistic | model |
+//! |---|---|---|
+//! | `range_noise` | second difference along a row, `r_k − (r_{k−1} + r_{k+1}) / 2`, off depth edges, by range | reference ⊛ N(0, 1.5 σ(d)²), `σ(d) = sigma0_m + k d` |
+//! | `mixed_pixels` | at a depth edge along a row (neighbours > 1 m apart): is the pixel strictly between them? | Bernoulli, `b_sim + (1 − b_sim) a`, `a` ≈ 0.8 × prob |
+//! | `motion_distortion` | range step across the scan seam (first vs last measured column, straight ahead) | reference (column steps near the seam) shifted by `−m`, `m = scale · v · 0.1 s` |
+
+use serde_json::{Map, json};
+
+use super::diagnose_features::ScanFeatures;
+use super::diagnose_stats::erfc;
+
+/// Observations of one statistic: (value, covariate), pooled over scans.
+pub type Obs = Vec<(f32, f32)>;
+
+/// What a family knows beyond the scans.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct ResidualContext {
+    /// Ego speed of the real recording, m/s, if known (motion distortion).
+    pub speed_mps: Option<f64>,
+    /// Sweep period, seconds.
+    pub period_s: f64,
+}
+
+/// One fitted residual effect with its held-out numbers (NLL per observation).
+#[derive(Debug, Clone, PartialEq)]
+pub struct ResidualFit {
+    pub id: &'static str,
+    pub before_nll: f64,
+    pub after_nll: f64,
+    pub penalty: f64,
+    pub test_obs: usize,
+    pub params: Map<String, serde_json::Value>,
+    pub physics: Map<String, serde_json::Value>,
+    pub location: String,
+}
+
+impl ResidualFit {
+    pub fn gain(&self) -> f64 {
+        self.before_nll - self.after_nll
+    }
+    pub fn significant(&self) -> bool {
+        self.gain() > self.penalty
+    }
+}
+
+/// A range-residual candidate.
+pub trait ResidualFamily: Sync {
+    fn id(&self) -> &'static str;
+    /// The statistic's observations in `scans`.
+    fn observations(&self, scans: &[ScanFeatures]) -> Obs;
+    /// Fits on `train` against the reference `sim`, evaluates on `test`.
+    fn fit(&self, sim: &Obs, train: &Obs, test: &Obs, ctx: &ResidualContext)
+    -> Option<ResidualFit>;
+}
+
+/// All residual candidates.
+pub fn families() -> Vec<Box<dyn ResidualFamily>> {
+    vec![
+        Box::new(RangeNoiseFamily),
+        Box::new(MixedPixelsFamily),
+        Box::new(MotionFamily),
+    ]
+}
+
+/// Smallest held-out gain (nats per observation) of a residual effect: the
+/// statistics vary with the scene (vegetation, slanted surfaces) more than a
+/// drop mask does.
+pub const MIN_RESIDUAL_GAIN_NATS: f64 = 5e-3;
+
+fn penalty(n_params: usize, n_train: usize) -> f64 {
+    let n = n_train.max(2) as f64;
+    (n_params as f64 * n.ln() / (2.0 * n)).max(MIN_RESIDUAL_GAIN_NATS)
+}
+
+fn round4(x: f64) -> f64 {
+    (x * 1e4).round() / 1e4
+}
+
+/// Standard normal CDF.
+fn phi(x: f64) -> f64 {
+    0.5 * erfc(-x / std::f64::consts::SQRT_2)
+}
+
+/// Values binned on `[lo, lo + n h)`; outside counted apart.
+#[derive(Debug, Clone, PartialEq)]
+struct Hist {
+    lo: f64,
+    h: f64,
+    counts: Vec<f64>,
+    outside: f64,
+}
+
+impl Hist {
+    fn new(lo: f64, h: f64, n: usize) -> Self {
+        Hist {
+            lo,
+            h,
+            counts: vec![0.0; n],
+            outside: 0.0,
+        }
+    }
+    fn add(&mut self, x: f64) {
+        let j = ((x - self.lo) / self.h).floor();
+        if j >= 0.0 && (j as usize) < self.counts.len() {
+            self.counts[j as usize] += 1.0;
+        } else {
+            self.outside += 1.0;
+        }
+    }
+    fn total(&self) -> f64 {
+        self.counts.iter().sum::<f64>() + self.outside
+    }
+
+    /// Total NLL of the observations `obs` (same binning) under this reference
+    /// convolved with N(shift, sigma²): probability per bin, outliers uniform.
+    fn nll_of(&self, obs: &Hist, sigma: f64, shift: f64) -> f64 {
+        let n = self.counts.len();
+        let total = self.total().max(1.0);
+        // Bin-to-bin transfer G[d] for d = j - i in [-(n-1), n-1].
+        let s = (sigma * sigma + 0.25 * self.h * self.h).sqrt();
+        let g: Vec<f64> = (0..2 * n - 1)
+            .map(|t| {
+                let d = t as f64 - (n - 1) as f64;
+                phi((d * self.h + 0.5 * self.h - shift) / s)
+                    - phi((d * self.h - 0.5 * self.h - shift) / s)
+            })
+            .collect();
+        let p_out = (self.outside / total).clamp(1e-3, 0.5);
+        let eps = 0.01;
+        let mut nll = 0.0;
+        for (j, &c) in obs.counts.iter().enumerate() {
+            if c == 0.0 {
+                continue;
+            }
+            let mut m = 0.0;
+            for (i, &r) in self.counts.iter().enumerate() {
+                if r > 0.0 {
+                    m += r * g[j + n - 1 - i];
+                }
+            }
+            let p = (1.0 - p_out) * ((1.0 - eps) * m / total + eps / n as f64);
+            nll -= c * p.max(1e-300).ln();
+        }
+        nll - obs.outside * p_out.ln()
+    }
+}
+
+/// Reference and observation histograms per covariate bin.
+struct Binned {
+    cov_edges: Vec<f32>,
+    refs: Vec<Hist>,
+}
+
+impl Binned {
+    fn cov_bin(&self, cov: f32) -> usize {
+        self.cov_edges.iter().filter(|e| **e <= cov).count().max(1) - 1
+    }
+    /// Reference per covariate bin; sparse bins borrow the pooled reference.
+    fn new(sim: &Obs, cov_edges: Vec<f32>, lo: f64, h: f64, n: usize) -> Self {
+        let mut b = Binned {
+            cov_edges,
+            refs: Vec::new(),
+        };
+        let mut pooled = Hist::new(lo, h, n);
+        let mut per = vec![Hist::new(lo, h, n); b.cov_edges.len()];
+        for &(v, c) in sim {
+            pooled.add(f64::from(v));
+            per[b.cov_bin(c)].add(f64::from(v));
+        }
+        b.refs = per
+            .into_iter()
+            .map(|hst| {
+                if hst.total() < 200.0 {
+                    pooled.clone()
+                } else {
+                    hst
+                }
+            })
+            .collect();
+        b
+    }
+    fn observe(&self, obs: &Obs) -> Vec<Hist> {
+        let mut out: Vec<Hist> = self
+            .refs
+            .iter()
+            .map(|r| Hist::new(r.lo, r.h, r.counts.len()))
+            .collect();
+        for &(v, c) in obs {
+            out[self.cov_bin(c)].add(f64::from(v));
+        }
+        out
+    }
+    fn centre(&self, b: usize) -> f64 {
+        let lo = f64::from(self.cov_edges[b]);
+        let hi = self
+            .cov_edges
+            .get(b + 1)
+            .map_or(lo + 10.0, |x| f64::from(*x));
+        0.5 * (lo + hi)
+    }
+    /// NLL per observation with noise `sigma(cov)` and shift `shift(cov)`.
+    fn nll(&self, obs: &[Hist], sigma: impl Fn(f64) -> f64, shift: f64) -> f64 {
+        let n: f64 = obs.iter().map(|o| o.total()).sum();
+        let total: f64 = self
+            .refs
+            .iter()
+            .zip(obs)
+            .enumerate()
+            .filter(|(_, (_, o))| o.total() > 0.0)
+            .map(|(b, (r, o))| r.nll_of(o, sigma(self.centre(b)), shift))
+            .sum();
+        total / n.max(1.0)
+    }
+}
+
+/// `range_noise`: Gaussian range noise growing with range.
+pub struct RangeNoiseFamily;
+
+impl ResidualFamily for RangeNoiseFamily {
+    fn id(&self) -> &'static str {
+        "range_noise"
+    }
+    fn observations(&self, scans: &[ScanFeatures]) -> Obs {
+        let mut obs = Vec::new();
+        for f in scans {
+            let w = f.width;
+            for k in 0..f.len() {
+                let j = k % w;
+                if j == 0 || j + 1 == w || !f.kept[k] || !f.kept[k - 1] || !f.kept[k + 1] {
+                    continue;
+                }
+                if f.edge_px[k] < 2 {
+                    continue;
+                }
+                let r = f.range_m[k];
+                let e = r - 0.5 * (f.range_m[k - 1] + f.range_m[k + 1]);
+                obs.push((e, r));
+            }
+        }
+        obs
+    }
+    fn fit(&self, sim: &Obs, train: &Obs, test: &Obs, _: &ResidualContext) -> Option<ResidualFit> {
+        if sim.len() < 500 || train.len() < 500 || test.len() < 500 {
+            return None;
+        }
+        let edges: Vec<f32> = (0..8).map(|i| 10.0 * i as f32).collect();
+        let binned = Binned::new(sim, edges, -0.4, 0.005, 160);
+        let (h_train, h_test) = (binned.observe(train), binned.observe(test));
+        // e = n_k - (n_{k-1} + n_{k+1}) / 2: variance 1.5 sigma^2.
+        let model = |s0: f64, k: f64| move |d: f64| 1.5f64.sqrt() * (s0 + k * d);
+        let mut best = (0.0, 0.0, binned.nll(&h_train, model(0.0, 0.0), 0.0));
+        for s0 in [0.0, 0.005, 0.01, 0.015, 0.02, 0.03, 0.04, 0.06, 0.08, 0.1] {
+            for k in [0.0, 1e-4, 2e-4, 5e-4, 1e-3, 2e-3] {
+                let nll = binned.nll(&h_train, model(s0, k), 0.0);
+                if nll < best.2 {
+                    best = (s0, k, nll);
+                }
+            }
+        }
+        let (s0, k, _) = best;
+        let mut params = Map::new();
+        params.insert("sigma0_m".into(), json!(round4(s0)));
+        params.insert("k".into(), json!(round4(k)));
+        let mut physics = Map::new();
+        physics.insert("range_noise".into(), json!({"sigma0_m": s0, "k": k}));
+        Some(ResidualFit {
+            id: self.id(),
+            before_nll: binned.nll(&h_test, model(0.0, 0.0), 0.0),
+            after_nll: binned.nll(&h_test, model(s0, k), 0.0),
+            penalty: penalty(2, train.len()),
+            test_obs: test.len(),
+            params,
+            physics,
+            location: format!(
+                "every range (smooth surfaces): sigma {:.1} cm at 10 m, {:.1} cm at 50 m",
+                100.0 * (s0 + 10.0 * k),
+                100.0 * (s0 + 50.0 * k)
+            ),
+        })
+    }
+}
+
+/// Smallest range gap between a pixel's row neighbours that makes it a depth edge.
+const MIXED_MIN_GAP_M: f32 = 1.0;
+/// Share of a mixed pixel's uniform range that lies strictly between its
+/// neighbours (margins of 10 % of the gap on both sides).
+const MIXED_INSIDE: f64 = 0.8;
+/// Smallest fitted share of mixed edge pixels that is claimed.
+const MIN_MIXED_SHARE: f64 = 0.1;
+
+/// `mixed_pixels`: returns between the two surfaces of a depth edge.
+pub struct MixedPixelsFamily;
+
+impl ResidualFamily for MixedPixelsFamily {
+    fn id(&self) -> &'static str {
+        "mixed_pixels"
+    }
+    fn observations(&self, scans: &[ScanFeatures]) -> Obs {
+        let mut obs = Vec::new();
+        for f in scans {
+            let w = f.width;
+            for k in 0..f.len() {
+                let j = k % w;
+                if j == 0 || j + 1 == w || !f.kept[k] || !f.kept[k - 1] || !f.kept[k + 1] {
+                    continue;
+                }
+                let (a, b) = (f.range_m[k - 1], f.range_m[k + 1]);
+                let (near, far) = (a.min(b), a.max(b));
+                let gap = far - near;
+                if gap <= MIXED_MIN_GAP_M {
+                    continue;
+                }
+                let r = f.range_m[k];
+                let margin = 0.1 * gap;
+                let between = r > near + margin && r < far - margin;
+                obs.push((f32::from(u8::from(between)), gap));
+            }
+        }
+        obs
+    }
+    fn fit(&self, sim: &Obs, train: &Obs, test: &Obs, _: &ResidualContext) -> Option<ResidualFit> {
+        if sim.len() < 100 || train.len() < 100 || test.len() < 100 {
+            return None;
+        }
+        let rate = |o: &Obs| o.iter().map(|x| f64::from(x.0)).sum::<f64>() / o.len() as f64;
+        let b = rate(sim).clamp(1e-4, 0.999);
+        let nll = |o: &Obs, p: f64| {
+            let p = p.clamp(1e-6, 1.0 - 1e-6);
+            let between = o.iter().filter(|x| x.0 > 0.5).count() as f64;
+            -(between * p.ln() + (o.len() as f64 - between) * (1.0 - p).ln()) / o.len() as f64
+        };
+        // ML on train: p = max(b, train rate) gives a in [0, 1].
+        let a = ((rate(train) - b) / (1.0 - b)).clamp(0.0, 1.0);
+        // Scenes differ in slanted surfaces between edges: a share below
+        // MIN_MIXED_SHARE is not attributed to mixed pixels.
+        let a = if a < MIN_MIXED_SHARE { 0.0 } else { a };
+        let p_after = b + (1.0 - b) * a;
+        let prob = (a / MIXED_INSIDE).min(1.0);
+        let mut params = Map::new();
+        params.insert("prob".into(), json!(round4(prob)));
+        params.insert("min_gap_m".into(), json!(MIXED_MIN_GAP_M));
+        let mut physics = Map::new();
+        physics.insert(
+            "mixed_pixels".into(),
+            json!({"prob": prob, "min_gap_m": MIXED_MIN_GAP_M}),
+        );
+        Some(ResidualFit {
+            id: self.id(),
+            before_nll: nll(test, b),
+            after_nll: nll(test, p_after),
+            penalty: penalty(1, train.len()),
+            test_obs: test.len(),
+            params,
+            physics,
+            location: format!(
+                "depth edges (> {MIXED_MIN_GAP_M} m): {:.0} % of edge pixels lie between the two surfaces (sim {:.0} %)",
+                100.0 * p_after,
+                100.0 * b
+            ),
+        })
+    }
+}
+
+/// Columns either side of the seam whose steps form the motion reference.
+const SEAM_CONTROL_COLUMNS: usize = 6;
+
+/// `motion_distortion`: no de-skew, a range step at the scan seam.
+pub struct MotionFamily;
+
+impl MotionFamily {
+    /// Range step from column `j - 1` to `j` on every row where both are kept
+    /// and the surface is within 60 deg of straight ahead.
+    fn steps(f: &ScanFeatures, j: usize, out: &mut Obs) {
+        let w = f.width;
+        if j == 0 || j >= w {
+            return;
+        }
+        for row in 0..f.height {
+            let (a, b) = (row * w + j - 1, row * w + j);
+            if f.kept[a] && f.kept[b] {
+                out.push((f.range_m[b] - f.range_m[a], f.range_m[a]));
+            }
+        }
+    }
+}
+
+impl ResidualFamily for MotionFamily {
+    fn id(&self) -> &'static str {
+        "motion_distortion"
+    }
+    /// Seam steps have covariate 1, control steps covariate 0.
+    fn observations(&self, scans: &[ScanFeatures]) -> Obs {
+        let mut obs = Vec::new();
+        for f in scans {
+            let seam = f.width / 2;
+            let mut seam_steps = Vec::new();
+            Self::steps(f, seam, &mut seam_steps);
+            obs.extend(seam_steps.into_iter().map(|(v, _)| (v, 1.0)));
+            for d in 1..=SEAM_CONTROL_COLUMNS {
+                let mut control = Vec::new();
+                Self::steps(f, seam + d, &mut control);
+                Self::steps(f, seam - d, &mut control);
+                obs.extend(control.into_iter().map(|(v, _)| (v, 0.0)));
+            }
+        }
+        obs
+    }
+    fn fit(
+        &self,
+        sim: &Obs,
+        train: &Obs,
+        test: &Obs,
+        ctx: &ResidualContext,
+    ) -> Option<ResidualFit> {
+        // Reference: the sim's column steps beside the seam; the sim's own seam
+        // shift `m_sim` (its physics as given) is the "before", the real one
+        // fitted on training scans the "after".
+        let pick = |o: &Obs, seam: bool| -> Obs {
+            o.iter()
+                .filter(|x| (x.1 > 0.5) == seam)
+                .map(|x| (x.0, 0.0))
+                .collect()
+        };
+        let reference = pick(sim, false);
+        let (sim_seam, train, test) = (pick(sim, true), pick(train, true), pick(test, true));
+        if reference.len() < 100 || sim_seam.len() < 20 || train.len() < 20 || test.len() < 20 {
+            return None;
+        }
+        let binned = Binned::new(&reference, vec![0.0], -5.0, 0.05, 200);
+        let nll = |h: &[Hist], m: f64| binned.nll(h, |_| 0.0, -m);
+        let shifts: Vec<f64> = (-10..=60).map(|i| 0.05 * i as f64).collect();
+        let fit_shift = |h: &[Hist]| {
+            shifts
+                .iter()
+                .map(|&m| (m, nll(h, m)))
+                .fold((0.0, f64::INFINITY), |b, x| if x.1 < b.1 { x } else { b })
+                .0
+        };
+        let m_sim = fit_shift(&binned.observe(&sim_seam));
+        let (h_train, h_test) = (binned.observe(&train), binned.observe(&test));
+        let m = fit_shift(&h_train);
+        let speed = ctx.speed_mps.unwrap_or(10.0).max(0.1);
+        let period = if ctx.period_s > 0.0 {
+            ctx.period_s
+        } else {
+            0.1
+        };
+        let scale = m / (speed * period);
+        let mut params = Map::new();
+        params.insert("seam_shift_m".into(), json!(round4(m)));
+        params.insert("scale".into(), json!(round4(scale)));
+        let mut physics = Map::new();
+        physics.insert("motion_distortion".into(), json!({ "scale": scale }));
+        Some(ResidualFit {
+            id: self.id(),
+            before_nll: nll(&h_test, m_sim),
+            after_nll: nll(&h_test, m),
+            penalty: penalty(1, train.len()),
+            test_obs: test.len(),
+            params,
+            physics,
+            location: format!(
+                "the scan seam straight ahead (azimuth 0): last-measured returns {m:.2} m nearer than the first (sim {m_sim:.2} m; {})",
+                match ctx.speed_mps {
+                    Some(v) => format!("scale from the recording's speed {v:.1} m/s"),
+                    None => "scale assumes 10 m/s: the real speed is unknown".into(),
+                }
+            ),
+        })
+    }
+}

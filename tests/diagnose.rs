@@ -1,0 +1,210 @@
+//! End-to-end `diagnose` and `render` through the built binary (issue 6): a
+//! concealed range-dropout case on simulated recordings (real side unorganized,
+//! sim side organized), the report files, rendering the fit and the baselines,
+//! and clear errors for bad input.
+
+mod common;
+
+use std::path::Path;
+
+use common::{run, stderr};
+
+fn simulate(path: &Path, scene: u64, physics: &str, organized: bool) -> f64 {
+    let scene = scene.to_string();
+    let p = path.to_str().unwrap();
+    let mut args = vec![
+        "--json",
+        "simulate",
+        "--scene",
+        &scene,
+        "--columns",
+        "512",
+        "--scans",
+        "8",
+        "--physics",
+        physics,
+        "--force",
+    ];
+    if organized {
+        args.push("--organized");
+    }
+    args.push(p);
+    let out = run(&args);
+    assert!(out.status.success(), "{}", stderr(&out));
+    let v: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    v["keep_rate"].as_f64().unwrap()
+}
+
+#[test]
+fn diagnose_names_a_concealed_range_dropout_and_render_applies_it() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let physics = d.join("range.json");
+    std::fs::write(
+        &physics,
+        r#"{"range_dropout": {"range_50_m": 40, "softness": 0.4}}"#,
+    )
+    .unwrap();
+    let real = d.join("real.mcap");
+    let keep_real = simulate(&real, 21, physics.to_str().unwrap(), false);
+    let ideal = d.join("ideal.mcap");
+    let keep_ideal = simulate(&ideal, 22, "ideal", true);
+    // Conceal: the sim's uniform dropout matches the global drop rate.
+    let prob = 1.0 - keep_real / keep_ideal;
+    let uniform = d.join("uniform.json");
+    std::fs::write(
+        &uniform,
+        format!(r#"{{"uniform_dropout": {{"prob": {prob}}}}}"#),
+    )
+    .unwrap();
+    let sim = d.join("sim.mcap");
+    let keep_sim = simulate(&sim, 22, uniform.to_str().unwrap(), true);
+    assert!(
+        (keep_sim - keep_real).abs() < 0.01,
+        "{keep_sim} vs {keep_real}"
+    );
+
+    let report = d.join("report");
+    let out = run(&[
+        "diagnose",
+        "--sim",
+        sim.to_str().unwrap(),
+        "--real",
+        real.to_str().unwrap(),
+        "--report",
+        report.to_str().unwrap(),
+    ]);
+    assert!(out.status.success(), "{}", stderr(&out));
+    let r: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(report.join("report.json")).unwrap()).unwrap();
+    let effects = r["effects"].as_array().unwrap();
+    assert_eq!(effects[0]["id"], "range_dropout", "{r:#}");
+    let e = &effects[0];
+    assert!(e["confidence"].as_f64().unwrap() > 0.5);
+    assert!(!e["location"].as_str().unwrap().is_empty());
+    assert!(e["params"]["range_50_m"].as_f64().unwrap() > 20.0);
+    assert!(e["fit"]["after"].as_f64() < e["fit"]["before"].as_f64());
+    assert!(r["fit"]["after"].as_f64() < r["fit"]["before"].as_f64());
+    assert!(r["fit"]["metric"].is_string());
+    for f in [
+        "report.html",
+        "fitted_physics.json",
+        "drop_vs_range.png",
+        "drop_vs_row.png",
+        "example_scan.png",
+    ] {
+        let bytes = std::fs::read(report.join(f)).unwrap();
+        assert!(bytes.len() > 100, "{f}");
+        if f.ends_with(".png") {
+            assert_eq!(&bytes[1..4], b"PNG");
+        }
+    }
+    let html = std::fs::read_to_string(report.join("report.html")).unwrap();
+    assert!(html.contains("range_dropout") && html.contains("drop_vs_range.png"));
+
+    // The fitted physics renders onto the ideal recording and drops rays there.
+    let rendered = d.join("rendered.mcap");
+    let fitted = report.join("fitted_physics.json");
+    let out = run(&[
+        "--json",
+        "render",
+        "--physics",
+        fitted.to_str().unwrap(),
+        ideal.to_str().unwrap(),
+        rendered.to_str().unwrap(),
+    ]);
+    assert!(out.status.success(), "{}", stderr(&out));
+    let v: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    assert_eq!(v["scans"], 8);
+    let keep = v["keep_rate"].as_f64().unwrap();
+    assert!(keep < keep_ideal - 0.02, "{keep} vs ideal {keep_ideal}");
+    // And the rendered recording is still a recording the tool reads.
+    let out = run(&["info", rendered.to_str().unwrap()]);
+    assert!(out.status.success(), "{}", stderr(&out));
+
+    // Baselines: the real data's global and per-pixel drop frequency.
+    for mode in ["global", "pixel"] {
+        let out = run(&[
+            "--json",
+            "render",
+            "--raydrop",
+            mode,
+            "--real",
+            real.to_str().unwrap(),
+            ideal.to_str().unwrap(),
+            rendered.to_str().unwrap(),
+            "--force",
+        ]);
+        assert!(out.status.success(), "{mode}: {}", stderr(&out));
+        let v: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+        let keep = v["keep_rate"].as_f64().unwrap();
+        assert!(keep < keep_ideal - 0.02, "{mode}: {keep} vs {keep_ideal}");
+    }
+    let out = run(&[
+        "render",
+        "--raydrop",
+        "gan",
+        ideal.to_str().unwrap(),
+        rendered.to_str().unwrap(),
+        "--force",
+    ]);
+    assert!(!out.status.success());
+    assert!(
+        stderr(&out).contains("not available yet"),
+        "{}",
+        stderr(&out)
+    );
+}
+
+#[test]
+fn diagnose_errors_name_the_file_and_topic() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let missing = d.join("missing.mcap");
+    let out = run(&[
+        "diagnose",
+        "--sim",
+        missing.to_str().unwrap(),
+        "--real",
+        missing.to_str().unwrap(),
+        "--report",
+        d.join("r").to_str().unwrap(),
+    ]);
+    assert!(!out.status.success());
+    assert!(stderr(&out).contains("missing.mcap"), "{}", stderr(&out));
+    let not_mcap = d.join("junk.mcap");
+    std::fs::write(&not_mcap, b"definitely not an mcap file").unwrap();
+    let out = run(&[
+        "diagnose",
+        "--sim",
+        not_mcap.to_str().unwrap(),
+        "--real",
+        not_mcap.to_str().unwrap(),
+        "--report",
+        d.join("r").to_str().unwrap(),
+    ]);
+    assert!(!out.status.success());
+    assert!(stderr(&out).contains("junk.mcap"), "{}", stderr(&out));
+    let sample = Path::new(env!("CARGO_MANIFEST_DIR")).join("sample_logs/drive_ideal.mcap");
+    let out = run(&[
+        "diagnose",
+        "--sim",
+        sample.to_str().unwrap(),
+        "--real",
+        sample.to_str().unwrap(),
+        "--topic",
+        "/lidar_top",
+        "--report",
+        d.join("r").to_str().unwrap(),
+    ]);
+    assert!(!out.status.success());
+    let err = stderr(&out);
+    assert!(
+        err.contains("/lidar_top") && err.contains("/velodyne_points"),
+        "{err}"
+    );
+    assert!(
+        !d.join("r").join("report.json").exists(),
+        "no report after a failure"
+    );
+}
