@@ -61,6 +61,10 @@ pub struct DiagnoseArgs {
     /// Encoder of `--completion gan` (default: the shipped weights).
     #[arg(long)]
     pub encoder: Option<PathBuf>,
+    /// Pivotal-tuning steps per scan of `--completion gan` (default: `fast`'s 20;
+    /// 0 = the encoder's prediction alone, ~20x cheaper).
+    #[arg(long)]
+    pub tune_steps: Option<usize>,
 }
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
@@ -73,10 +77,15 @@ pub enum CompletionArg {
 pub(crate) fn gan_decoder(
     model: Option<&std::path::Path>,
     encoder: Option<&std::path::Path>,
+    tune_steps: Option<usize>,
 ) -> anyhow::Result<Decoder> {
     let device = burn::tensor::Device::flex();
     let model = Model::load(model, &device)?;
-    let mut decoder = Decoder::new(model, DecodeOptions::new(Quality::Fast))?;
+    let mut opts = DecodeOptions::new(Quality::Fast);
+    if let Some(n) = tune_steps {
+        opts.schedule.tune_steps = n;
+    }
+    let mut decoder = Decoder::new(model, opts)?;
     if let Some(dir) = encoder {
         decoder = decoder.with_encoder(TrainedEncoder::from_dir(dir, &device)?)?;
     }
@@ -144,8 +153,8 @@ pub fn run(global: &GlobalArgs, args: DiagnoseArgs) -> anyhow::Result<Outcome> {
     let completion = match args.completion {
         CompletionArg::Neighbour => {
             anyhow::ensure!(
-                args.model.is_none() && args.encoder.is_none(),
-                "--model and --encoder are for --completion gan"
+                args.model.is_none() && args.encoder.is_none() && args.tune_steps.is_none(),
+                "--model, --encoder and --tune-steps are for --completion gan"
             );
             Completion::Neighbour
         }
@@ -153,8 +162,12 @@ pub fn run(global: &GlobalArgs, args: DiagnoseArgs) -> anyhow::Result<Outcome> {
     };
     let decoder = match completion {
         Completion::Gan => Some(
-            gan_decoder(args.model.as_deref(), args.encoder.as_deref())
-                .context("--completion gan")?,
+            gan_decoder(
+                args.model.as_deref(),
+                args.encoder.as_deref(),
+                args.tune_steps,
+            )
+            .context("--completion gan")?,
         ),
         Completion::Neighbour => None,
     };
@@ -178,7 +191,13 @@ pub fn run(global: &GlobalArgs, args: DiagnoseArgs) -> anyhow::Result<Outcome> {
                 args.sim.display()
             )
         })?;
-    diagnosis.report.inputs.completion_model = decoder.as_ref().map(|d| d.source.clone());
+    diagnosis.report.inputs.completion_model = decoder.as_ref().map(|d| {
+        format!(
+            "{} (fast: {} pivotal-tuning steps per scan)",
+            d.source,
+            d.options().schedule.tune_steps
+        )
+    });
     diagnosis.report.inputs.completion_fallback_scans = fell_sim + fell_real;
     let provenance = report::Provenance {
         sim: args.sim.display().to_string(),

@@ -59,6 +59,9 @@ pub struct RenderArgs {
     /// Encoder of `--raydrop gan` (default: the shipped weights).
     #[arg(long)]
     pub encoder: Option<PathBuf>,
+    /// Pivotal-tuning steps per scan of `--raydrop gan` (default: `fast`'s 20).
+    #[arg(long)]
+    pub tune_steps: Option<usize>,
     /// Point-cloud topic (default: the first point-cloud topic).
     #[arg(long)]
     pub topic: Option<String>,
@@ -252,8 +255,8 @@ fn resolve_physics(
 pub fn run(global: &GlobalArgs, args: RenderArgs) -> anyhow::Result<Outcome> {
     let gan = args.raydrop == Some(RayDrop::Gan);
     anyhow::ensure!(
-        gan || (args.model.is_none() && args.encoder.is_none()),
-        "--model and --encoder are for --raydrop gan"
+        gan || (args.model.is_none() && args.encoder.is_none() && args.tune_steps.is_none()),
+        "--model, --encoder and --tune-steps are for --raydrop gan"
     );
     anyhow::ensure!(
         !gan || args.real.is_none(),
@@ -278,8 +281,12 @@ pub fn run(global: &GlobalArgs, args: RenderArgs) -> anyhow::Result<Outcome> {
     // --raydrop gan: x_n of every scan, decoded up front (rayon over scans), by log time.
     let mut gan_drop: HashMap<u64, VecDeque<Result<Vec<f32>, String>>> = HashMap::new();
     if gan {
-        let decoder = super::diagnose::gan_decoder(args.model.as_deref(), args.encoder.as_deref())
-            .context("--raydrop gan")?;
+        let decoder = super::diagnose::gan_decoder(
+            args.model.as_deref(),
+            args.encoder.as_deref(),
+            args.tune_steps,
+        )
+        .context("--raydrop gan")?;
         let seeds: Vec<u64> = input
             .log_times
             .iter()

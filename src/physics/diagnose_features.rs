@@ -381,6 +381,20 @@ pub(crate) fn simulated_recording_with(
     scans: u32,
     effects: Vec<Box<dyn crate::physics::Effect>>,
 ) -> Vec<ScanFeatures> {
+    simulated_images_with(profile, seed, scans, effects)
+        .iter()
+        .map(|img| ScanFeatures::from_image(img, &FeatureOptions::default()))
+        .collect()
+}
+
+/// The range images behind [`simulated_recording_with`] (for other completions).
+#[cfg(test)]
+pub(crate) fn simulated_images_with(
+    profile: &crate::lidar::SensorProfile,
+    seed: u64,
+    scans: u32,
+    effects: Vec<Box<dyn crate::physics::Effect>>,
+) -> Vec<RangeImage> {
     use crate::physics::Physics;
     use crate::sim::{SceneConfig, Simulator};
     // Scans 0.3 s apart: a short drive whose scene objects do not sit at the
@@ -399,7 +413,7 @@ pub(crate) fn simulated_recording_with(
         .map(|i| {
             let mut scan = sim.scan(STRIDE * i);
             physics.apply(&mut scan, seed);
-            ScanFeatures::from_image(&scan.image, &FeatureOptions::default())
+            scan.image
         })
         .collect()
 }

@@ -11,13 +11,18 @@ use serde_json::Map;
 
 use super::Effect;
 use super::diagnose::{DiagnoseOptions, Diagnosis, diagnose};
-use super::diagnose_features::{ScanFeatures, simulated_recording_with};
+use super::diagnose_completion::{Completion, gan_features};
+use super::diagnose_features::{
+    FeatureOptions, ScanFeatures, simulated_images_with, simulated_recording_with,
+};
 use super::dropout::{
     BeamDropout, IncidenceDropout, MaterialDropout, OcclusionSector, RangeDropout, SelfOcclusion,
     UniformDropout,
 };
 use super::perturb::{MixedPixels, MotionDistortion, RangeNoise};
-use crate::lidar::SensorProfile;
+use crate::decode::{DecodeOptions, Decoder, Quality, scan_seed};
+use crate::lidar::{RangeImage, SensorProfile};
+use crate::model::weights::Model;
 use crate::sim::Material;
 use crate::sim::rng::uniform;
 
@@ -64,14 +69,76 @@ fn concealed(
 }
 
 fn run(sim: &[ScanFeatures], real: &[ScanFeatures]) -> Diagnosis {
+    run_with(sim, real, Completion::Neighbour)
+}
+
+fn run_with(sim: &[ScanFeatures], real: &[ScanFeatures], completion: Completion) -> Diagnosis {
     diagnose(
         sim,
         real,
         &Map::new(),
-        "neighbour-fill",
+        completion.name(),
         &DiagnoseOptions::default(),
     )
     .expect("diagnosis")
+}
+
+/// The shipped generator and encoder, `fast` (shared by the tests of this file).
+pub(super) fn fast_decoder() -> &'static Decoder {
+    static DECODER: std::sync::OnceLock<Decoder> = std::sync::OnceLock::new();
+    DECODER.get_or_init(|| {
+        let device = burn::tensor::Device::flex();
+        let mut o = DecodeOptions::new(Quality::Fast);
+        if let Ok(n) = std::env::var("TUNE") {
+            o.schedule.tune_steps = n.parse().unwrap();
+        }
+        Decoder::new(Model::shipped(&device).expect("shipped model"), o).expect("decoder")
+    })
+}
+
+/// GAN-completed features of simulated scans, seeded as the CLI does.
+fn gan_completed(images: &[RangeImage], topic: &str) -> Vec<ScanFeatures> {
+    let seeds: Vec<u64> = (0..images.len() as u64)
+        .map(|i| scan_seed(topic, 300_000_000 * i))
+        .collect();
+    let done = gan_features(fast_decoder(), images, &seeds, &FeatureOptions::default());
+    assert!(done.fallbacks.is_empty(), "{:?}", done.fallbacks);
+    done.features
+}
+
+/// As [`concealed`] with GAN completion on both sides.
+fn concealed_gan(
+    profile: &SensorProfile,
+    effects: impl Fn() -> Vec<Box<dyn Effect>>,
+    real_seed: u64,
+    sim_seed: u64,
+) -> (Vec<ScanFeatures>, Vec<ScanFeatures>) {
+    let real = simulated_images_with(profile, real_seed, SCANS, effects());
+    let ideal = simulated_recording_with(profile, sim_seed, SCANS, vec![]);
+    let rate = |images: &[RangeImage]| {
+        images
+            .iter()
+            .map(|i| 1.0 - i.valid_count() as f64 / i.len() as f64)
+            .sum::<f64>()
+            / images.len() as f64
+    };
+    let (r, s0) = (rate(&real), drop_rate(&ideal));
+    let prob = ((r - s0).max(0.0) / (1.0 - s0)) as f32;
+    let sim = simulated_images_with(
+        profile,
+        sim_seed,
+        SCANS,
+        vec![Box::new(UniformDropout {
+            enabled: true,
+            prob,
+        })],
+    );
+    assert!(
+        (rate(&sim) - r).abs() < 0.01,
+        "concealed: {} vs {r}",
+        rate(&sim)
+    );
+    (gan_completed(&sim, "/sim"), gan_completed(&real, "/real"))
 }
 
 fn summary(d: &Diagnosis) -> String {
@@ -159,6 +226,29 @@ fn concealed_incidence_dropout() {
             "{:?}",
             d.report.fit
         );
+    }
+}
+
+#[test]
+fn concealed_incidence_dropout_gan_completion() {
+    for case in 0..2u64 {
+        let (cos50, soft) = (0.1 + 0.15 * u(case, 3), 0.15 + 0.15 * u(case, 4));
+        let effect = move || -> Vec<Box<dyn Effect>> {
+            vec![Box::new(IncidenceDropout {
+                enabled: true,
+                cos_50: cos50,
+                softness: soft,
+            })]
+        };
+        let (sim, real) = concealed_gan(&hdl64(), effect, 111 + case, 212 + case);
+        let d = run_with(&sim, &real, Completion::Gan);
+        eprintln!(
+            "GAN case {case} cos50 {cos50} soft {soft}:\n{}",
+            summary(&d)
+        );
+        let (sim, real) = concealed(&hdl64(), effect, 111 + case, 212 + case);
+        let d = run(&sim, &real);
+        eprintln!("NEIGHBOUR case {case}:\n{}", summary(&d));
     }
 }
 
