@@ -120,3 +120,133 @@ pub fn gan_features(
     }
     out
 }
+
+/// A `fast` decoder of the shipped weights with `tune_steps` pivotal-tuning steps
+/// (0 or 2), shared by the tests.
+#[cfg(test)]
+pub(crate) fn test_decoder(tune_steps: usize) -> &'static Decoder {
+    use std::sync::OnceLock;
+    static DECODERS: [OnceLock<Decoder>; 2] = [OnceLock::new(), OnceLock::new()];
+    let slot = match tune_steps {
+        0 => &DECODERS[0],
+        2 => &DECODERS[1],
+        n => panic!("no shared test decoder with {n} tuning steps"),
+    };
+    slot.get_or_init(|| {
+        let device = burn::tensor::Device::flex();
+        let mut opts = crate::decode::DecodeOptions::new(crate::decode::Quality::Fast);
+        opts.schedule.tune_steps = tune_steps;
+        Decoder::new(
+            crate::model::weights::Model::shipped(&device).expect("shipped model"),
+            opts,
+        )
+        .expect("decoder")
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::decode::scan_seed;
+    use crate::physics::diagnose_features::simulated_images_with;
+    use crate::physics::dropout::UniformDropout;
+
+    /// Two simulated HDL-64E scans with 20 % of the rays dropped.
+    fn scans() -> Vec<RangeImage> {
+        let profile = crate::lidar::SensorProfile::kitti_hdl64e().with_columns(512);
+        simulated_images_with(
+            &profile,
+            41,
+            2,
+            vec![Box::new(UniformDropout {
+                enabled: true,
+                prob: 0.2,
+            })],
+        )
+    }
+
+    /// Every feature as bits (NaN compares equal to NaN).
+    fn bits(scans: &[ScanFeatures]) -> Vec<(Vec<u32>, Vec<u32>, Vec<u8>, Vec<u32>, Vec<bool>)> {
+        let b = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+        scans
+            .iter()
+            .map(|f| {
+                (
+                    b(&f.range_m),
+                    b(&f.incidence_rad),
+                    f.edge_px.clone(),
+                    f.class.clone(),
+                    f.kept.clone(),
+                )
+            })
+            .collect()
+    }
+
+    fn in_pool<R: Send>(threads: usize, op: impl FnOnce() -> R + Send) -> R {
+        rayon::ThreadPoolBuilder::new()
+            .num_threads(threads)
+            .build()
+            .unwrap()
+            .install(op)
+    }
+
+    #[test]
+    fn gan_completion_fills_dropped_pixels_differently_and_deterministically() {
+        let images = scans();
+        let seeds: Vec<u64> = (0..images.len() as u64)
+            .map(|i| scan_seed("/sim", 100 * i))
+            .collect();
+        let options = FeatureOptions::default();
+        let decoder = test_decoder(2);
+        let gan = in_pool(1, || gan_features(decoder, &images, &seeds, &options));
+        assert!(gan.fallbacks.is_empty(), "{:?}", gan.fallbacks);
+        let neighbour = neighbour_features(&images, &options);
+        let (mut dropped, mut differ) = (0usize, 0usize);
+        for ((g, n), img) in gan.features.iter().zip(&neighbour).zip(&images) {
+            assert_eq!(g.kept, n.kept);
+            assert_eq!(g.class, n.class, "classes come from the neighbours");
+            for k in 0..g.len() {
+                if g.kept[k] {
+                    assert_eq!(g.range_m[k], img.range_m[k], "measured range kept");
+                    continue;
+                }
+                if k / g.width >= g.height / 2 {
+                    // Every dropped pixel of the lower half has geometry.
+                    assert!(g.range_m[k].is_finite() && g.range_m[k] > 0.0, "k={k}");
+                    assert!(
+                        g.incidence_rad[k].is_nan()
+                            || (0.0..=std::f32::consts::FRAC_PI_2).contains(&g.incidence_rad[k])
+                    );
+                }
+                if n.range_m[k].is_finite() && g.range_m[k].is_finite() {
+                    dropped += 1;
+                    let rel = (g.range_m[k] - n.range_m[k]).abs() / n.range_m[k];
+                    differ += usize::from(rel > 0.01);
+                }
+            }
+            let finite = g.incidence_rad.iter().filter(|a| a.is_finite()).count();
+            assert!(finite as f64 > 0.5 * g.len() as f64, "{finite} finite");
+            assert!(g.edge_px.iter().all(|e| *e <= options.max_edge_px));
+        }
+        assert!(dropped > 1000, "{dropped} dropped pixels compared");
+        assert!(
+            differ as f64 > 0.3 * dropped as f64,
+            "GAN and neighbour fill differ on {differ} of {dropped} dropped pixels"
+        );
+        // Deterministic, whatever the thread count.
+        let again = in_pool(2, || gan_features(decoder, &images, &seeds, &options));
+        assert!(bits(&gan.features) == bits(&again.features));
+    }
+
+    #[test]
+    fn an_undecodable_scan_falls_back_to_neighbour_fill() {
+        let mut images = scans();
+        images.truncate(1);
+        images[0].range_m.fill(0.0);
+        let options = FeatureOptions::default();
+        let done = gan_features(test_decoder(0), &images, &[7], &options);
+        assert_eq!(done.fallbacks.len(), 1);
+        assert_eq!(done.fallbacks[0].0, 0);
+        assert!(bits(&done.features) == bits(&neighbour_features(&images, &options)));
+    }
+}
