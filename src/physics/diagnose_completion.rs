@@ -165,8 +165,11 @@ mod tests {
         )
     }
 
+    /// Range and incidence bits, edges, classes and kept flags of one scan.
+    type Bits = (Vec<u32>, Vec<u32>, Vec<u8>, Vec<u32>, Vec<bool>);
+
     /// Every feature as bits (NaN compares equal to NaN).
-    fn bits(scans: &[ScanFeatures]) -> Vec<(Vec<u32>, Vec<u32>, Vec<u8>, Vec<u32>, Vec<bool>)> {
+    fn bits(scans: &[ScanFeatures]) -> Vec<Bits> {
         let b = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
         scans
             .iter()
