@@ -7,13 +7,17 @@
 use std::path::PathBuf;
 
 use anyhow::Context;
-use rayon::prelude::*;
 
 use super::{GlobalArgs, Outcome};
-use crate::lidar::{RangeImage, SensorProfile};
+use crate::decode::amortised::TrainedEncoder;
+use crate::decode::{DecodeOptions, Decoder, Quality, scan_seed};
+use crate::error::Location;
+use crate::lidar::SensorProfile;
+use crate::model::weights::Model;
 use crate::physics::diagnose::{DiagnoseOptions, diagnose};
+use crate::physics::diagnose_completion::{Completion, gan_features, neighbour_features};
 use crate::physics::diagnose_features::{FeatureOptions, ScanFeatures};
-use crate::recording::{self, Grid};
+use crate::recording::{self, Grid, Recording};
 use crate::report;
 
 #[derive(Debug, clap::Args)]
@@ -44,13 +48,79 @@ pub struct DiagnoseArgs {
     /// (default: the real recording's `simulate` metadata, else unknown).
     #[arg(long)]
     pub real_speed_mps: Option<f64>,
+    /// How dropped pixels get their geometry before incidence and edges are
+    /// computed: `neighbour` (mean range of the nearest returns) or `gan` (the
+    /// GAN's completed depth from `fast` auto-decoding of every scan, ~0.4 s per
+    /// scan per core).
+    #[arg(long, value_enum, default_value = "neighbour")]
+    pub completion: CompletionArg,
+    /// Generator of `--completion gan`: a model directory or a training run
+    /// directory (default: the shipped weights).
+    #[arg(long)]
+    pub model: Option<PathBuf>,
+    /// Encoder of `--completion gan` (default: the shipped weights).
+    #[arg(long)]
+    pub encoder: Option<PathBuf>,
+    /// Pivotal-tuning steps per scan of `--completion gan` (default: `fast`'s 20;
+    /// 0 = the encoder's prediction alone, ~20x cheaper).
+    #[arg(long)]
+    pub tune_steps: Option<usize>,
 }
 
-fn features(images: &[RangeImage]) -> Vec<ScanFeatures> {
-    images
-        .par_iter()
-        .map(|img| ScanFeatures::from_image(img, &FeatureOptions::default()))
-        .collect()
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum CompletionArg {
+    Neighbour,
+    Gan,
+}
+
+/// The `fast` decoder of `--completion gan`.
+pub(crate) fn gan_decoder(
+    model: Option<&std::path::Path>,
+    encoder: Option<&std::path::Path>,
+    tune_steps: Option<usize>,
+) -> anyhow::Result<Decoder> {
+    let device = burn::tensor::Device::flex();
+    let model = Model::load(model, &device)?;
+    let mut opts = DecodeOptions::new(Quality::Fast);
+    if let Some(n) = tune_steps {
+        opts.schedule.tune_steps = n;
+    }
+    let mut decoder = Decoder::new(model, opts)?;
+    if let Some(dir) = encoder {
+        decoder = decoder.with_encoder(TrainedEncoder::from_dir(dir, &device)?)?;
+    }
+    Ok(decoder)
+}
+
+/// Features of a recording's scans with the chosen completion; the number of
+/// scans that fell back to the neighbour fill (warned on stderr).
+fn features(
+    global: &GlobalArgs,
+    rec: &Recording,
+    path: &std::path::Path,
+    decoder: Option<&Decoder>,
+) -> (Vec<ScanFeatures>, usize) {
+    let options = FeatureOptions::default();
+    match decoder {
+        None => (neighbour_features(&rec.images, &options), 0),
+        Some(decoder) => {
+            let seeds: Vec<u64> = rec
+                .log_times
+                .iter()
+                .map(|t| scan_seed(&rec.topic, *t))
+                .collect();
+            let done = gan_features(decoder, &rec.images, &seeds, &options);
+            if !global.quiet {
+                for (i, why) in &done.fallbacks {
+                    eprintln!(
+                        "warning: {}: {why}; completed by neighbour fill",
+                        Location::message(path, &rec.topic, rec.log_times[*i])
+                    );
+                }
+            }
+            (done.features, done.fallbacks.len())
+        }
+    }
 }
 
 pub fn run(global: &GlobalArgs, args: DiagnoseArgs) -> anyhow::Result<Outcome> {
@@ -80,7 +150,31 @@ pub fn run(global: &GlobalArgs, args: DiagnoseArgs) -> anyhow::Result<Outcome> {
         real.topic,
         real.images.len()
     );
-    let (f_sim, f_real) = (features(&sim.images), features(&real.images));
+    let completion = match args.completion {
+        CompletionArg::Neighbour => {
+            anyhow::ensure!(
+                args.model.is_none() && args.encoder.is_none() && args.tune_steps.is_none(),
+                "--model, --encoder and --tune-steps are for --completion gan"
+            );
+            Completion::Neighbour
+        }
+        CompletionArg::Gan => Completion::Gan,
+    };
+    let decoder = match completion {
+        Completion::Gan => Some(
+            gan_decoder(
+                args.model.as_deref(),
+                args.encoder.as_deref(),
+                args.tune_steps,
+            )
+            .context("--completion gan")?,
+        ),
+        Completion::Neighbour => None,
+    };
+    let started = std::time::Instant::now();
+    let (f_sim, fell_sim) = features(global, &sim, &args.sim, decoder.as_ref());
+    let (f_real, fell_real) = features(global, &real, &args.real, decoder.as_ref());
+    let completion_s = started.elapsed().as_secs_f64();
     let options = DiagnoseOptions {
         max_effects: args.max_effects,
         residual: crate::physics::diagnose_residual::ResidualContext {
@@ -89,7 +183,7 @@ pub fn run(global: &GlobalArgs, args: DiagnoseArgs) -> anyhow::Result<Outcome> {
         },
         ..DiagnoseOptions::default()
     };
-    let diagnosis = diagnose(&f_sim, &f_real, &sim.physics(), "neighbour-fill", &options)
+    let mut diagnosis = diagnose(&f_sim, &f_real, &sim.physics(), completion.name(), &options)
         .with_context(|| {
             format!(
                 "diagnosing {} against {}",
@@ -97,6 +191,14 @@ pub fn run(global: &GlobalArgs, args: DiagnoseArgs) -> anyhow::Result<Outcome> {
                 args.sim.display()
             )
         })?;
+    diagnosis.report.inputs.completion_model = decoder.as_ref().map(|d| {
+        format!(
+            "{} (fast: {} pivotal-tuning steps per scan)",
+            d.source,
+            d.options().schedule.tune_steps
+        )
+    });
+    diagnosis.report.inputs.completion_fallback_scans = fell_sim + fell_real;
     let provenance = report::Provenance {
         sim: args.sim.display().to_string(),
         real: args.real.display().to_string(),
@@ -121,7 +223,8 @@ pub fn run(global: &GlobalArgs, args: DiagnoseArgs) -> anyhow::Result<Outcome> {
         println!(
             "{}",
             serde_json::json!({"report": args.report, "effects": r.effects.iter().map(|e| &e.id).collect::<Vec<_>>(),
-                "fit": r.fit, "files": files, "skipped_scans": skipped})
+                "fit": r.fit, "files": files, "skipped_scans": skipped,
+                "completion": completion.name(), "completion_seconds": completion_s})
         );
     } else if !global.quiet {
         eprintln!(

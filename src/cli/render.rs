@@ -1,25 +1,28 @@
-//! `rangegan-mcap render (--physics FITTED.json | --raydrop global|pixel --real REAL.mcap) SIM.mcap OUT.mcap`:
+//! `rangegan-mcap render (--physics FITTED.json | --raydrop global|pixel --real REAL.mcap | --raydrop gan) SIM.mcap OUT.mcap`:
 //! applies physics (typically what `diagnose` fitted) or a baseline ray-drop
 //! model to every scan of a simulated recording: the Sim2Real use, realistic
 //! ray drops on simulated training data. Every other record is copied unchanged.
 //!
 //! Baselines (the paper's Sim2Real configurations): `global` drops every ray
 //! with the real data's global drop frequency (config B), `pixel` with its
-//! per-pixel frequency (config C). `gan` (config E, the GAN's auto-decoded x_n per
-//! scan) needs the GAN inversion module, which is not in this build yet.
+//! per-pixel frequency (config C), `gan` (config E) with the GAN's drop
+//! probability x_n of each scan: the scan is auto-decoded (`fast`), x_n rendered on
+//! its grid and every ray dropped by a Bernoulli draw seeded from (topic, log time).
 
 use std::borrow::Cow;
-use std::collections::{BTreeMap, HashMap};
+use std::collections::{BTreeMap, HashMap, VecDeque};
 use std::path::PathBuf;
 
 use anyhow::Context;
 use mcap::records::Record;
 
 use super::{GlobalArgs, Outcome};
+use crate::decode::{sample_masks, scan_seed};
 use crate::io::encoders::encode_scan;
 use crate::io::{CloudFormat, DecodedCloud, McapOutput, OnError, decode_cloud, read_records};
 use crate::lidar::projection::choose_strategy;
 use crate::lidar::{RangeImage, SensorProfile, project};
+use crate::physics::diagnose_completion::par_gan_render;
 use crate::physics::diagnose_features::{FeatureOptions, ScanFeatures};
 use crate::physics::{Effect, Physics, PhysicsConfig, RayFeatures};
 use crate::recording::{self, Grid};
@@ -49,6 +52,16 @@ pub struct RenderArgs {
     /// The real recording whose drop frequencies `--raydrop global|pixel` use.
     #[arg(long)]
     pub real: Option<PathBuf>,
+    /// Generator of `--raydrop gan`: a model directory or a training run directory
+    /// (default: the shipped weights).
+    #[arg(long)]
+    pub model: Option<PathBuf>,
+    /// Encoder of `--raydrop gan` (default: the shipped weights).
+    #[arg(long)]
+    pub encoder: Option<PathBuf>,
+    /// Pivotal-tuning steps per scan of `--raydrop gan` (default: `fast`'s 20).
+    #[arg(long)]
+    pub tune_steps: Option<usize>,
     /// Point-cloud topic (default: the first point-cloud topic).
     #[arg(long)]
     pub topic: Option<String>,
@@ -91,6 +104,19 @@ impl Effect for DropMap {
             .get(f.row * self.width + f.column)
             .copied()
             .unwrap_or(0.0)
+    }
+}
+
+/// Drops each return of `scan` with its probability in `drop_prob` (row-major on
+/// the scan's grid): one Bernoulli draw per pixel from `seed`.
+fn drop_bernoulli(scan: &mut SimScan, drop_prob: &[f32], seed: u64) {
+    let Some(keep) = sample_masks(drop_prob, 1, seed).pop() else {
+        return;
+    };
+    for (k, keep) in keep.into_iter().enumerate().take(scan.len()) {
+        if !keep && scan.is_return(k) {
+            scan.drop_return(k);
+        }
     }
 }
 
@@ -175,9 +201,7 @@ fn resolve_physics(
             let words = format!("physics [{}]", physics.ids().join(", "));
             Ok((physics, words))
         }
-        (None, Some(RayDrop::Gan)) => anyhow::bail!(
-            "--raydrop gan is not available yet: it needs the GAN inversion (crate::decode), which is not in this build; use --raydrop global|pixel or --physics"
-        ),
+        (None, Some(RayDrop::Gan)) => Ok((Physics { effects: vec![] }, String::new())),
         (None, Some(mode)) => {
             let real_path = args.real.as_ref().context(
                 "--raydrop global|pixel needs --real REAL.mcap (the recording whose drop frequencies to use)",
@@ -229,10 +253,15 @@ fn resolve_physics(
 }
 
 pub fn run(global: &GlobalArgs, args: RenderArgs) -> anyhow::Result<Outcome> {
-    if args.raydrop == Some(RayDrop::Gan) {
-        // Fail before reading anything.
-        resolve_physics(&args, &SensorProfile::kitti_hdl64e())?;
-    }
+    let gan = args.raydrop == Some(RayDrop::Gan);
+    anyhow::ensure!(
+        gan || (args.model.is_none() && args.encoder.is_none() && args.tune_steps.is_none()),
+        "--model, --encoder and --tune-steps are for --raydrop gan"
+    );
+    anyhow::ensure!(
+        !gan || args.real.is_none(),
+        "--raydrop gan takes no --real (the drop probability comes from each simulated scan)"
+    );
     let grid = match &args.sensor {
         Some(s) => {
             let p = SensorProfile::resolve(s).with_context(|| format!("--sensor {s}"))?;
@@ -248,7 +277,36 @@ pub fn run(global: &GlobalArgs, args: RenderArgs) -> anyhow::Result<Outcome> {
     let input = recording::read(&args.input, args.topic.as_deref(), &grid)
         .with_context(|| format!("reading {}", args.input.display()))?;
     let profile = input.profile.clone();
-    let (physics, words) = resolve_physics(&args, &profile)?;
+    let (physics, mut words) = resolve_physics(&args, &profile)?;
+    // --raydrop gan: x_n of every scan, decoded up front (rayon over scans), by log time.
+    let mut gan_drop: HashMap<u64, VecDeque<Result<Vec<f32>, String>>> = HashMap::new();
+    if gan {
+        let decoder = super::diagnose::gan_decoder(
+            args.model.as_deref(),
+            args.encoder.as_deref(),
+            args.tune_steps,
+        )
+        .context("--raydrop gan")?;
+        let seeds: Vec<u64> = input
+            .log_times
+            .iter()
+            .map(|t| scan_seed(&input.topic, *t))
+            .collect();
+        let probs = par_gan_render(&decoder, &input.images, &seeds, |_, r| r.drop_prob);
+        let (mut sum, mut n) = (0f64, 0usize);
+        for p in probs.iter().flatten() {
+            sum += p.iter().map(|v| f64::from(*v)).sum::<f64>();
+            n += p.len();
+        }
+        words = format!(
+            "raydrop_gan: x_n of each scan from {} (fast auto-decoding; mean drop probability {:.1} %)",
+            decoder.source,
+            100.0 * sum / n.max(1) as f64
+        );
+        for (t, p) in input.log_times.iter().zip(probs) {
+            gan_drop.entry(*t).or_default().push_back(p);
+        }
+    }
     let speed = input.speed_mps().unwrap_or(0.0) as f32;
 
     let mut out = McapOutput::create(&args.output, args.force)?;
@@ -295,6 +353,18 @@ pub fn run(global: &GlobalArgs, args: RenderArgs) -> anyhow::Result<Outcome> {
                                     project(&cloud.scan, &profile, s).map_err(|e| e.to_string())?;
                                 let mut scan = as_sim_scan(image, scans as u32, &profile, speed);
                                 physics.apply(&mut scan, args.seed);
+                                if gan {
+                                    let prob = gan_drop
+                                        .get_mut(&header.log_time)
+                                        .and_then(VecDeque::pop_front)
+                                        .unwrap_or_else(
+                                            || Err("not among the decoded scans".into()),
+                                        )
+                                        .map_err(|e| format!("auto-decoding: {e}"))?;
+                                    let seed = scan_seed(&input.topic, header.log_time)
+                                        ^ args.seed.wrapping_mul(0x9e37_79b9_7f4a_7c15);
+                                    drop_bernoulli(&mut scan, &prob, seed);
+                                }
                                 kept += scan.image.valid_count() as u64;
                                 pixels += scan.len() as u64;
                                 let out_cloud = DecodedCloud {

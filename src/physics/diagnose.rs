@@ -89,7 +89,13 @@ pub struct InputsReport {
     pub drop_rate_sim: f64,
     pub drop_rate_real: f64,
     pub reach_m: f32,
+    /// How dropped pixels were completed: `neighbour-fill` or `gan`.
     pub completion: String,
+    /// The generator (and encoder) of a GAN completion.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub completion_model: Option<String>,
+    /// Scans the GAN could not decode, completed by the neighbour fill instead.
+    pub completion_fallback_scans: usize,
 }
 
 /// The report (`report.json`): `effects` and `fit` are the contract other
@@ -354,6 +360,8 @@ pub fn diagnose(
         drop_rate_real: drop_rate(real),
         reach_m,
         completion: completion.into(),
+        completion_model: None,
+        completion_fallback_scans: 0,
     };
 
     let keep_after = diagnose_fit::keep_under(&families, &selection, &baseline, &px_test);

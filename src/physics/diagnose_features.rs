@@ -2,8 +2,8 @@
 //! real or a simulated scan projected onto a [`RangeImage`].
 //!
 //! This module owns the cheap geometry that the drop-rate comparisons condition
-//! on: a neighbour-fill completion of dropped pixels (the fallback until the GAN's
-//! completion is wired in), incidence angles from the normals of the completed
+//! on: a completion of dropped pixels (a cheap neighbour fill, or a completed depth
+//! given by the caller: the GAN's x_d, see `diagnose_completion`), incidence angles from the normals of the completed
 //! depth, depth-edge proximity, and classes (labels where present, else the most
 //! common label among valid neighbours). It does no statistics (see
 //! `diagnose_stats`) and no I/O.
@@ -80,8 +80,25 @@ impl ScanFeatures {
         self.kept.iter().filter(|k| !**k).count() as f64 / self.len() as f64
     }
 
-    /// Computes the features of a projected scan.
+    /// Computes the features of a projected scan (neighbour-fill completion).
     pub fn from_image(image: &RangeImage, options: &FeatureOptions) -> Self {
+        Self::from_image_completed(image, None, options)
+    }
+
+    /// Computes the features of a projected scan whose dropped pixels take their
+    /// range from `completed` (row-major on the image's grid, meters; e.g. the GAN's
+    /// x_d from auto-decoding) where it is positive and finite. Kept pixels keep
+    /// their measured range. Classes still come from the neighbours. The sky rule is
+    /// the neighbour fill's: in the upper half of the image a dropped pixel with no
+    /// return within [`FeatureOptions::fill_passes`] stays without geometry (whether
+    /// a scene has sky there is not physics), whatever `completed` says; in the lower
+    /// half every dropped pixel takes the completion. Where `completed` has no depth
+    /// (0, e.g. beyond the model's beams) the neighbour fill stays.
+    pub fn from_image_completed(
+        image: &RangeImage,
+        completed: Option<&[f32]>,
+        options: &FeatureOptions,
+    ) -> Self {
         let (h, w) = (image.height, image.width);
         let n = h * w;
         let kept: Vec<bool> = (0..n).map(|k| image.is_valid(k)).collect();
@@ -90,7 +107,16 @@ impl ScanFeatures {
             w,
             wrap: options.wrap_azimuth,
         };
-        let (range_m, class) = neighbour_fill(&grid, image, &kept, options.fill_passes);
+        let (mut range_m, class) = neighbour_fill(&grid, image, &kept, options.fill_passes);
+        if let Some(depth) = completed.filter(|d| d.len() == n) {
+            for k in 0..n {
+                let d = depth[k];
+                let sky = range_m[k].is_nan() && k / w.max(1) < h / 2;
+                if !kept[k] && !sky && d.is_finite() && d > 0.0 {
+                    range_m[k] = d;
+                }
+            }
+        }
         let dirs: Vec<[f32; 3]> = (0..n).map(|k| image.angles.direction(k)).collect();
         let incidence_rad = incidence(&grid, &range_m, &dirs);
         let edge_px = edge_proximity(
@@ -355,6 +381,20 @@ pub(crate) fn simulated_recording_with(
     scans: u32,
     effects: Vec<Box<dyn crate::physics::Effect>>,
 ) -> Vec<ScanFeatures> {
+    simulated_images_with(profile, seed, scans, effects)
+        .iter()
+        .map(|img| ScanFeatures::from_image(img, &FeatureOptions::default()))
+        .collect()
+}
+
+/// The range images behind [`simulated_recording_with`] (for other completions).
+#[cfg(test)]
+pub(crate) fn simulated_images_with(
+    profile: &crate::lidar::SensorProfile,
+    seed: u64,
+    scans: u32,
+    effects: Vec<Box<dyn crate::physics::Effect>>,
+) -> Vec<RangeImage> {
     use crate::physics::Physics;
     use crate::sim::{SceneConfig, Simulator};
     // Scans 0.3 s apart: a short drive whose scene objects do not sit at the
@@ -373,7 +413,7 @@ pub(crate) fn simulated_recording_with(
         .map(|i| {
             let mut scan = sim.scan(STRIDE * i);
             physics.apply(&mut scan, seed);
-            ScanFeatures::from_image(&scan.image, &FeatureOptions::default())
+            scan.image
         })
         .collect()
 }

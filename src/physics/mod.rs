@@ -17,6 +17,7 @@
 
 pub mod config;
 pub mod diagnose;
+pub mod diagnose_completion;
 pub mod diagnose_drop;
 pub mod diagnose_features;
 pub mod diagnose_fit;
