@@ -165,6 +165,8 @@ fn diagnose_names_a_concealed_range_dropout_and_render_applies_it() {
     assert!(r["fit"]["after"].as_f64() < r["fit"]["before"].as_f64());
     let out = run(&[
         "diagnose",
+        "--completion",
+        "neighbour",
         "--model",
         "x",
         "--sim",

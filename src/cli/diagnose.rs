@@ -49,10 +49,9 @@ pub struct DiagnoseArgs {
     #[arg(long)]
     pub real_speed_mps: Option<f64>,
     /// How dropped pixels get their geometry before incidence and edges are
-    /// computed: `neighbour` (mean range of the nearest returns) or `gan` (the
-    /// GAN's completed depth from `fast` auto-decoding of every scan, ~0.4 s per
-    /// scan per core).
-    #[arg(long, value_enum, default_value = "neighbour")]
+    /// computed: `gan` (the GAN's completed depth, auto-decoded for every scan)
+    /// or `neighbour` (mean range of the nearest returns; the fallback per scan).
+    #[arg(long, value_enum, default_value = "gan")]
     pub completion: CompletionArg,
     /// Generator of `--completion gan`: a model directory or a training run
     /// directory (default: the shipped weights).
@@ -61,8 +60,9 @@ pub struct DiagnoseArgs {
     /// Encoder of `--completion gan` (default: the shipped weights).
     #[arg(long)]
     pub encoder: Option<PathBuf>,
-    /// Pivotal-tuning steps per scan of `--completion gan` (default: `fast`'s 20;
-    /// 0 = the encoder's prediction alone, ~20x cheaper).
+    /// Pivotal-tuning steps per scan of `--completion gan` (default 0: the
+    /// encoder's prediction alone, which keeps two 100-scan recordings under a
+    /// minute; `convert --quality fast` uses 20, ~0.5 s per scan per core).
     #[arg(long)]
     pub tune_steps: Option<usize>,
 }
@@ -165,7 +165,7 @@ pub fn run(global: &GlobalArgs, args: DiagnoseArgs) -> anyhow::Result<Outcome> {
             gan_decoder(
                 args.model.as_deref(),
                 args.encoder.as_deref(),
-                args.tune_steps,
+                Some(args.tune_steps.unwrap_or(0)),
             )
             .context("--completion gan")?,
         ),
