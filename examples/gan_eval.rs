@@ -6,7 +6,7 @@
 //!
 //! ```text
 //! cargo run --release --example gan_eval -- --data ../shared/real_lidar \
-//!     --cache RUN/dataset.bin --png docs/img/gan_samples.png LABEL=MODEL_DIR ...
+//!     --cache RUN/dataset.bin --png docs/img/gan_samples.png [--seeds 3] LABEL=MODEL_DIR ...
 //! ```
 //! A MODEL_DIR is a model directory (config.json + g_ema.bpk) or a training run directory;
 //! `shipped` is the compiled-in model. Prints one JSON object.
@@ -16,7 +16,7 @@ use std::path::PathBuf;
 use anyhow::{Context, Result, bail};
 use burn::tensor::Device;
 use rangegan_mcap::model::data::{RangeDataset, kitti_heldout_files, kitti_training_files};
-use rangegan_mcap::model::metrics::{SwdConfig, swd_between, swd_of_model};
+use rangegan_mcap::model::metrics::{SwdConfig, SwdReport, swd_between, swd_of_model};
 use rangegan_mcap::model::sample::{SampleOptions, sample};
 use rangegan_mcap::model::train::write_png;
 use rangegan_mcap::model::weights::Model;
@@ -25,6 +25,8 @@ struct Args {
     data: PathBuf,
     cache: Option<PathBuf>,
     png: Option<PathBuf>,
+    /// SWD repeated with this many projection/patch seeds (mean and spread reported).
+    seeds: u64,
     models: Vec<(String, Option<PathBuf>)>,
 }
 
@@ -34,6 +36,7 @@ fn parse_args() -> Result<Args> {
         data: "../shared/real_lidar".into(),
         cache: None,
         png: None,
+        seeds: 3,
         models: Vec::new(),
     };
     while let Some(a) = it.next() {
@@ -41,6 +44,7 @@ fn parse_args() -> Result<Args> {
             "--data" => args.data = it.next().context("--data needs a value")?.into(),
             "--cache" => args.cache = Some(it.next().context("--cache needs a value")?.into()),
             "--png" => args.png = Some(it.next().context("--png needs a value")?.into()),
+            "--seeds" => args.seeds = it.next().context("--seeds needs a value")?.parse()?,
             m => {
                 let (label, dir) = m.split_once('=').unwrap_or((m, m));
                 let dir = (dir != "shipped").then(|| PathBuf::from(dir));
@@ -52,6 +56,19 @@ fn parse_args() -> Result<Args> {
         bail!("usage: gan_eval [--data DIR] [--cache FILE] [--png FILE] LABEL=MODEL_DIR ...");
     }
     Ok(args)
+}
+
+/// Mean and standard deviation over seeds of the mean SWD, and the per-level means.
+fn summary(reports: &[SwdReport]) -> serde_json::Value {
+    let n = reports.len() as f64;
+    let mean = reports.iter().map(|r| r.mean).sum::<f64>() / n;
+    let std =
+        (reports.iter().map(|r| (r.mean - mean).powi(2)).sum::<f64>() / (n - 1.0).max(1.0)).sqrt();
+    let levels = reports[0].per_level.len();
+    let per_level: Vec<f64> = (0..levels)
+        .map(|l| reports.iter().map(|r| r.per_level[l]).sum::<f64>() / n)
+        .collect();
+    serde_json::json!({ "mean": mean, "std_over_seeds": std, "per_level": per_level })
 }
 
 fn keep_rate(images: &[f32]) -> f64 {
@@ -67,18 +84,29 @@ fn main() -> Result<()> {
         Some(c) => RangeDataset::load_or_build(c, &train_files, 512)?,
         None => RangeDataset::from_kitti_files(&train_files, 512)?,
     };
-    let cfg = SwdConfig::default();
-    let floor = swd_between(&train, &heldout, &cfg);
+    let configs: Vec<SwdConfig> = (0..args.seeds.max(1))
+        .map(|seed| SwdConfig {
+            seed,
+            ..SwdConfig::default()
+        })
+        .collect();
+    let floor: Vec<SwdReport> = configs
+        .iter()
+        .map(|c| swd_between(&train, &heldout, c))
+        .collect();
     let mut rows = vec![serde_json::json!({
-        "label": "training set (floor)", "images": train.len(), "swd_mean": floor.mean,
-        "swd_per_level": floor.per_level, "keep_rate": keep_rate(&train.images),
+        "label": "training set (floor)", "images": train.len(), "swd": summary(&floor),
+        "keep_rate": keep_rate(&train.images),
     })];
     let n = heldout.height * heldout.width;
     let mut picture: Vec<Vec<f32>> = Vec::new();
     for (label, dir) in &args.models {
         let model = Model::load(dir.as_deref(), &device).with_context(|| label.clone())?;
         // as many samples as training scans, so the floor and the models compare equal set sizes
-        let report = swd_of_model(&model, &heldout, train.len(), &cfg, &device)?;
+        let reports = configs
+            .iter()
+            .map(|c| swd_of_model(&model, &heldout, train.len(), c, &device))
+            .collect::<Result<Vec<_>>>()?;
         let opts = SampleOptions {
             n: 64,
             seed: 1,
@@ -100,7 +128,7 @@ fn main() -> Result<()> {
         }
         rows.push(serde_json::json!({
             "label": label, "model": model.source, "arch": model.config.arch,
-            "swd_mean": report.mean, "swd_per_level": report.per_level, "keep_rate": kept,
+            "swd": summary(&reports), "keep_rate": kept,
         }));
     }
     if let Some(png) = &args.png {
@@ -113,7 +141,7 @@ fn main() -> Result<()> {
     println!(
         "{}",
         serde_json::to_string_pretty(&serde_json::json!({
-            "heldout_images": heldout.len(), "swd_config": format!("{cfg:?}"), "results": rows,
+            "heldout_images": heldout.len(), "swd_config": format!("{:?}", configs[0]), "swd_seeds": configs.len(), "results": rows,
         }))?
     );
     Ok(())
