@@ -250,6 +250,9 @@ pub struct TopicReport {
     pub scans: u64,
     /// Messages that could not be decoded or projected (copied through unchanged).
     pub malformed: u64,
+    /// Scans for which an output stage failed (e.g. nothing to auto-decode); their other
+    /// channels were written.
+    pub stage_failures: u64,
     pub sensor: Option<String>,
     pub strategy: Option<String>,
     pub rows: usize,
@@ -309,7 +312,14 @@ struct ScanProcessor<'a> {
     profiles: Mutex<HashMap<String, (SensorProfile, Strategy)>>,
 }
 
-type Processed = (Vec<StageOutput>, f64, (SensorProfile, Strategy));
+/// A processed scan: the stages' outputs, the kept fraction, the profile and projection used,
+/// and the errors of stages that failed (the other stages' channels are still written).
+type Processed = (
+    Vec<StageOutput>,
+    f64,
+    (SensorProfile, Strategy),
+    Vec<String>,
+);
 
 impl ScanProcessor<'_> {
     /// The profile and strategy for `topic`, fixed by its first scan with returns.
@@ -355,11 +365,15 @@ impl ScanProcessor<'_> {
             cloud: &cloud,
             image: &image,
         };
-        let mut outputs = Vec::new();
+        // One failing stage (e.g. a scan with nothing to decode) does not cost the others.
+        let (mut outputs, mut failed) = (Vec::new(), Vec::new());
         for stage in self.stages {
-            outputs.extend(stage(&input).map_err(|e| format!("{e:#}"))?);
+            match stage(&input) {
+                Ok(o) => outputs.extend(o),
+                Err(e) => failed.push(format!("{e:#}")),
+            }
         }
-        Ok((outputs, kept, (profile, strategy)))
+        Ok((outputs, kept, (profile, strategy), failed))
     }
 }
 
@@ -445,7 +459,18 @@ impl Converter<'_> {
         for (p, result) in batch.iter().zip(results) {
             let topic_report = self.report.topics.entry(p.topic.clone()).or_default();
             match result {
-                Ok((outputs, kept, (profile, strategy))) => {
+                Ok((outputs, kept, (profile, strategy), failed)) => {
+                    for message in failed {
+                        topic_report.stage_failures += 1;
+                        let loc = Location::message(&self.file, &p.topic, p.log_time);
+                        self.report.warnings.push(Warning {
+                            topic: p.topic.clone(),
+                            log_time_nanos: p.log_time,
+                            message: format!(
+                                "{loc}: {message}; the scan's other channels were written"
+                            ),
+                        });
+                    }
                     self.scans_done += 1;
                     topic_report.kept_fraction += kept;
                     topic_report.scans += 1;

@@ -176,3 +176,78 @@ fn the_foxglove_layout_names_only_written_channels() {
     let missing: Vec<_> = wanted.difference(&written).collect();
     assert!(missing.is_empty(), "layout topics not written: {missing:?}");
 }
+
+/// A scan with nothing to decode (every return beyond the model's 80 m) still gets its range
+/// image; only its decoded channels are missing, with a warning naming file, topic and time,
+/// and `--strict` turns that into exit code 3. The scans around it decode normally.
+#[test]
+fn a_scan_with_nothing_to_decode_keeps_its_range_channel_and_is_reported() {
+    use rangegan_mcap::io::decoders::DecodedCloud;
+    use rangegan_mcap::io::encoders::{self, Kind};
+    let dir = tempfile::tempdir().unwrap();
+    let (input, output) = (dir.path().join("far.mcap"), dir.path().join("out.mcap"));
+    {
+        let file = std::io::BufWriter::new(std::fs::File::create(&input).unwrap());
+        let mut w = mcap::Writer::new(file).unwrap();
+        let s = encoders::schema(Family::Ros2, Kind::Cloud);
+        let schema = w.add_schema(&s.name, &s.encoding, &s.data).unwrap();
+        let channel = w
+            .add_channel(schema, "/lidar", "cdr", &Default::default())
+            .unwrap();
+        for (i, range_m) in [5.0f32, 120.0, 6.0].into_iter().enumerate() {
+            let t = 1_000_000_000 + i as u64 * 100_000_000;
+            let cloud = DecodedCloud {
+                scan: synthetic_scan(range_m, i as u32),
+                stamp_nanos: t,
+                frame_id: "lidar".into(),
+            };
+            let header = mcap::records::MessageHeader {
+                channel_id: channel,
+                sequence: i as u32,
+                log_time: t,
+                publish_time: t,
+            };
+            let data = encoders::encode_scan(Family::Ros2, &cloud, &[]);
+            w.write_to_known_channel(&header, &data).unwrap();
+        }
+        w.finish().unwrap();
+    }
+    let summary = convert(&input, &output, &[], "1");
+    let report = &summary["report"];
+    assert_eq!(report["topics"]["/lidar"]["scans"], 3, "{report:#}");
+    assert_eq!(report["topics"]["/lidar"]["malformed"], 0);
+    assert_eq!(report["topics"]["/lidar"]["stage_failures"], 1);
+    let warnings = report["warnings"].as_array().unwrap();
+    assert_eq!(warnings.len(), 1, "{warnings:#?}");
+    let message = warnings[0]["message"].as_str().unwrap();
+    assert!(
+        message.contains("far.mcap")
+            && message.contains("/lidar")
+            && message.contains("nothing to decode"),
+        "{message}"
+    );
+    // 3 range images, 2 scans with their depth
+    let bytes = std::fs::read(&output).unwrap();
+    let count = |topic: &str| {
+        mcap::MessageStream::new(&bytes)
+            .unwrap()
+            .filter(|m| m.as_ref().unwrap().channel.topic == topic)
+            .count()
+    };
+    assert_eq!(count("/lidar/rangegan/range"), 3);
+    assert_eq!(count("/lidar/rangegan/depth"), 2);
+    assert_eq!(count("/lidar"), 3);
+    // --strict: done, but the exit code says something was skipped
+    let o = bin()
+        .args([
+            "convert",
+            input.to_str().unwrap(),
+            dir.path().join("strict.mcap").to_str().unwrap(),
+            "--strict",
+            "--quiet",
+        ])
+        .args(QUICK)
+        .output()
+        .unwrap();
+    assert_eq!(o.status.code(), Some(3), "{}", stderr(&o));
+}

@@ -288,7 +288,9 @@ pub fn run(global: &GlobalArgs, args: ConvertArgs) -> anyhow::Result<Outcome> {
             scans as f64 / secs.max(1e-9),
         );
     }
+    let stage_failures: u64 = report.topics.values().map(|t| t.stage_failures).sum();
     let skipped = malformed > 0
+        || stage_failures > 0
         || report.read.stopped.is_some()
         || !report.read.bad_chunks.is_empty()
         || report.copied.orphan_messages > 0;
