@@ -13,7 +13,7 @@ use rayon::prelude::*;
 
 use crate::decode::{Decoder, PreparedGrid, Rendered, scan_seed};
 use crate::error::Location;
-use crate::io::encoders::{Kind, Payload, PixelFormat, encode, encode_points};
+use crate::io::encoders::{Kind, encode_f32_image, encode_mask, encode_points};
 use crate::io::{
     CloudFormat, DecodedCloud, Family, McapOutput, OnError, ReadReport, decode_cloud, read_records,
 };
@@ -84,18 +84,12 @@ pub type Stage<'s> = dyn Fn(&ScanInput<'_>) -> anyhow::Result<Vec<StageOutput>> 
 /// The range image channel every converted topic gets: range in meters, 32FC1.
 pub fn range_stage(input: &ScanInput<'_>) -> anyhow::Result<Vec<StageOutput>> {
     let img = input.image;
-    let data: Vec<u8> = img.range_m.iter().flat_map(|r| r.to_le_bytes()).collect();
-    let payload = Payload::Image {
-        width: img.width as u32,
-        height: img.height as u32,
-        format: PixelFormat::F32,
-        data: &data,
-    };
-    let bytes = encode(
+    let bytes = encode_f32_image(
         input.family,
         input.cloud.stamp_nanos,
         &input.cloud.frame_id,
-        &payload,
+        (img.width, img.height),
+        &img.range_m,
     );
     Ok(vec![StageOutput {
         suffix: "range".into(),
@@ -170,23 +164,10 @@ impl<'d> DecodeStage<'d> {
             input.cloud.stamp_nanos,
             input.cloud.frame_id.as_str(),
         );
-        let image = |suffix: String, r: &Rendered, values: &[f32]| {
-            let data: Vec<u8> = values.iter().flat_map(|v| v.to_le_bytes()).collect();
-            StageOutput {
-                suffix,
-                kind: Kind::Image,
-                data: encode(
-                    family,
-                    stamp,
-                    frame,
-                    &Payload::Image {
-                        width: r.grid.width as u32,
-                        height: r.grid.height as u32,
-                        format: PixelFormat::F32,
-                        data: &data,
-                    },
-                ),
-            }
+        let image = |suffix: String, r: &Rendered, values: &[f32]| StageOutput {
+            suffix,
+            kind: Kind::Image,
+            data: encode_f32_image(family, stamp, frame, (r.grid.width, r.grid.height), values),
         };
         let points = |suffix: String, r: &Rendered| {
             let keep: Vec<usize> = (0..r.grid.len()).filter(|&k| r.depth_m[k] > 0.0).collect();
@@ -212,7 +193,6 @@ impl<'d> DecodeStage<'d> {
             image("raydrop_prob".into(), m, &m.drop_prob),
         ];
         for (i, mask) in decoded.sample_masks(self.mask_samples).iter().enumerate() {
-            let data: Vec<u8> = mask.iter().map(|&k| if k { 255 } else { 0 }).collect();
             out.push(StageOutput {
                 suffix: if i == 0 {
                     "raydrop_mask".into()
@@ -220,17 +200,7 @@ impl<'d> DecodeStage<'d> {
                     format!("raydrop_mask_{i}")
                 },
                 kind: Kind::Image,
-                data: encode(
-                    family,
-                    stamp,
-                    frame,
-                    &Payload::Image {
-                        width: m.grid.width as u32,
-                        height: m.grid.height as u32,
-                        format: PixelFormat::Mono8,
-                        data: &data,
-                    },
-                ),
+                data: encode_mask(family, stamp, frame, (m.grid.width, m.grid.height), mask),
             });
         }
         out.push(points("points".into(), m));

@@ -6,9 +6,10 @@ use std::collections::BTreeMap;
 use std::path::PathBuf;
 
 use super::{GlobalArgs, Outcome};
-use crate::io::encoders::{Kind, Payload, PixelFormat, encode};
-use crate::io::{Family, McapOutput, pointcloud};
-use crate::lidar::{Scan, SensorProfile};
+use crate::io::encoders::{Kind, encode_f32_image, encode_mask, encode_points};
+use crate::io::{Family, McapOutput};
+use crate::lidar::SensorProfile;
+use crate::model::data::MIN_DEPTH_M;
 use crate::model::layers::AngleGridExt;
 use crate::model::sample::{SampleOptions, SampledScan, sample};
 use crate::model::weights::Model;
@@ -65,62 +66,28 @@ fn scan_messages(
     frame_id: &str,
     s: &SampledScan,
 ) -> Vec<(&'static str, Kind, Vec<u8>)> {
-    let (h, w) = (s.angles.height as u32, s.angles.width as u32);
-    let depth_m: Vec<f32> = s
-        .x_d
-        .iter()
-        .map(|x| crate::model::data::MIN_DEPTH_M / x)
-        .collect();
-    let f32_image = |values: &[f32]| {
-        let data: Vec<u8> = values.iter().flat_map(|v| v.to_le_bytes()).collect();
-        encode(
-            family,
-            stamp,
-            frame_id,
-            &Payload::Image {
-                width: w,
-                height: h,
-                format: PixelFormat::F32,
-                data: &data,
-            },
-        )
-    };
-    let mask: Vec<u8> = s
-        .mask
-        .iter()
-        .map(|&keep| if keep { 255 } else { 0 })
-        .collect();
-    let mask_msg = encode(
-        family,
-        stamp,
-        frame_id,
-        &Payload::Image {
-            width: w,
-            height: h,
-            format: PixelFormat::Mono8,
-            data: &mask,
-        },
-    );
+    let size = (s.angles.width, s.angles.height);
+    let depth_m: Vec<f32> = s.x_d.iter().map(|x| MIN_DEPTH_M / x).collect();
+    let image = |values: &[f32]| encode_f32_image(family, stamp, frame_id, size, values);
     let returns: Vec<usize> = (0..s.range_m.len()).filter(|&k| s.mask[k]).collect();
-    let cloud = Scan::from_xyz(s.points());
     let range: Vec<f32> = returns.iter().map(|&k| s.range_m[k]).collect();
     let drop_prob: Vec<f32> = returns.iter().map(|&k| s.drop_prob[k]).collect();
-    let (layout, data) =
-        pointcloud::encode(&cloud, &[("range", &range), ("raydrop_prob", &drop_prob)]);
-    let cloud_msg = encode(
+    let cloud_msg = encode_points(
         family,
         stamp,
         frame_id,
-        &Payload::Cloud {
-            layout: &layout,
-            data: &data,
-        },
+        s.points(),
+        &[("range", &range), ("raydrop_prob", &drop_prob)],
     );
     vec![
-        ("depth", Kind::Image, f32_image(&depth_m)),
-        ("raydrop_prob", Kind::Image, f32_image(&s.drop_prob)),
-        ("raydrop_mask", Kind::Image, mask_msg),
-        ("range", Kind::Image, f32_image(&s.range_m)),
+        ("depth", Kind::Image, image(&depth_m)),
+        ("raydrop_prob", Kind::Image, image(&s.drop_prob)),
+        (
+            "raydrop_mask",
+            Kind::Image,
+            encode_mask(family, stamp, frame_id, size, &s.mask),
+        ),
+        ("range", Kind::Image, image(&s.range_m)),
         ("points", Kind::Cloud, cloud_msg),
     ]
 }

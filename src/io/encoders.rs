@@ -306,6 +306,42 @@ pub fn encode_scan(family: Family, cloud: &DecodedCloud, extra: &[(&str, &[f32])
 /// Encodes bare points (x, y, z, then `extra` float channels, one value per point) as an
 /// unorganized point-cloud message of `family`, e.g. a completed scan with `range` and
 /// `raydrop_prob`.
+/// A float image (`32FC1`) of `width x height` row-major values.
+pub fn encode_f32_image(
+    family: Family,
+    stamp_nanos: u64,
+    frame_id: &str,
+    (width, height): (usize, usize),
+    values: &[f32],
+) -> Vec<u8> {
+    let data: Vec<u8> = values.iter().flat_map(|v| v.to_le_bytes()).collect();
+    let image = Payload::Image {
+        width: width as u32,
+        height: height as u32,
+        format: PixelFormat::F32,
+        data: &data,
+    };
+    encode(family, stamp_nanos, frame_id, &image)
+}
+
+/// A ray-drop mask (`mono8`, 255 = the return was kept, 0 = dropped).
+pub fn encode_mask(
+    family: Family,
+    stamp_nanos: u64,
+    frame_id: &str,
+    (width, height): (usize, usize),
+    kept: &[bool],
+) -> Vec<u8> {
+    let data: Vec<u8> = kept.iter().map(|&k| if k { 255 } else { 0 }).collect();
+    let image = Payload::Image {
+        width: width as u32,
+        height: height as u32,
+        format: PixelFormat::Mono8,
+        data: &data,
+    };
+    encode(family, stamp_nanos, frame_id, &image)
+}
+
 pub fn encode_points(
     family: Family,
     stamp_nanos: u64,
