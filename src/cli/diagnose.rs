@@ -53,18 +53,8 @@ pub struct DiagnoseArgs {
     /// or `neighbour` (mean range of the nearest returns; the fallback per scan).
     #[arg(long, value_enum, default_value = "gan")]
     pub completion: CompletionArg,
-    /// Generator of `--completion gan`: a model directory or a training run
-    /// directory (default: the shipped weights).
-    #[arg(long)]
-    pub model: Option<PathBuf>,
-    /// Encoder of `--completion gan` (default: the shipped weights).
-    #[arg(long)]
-    pub encoder: Option<PathBuf>,
-    /// Pivotal-tuning steps per scan of `--completion gan` (default 0: the
-    /// encoder's prediction alone, which keeps two 100-scan recordings under a
-    /// minute; `convert --quality fast` uses 20, ~0.5 s per scan per core).
-    #[arg(long)]
-    pub tune_steps: Option<usize>,
+    #[command(flatten)]
+    pub gan: GanArgs,
 }
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
@@ -73,23 +63,43 @@ pub enum CompletionArg {
     Gan,
 }
 
-/// The `fast` decoder of `--completion gan`.
-pub(crate) fn gan_decoder(
-    model: Option<&std::path::Path>,
-    encoder: Option<&std::path::Path>,
-    tune_steps: Option<usize>,
-) -> anyhow::Result<Decoder> {
-    let device = burn::tensor::Device::flex();
-    let model = Model::load(model, &device)?;
-    let mut opts = DecodeOptions::new(Quality::Fast);
-    if let Some(n) = tune_steps {
-        opts.schedule.tune_steps = n;
+/// The GAN behind `diagnose --completion gan` and `render --raydrop gan`.
+#[derive(Debug, clap::Args)]
+pub struct GanArgs {
+    /// Generator: a model directory or a training run directory (default: the
+    /// shipped weights).
+    #[arg(long)]
+    pub model: Option<PathBuf>,
+    /// Encoder (default: the shipped weights).
+    #[arg(long)]
+    pub encoder: Option<PathBuf>,
+    /// Pivotal-tuning steps per scan (`diagnose` default 0: the encoder's
+    /// prediction alone, which keeps two 100-scan recordings under a minute;
+    /// `render` default 20, `convert --quality fast`'s, ~0.5 s per scan per core).
+    #[arg(long)]
+    pub tune_steps: Option<usize>,
+}
+
+impl GanArgs {
+    /// Whether any of the flags was given (they need the GAN mode of their command).
+    pub(crate) fn given(&self) -> bool {
+        self.model.is_some() || self.encoder.is_some() || self.tune_steps.is_some()
     }
-    let mut decoder = Decoder::new(model, opts)?;
-    if let Some(dir) = encoder {
-        decoder = decoder.with_encoder(TrainedEncoder::from_dir(dir, &device)?)?;
+
+    /// The `fast` decoder, with `default_tune_steps` unless `--tune-steps` says otherwise.
+    pub(crate) fn decoder(&self, default_tune_steps: Option<usize>) -> anyhow::Result<Decoder> {
+        let device = burn::tensor::Device::flex();
+        let model = Model::load(self.model.as_deref(), &device)?;
+        let mut opts = DecodeOptions::new(Quality::Fast);
+        if let Some(n) = self.tune_steps.or(default_tune_steps) {
+            opts.schedule.tune_steps = n;
+        }
+        let mut decoder = Decoder::new(model, opts)?;
+        if let Some(dir) = &self.encoder {
+            decoder = decoder.with_encoder(TrainedEncoder::from_dir(dir, &device)?)?;
+        }
+        Ok(decoder)
     }
-    Ok(decoder)
 }
 
 /// Features of a recording's scans with the chosen completion; the number of
@@ -153,7 +163,7 @@ pub fn run(global: &GlobalArgs, args: DiagnoseArgs) -> anyhow::Result<Outcome> {
     let completion = match args.completion {
         CompletionArg::Neighbour => {
             anyhow::ensure!(
-                args.model.is_none() && args.encoder.is_none() && args.tune_steps.is_none(),
+                !args.gan.given(),
                 "--model, --encoder and --tune-steps are for --completion gan"
             );
             Completion::Neighbour
@@ -161,14 +171,7 @@ pub fn run(global: &GlobalArgs, args: DiagnoseArgs) -> anyhow::Result<Outcome> {
         CompletionArg::Gan => Completion::Gan,
     };
     let decoder = match completion {
-        Completion::Gan => Some(
-            gan_decoder(
-                args.model.as_deref(),
-                args.encoder.as_deref(),
-                Some(args.tune_steps.unwrap_or(0)),
-            )
-            .context("--completion gan")?,
-        ),
+        Completion::Gan => Some(args.gan.decoder(Some(0)).context("--completion gan")?),
         Completion::Neighbour => None,
     };
     let started = std::time::Instant::now();

@@ -52,16 +52,8 @@ pub struct RenderArgs {
     /// The real recording whose drop frequencies `--raydrop global|pixel` use.
     #[arg(long)]
     pub real: Option<PathBuf>,
-    /// Generator of `--raydrop gan`: a model directory or a training run directory
-    /// (default: the shipped weights).
-    #[arg(long)]
-    pub model: Option<PathBuf>,
-    /// Encoder of `--raydrop gan` (default: the shipped weights).
-    #[arg(long)]
-    pub encoder: Option<PathBuf>,
-    /// Pivotal-tuning steps per scan of `--raydrop gan` (default: `fast`'s 20).
-    #[arg(long)]
-    pub tune_steps: Option<usize>,
+    #[command(flatten)]
+    pub gan: super::diagnose::GanArgs,
     /// Point-cloud topic (default: the first point-cloud topic).
     #[arg(long)]
     pub topic: Option<String>,
@@ -255,7 +247,7 @@ fn resolve_physics(
 pub fn run(global: &GlobalArgs, args: RenderArgs) -> anyhow::Result<Outcome> {
     let gan = args.raydrop == Some(RayDrop::Gan);
     anyhow::ensure!(
-        gan || (args.model.is_none() && args.encoder.is_none() && args.tune_steps.is_none()),
+        gan || !args.gan.given(),
         "--model, --encoder and --tune-steps are for --raydrop gan"
     );
     anyhow::ensure!(
@@ -281,12 +273,7 @@ pub fn run(global: &GlobalArgs, args: RenderArgs) -> anyhow::Result<Outcome> {
     // --raydrop gan: x_n of every scan, decoded up front (rayon over scans), by log time.
     let mut gan_drop: HashMap<u64, VecDeque<Result<Vec<f32>, String>>> = HashMap::new();
     if gan {
-        let decoder = super::diagnose::gan_decoder(
-            args.model.as_deref(),
-            args.encoder.as_deref(),
-            args.tune_steps,
-        )
-        .context("--raydrop gan")?;
+        let decoder = args.gan.decoder(None).context("--raydrop gan")?;
         let seeds: Vec<u64> = input
             .log_times
             .iter()
