@@ -27,9 +27,10 @@ pub enum BackendArg {
     Ndarray,
 }
 
+/// What every resumable training run takes: where it lives, its data, when to stop, its seed.
 #[derive(Debug, clap::Args)]
-pub struct TrainArgs {
-    /// Run directory: config.json, checkpoint/, log.jsonl, snapshots/. Resumes if it exists.
+pub struct RunArgs {
+    /// Run directory (config.json, checkpoint/, log.jsonl, ...). Resumes if it exists.
     pub run_dir: PathBuf,
     /// Folder holding kitti_raw_drive_a/ and semantickitti_mini/ (sequences 00, 07 held out).
     #[arg(long, default_value = "../shared/real_lidar")]
@@ -37,6 +38,30 @@ pub struct TrainArgs {
     /// Projected-dataset cache (default: RUN_DIR/dataset.bin).
     #[arg(long)]
     pub cache: Option<PathBuf>,
+    /// Stop (with a checkpoint) after this many minutes.
+    #[arg(long)]
+    pub max_minutes: Option<f64>,
+    /// Seed of a new run.
+    #[arg(long)]
+    pub seed: Option<u64>,
+}
+
+impl RunArgs {
+    pub(crate) fn cache_path(&self) -> PathBuf {
+        self.cache
+            .clone()
+            .unwrap_or_else(|| self.run_dir.join("dataset.bin"))
+    }
+
+    pub(crate) fn max_duration(&self) -> Option<Duration> {
+        self.max_minutes.map(|m| Duration::from_secs_f64(m * 60.0))
+    }
+}
+
+#[derive(Debug, clap::Args)]
+pub struct TrainArgs {
+    #[command(flatten)]
+    pub run: RunArgs,
     /// Architecture of a new run.
     #[arg(long, value_enum, default_value = "dusty2")]
     pub arch: ArchArg,
@@ -49,12 +74,6 @@ pub struct TrainArgs {
     /// Stop after this many real images (also extends a resumed run).
     #[arg(long)]
     pub total_images: Option<u64>,
-    /// Stop (with a checkpoint) after this many minutes.
-    #[arg(long)]
-    pub max_minutes: Option<f64>,
-    /// Seed of a new run.
-    #[arg(long)]
-    pub seed: Option<u64>,
     /// Use the paper's network widths instead of the CPU ones.
     #[arg(long)]
     pub reference_size: bool,
@@ -74,23 +93,20 @@ pub fn run_train(global: &GlobalArgs, args: TrainArgs) -> anyhow::Result<Outcome
     if let Some(b) = args.batch {
         config = config.with_batch_size(b);
     }
-    if let Some(s) = args.seed {
+    if let Some(s) = args.run.seed {
         config = config.with_seed(s);
     }
     let opts = TrainOptions {
-        dataset_cache: args
-            .cache
-            .clone()
-            .unwrap_or_else(|| args.run_dir.join("dataset.bin")),
-        run_dir: args.run_dir,
-        scans: kitti_training_files(&args.data)?,
+        dataset_cache: args.run.cache_path(),
+        max_duration: args.run.max_duration(),
+        scans: kitti_training_files(&args.run.data)?,
+        run_dir: args.run.run_dir,
         config,
         backend: match args.backend {
             BackendArg::Flex => Backend::Flex,
             BackendArg::Ndarray => Backend::Ndarray,
         },
         total_images: args.total_images,
-        max_duration: args.max_minutes.map(|m| Duration::from_secs_f64(m * 60.0)),
         progress: !global.quiet,
     };
     run(&opts)?;
