@@ -173,7 +173,7 @@ impl Trainer {
             step: 0,
             rng: Rng::new(config.seed),
         };
-        let ck = run_dir.join("checkpoint");
+        let ck = run_dir.join(crate::model::train::CHECKPOINT);
         if ck.join("state.json").exists() {
             encoder = encoder
                 .try_load_file(ck.join("encoder.bpk"))
@@ -361,27 +361,19 @@ impl Trainer {
 
     /// Write the checkpoint to a temp folder and swap it in; refresh `export/`.
     fn checkpoint(&self, run_dir: &Path) -> Result<()> {
-        let tmp = run_dir.join("checkpoint.tmp");
-        let old = run_dir.join("checkpoint.old");
-        let dst = run_dir.join("checkpoint");
-        let _ = std::fs::remove_dir_all(&tmp);
-        std::fs::create_dir_all(&tmp)?;
         let err = |e: burn::store::RecordError| anyhow::anyhow!("failed to save checkpoint: {e}");
-        self.encoder
-            .clone()
-            .save_file(tmp.join("encoder.bpk"))
-            .map_err(err)?;
-        self.opt.save(tmp.join("opt.bpk")).map_err(err)?;
-        std::fs::write(
-            tmp.join("state.json"),
-            serde_json::to_string_pretty(&self.state)?,
-        )?;
-        let _ = std::fs::remove_dir_all(&old);
-        if dst.exists() {
-            std::fs::rename(&dst, &old)?;
-        }
-        std::fs::rename(&tmp, &dst)?;
-        let _ = std::fs::remove_dir_all(&old);
+        crate::model::train::write_checkpoint(run_dir, |tmp| {
+            self.encoder
+                .clone()
+                .save_file(tmp.join("encoder.bpk"))
+                .map_err(err)?;
+            self.opt.save(tmp.join("opt.bpk")).map_err(err)?;
+            std::fs::write(
+                tmp.join("state.json"),
+                serde_json::to_string_pretty(&self.state)?,
+            )?;
+            Ok(())
+        })?;
         // The shippable form: the encoder's own config + inference weights.
         let export = run_dir.join("export");
         std::fs::create_dir_all(&export)?;

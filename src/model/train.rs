@@ -576,44 +576,36 @@ impl Trainer {
         })
     }
 
-    /// Write the checkpoint to a temp folder, then swap it in (a kill never leaves half a one).
+    /// Write the checkpoint (a kill never leaves half a one).
     fn checkpoint(&self, run_dir: &Path) -> Result<()> {
-        let tmp = run_dir.join("checkpoint.tmp");
-        let old = run_dir.join("checkpoint.old");
-        let dst = run_dir.join(CHECKPOINT);
-        let _ = std::fs::remove_dir_all(&tmp);
-        std::fs::create_dir_all(&tmp)?;
-        let save_err =
-            |what: &str, e: burn::store::RecordError| anyhow::anyhow!("failed to save {what}: {e}");
-        self.g
-            .clone()
-            .save_file(tmp.join("g.bpk"))
-            .map_err(|e| save_err("g", e))?;
-        self.g_ema
-            .clone()
-            .save_file(tmp.join("g_ema.bpk"))
-            .map_err(|e| save_err("g_ema", e))?;
-        self.d
-            .clone()
-            .save_file(tmp.join("d.bpk"))
-            .map_err(|e| save_err("d", e))?;
-        self.opt_g
-            .save(tmp.join("opt_g.bpk"))
-            .map_err(|e| save_err("opt_g", e))?;
-        self.opt_d
-            .save(tmp.join("opt_d.bpk"))
-            .map_err(|e| save_err("opt_d", e))?;
-        std::fs::write(
-            tmp.join("state.json"),
-            serde_json::to_string_pretty(&self.state)?,
-        )?;
-        let _ = std::fs::remove_dir_all(&old);
-        if dst.exists() {
-            std::fs::rename(&dst, &old)?;
-        }
-        std::fs::rename(&tmp, &dst)?;
-        let _ = std::fs::remove_dir_all(&old);
-        Ok(())
+        write_checkpoint(run_dir, |tmp| {
+            let save_err = |what: &str, e: burn::store::RecordError| {
+                anyhow::anyhow!("failed to save {what}: {e}")
+            };
+            self.g
+                .clone()
+                .save_file(tmp.join("g.bpk"))
+                .map_err(|e| save_err("g", e))?;
+            self.g_ema
+                .clone()
+                .save_file(tmp.join("g_ema.bpk"))
+                .map_err(|e| save_err("g_ema", e))?;
+            self.d
+                .clone()
+                .save_file(tmp.join("d.bpk"))
+                .map_err(|e| save_err("d", e))?;
+            self.opt_g
+                .save(tmp.join("opt_g.bpk"))
+                .map_err(|e| save_err("opt_g", e))?;
+            self.opt_d
+                .save(tmp.join("opt_d.bpk"))
+                .map_err(|e| save_err("opt_d", e))?;
+            std::fs::write(
+                tmp.join("state.json"),
+                serde_json::to_string_pretty(&self.state)?,
+            )?;
+            Ok(())
+        })
     }
 
     /// PNG: for 4 fixed latents (EMA generator) the rows x_d | x_n (drop prob) | x_G, then
@@ -658,6 +650,27 @@ struct StepMetrics {
     d_real: f32,
     d_fake: f32,
     pixel_drop: f32,
+}
+
+/// Writes `RUN_DIR/checkpoint/` through `fill` into a temporary folder, then swaps it in, so a
+/// kill at any moment leaves the previous checkpoint or the new one, never half of one.
+pub(crate) fn write_checkpoint(
+    run_dir: &Path,
+    fill: impl FnOnce(&Path) -> Result<()>,
+) -> Result<()> {
+    let tmp = run_dir.join("checkpoint.tmp");
+    let old = run_dir.join("checkpoint.old");
+    let dst = run_dir.join(CHECKPOINT);
+    let _ = std::fs::remove_dir_all(&tmp);
+    std::fs::create_dir_all(&tmp)?;
+    fill(&tmp)?;
+    let _ = std::fs::remove_dir_all(&old);
+    if dst.exists() {
+        std::fs::rename(&dst, &old)?;
+    }
+    std::fs::rename(&tmp, &dst)?;
+    let _ = std::fs::remove_dir_all(&old);
+    Ok(())
 }
 
 /// Stack `[H, W]` images (network units, -1 = black) vertically into one grayscale PNG,
