@@ -103,23 +103,12 @@ impl DropFamily for RangeFamily {
         let (a, b, drop_prob) = fit_curve(table, &grid_a, &SOFTNESS, probs)?;
         // The range where 10 % of the rays drop: p = 0.1 <=> d = r50 · 9^(-s/2).
         let onset = a * 9f32.powf(-b / 2.0);
-        let mut params = Map::new();
-        params.insert("range_50_m".into(), json!(round3(a.into())));
-        params.insert("softness".into(), json!(round3(b.into())));
-        let mut physics = Map::new();
-        physics.insert(
-            "range_dropout".into(),
-            json!({"range_50_m": a, "softness": b}),
-        );
-        Some(DropFit {
+        Some(curve_fit(
+            "range_dropout",
+            [("range_50_m", a), ("softness", b)],
             drop_prob,
-            params,
-            physics,
-            n_params: 2,
-            location: format!(
-                "ranges beyond ~{onset:.0} m (10 % of rays lost there, half at {a:.0} m)"
-            ),
-        })
+            format!("ranges beyond ~{onset:.0} m (10 % of rays lost there, half at {a:.0} m)"),
+        ))
     }
 }
 
@@ -162,24 +151,35 @@ impl DropFamily for IncidenceFamily {
         };
         let (a, b, drop_prob) = fit_curve(table, &grid_a, &SOFTNESS, probs)?;
         let onset_deg = (a * 9f32.powf(b)).min(1.0).acos().to_degrees();
-        let mut params = Map::new();
-        params.insert("cos_50".into(), json!(round3(a.into())));
-        params.insert("softness".into(), json!(round3(b.into())));
-        let mut physics = Map::new();
-        physics.insert(
-            "incidence_dropout".into(),
-            json!({"cos_50": a, "softness": b}),
-        );
-        Some(DropFit {
+        Some(curve_fit(
+            "incidence_dropout",
+            [("cos_50", a), ("softness", b)],
             drop_prob,
-            params,
-            physics,
-            n_params: 2,
-            location: format!(
+            format!(
                 "incidence angles above ~{onset_deg:.0} deg (grazing surfaces; half the rays lost at {:.0} deg)",
                 a.acos().to_degrees()
             ),
-        })
+        ))
+    }
+}
+
+/// The fit of a two-parameter drop curve: its parameters (rounded in the report, exact in
+/// the fitted physics), per-bin drop probabilities and location in words.
+fn curve_fit(id: &str, values: [(&str, f32); 2], drop_prob: Vec<f64>, location: String) -> DropFit {
+    let mut params = Map::new();
+    let mut effect = Map::new();
+    for (name, v) in values {
+        params.insert(name.into(), json!(round3(v.into())));
+        effect.insert(name.into(), json!(v));
+    }
+    let mut physics = Map::new();
+    physics.insert(id.into(), Value::Object(effect));
+    DropFit {
+        drop_prob,
+        params,
+        physics,
+        n_params: 2,
+        location,
     }
 }
 
