@@ -220,6 +220,20 @@ impl Binned {
     }
 }
 
+/// Calls `visit(scan, k)` for every return whose left and right neighbours in its row are
+/// returns too (the local statistics of range noise and mixed pixels need both).
+fn for_each_row_triplet(scans: &[ScanFeatures], mut visit: impl FnMut(&ScanFeatures, usize)) {
+    for f in scans {
+        let w = f.width;
+        for k in 0..f.len() {
+            let j = k % w;
+            if j > 0 && j + 1 < w && f.kept[k] && f.kept[k - 1] && f.kept[k + 1] {
+                visit(f, k);
+            }
+        }
+    }
+}
+
 /// `range_noise`: Gaussian range noise growing with range.
 pub struct RangeNoiseFamily;
 
@@ -229,21 +243,12 @@ impl ResidualFamily for RangeNoiseFamily {
     }
     fn observations(&self, scans: &[ScanFeatures]) -> Obs {
         let mut obs = Vec::new();
-        for f in scans {
-            let w = f.width;
-            for k in 0..f.len() {
-                let j = k % w;
-                if j == 0 || j + 1 == w || !f.kept[k] || !f.kept[k - 1] || !f.kept[k + 1] {
-                    continue;
-                }
-                if f.edge_px[k] < 2 {
-                    continue;
-                }
+        for_each_row_triplet(scans, |f, k| {
+            if f.edge_px[k] >= 2 {
                 let r = f.range_m[k];
-                let e = r - 0.5 * (f.range_m[k - 1] + f.range_m[k + 1]);
-                obs.push((e, r));
+                obs.push((r - 0.5 * (f.range_m[k - 1] + f.range_m[k + 1]), r));
             }
-        }
+        });
         obs
     }
     fn fit(&self, sim: &Obs, train: &Obs, test: &Obs, _: &ResidualContext) -> Option<ResidualFit> {
@@ -304,25 +309,17 @@ impl ResidualFamily for MixedPixelsFamily {
     }
     fn observations(&self, scans: &[ScanFeatures]) -> Obs {
         let mut obs = Vec::new();
-        for f in scans {
-            let w = f.width;
-            for k in 0..f.len() {
-                let j = k % w;
-                if j == 0 || j + 1 == w || !f.kept[k] || !f.kept[k - 1] || !f.kept[k + 1] {
-                    continue;
-                }
-                let (a, b) = (f.range_m[k - 1], f.range_m[k + 1]);
-                let (near, far) = (a.min(b), a.max(b));
-                let gap = far - near;
-                if gap <= MIXED_MIN_GAP_M {
-                    continue;
-                }
+        for_each_row_triplet(scans, |f, k| {
+            let (a, b) = (f.range_m[k - 1], f.range_m[k + 1]);
+            let (near, far) = (a.min(b), a.max(b));
+            let gap = far - near;
+            if gap > MIXED_MIN_GAP_M {
                 let r = f.range_m[k];
                 let margin = 0.1 * gap;
                 let between = r > near + margin && r < far - margin;
                 obs.push((f32::from(u8::from(between)), gap));
             }
-        }
+        });
         obs
     }
     fn fit(&self, sim: &Obs, train: &Obs, test: &Obs, _: &ResidualContext) -> Option<ResidualFit> {
