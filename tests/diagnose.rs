@@ -35,6 +35,21 @@ fn simulate(path: &Path, scene: u64, physics: &str, organized: bool) -> f64 {
     v["keep_rate"].as_f64().unwrap()
 }
 
+/// `diagnose --sim SIM --real REAL --report REPORT EXTRA...`.
+fn diagnose(sim: &Path, real: &Path, report: &Path, extra: &[&str]) -> std::process::Output {
+    let mut args = vec![
+        "diagnose",
+        "--sim",
+        sim.to_str().unwrap(),
+        "--real",
+        real.to_str().unwrap(),
+        "--report",
+        report.to_str().unwrap(),
+    ];
+    args.extend_from_slice(extra);
+    run(&args)
+}
+
 #[test]
 fn diagnose_names_a_concealed_range_dropout_and_render_applies_it() {
     let dir = tempfile::tempdir().unwrap();
@@ -65,15 +80,7 @@ fn diagnose_names_a_concealed_range_dropout_and_render_applies_it() {
     );
 
     let report = d.join("report");
-    let out = run(&[
-        "diagnose",
-        "--sim",
-        sim.to_str().unwrap(),
-        "--real",
-        real.to_str().unwrap(),
-        "--report",
-        report.to_str().unwrap(),
-    ]);
+    let out = diagnose(&sim, &real, &report, &[]);
     assert!(out.status.success(), "{}", stderr(&out));
     let r: serde_json::Value =
         serde_json::from_slice(&std::fs::read(report.join("report.json")).unwrap()).unwrap();
@@ -143,19 +150,12 @@ fn diagnose_names_a_concealed_range_dropout_and_render_applies_it() {
 
     // GAN completion (encoder only, to stay quick): recorded in the report.
     let report_gan = d.join("report_gan");
-    let out = run(&[
-        "diagnose",
-        "--completion",
-        "gan",
-        "--tune-steps",
-        "0",
-        "--sim",
-        sim.to_str().unwrap(),
-        "--real",
-        real.to_str().unwrap(),
-        "--report",
-        report_gan.to_str().unwrap(),
-    ]);
+    let out = diagnose(
+        &sim,
+        &real,
+        &report_gan,
+        &["--completion", "gan", "--tune-steps", "0"],
+    );
     assert!(out.status.success(), "{}", stderr(&out));
     let r: serde_json::Value =
         serde_json::from_slice(&std::fs::read(report_gan.join("report.json")).unwrap()).unwrap();
@@ -163,19 +163,12 @@ fn diagnose_names_a_concealed_range_dropout_and_render_applies_it() {
     assert_eq!(r["inputs"]["completion_fallback_scans"], 0);
     assert!(r["inputs"]["completion_model"].is_string());
     assert!(r["fit"]["after"].as_f64() < r["fit"]["before"].as_f64());
-    let out = run(&[
-        "diagnose",
-        "--completion",
-        "neighbour",
-        "--model",
-        "x",
-        "--sim",
-        sim.to_str().unwrap(),
-        "--real",
-        real.to_str().unwrap(),
-        "--report",
-        report_gan.to_str().unwrap(),
-    ]);
+    let out = diagnose(
+        &sim,
+        &real,
+        &report_gan,
+        &["--completion", "neighbour", "--model", "x"],
+    );
     assert!(!out.status.success());
     assert!(
         stderr(&out).contains("--completion gan"),
@@ -274,42 +267,16 @@ fn diagnose_errors_name_the_file_and_topic() {
     let dir = tempfile::tempdir().unwrap();
     let d = dir.path();
     let missing = d.join("missing.mcap");
-    let out = run(&[
-        "diagnose",
-        "--sim",
-        missing.to_str().unwrap(),
-        "--real",
-        missing.to_str().unwrap(),
-        "--report",
-        d.join("r").to_str().unwrap(),
-    ]);
+    let out = diagnose(&missing, &missing, &d.join("r"), &[]);
     assert!(!out.status.success());
     assert!(stderr(&out).contains("missing.mcap"), "{}", stderr(&out));
     let not_mcap = d.join("junk.mcap");
     std::fs::write(&not_mcap, b"definitely not an mcap file").unwrap();
-    let out = run(&[
-        "diagnose",
-        "--sim",
-        not_mcap.to_str().unwrap(),
-        "--real",
-        not_mcap.to_str().unwrap(),
-        "--report",
-        d.join("r").to_str().unwrap(),
-    ]);
+    let out = diagnose(&not_mcap, &not_mcap, &d.join("r"), &[]);
     assert!(!out.status.success());
     assert!(stderr(&out).contains("junk.mcap"), "{}", stderr(&out));
     let sample = Path::new(env!("CARGO_MANIFEST_DIR")).join("sample_logs/drive_ideal.mcap");
-    let out = run(&[
-        "diagnose",
-        "--sim",
-        sample.to_str().unwrap(),
-        "--real",
-        sample.to_str().unwrap(),
-        "--topic",
-        "/lidar_top",
-        "--report",
-        d.join("r").to_str().unwrap(),
-    ]);
+    let out = diagnose(&sample, &sample, &d.join("r"), &["--topic", "/lidar_top"]);
     assert!(!out.status.success());
     let err = stderr(&out);
     assert!(
