@@ -15,16 +15,20 @@ fn hash(path: &Path) -> u32 {
     crc32fast::hash(&std::fs::read(path).unwrap())
 }
 
+/// `convert --quality off ARGS...`: these tests are about I/O and range images, not decoding.
+fn convert_range_only(args: &[&str]) -> std::process::Output {
+    let mut all = vec!["convert", "--quality", "off"];
+    all.extend_from_slice(args);
+    run(&all)
+}
+
 #[test]
 fn converts_every_family_and_copies_every_record() {
     let dir = tempfile::tempdir().unwrap();
     let (input, output) = (dir.path().join("in.mcap"), dir.path().join("out.mcap"));
     let messages = write_recording(&input, &FAMILIES, 5, Some(64 * 1024));
     let before = hash(&input);
-    let o = run(&[
-        "convert",
-        "--quality",
-        "off",
+    let o = convert_range_only(&[
         input.to_str().unwrap(),
         output.to_str().unwrap(),
         "--json",
@@ -88,24 +92,16 @@ fn refuses_to_overwrite_input_or_existing_output() {
     let (input, output) = (dir.path().join("in.mcap"), dir.path().join("out.mcap"));
     write_recording(&input, &[Family::Ros2], 1, None);
     let i = input.to_str().unwrap();
-    let o = run(&["convert", "--quality", "off", i, i]);
+    let o = convert_range_only(&[i, i]);
     assert_eq!(o.status.code(), Some(1));
     assert!(stderr(&o).contains("output is the input"), "{}", stderr(&o));
 
     std::fs::write(&output, b"keep me").unwrap();
-    let o = run(&["convert", "--quality", "off", i, output.to_str().unwrap()]);
+    let o = convert_range_only(&[i, output.to_str().unwrap()]);
     assert_eq!(o.status.code(), Some(1));
     assert!(stderr(&o).contains("--force"));
     assert_eq!(std::fs::read(&output).unwrap(), b"keep me");
-    let o = run(&[
-        "convert",
-        "--quality",
-        "off",
-        i,
-        output.to_str().unwrap(),
-        "--force",
-        "--quiet",
-    ]);
+    let o = convert_range_only(&[i, output.to_str().unwrap(), "--force", "--quiet"]);
     assert!(o.status.success(), "{}", stderr(&o));
     assert_ne!(std::fs::read(&output).unwrap(), b"keep me");
 }
@@ -123,10 +119,7 @@ fn truncated_recordings_keep_every_complete_message() {
         let cut = dir.path().join("cut.mcap");
         let out = dir.path().join("cut.out.mcap");
         std::fs::write(&cut, &bytes[..(bytes.len() as f64 * fraction) as usize]).unwrap();
-        let o = run(&[
-            "convert",
-            "--quality",
-            "off",
+        let o = convert_range_only(&[
             cut.to_str().unwrap(),
             out.to_str().unwrap(),
             "--json",
@@ -152,10 +145,7 @@ fn truncated_recordings_keep_every_complete_message() {
         );
         assert!(s["report"]["read"]["unread_bytes"].as_u64().unwrap() > 0);
         last = scans;
-        let strict = run(&[
-            "convert",
-            "--quality",
-            "off",
+        let strict = convert_range_only(&[
             cut.to_str().unwrap(),
             out.to_str().unwrap(),
             "--force",
@@ -193,13 +183,7 @@ fn corrupt_chunks_are_named_and_can_be_skipped() {
     bytes[start + 9 + len - 10] ^= 0xff;
     std::fs::write(&input, &bytes).unwrap();
 
-    let o = run(&[
-        "convert",
-        "--quality",
-        "off",
-        input.to_str().unwrap(),
-        output.to_str().unwrap(),
-    ]);
+    let o = convert_range_only(&[input.to_str().unwrap(), output.to_str().unwrap()]);
     assert_eq!(o.status.code(), Some(1));
     let err = stderr(&o);
     assert!(err.contains("/lidar_ros2"), "{err}");
@@ -215,10 +199,7 @@ fn corrupt_chunks_are_named_and_can_be_skipped() {
         .collect();
     assert!(leftovers.is_empty(), "no temporary file left behind");
 
-    let o = run(&[
-        "convert",
-        "--quality",
-        "off",
+    let o = convert_range_only(&[
         input.to_str().unwrap(),
         output.to_str().unwrap(),
         "--on-error",
@@ -281,14 +262,7 @@ fn malformed_clouds_are_copied_and_reported() {
     }
     w.finish().unwrap();
     drop(w);
-    let o = run(&[
-        "convert",
-        "--quality",
-        "off",
-        input.to_str().unwrap(),
-        output.to_str().unwrap(),
-        "--json",
-    ]);
+    let o = convert_range_only(&[input.to_str().unwrap(), output.to_str().unwrap(), "--json"]);
     assert!(o.status.success(), "{}", stderr(&o));
     let err = stderr(&o);
     assert_eq!(err.matches("warning:").count(), 3, "{err}");
@@ -300,10 +274,7 @@ fn malformed_clouds_are_copied_and_reported() {
     assert_eq!(s["report"]["topics"]["/points"]["scans"], 5);
     assert_eq!(s["report"]["topics"]["/points"]["malformed"], 3);
     assert_eq!(s["report"]["copied"]["messages"], 8);
-    let strict = run(&[
-        "convert",
-        "--quality",
-        "off",
+    let strict = convert_range_only(&[
         input.to_str().unwrap(),
         output.to_str().unwrap(),
         "--force",
@@ -318,10 +289,7 @@ fn not_an_mcap_is_a_clear_error() {
     let dir = tempfile::tempdir().unwrap();
     let input = dir.path().join("notes.txt");
     std::fs::write(&input, b"hello, this is not a recording").unwrap();
-    let o = run(&[
-        "convert",
-        "--quality",
-        "off",
+    let o = convert_range_only(&[
         input.to_str().unwrap(),
         dir.path().join("o.mcap").to_str().unwrap(),
     ]);
