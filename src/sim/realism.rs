@@ -280,24 +280,33 @@ mod tests {
         assert_eq!(s.scans, 1);
     }
 
-    #[test]
-    fn real_kitti_scans_keep_most_rays_and_lose_the_top_rows() {
+    /// Stats of every `step`-th real SemanticKITTI scan at 64 x 512; `None` (with a skip
+    /// message) where the real data is absent.
+    fn real_kitti_stats(step: usize) -> Option<RealismStats> {
         let dir = Path::new("../shared/real_lidar/semantickitti_mini");
         if !dir.exists() {
             eprintln!(
                 "skipped: {} is absent (real data lives beside the repo)",
                 dir.display()
             );
-            return;
+            return None;
         }
         let profile = SensorProfile::kitti_hdl64e().with_columns(512);
         let mut s = RealismStats::new("real", 64, 512);
-        for (bin, labels) in find_kitti_scans(dir).into_iter().step_by(10) {
+        for (bin, labels) in find_kitti_scans(dir).into_iter().step_by(step) {
             s.add(
                 &real_range_image(&bin, labels.as_deref(), &profile).unwrap(),
                 labels.is_some(),
             );
         }
+        Some(s)
+    }
+
+    #[test]
+    fn real_kitti_scans_keep_most_rays_and_lose_the_top_rows() {
+        let Some(s) = real_kitti_stats(10) else {
+            return;
+        };
         assert!(s.scans >= 5);
         assert!(
             s.keep_rate() > 0.7 && s.keep_rate() < 0.95,
@@ -310,22 +319,10 @@ mod tests {
 
     #[test]
     fn realistic_physics_brings_the_keep_pattern_close_to_real_kitti() {
-        let dir = Path::new("../shared/real_lidar/semantickitti_mini");
-        if !dir.exists() {
-            eprintln!(
-                "skipped: {} is absent (real data lives beside the repo)",
-                dir.display()
-            );
+        let Some(real) = real_kitti_stats(5) else {
             return;
-        }
+        };
         let profile = SensorProfile::kitti_hdl64e().with_columns(512);
-        let mut real = RealismStats::new("real", 64, 512);
-        for (bin, labels) in find_kitti_scans(dir).into_iter().step_by(5) {
-            real.add(
-                &real_range_image(&bin, labels.as_deref(), &profile).unwrap(),
-                labels.is_some(),
-            );
-        }
         let physics = crate::physics::Preset::Realistic.config().effects();
         let (mut ideal, mut realistic) = (
             RealismStats::new("ideal", 64, 512),
