@@ -19,6 +19,7 @@ use rangegan_mcap::decode::{DecodeOptions, Decoded, Decoder, Quality, Sparsify, 
 use rangegan_mcap::lidar::{
     self, AngleGrid, Interpolation, RangeImage, SensorProfile, Strategy, resample_image,
 };
+use rangegan_mcap::model::calibration::bernoulli_nll;
 use rangegan_mcap::model::data::{MAX_DEPTH_M, MIN_DEPTH_M, kitti_training_files};
 use rangegan_mcap::model::weights::Model;
 use rayon::prelude::*;
@@ -223,6 +224,38 @@ fn scattered_baselines(observed: &[f32], h: usize, w: usize) -> (Vec<f32>, Vec<f
     (nearest, idw)
 }
 
+/// Residual anchoring: the GAN rendering corrected by the interpolated residual of the
+/// observation (`base_obs` = an interpolation of the observation, `base_gan` = the same
+/// interpolation of the GAN's values at the observed pixels). Additive and multiplicative.
+fn anchored(gan: &[f32], base_obs: &[f32], base_gan: &[f32]) -> (Vec<f32>, Vec<f32>) {
+    let f = |mult: bool| -> Vec<f32> {
+        gan.iter()
+            .zip(base_obs.iter().zip(base_gan))
+            .map(|(g, (o, b))| {
+                if *g <= 0.0 || *o <= 0.0 || *b <= 0.0 {
+                    *g
+                } else if mult {
+                    g * o / b
+                } else {
+                    (g + o - b).max(0.5)
+                }
+            })
+            .collect()
+    };
+    (f(false), f(true))
+}
+
+/// `values` where `like` has a return, else 0 (same validity as the observation).
+fn with_validity_of(like: &RangeImage, values: &[f32]) -> RangeImage {
+    let mut out = like.clone();
+    for (k, r) in out.range_m.iter_mut().enumerate() {
+        if *r > 0.0 {
+            *r = values[k];
+        }
+    }
+    out
+}
+
 fn decoder(
     model: &Option<PathBuf>,
     encoder: &Option<PathBuf>,
@@ -356,13 +389,15 @@ fn main() -> Result<()> {
     // ---- Ray-drop calibration (fast decodes of the full scans) ---------------------------
     let bins = 10;
     let mut rel = vec![(0.0f64, 0.0f64, 0usize); bins];
-    let (mut nll, mut n_pix) = (0.0f64, 0usize);
+    let (mut nll, mut nll_raw, mut n_pix) = (0.0f64, 0.0f64, 0usize);
     let mut rows_drop = vec![(0.0f64, 0usize); 64];
     for (s, (d, _)) in scans[..fast_n].iter().zip(&fast_res) {
+        let raw_logits = d.keep_logits(&fast);
         for k in 0..s.image.len() {
             let dropped = s.image.range_m[k] <= 0.0;
             let p = f64::from(d.model.drop_prob[k]).clamp(1e-4, 1.0 - 1e-4);
             nll -= if dropped { p.ln() } else { (1.0 - p).ln() };
+            nll_raw += bernoulli_nll(f64::from(raw_logits[k]), !dropped);
             n_pix += 1;
             let b = ((p * bins as f64) as usize).min(bins - 1);
             rel[b].0 += p;
@@ -401,7 +436,8 @@ fn main() -> Result<()> {
     }
     let n = n_pix.max(1) as f64;
     let calibration = json!({
-        "nll_xn": nll / n, "nll_global_rate": nll_global / n, "nll_per_row_rate": nll_row / n,
+        "nll_xn": nll / n, "nll_xn_uncalibrated": nll_raw / n,
+        "calibration": fast.calibration_source(), "nll_global_rate": nll_global / n, "nll_per_row_rate": nll_row / n,
         "drop_rate_heldout": rows_drop.iter().map(|r| r.0).sum::<f64>() / n,
         "drop_rate_train": global,
         "reliability": rel.iter().enumerate().map(|(i, (sp, sd, c))| json!({
@@ -426,15 +462,21 @@ fn main() -> Result<()> {
                 let sparse = rows_image(&s.image, &kept);
                 let near = resample_image(&sparse, &grid512, Interpolation::Nearest).range_m;
                 let bil = resample_image(&sparse, &grid512, Interpolation::Bilinear).range_m;
+                let gan_sparse = rows_image(&with_validity_of(&s.image, &dec.model.depth_m), &kept);
+                let bil_gan = resample_image(&gan_sparse, &grid512, Interpolation::Bilinear).range_m;
+                let (add, mul) = anchored(&dec.model.depth_m, &bil, &bil_gan);
                 let held = |k: usize| !kept.contains(&(k / 512));
                 Ok(mae(
                     &s.image.range_m,
-                    &[&dec.model.depth_m, &near, &bil],
+                    &[&dec.model.depth_m, &near, &bil, &add, &mul],
                     &held,
                 ))
             })
             .collect::<Result<_>>()?;
-        Ok(summarize(&per, &["gan_fast", "nearest", "bilinear"]))
+        Ok(summarize(
+            &per,
+            &["gan_fast", "nearest", "bilinear", "anchored_add", "anchored_mul"],
+        ))
     };
     let rows16 = lines_case(16)?;
     eprintln!("upsample rows 16->64: {rows16}");
@@ -451,15 +493,26 @@ fn main() -> Result<()> {
             .map(|(i, s)| -> Result<(Vec<f64>, usize)> {
                 let dec = d.decode(&s.image, i as u64)?;
                 let (near, idw) = scattered_baselines(&dec.observed_m, 64, 512);
+                let gan_obs: Vec<f32> = dec
+                    .observed_m
+                    .iter()
+                    .zip(&dec.model.depth_m)
+                    .map(|(o, g)| if *o > 0.0 { *g } else { 0.0 })
+                    .collect();
+                let (_, idw_gan) = scattered_baselines(&gan_obs, 64, 512);
+                let (add, mul) = anchored(&dec.model.depth_m, &idw, &idw_gan);
                 let held = |k: usize| dec.held_out_m[k] > 0.0;
                 Ok(mae(
                     &s.image.range_m,
-                    &[&dec.model.depth_m, &near, &idw],
+                    &[&dec.model.depth_m, &near, &idw, &add, &mul],
                     &held,
                 ))
             })
             .collect::<Result<_>>()?;
-        summarize(&per, &["gan_fast", "nearest", "idw"])
+        summarize(
+            &per,
+            &["gan_fast", "nearest", "idw", "anchored_add", "anchored_mul"],
+        )
     };
     eprintln!("restore 10 % of points: {fraction}");
 
@@ -482,10 +535,16 @@ fn main() -> Result<()> {
                 let dense = dec.render_prepared(&prepared);
                 let near = resample_image(&s.image, &grid2048, Interpolation::Nearest).range_m;
                 let bil = resample_image(&s.image, &grid2048, Interpolation::Bilinear).range_m;
-                Ok(mae(&truth, &[&dense.depth_m, &near, &bil], &|_| true))
+                let gan512 = with_validity_of(&s.image, &dec.model.depth_m);
+                let bil_gan = resample_image(&gan512, &grid2048, Interpolation::Bilinear).range_m;
+                let (add, mul) = anchored(&dense.depth_m, &bil, &bil_gan);
+                Ok(mae(&truth, &[&dense.depth_m, &near, &bil, &add, &mul], &|_| true))
             })
             .collect::<Result<_>>()?;
-        summarize(&per, &["gan_fast", "nearest", "bilinear"])
+        summarize(
+            &per,
+            &["gan_fast", "nearest", "bilinear", "anchored_add", "anchored_mul"],
+        )
     };
     eprintln!("upsample columns 512->2048: {columns}");
 

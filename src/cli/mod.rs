@@ -2,6 +2,7 @@
 //! draws progress bars or maps results to exit codes; library code never sees
 //! clap types (each subcommand resolves its arguments into library options).
 
+mod calibrate;
 mod convert;
 mod diagnose;
 mod import;
@@ -44,6 +45,8 @@ pub struct GlobalArgs {
 pub enum Command {
     /// Copy a recording and add range-image channels for its point-cloud topics.
     Convert(convert::ConvertArgs),
+    /// Fit the per-beam calibration of the ray-drop probability x_n on decoded training scans.
+    CalibrateRaydrop(calibrate::CalibrateArgs),
     /// Find the physics a simulated recording leaves out, compared with a real one; fit it and report.
     Diagnose(diagnose::DiagnoseArgs),
     /// Channels, schemas, message counts, point-cloud topics and their sensor layout.
@@ -89,6 +92,7 @@ pub fn run(args: Args) -> anyhow::Result<Outcome> {
     }
     match args.command {
         Command::Convert(a) => convert::run(&args.global, a),
+        Command::CalibrateRaydrop(a) => calibrate::run(&args.global, a),
         Command::Diagnose(a) => diagnose::run(&args.global, a),
         Command::Info(a) => info::run(&args.global, a),
         Command::Render(a) => render::run(&args.global, a),

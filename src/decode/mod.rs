@@ -15,6 +15,7 @@
 //! whatever the thread count. Loading and encoding messages is left to `io` and `pipeline`.
 
 pub mod amortised;
+pub mod calibrate;
 pub mod encoder_train;
 pub mod invert;
 pub mod loss;
@@ -23,11 +24,11 @@ use std::sync::{Arc, Condvar, Mutex};
 
 use anyhow::{Result, bail};
 use burn::module::Module;
-use burn::tensor::activation::sigmoid;
 use burn::tensor::{Device, Tensor};
 
 use crate::lidar::{AngleGrid, Interpolation, RangeImage, SensorProfile, resample_image};
 use crate::model::AnyGenerator;
+use crate::model::calibration::RaydropCalibration;
 use crate::model::data::range_to_network;
 use crate::model::generator::{Generator, GridCache};
 use crate::model::rng::{Rng, tensor_from, tensor_to_vec};
@@ -95,6 +96,8 @@ pub struct DecodeOptions {
     pub schedule: Schedule,
     /// Decode from a sparse version of each observation.
     pub restore: Option<Sparsify>,
+    /// Apply the model's per-beam x_n calibration, when it has one.
+    pub calibrate_raydrop: bool,
 }
 
 impl DecodeOptions {
@@ -106,6 +109,7 @@ impl DecodeOptions {
                 Quality::Paper => Schedule::paper(),
             },
             restore: None,
+            calibrate_raydrop: true,
         }
     }
 }
@@ -221,6 +225,7 @@ pub struct Decoder {
     ad: Device,
     model: PreparedGrid,
     cache_ad: GridCache,
+    calibration: Option<Arc<RaydropCalibration>>,
     /// Where the generator and encoder came from.
     pub source: String,
 }
@@ -230,6 +235,7 @@ pub struct Decoder {
 pub struct Decoded {
     generator: Generator,
     w: Tensor<2>,
+    calibration: Option<Arc<RaydropCalibration>>,
     /// On the model grid.
     pub model: Rendered,
     /// The observation used (model grid, meters, 0 = not observed), after [`Sparsify`].
@@ -288,9 +294,14 @@ impl Decoder {
             Quality::Fast => Some(TrainedEncoder::shipped(&device)?),
             Quality::Paper => None,
         };
+        let calibration = model
+            .calibration
+            .filter(|_| opts.calibrate_raydrop)
+            .map(Arc::new);
         let mut d = Decoder {
             pools: Pools::new(rayon::current_num_threads())?,
             source: model.source,
+            calibration,
             generator,
             encoder: None,
             opts,
@@ -333,6 +344,11 @@ impl Decoder {
 
     pub fn options(&self) -> &DecodeOptions {
         &self.opts
+    }
+
+    /// What the x_n calibration in use was fitted on (`None`: x_n as the generator gives it).
+    pub fn calibration_source(&self) -> Option<&str> {
+        self.calibration.as_deref().map(|c| c.fitted_on.as_str())
     }
 
     /// The model grid (64 x 512 KITTI HDL-64E).
@@ -448,6 +464,7 @@ impl Decoder {
         let mut decoded = Decoded {
             generator: inv.generator,
             w: w_t,
+            calibration: self.calibration.clone(),
             model: Rendered {
                 grid: grid.clone(),
                 depth_m: Vec::new(),
@@ -535,13 +552,23 @@ fn observed_depth(net: f32) -> f32 {
 impl Decoded {
     /// Render the tuned scene on a prepared grid (from [`Decoder::prepare`]).
     pub fn render_prepared(&self, grid: &PreparedGrid) -> Rendered {
-        let out = self.generator.render(self.w.clone(), &grid.cache, None);
-        let x_d = tensor_to_vec(out.x_d);
-        let keep = tensor_to_vec(sigmoid(out.keep_logit));
+        let (depth_m, keep_logit) = self.render_raw(grid);
+        let elevation = &grid.render_grid.elevation_rad;
+        let drop_prob = keep_logit
+            .iter()
+            .zip(elevation)
+            .map(|(l, e)| {
+                let l = match &self.calibration {
+                    Some(c) => c.keep_logit(*l, *e),
+                    None => *l,
+                };
+                1.0 / (1.0 + l.exp()) // x_n = sigmoid(-l)
+            })
+            .collect();
         let rendered = Rendered {
             grid: grid.render_grid.clone(),
-            depth_m: network_to_depth(&x_d),
-            drop_prob: keep.iter().map(|k| (1.0 - k).clamp(0.0, 1.0)).collect(),
+            depth_m,
+            drop_prob,
         };
         let mut r = if grid.render_grid == grid.grid {
             rendered
@@ -557,6 +584,20 @@ impl Decoded {
             }
         }
         r
+    }
+
+    /// Depth in meters and the generator's uncalibrated keep logit on `grid.render_grid`.
+    fn render_raw(&self, grid: &PreparedGrid) -> (Vec<f32>, Vec<f32>) {
+        let out = self.generator.render(self.w.clone(), &grid.cache, None);
+        (
+            network_to_depth(&tensor_to_vec(out.x_d)),
+            tensor_to_vec(out.keep_logit),
+        )
+    }
+
+    /// The generator's uncalibrated keep logits on the model grid (for fitting a calibration).
+    pub fn keep_logits(&self, decoder: &Decoder) -> Vec<f32> {
+        self.render_raw(&decoder.model).1
     }
 
     /// Render on any grid (prepares it; prefer [`Decoder::prepare`] + [`Decoded::render_prepared`]

@@ -13,6 +13,7 @@
 //! 2 x_d - 1, no return = -1. The backend/device is chosen by the caller.
 
 pub mod baseline;
+pub mod calibration;
 pub mod data;
 pub mod discriminator;
 pub mod generator;

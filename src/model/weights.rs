@@ -1,6 +1,7 @@
 //! Where a trained generator comes from: the shipped weights compiled into the binary (so the
 //! tool works with no network and no files beside it), a model directory (`config.json` +
-//! `g_ema.bpk`, as in `models/`) or a training run directory (its latest checkpoint).
+//! `g_ema.bpk`, as in `models/`) or a training run directory (its latest checkpoint), each
+//! with its optional ray-drop calibration (`calibration.json`, [`super::calibration`]).
 
 use std::path::Path;
 
@@ -10,6 +11,7 @@ use burn::store::ModuleRecord;
 use burn::tensor::{Bytes, Device};
 
 use super::AnyGenerator;
+use super::calibration::RaydropCalibration;
 use super::train::{CHECKPOINT, TrainConfig, init_generator, load_config};
 
 /// The shipped model's training configuration.
@@ -22,6 +24,8 @@ const SHIPPED_WEIGHTS: &[u8] = include_bytes!("../../models/dusty2/g_ema.bpk");
 pub struct Model {
     pub generator: AnyGenerator,
     pub config: TrainConfig,
+    /// Per-beam calibration of x_n, when one was fitted for these weights.
+    pub calibration: Option<RaydropCalibration>,
     /// Where it came from, for reports ("shipped" or a path).
     pub source: String,
 }
@@ -39,6 +43,7 @@ impl Model {
         Ok(Self {
             generator,
             config,
+            calibration: None,
             source: "shipped".into(),
         })
     }
@@ -56,9 +61,21 @@ impl Model {
         let generator = init_generator(&config, device)
             .try_load_file(&path)
             .map_err(|e| anyhow::anyhow!("failed to load '{}': {e}", path.display()))?;
+        let calibration_path = dir.join("calibration.json");
+        let calibration = if calibration_path.is_file() {
+            let text = std::fs::read_to_string(&calibration_path)
+                .with_context(|| format!("failed to read '{}'", calibration_path.display()))?;
+            Some(RaydropCalibration::from_json(
+                &text,
+                &calibration_path.display().to_string(),
+            )?)
+        } else {
+            None
+        };
         Ok(Self {
             generator,
             config,
+            calibration,
             source: dir.display().to_string(),
         })
     }
