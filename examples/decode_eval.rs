@@ -392,7 +392,7 @@ fn main() -> Result<()> {
     let (mut nll, mut nll_raw, mut n_pix) = (0.0f64, 0.0f64, 0usize);
     let mut rows_drop = vec![(0.0f64, 0usize); 64];
     for (s, (d, _)) in scans[..fast_n].iter().zip(&fast_res) {
-        let raw_logits = d.keep_logits(&fast);
+        let (_, raw_logits) = d.depth_and_keep_logits(&fast);
         for k in 0..s.image.len() {
             let dropped = s.image.range_m[k] <= 0.0;
             let p = f64::from(d.model.drop_prob[k]).clamp(1e-4, 1.0 - 1e-4);
@@ -434,8 +434,43 @@ fn main() -> Result<()> {
             nll_row += f(pr);
         }
     }
+    // The decode above saw which pixels returned; here it sees nothing of every other
+    // 32-column block (returns and drops alike), and x_n is scored on those blocks only.
+    let hidden = |k: usize| (k % 512 / 32) % 2 == 1;
+    let blind: Vec<(f64, f64, f64, usize)> = scans[..fast_n]
+        .par_iter()
+        .enumerate()
+        .map(|(i, s)| -> Result<(f64, f64, f64, usize)> {
+            let mut img = s.image.clone();
+            for (k, r) in img.range_m.iter_mut().enumerate() {
+                if hidden(k) {
+                    *r = 0.0;
+                }
+            }
+            let d = fast.decode(&img, i as u64)?;
+            let (_, raw) = d.depth_and_keep_logits(&fast);
+            let (mut cal, mut unc, mut row, mut n) = (0.0, 0.0, 0.0, 0);
+            for k in (0..s.image.len()).filter(|k| hidden(*k)) {
+                let kept = s.image.range_m[k] > 0.0;
+                let keep = f64::from(1.0 - d.model.drop_prob[k]).clamp(1e-4, 1.0 - 1e-4);
+                cal += bernoulli_nll((keep / (1.0 - keep)).ln(), kept);
+                unc += bernoulli_nll(f64::from(raw[k]), kept);
+                let pr = (row_rate[k / 512].0 / row_rate[k / 512].1).clamp(1e-4, 1.0 - 1e-4);
+                row += bernoulli_nll(((1.0 - pr) / pr).ln(), kept);
+                n += 1;
+            }
+            Ok((cal, unc, row, n))
+        })
+        .collect::<Result<_>>()?;
+    let n_blind = blind.iter().map(|b| b.3).sum::<usize>().max(1) as f64;
     let n = n_pix.max(1) as f64;
     let calibration = json!({
+        "hidden_blocks": {
+            "nll_xn": blind.iter().map(|b| b.0).sum::<f64>() / n_blind,
+            "nll_xn_uncalibrated": blind.iter().map(|b| b.1).sum::<f64>() / n_blind,
+            "nll_per_row_rate": blind.iter().map(|b| b.2).sum::<f64>() / n_blind,
+            "pixels": n_blind,
+        },
         "nll_xn": nll / n, "nll_xn_uncalibrated": nll_raw / n,
         "calibration": fast.calibration_source(), "nll_global_rate": nll_global / n, "nll_per_row_rate": nll_row / n,
         "drop_rate_heldout": rows_drop.iter().map(|r| r.0).sum::<f64>() / n,
@@ -463,7 +498,8 @@ fn main() -> Result<()> {
                 let near = resample_image(&sparse, &grid512, Interpolation::Nearest).range_m;
                 let bil = resample_image(&sparse, &grid512, Interpolation::Bilinear).range_m;
                 let gan_sparse = rows_image(&with_validity_of(&s.image, &dec.model.depth_m), &kept);
-                let bil_gan = resample_image(&gan_sparse, &grid512, Interpolation::Bilinear).range_m;
+                let bil_gan =
+                    resample_image(&gan_sparse, &grid512, Interpolation::Bilinear).range_m;
                 let (add, mul) = anchored(&dec.model.depth_m, &bil, &bil_gan);
                 let held = |k: usize| !kept.contains(&(k / 512));
                 Ok(mae(
@@ -475,7 +511,13 @@ fn main() -> Result<()> {
             .collect::<Result<_>>()?;
         Ok(summarize(
             &per,
-            &["gan_fast", "nearest", "bilinear", "anchored_add", "anchored_mul"],
+            &[
+                "gan_fast",
+                "nearest",
+                "bilinear",
+                "anchored_add",
+                "anchored_mul",
+            ],
         ))
     };
     let rows16 = lines_case(16)?;
@@ -538,12 +580,22 @@ fn main() -> Result<()> {
                 let gan512 = with_validity_of(&s.image, &dec.model.depth_m);
                 let bil_gan = resample_image(&gan512, &grid2048, Interpolation::Bilinear).range_m;
                 let (add, mul) = anchored(&dense.depth_m, &bil, &bil_gan);
-                Ok(mae(&truth, &[&dense.depth_m, &near, &bil, &add, &mul], &|_| true))
+                Ok(mae(
+                    &truth,
+                    &[&dense.depth_m, &near, &bil, &add, &mul],
+                    &|_| true,
+                ))
             })
             .collect::<Result<_>>()?;
         summarize(
             &per,
-            &["gan_fast", "nearest", "bilinear", "anchored_add", "anchored_mul"],
+            &[
+                "gan_fast",
+                "nearest",
+                "bilinear",
+                "anchored_add",
+                "anchored_mul",
+            ],
         )
     };
     eprintln!("upsample columns 512->2048: {columns}");

@@ -12,7 +12,7 @@ use crate::decode::amortised::TrainedEncoder;
 use crate::decode::calibrate::raydrop_samples;
 use crate::decode::{DecodeOptions, Decoder, Quality};
 use crate::lidar::{self, SensorProfile, Strategy};
-use crate::model::calibration::RaydropCalibration;
+use crate::model::calibration::{BeamCalibration, RaydropCalibration};
 use crate::model::data::kitti_training_files;
 use crate::model::weights::Model;
 
@@ -66,9 +66,8 @@ pub fn run(global: &GlobalArgs, args: CalibrateArgs) -> Result<Outcome> {
     let calibration = RaydropCalibration::fit(&samples, fitted_on)?;
     let (mut before, mut after, mut pixels) = (0.0, 0.0, 0usize);
     for s in &samples {
-        let (a, b) = calibration.params(s.elevation_rad);
-        before += s.nll(1.0, 0.0) * s.logits.len() as f64;
-        after += s.nll(a, b) * s.logits.len() as f64;
+        before += s.nll(&BeamCalibration::IDENTITY) * s.logits.len() as f64;
+        after += s.nll(&calibration.params(s.elevation_rad)) * s.logits.len() as f64;
         pixels += s.logits.len();
     }
     let (before, after) = (before / pixels as f64, after / pixels as f64);

@@ -62,6 +62,10 @@ pub struct ConvertArgs {
     /// Override the pivotal-tuning steps on the generator weights (fast: 20, paper: 500).
     #[arg(long)]
     pub tune_steps: Option<usize>,
+    /// Write the generator's own x_n, without the per-beam calibration shipped with the model
+    /// (`calibration.json`; `rangegan-mcap calibrate-raydrop` fits one).
+    #[arg(long)]
+    pub raw_raydrop: bool,
     /// Bernoulli ray-drop masks written per scan (`raydrop_mask`, `raydrop_mask_1`, ...).
     #[arg(long, default_value_t = 1)]
     pub mask_samples: usize,
@@ -93,13 +97,14 @@ fn resolve_decoding(args: &ConvertArgs) -> anyhow::Result<Option<(Decoder, Decod
     let quality = match args.quality {
         QualityArg::Off => {
             let used = args.mask_samples != 1
+                || args.raw_raydrop
                 || !args.upsample.is_empty()
                 || !args.target_sensor.is_empty()
                 || args.restore_lines.is_some()
                 || args.restore_fraction.is_some();
             if used {
                 bail!(
-                    "--upsample, --target-sensor, --restore-* and --mask-samples need decoding; drop --quality off"
+                    "--upsample, --target-sensor, --restore-*, --mask-samples and --raw-raydrop need decoding; drop --quality off"
                 );
             }
             return Ok(None);
@@ -108,6 +113,7 @@ fn resolve_decoding(args: &ConvertArgs) -> anyhow::Result<Option<(Decoder, Decod
         QualityArg::Paper => Quality::Paper,
     };
     let mut opts = DecodeOptions::new(quality);
+    opts.calibrate_raydrop = !args.raw_raydrop;
     if let Some(n) = args.w_steps {
         opts.schedule.w_steps = n;
     }

@@ -14,13 +14,14 @@ use crate::model::calibration::BeamSamples;
 pub fn raydrop_samples(decoder: &Decoder, scans: &[RangeImage]) -> Result<Vec<BeamSamples>> {
     let grid = decoder.model_grid();
     let (h, w) = (grid.height, grid.width);
-    let per_scan: Vec<(Vec<f32>, Vec<f32>)> = scans
+    let per_scan: Vec<(Vec<f32>, Vec<f32>, Vec<f32>)> = scans
         .par_iter()
         .enumerate()
-        .map(|(i, scan)| -> Result<(Vec<f32>, Vec<f32>)> {
+        .map(|(i, scan)| -> Result<(Vec<f32>, Vec<f32>, Vec<f32>)> {
             let decoded = decoder.decode(scan, scan_seed("calibration", i as u64))?;
             let (_, returned) = decoder.observe(scan);
-            Ok((decoded.keep_logits(decoder), returned))
+            let (depth, logits) = decoded.depth_and_keep_logits(decoder);
+            Ok((logits, depth, returned))
         })
         .collect::<Result<_>>()?;
     let elevations = grid.row_elevations();
@@ -31,10 +32,11 @@ pub fn raydrop_samples(decoder: &Decoder, scans: &[RangeImage]) -> Result<Vec<Be
             ..Default::default()
         })
         .collect();
-    for (logits, returned) in &per_scan {
+    for (logits, depth, returned) in &per_scan {
         for r in 0..h {
             let beam = &mut beams[r];
             beam.logits.extend_from_slice(&logits[r * w..(r + 1) * w]);
+            beam.depth_m.extend_from_slice(&depth[r * w..(r + 1) * w]);
             beam.kept
                 .extend(returned[r * w..(r + 1) * w].iter().map(|m| *m > 0.0));
         }
@@ -77,10 +79,8 @@ mod tests {
         assert!(samples[0].kept.iter().all(|k| !k) && samples[40].kept.iter().all(|k| *k));
         let c = RaydropCalibration::fit(&samples, "test".into()).unwrap();
         for (r, beam) in samples.iter().enumerate() {
-            let drop: f32 = beam
-                .logits
-                .iter()
-                .map(|l| 1.0 / (1.0 + c.keep_logit(*l, rows[r]).exp()))
+            let drop: f32 = (0..beam.logits.len())
+                .map(|i| 1.0 / (1.0 + c.keep_logit(beam.logits[i], beam.depth_m[i], rows[r]).exp()))
                 .sum::<f32>()
                 / beam.logits.len() as f32;
             if r < 15 {

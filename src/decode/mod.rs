@@ -554,13 +554,11 @@ impl Decoded {
     pub fn render_prepared(&self, grid: &PreparedGrid) -> Rendered {
         let (depth_m, keep_logit) = self.render_raw(grid);
         let elevation = &grid.render_grid.elevation_rad;
-        let drop_prob = keep_logit
-            .iter()
-            .zip(elevation)
-            .map(|(l, e)| {
+        let drop_prob = (0..keep_logit.len())
+            .map(|k| {
                 let l = match &self.calibration {
-                    Some(c) => c.keep_logit(*l, *e),
-                    None => *l,
+                    Some(c) => c.keep_logit(keep_logit[k], depth_m[k], elevation[k]),
+                    None => keep_logit[k],
                 };
                 1.0 / (1.0 + l.exp()) // x_n = sigmoid(-l)
             })
@@ -595,9 +593,10 @@ impl Decoded {
         )
     }
 
-    /// The generator's uncalibrated keep logits on the model grid (for fitting a calibration).
-    pub fn keep_logits(&self, decoder: &Decoder) -> Vec<f32> {
-        self.render_raw(&decoder.model).1
+    /// Depth in meters and the generator's uncalibrated keep logits on the model grid (for
+    /// fitting a calibration).
+    pub fn depth_and_keep_logits(&self, decoder: &Decoder) -> (Vec<f32>, Vec<f32>) {
+        self.render_raw(&decoder.model)
     }
 
     /// Render on any grid (prepares it; prefer [`Decoder::prepare`] + [`Decoded::render_prepared`]

@@ -1,8 +1,10 @@
 //! Post-hoc calibration of the ray-drop probability x_n (Platt scaling per beam).
 //!
-//! The generator's keep logit l (x_n = 1 - sigmoid(l)) becomes a(φ) l + b(φ): one (a, b) per
-//! beam of the model grid, fitted by logistic regression on decoded training scans against
-//! their actual drops, and linearly interpolated in elevation φ for other grids. It travels
+//! The generator's keep logit l (x_n = 1 - sigmoid(l)) becomes a(φ) l + b(φ) + c(φ) ln(d / 10 m),
+//! with d the completed depth x_d: one (a, b, c) per beam of the model grid, fitted by logistic
+//! regression on decoded training scans against their actual drops, and linearly interpolated
+//! in elevation φ for other grids. The depth term lets the calibration use what the decoded
+//! scene says about range (far surfaces and open sky drop more). It travels
 //! with the weights (`calibration.json` beside `g_ema.bpk`), because it belongs to the
 //! generator (and to the decode that produced the logits it was fitted on).
 
@@ -18,30 +20,53 @@ pub struct RaydropCalibration {
     pub fitted_on: String,
 }
 
-/// The map of one beam: keep logit -> `scale * logit + bias`.
+/// The map of one beam: keep logit -> `scale * logit + bias + depth_slope * ln(depth / 10 m)`.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct BeamCalibration {
     pub elevation_rad: f32,
     pub scale: f32,
     pub bias: f32,
+    #[serde(default)]
+    pub depth_slope: f32,
 }
 
-/// Fitting data of one beam: the decoded keep logits and whether the ray actually returned.
+impl BeamCalibration {
+    /// No change: the generator's own x_n.
+    pub const IDENTITY: BeamCalibration = BeamCalibration {
+        elevation_rad: 0.0,
+        scale: 1.0,
+        bias: 0.0,
+        depth_slope: 0.0,
+    };
+
+    fn apply(&self, logit: f32, depth_m: f32) -> f32 {
+        self.scale * logit + self.bias + self.depth_slope * depth_feature(depth_m)
+    }
+}
+
+fn depth_feature(depth_m: f32) -> f32 {
+    (depth_m.max(0.1) / 10.0).ln()
+}
+
+/// Fitting data of one beam: the decoded keep logits and depths, and whether the ray
+/// actually returned.
 #[derive(Debug, Clone, Default)]
 pub struct BeamSamples {
     pub elevation_rad: f32,
     pub logits: Vec<f32>,
+    pub depth_m: Vec<f32>,
     pub kept: Vec<bool>,
 }
 
 impl BeamSamples {
-    /// Mean negative log-likelihood of the drops under `keep = sigmoid(scale * l + bias)`.
-    pub fn nll(&self, scale: f32, bias: f32) -> f64 {
+    /// Mean negative log-likelihood of the drops under a beam's map.
+    pub fn nll(&self, map: &BeamCalibration) -> f64 {
         let n = self.logits.len().max(1) as f64;
-        self.logits
-            .iter()
-            .zip(&self.kept)
-            .map(|(l, k)| bernoulli_nll(f64::from(scale * l + bias), *k))
+        (0..self.logits.len())
+            .map(|i| {
+                let z = map.apply(self.logits[i], self.depth_m[i]);
+                bernoulli_nll(f64::from(z), self.kept[i])
+            })
             .sum::<f64>()
             / n
     }
@@ -60,13 +85,9 @@ impl RaydropCalibration {
         let mut beams: Vec<BeamCalibration> = samples
             .iter()
             .filter(|s| !s.logits.is_empty())
-            .map(|s| {
-                let (scale, bias) = logistic_fit(&s.logits, &s.kept);
-                BeamCalibration {
-                    elevation_rad: s.elevation_rad,
-                    scale,
-                    bias,
-                }
+            .map(|s| BeamCalibration {
+                elevation_rad: s.elevation_rad,
+                ..logistic_fit(s)
             })
             .collect();
         if beams.is_empty() {
@@ -76,17 +97,16 @@ impl RaydropCalibration {
         Ok(Self { beams, fitted_on })
     }
 
-    /// (scale, bias) at an elevation: linear between the two nearest beams, the end beam's
-    /// beyond the ends.
-    pub fn params(&self, elevation_rad: f32) -> (f32, f32) {
+    /// The map at an elevation: linear between the two nearest beams, the end beam's beyond
+    /// the ends.
+    pub fn params(&self, elevation_rad: f32) -> BeamCalibration {
         let b = &self.beams;
         let i = b.partition_point(|c| c.elevation_rad < elevation_rad);
         if i == 0 {
-            return (b[0].scale, b[0].bias);
+            return b[0];
         }
         if i == b.len() {
-            let last = b[b.len() - 1];
-            return (last.scale, last.bias);
+            return b[b.len() - 1];
         }
         let (lo, hi) = (b[i - 1], b[i]);
         let span = hi.elevation_rad - lo.elevation_rad;
@@ -95,16 +115,19 @@ impl RaydropCalibration {
         } else {
             0.0
         };
-        (
-            lo.scale + t * (hi.scale - lo.scale),
-            lo.bias + t * (hi.bias - lo.bias),
-        )
+        let lerp = |a: f32, b: f32| a + t * (b - a);
+        BeamCalibration {
+            elevation_rad,
+            scale: lerp(lo.scale, hi.scale),
+            bias: lerp(lo.bias, hi.bias),
+            depth_slope: lerp(lo.depth_slope, hi.depth_slope),
+        }
     }
 
-    /// The calibrated keep logit of a pixel looking at `elevation_rad`.
-    pub fn keep_logit(&self, logit: f32, elevation_rad: f32) -> f32 {
-        let (a, b) = self.params(elevation_rad);
-        a * logit + b
+    /// The calibrated keep logit of a pixel looking at `elevation_rad` with completed depth
+    /// `depth_m`.
+    pub fn keep_logit(&self, logit: f32, depth_m: f32, elevation_rad: f32) -> f32 {
+        self.params(elevation_rad).apply(logit, depth_m)
     }
 
     pub fn from_json(text: &str, source: &str) -> Result<Self> {
@@ -117,41 +140,67 @@ impl RaydropCalibration {
     }
 }
 
-/// Logistic regression of `kept` on [logit, 1] by Newton's method, with a weak ridge towards
-/// the identity map (1, 0) so that a beam that always (or never) returns stays finite.
-fn logistic_fit(logits: &[f32], kept: &[bool]) -> (f32, f32) {
+/// Logistic regression of `kept` on [logit, 1, ln(depth / 10 m)] by Newton's method, with a
+/// weak ridge towards the identity map so that a beam that always (or never) returns stays
+/// finite.
+fn logistic_fit(s: &BeamSamples) -> BeamCalibration {
+    use nalgebra::{Matrix3, Vector3};
     const RIDGE: f64 = 1.0;
-    let (mut a, mut b) = (1.0f64, 0.0f64);
-    for _ in 0..50 {
-        let (mut ga, mut gb) = (RIDGE * (a - 1.0), RIDGE * b);
-        let (mut haa, mut hab, mut hbb) = (RIDGE, 0.0, RIDGE);
-        for (l, k) in logits.iter().zip(kept) {
-            let x = f64::from(*l);
-            let p = 1.0 / (1.0 + (-(a * x + b)).exp());
-            let r = p - f64::from(u8::from(*k));
-            ga += r * x;
-            gb += r;
-            let w = (p * (1.0 - p)).max(1e-12);
-            haa += w * x * x;
-            hab += w * x;
-            hbb += w;
+    let prior = Vector3::new(1.0, 0.0, 0.0);
+    let features = |i: usize| {
+        Vector3::new(
+            f64::from(s.logits[i]),
+            1.0,
+            f64::from(depth_feature(s.depth_m[i])),
+        )
+    };
+    let objective = |theta: &Vector3<f64>| {
+        (0..s.logits.len())
+            .map(|i| bernoulli_nll(theta.dot(&features(i)), s.kept[i]))
+            .sum::<f64>()
+            + 0.5 * RIDGE * (theta - prior).norm_squared()
+    };
+    let mut theta = prior;
+    let mut current = objective(&theta);
+    for _ in 0..100 {
+        let mut grad = RIDGE * (theta - prior);
+        let mut hess = Matrix3::identity() * RIDGE;
+        for i in 0..s.logits.len() {
+            let x = features(i);
+            let p = 1.0 / (1.0 + (-theta.dot(&x)).exp());
+            grad += (p - f64::from(u8::from(s.kept[i]))) * x;
+            hess += (p * (1.0 - p)).max(1e-12) * x * x.transpose();
         }
-        let det = haa * hbb - hab * hab;
-        if det.abs() < 1e-18 {
+        let Some(delta) = hess.cholesky().map(|c| c.solve(&grad)) else {
             break;
-        }
-        let da = (hbb * ga - hab * gb) / det;
-        let db = (haa * gb - hab * ga) / det;
-        // Capped: far from the optimum a full Newton step on saturated logits can overshoot.
-        let norm = (da * da + db * db).sqrt();
-        let step = if norm > 4.0 { 4.0 / norm } else { 1.0 };
-        a -= step * da;
-        b -= step * db;
-        if da.abs() + db.abs() < 1e-7 {
+        };
+        // Backtracking: a full Newton step on saturated logits can overshoot and oscillate.
+        let mut t = 1.0;
+        let accepted = loop {
+            let next = theta - t * delta;
+            let value = objective(&next);
+            if value <= current {
+                break Some((next, value));
+            }
+            t *= 0.5;
+            if t < 1e-6 {
+                break None;
+            }
+        };
+        let Some((next, value)) = accepted else { break };
+        let converged = current - value < 1e-9 * current.max(1.0);
+        theta = next;
+        current = value;
+        if converged {
             break;
         }
     }
-    (a as f32, b as f32)
+    BeamCalibration {
+        elevation_rad: s.elevation_rad,
+        scale: theta[0] as f32,
+        bias: theta[1] as f32,
+        depth_slope: theta[2] as f32,
+    }
 }
 
 #[cfg(test)]
@@ -159,77 +208,78 @@ mod tests {
     use super::*;
     use crate::model::rng::Rng;
 
-    fn samples(elevation_rad: f32, scale: f32, bias: f32, n: usize, seed: u64) -> BeamSamples {
+    fn samples(map: BeamCalibration, n: usize, seed: u64) -> BeamSamples {
         let mut rng = Rng::new(seed);
         let mut s = BeamSamples {
-            elevation_rad,
+            elevation_rad: map.elevation_rad,
             ..Default::default()
         };
         for _ in 0..n {
             let l = rng.uniform() * 8.0 - 2.0;
-            let p = 1.0 / (1.0 + (-(scale * l + bias)).exp());
+            let d = 2.0 + rng.uniform() * 70.0;
+            let p = 1.0 / (1.0 + (-map.apply(l, d)).exp());
             s.logits.push(l);
+            s.depth_m.push(d);
             s.kept.push(rng.uniform() < p);
         }
         s
     }
 
+    fn map(elevation_rad: f32, scale: f32, bias: f32, depth_slope: f32) -> BeamCalibration {
+        BeamCalibration {
+            elevation_rad,
+            scale,
+            bias,
+            depth_slope,
+        }
+    }
+
     #[test]
     fn fit_recovers_the_map_that_generated_the_drops() {
-        let beams = [
-            samples(-0.3, 0.5, -1.0, 40_000, 1),
-            samples(0.0, 2.0, 0.5, 40_000, 2),
-        ];
+        let truth = [map(-0.3, 0.5, -1.0, -1.5), map(0.0, 2.0, 0.5, 0.0)];
+        let beams = [samples(truth[0], 40_000, 1), samples(truth[1], 40_000, 2)];
         let c = RaydropCalibration::fit(&beams, "test".into()).unwrap();
         assert_eq!(c.beams.len(), 2);
-        let (a0, b0) = (c.beams[0].scale, c.beams[0].bias);
-        let (a1, b1) = (c.beams[1].scale, c.beams[1].bias);
-        assert!((a0 - 0.5).abs() < 0.05 && (b0 + 1.0).abs() < 0.08, "{a0} {b0}");
-        assert!((a1 - 2.0).abs() < 0.15 && (b1 - 0.5).abs() < 0.15, "{a1} {b1}");
+        for (fit, t) in c.beams.iter().zip(&truth) {
+            let close = (fit.scale - t.scale).abs() < 0.1 * t.scale
+                && (fit.bias - t.bias).abs() < 0.15
+                && (fit.depth_slope - t.depth_slope).abs() < 0.15;
+            assert!(close, "fitted {fit:?}, truth {t:?}");
+        }
         // the fit is never worse than the identity map on its own data
-        for (s, cal) in beams.iter().zip(&c.beams) {
-            assert!(s.nll(cal.scale, cal.bias) < s.nll(1.0, 0.0));
+        for (s, fit) in beams.iter().zip(&c.beams) {
+            assert!(s.nll(fit) < s.nll(&BeamCalibration::IDENTITY));
         }
     }
 
     #[test]
     fn a_beam_that_always_returns_gets_a_finite_confident_map() {
-        let mut s = samples(0.1, 1.0, 0.0, 2000, 3);
+        let mut s = samples(map(0.1, 1.0, 0.0, 0.0), 2000, 3);
         s.kept.iter_mut().for_each(|k| *k = true);
         let c = RaydropCalibration::fit(&[s.clone()], "test".into()).unwrap();
-        let (a, b) = (c.beams[0].scale, c.beams[0].bias);
-        assert!(a.is_finite() && b.is_finite());
-        // nearly every sample now gets keep > 0.99
-        let confident = s
-            .logits
-            .iter()
-            .filter(|l| c.keep_logit(**l, 0.1) > 4.6)
-            .count();
-        assert!(confident as f32 > 0.95 * s.logits.len() as f32, "{a} {b}");
+        let fit = c.beams[0];
+        assert!(fit.scale.is_finite() && fit.bias.is_finite() && fit.depth_slope.is_finite());
+        // the calibrated keep probability is near 1 on average (the ridge keeps it below)
+        let mean_keep = (0..s.logits.len())
+            .map(|i| 1.0 / (1.0 + (-c.keep_logit(s.logits[i], s.depth_m[i], 0.1)).exp()))
+            .sum::<f32>()
+            / s.logits.len() as f32;
+        assert!(mean_keep > 0.98, "{fit:?}: mean keep {mean_keep}");
     }
 
     #[test]
     fn params_interpolate_in_elevation_and_clamp_at_the_ends() {
         let c = RaydropCalibration {
-            beams: vec![
-                BeamCalibration {
-                    elevation_rad: -0.2,
-                    scale: 1.0,
-                    bias: 0.0,
-                },
-                BeamCalibration {
-                    elevation_rad: 0.0,
-                    scale: 3.0,
-                    bias: -2.0,
-                },
-            ],
+            beams: vec![map(-0.2, 1.0, 0.0, 0.0), map(0.0, 3.0, -2.0, 1.0)],
             fitted_on: String::new(),
         };
-        assert_eq!(c.params(-0.5), (1.0, 0.0));
-        assert_eq!(c.params(0.3), (3.0, -2.0));
-        let (a, b) = c.params(-0.1);
-        assert!((a - 2.0).abs() < 1e-6 && (b + 1.0).abs() < 1e-6);
-        assert!((c.keep_logit(2.0, -0.1) - 3.0).abs() < 1e-5);
+        assert_eq!(c.params(-0.5), c.beams[0]);
+        assert_eq!(c.params(0.3), c.beams[1]);
+        let mid = c.params(-0.1);
+        assert!((mid.scale - 2.0).abs() < 1e-6 && (mid.bias + 1.0).abs() < 1e-6);
+        assert!((mid.depth_slope - 0.5).abs() < 1e-6);
+        // at 10 m the depth term vanishes: 2 * 2 - 1
+        assert!((c.keep_logit(2.0, 10.0, -0.1) - 3.0).abs() < 1e-5);
         let json = serde_json::to_string(&c).unwrap();
         assert_eq!(RaydropCalibration::from_json(&json, "x").unwrap(), c);
         assert!(RaydropCalibration::from_json("{\"beams\":[],\"fitted_on\":\"\"}", "x").is_err());

@@ -18,6 +18,8 @@ use super::train::{CHECKPOINT, TrainConfig, init_generator, load_config};
 pub const SHIPPED_CONFIG: &str = include_str!("../../models/dusty2/config.json");
 /// The shipped model's EMA generator weights (burnpack).
 const SHIPPED_WEIGHTS: &[u8] = include_bytes!("../../models/dusty2/g_ema.bpk");
+/// The shipped model's x_n calibration (`rangegan-mcap calibrate-raydrop`).
+const SHIPPED_CALIBRATION: &str = include_str!("../../models/dusty2/calibration.json");
 
 /// A trained generator with the configuration it was trained with.
 #[derive(Debug)]
@@ -43,7 +45,10 @@ impl Model {
         Ok(Self {
             generator,
             config,
-            calibration: None,
+            calibration: Some(RaydropCalibration::from_json(
+                SHIPPED_CALIBRATION,
+                "models/dusty2/calibration.json",
+            )?),
             source: "shipped".into(),
         })
     }
@@ -113,6 +118,8 @@ mod tests {
         };
         let (a, b) = (render(&shipped), render(&from_dir));
         assert_eq!(a, b);
+        assert!(shipped.calibration.is_some());
+        assert_eq!(shipped.calibration, from_dir.calibration);
         // trained weights, not an initialisation: the output varies across the image
         let spread =
             a.iter().cloned().fold(f32::MIN, f32::max) - a.iter().cloned().fold(f32::MAX, f32::min);
