@@ -393,11 +393,11 @@ fn main() -> Result<()> {
     let mut rows_drop = vec![(0.0f64, 0usize); 64];
     for (s, (d, _)) in scans[..fast_n].iter().zip(&fast_res) {
         let (_, raw_logits) = d.depth_and_keep_logits(&fast);
-        for k in 0..s.image.len() {
+        for (k, raw) in raw_logits.iter().enumerate() {
             let dropped = s.image.range_m[k] <= 0.0;
             let p = f64::from(d.model.drop_prob[k]).clamp(1e-4, 1.0 - 1e-4);
             nll -= if dropped { p.ln() } else { (1.0 - p).ln() };
-            nll_raw += bernoulli_nll(f64::from(raw_logits[k]), !dropped);
+            nll_raw += bernoulli_nll(f64::from(*raw), !dropped);
             n_pix += 1;
             let b = ((p * bins as f64) as usize).min(bins - 1);
             rel[b].0 += p;
