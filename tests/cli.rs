@@ -132,14 +132,10 @@ fn import_of_an_empty_folder_is_a_clear_error() {
 /// files) and nearly every point keeps a pixel.
 #[test]
 fn real_semantickitti_imports_and_converts() {
-    let seq = Path::new("../shared/real_lidar/semantickitti_mini/00");
-    if !seq.exists() {
-        eprintln!(
-            "skipped: {} is absent (real data lives beside the repo)",
-            seq.display()
-        );
+    let Some(real) = real_data("real_semantickitti_imports_and_converts") else {
         return;
-    }
+    };
+    let seq = real.join("semantickitti_mini/00");
     let dir = tempfile::tempdir().unwrap();
     let (mcap, out) = (dir.path().join("00.mcap"), dir.path().join("00.out.mcap"));
     assert!(

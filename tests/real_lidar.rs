@@ -5,7 +5,11 @@
 //! message when that folder is absent. Run with `-- --nocapture` to see the
 //! measured numbers that `docs/lidar.md` records.
 
+mod common;
+
 use std::path::{Path, PathBuf};
+
+use common::real_data;
 
 use rangegan_mcap::io::{CloudFormat, decode_cloud};
 use rangegan_mcap::lidar::projection::{choose_strategy, ring_order_ids};
@@ -14,21 +18,6 @@ use rangegan_mcap::lidar::{
     EstimateMethod, RangeImage, Scan, SensorProfile, Strategy, estimate_profile, kitti, nuscenes,
     pcd, project,
 };
-
-const REAL: &str = "../shared/real_lidar";
-
-/// The real-data folder, or `None` (with a message saying why the test skips).
-fn real_data(test: &str) -> Option<PathBuf> {
-    let dir = Path::new(REAL);
-    if dir.is_dir() {
-        Some(dir.to_path_buf())
-    } else {
-        eprintln!(
-            "{test}: skipped, {REAL} is absent (real LiDAR data lives beside the repository, see its PROVENANCE.md)"
-        );
-        None
-    }
-}
 
 /// Every full-resolution KITTI scan: SemanticKITTI (with labels) and Patchwork++.
 fn kitti_scans(root: &Path) -> Vec<(String, Scan)> {

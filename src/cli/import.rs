@@ -9,7 +9,7 @@ use anyhow::{Context, bail};
 
 use super::{GlobalArgs, Outcome};
 use crate::io::encoders::{Kind, Payload, encode};
-use crate::io::{Family, McapOutput, pointcloud};
+use crate::io::{Family, pointcloud};
 use crate::lidar::{kitti, projection::ring_order_ids};
 
 #[derive(Debug, clap::Args)]
@@ -17,20 +17,8 @@ pub struct ImportArgs {
     /// Dataset folder: holds `velodyne/*.bin` (or the `.bin` files themselves) and
     /// optionally `labels/*.label`.
     pub dir: PathBuf,
-    /// Output MCAP.
-    pub output: PathBuf,
-    /// Topic of the point clouds.
-    #[arg(long, default_value = "/velodyne_points")]
-    pub topic: String,
-    /// Frame id of the point clouds.
-    #[arg(long, default_value = "velodyne")]
-    pub frame_id: String,
-    /// Log time of the first scan, seconds; scans follow at 10 Hz.
-    #[arg(long, default_value_t = 0.0)]
-    pub start_secs: f64,
-    /// Overwrite an existing OUT.
-    #[arg(long)]
-    pub force: bool,
+    #[command(flatten)]
+    pub out: super::CloudOutputArgs,
 }
 
 /// The scans of a dataset folder, sorted, each with its label file if present.
@@ -64,7 +52,7 @@ fn dataset_files(dir: &Path) -> anyhow::Result<Vec<(PathBuf, Option<PathBuf>)>> 
 
 pub fn run(global: &GlobalArgs, args: ImportArgs) -> anyhow::Result<Outcome> {
     let files = dataset_files(&args.dir)?;
-    let mut out = McapOutput::create(&args.output, args.force)?;
+    let mut out = args.out.create()?;
     out.write_metadata(
         "rangegan",
         BTreeMap::from([
@@ -73,9 +61,9 @@ pub fn run(global: &GlobalArgs, args: ImportArgs) -> anyhow::Result<Outcome> {
             ("source".to_string(), args.dir.display().to_string()),
         ]),
     )?;
-    let channel = out.own_channel(&args.topic, Family::Ros2, Kind::Cloud)?;
+    let channel = out.own_channel(&args.out.topic, Family::Ros2, Kind::Cloud)?;
     let bar = super::progress_bar(global, files.len() as u64);
-    let start_nanos = (args.start_secs * 1e9).round() as u64;
+    let start_nanos = args.out.start_nanos()?;
     for (i, (bin, label)) in files.iter().enumerate() {
         let mut scan = kitti::read_scan(bin, label.as_deref())?;
         // KITTI stores rings one after another; make the ring explicit for every reader.
@@ -90,7 +78,7 @@ pub fn run(global: &GlobalArgs, args: ImportArgs) -> anyhow::Result<Outcome> {
         let msg = encode(
             Family::Ros2,
             stamp,
-            &args.frame_id,
+            &args.out.frame_id,
             &Payload::Cloud {
                 layout: &layout,
                 data: &data,
@@ -105,16 +93,16 @@ pub fn run(global: &GlobalArgs, args: ImportArgs) -> anyhow::Result<Outcome> {
     if global.json {
         println!(
             "{}",
-            serde_json::json!({ "output": args.output, "scans": files.len(), "labelled": labelled, "topic": args.topic })
+            serde_json::json!({ "output": args.out.output, "scans": files.len(), "labelled": labelled, "topic": args.out.topic })
         );
     } else if !global.quiet {
         eprintln!(
             "{} -> {}: {} scans ({} labelled) on {}",
             args.dir.display(),
-            args.output.display(),
+            args.out.output.display(),
             files.len(),
             labelled,
-            args.topic
+            args.out.topic
         );
     }
     Ok(Outcome::Success)

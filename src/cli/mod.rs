@@ -65,6 +65,42 @@ pub enum Command {
     Sample(sample::SampleArgs),
 }
 
+/// Where a recording that a command writes from scratch goes (`import`, `simulate`).
+#[derive(Debug, Clone, clap::Args)]
+pub struct CloudOutputArgs {
+    /// Output MCAP.
+    pub output: std::path::PathBuf,
+    /// Topic of the point clouds.
+    #[arg(long, default_value = "/velodyne_points")]
+    pub topic: String,
+    /// Frame id of the point clouds.
+    #[arg(long, default_value = "velodyne")]
+    pub frame_id: String,
+    /// Log time of the first scan, seconds; scans follow at 10 Hz.
+    #[arg(long, default_value_t = 0.0)]
+    pub start_secs: f64,
+    /// Overwrite an existing OUT.
+    #[arg(long)]
+    pub force: bool,
+}
+
+impl CloudOutputArgs {
+    /// The output file, created atomically (refused if it exists, unless `--force`).
+    pub fn create(&self) -> anyhow::Result<crate::io::McapOutput> {
+        crate::io::McapOutput::create(&self.output, self.force)
+    }
+
+    /// `--start-secs` in nanoseconds.
+    pub fn start_nanos(&self) -> anyhow::Result<u64> {
+        anyhow::ensure!(
+            self.start_secs.is_finite() && self.start_secs >= 0.0,
+            "--start-secs must be >= 0 (got {})",
+            self.start_secs
+        );
+        Ok((self.start_secs * 1e9).round() as u64)
+    }
+}
+
 /// How a command ended when it did not fail outright.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Outcome {

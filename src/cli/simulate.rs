@@ -4,13 +4,12 @@
 //! with the ego pose on `/tf` so Foxglove shows the drive.
 
 use std::collections::BTreeMap;
-use std::path::PathBuf;
 
 use anyhow::Context;
 
 use super::{GlobalArgs, Outcome};
 use crate::io::encoders::{Kind, Payload, Transform, encode};
-use crate::io::{Family, McapOutput, pointcloud};
+use crate::io::{Family, pointcloud};
 use crate::lidar::SensorProfile;
 use crate::physics::PhysicsConfig;
 use crate::sim::{SceneConfig, Simulator};
@@ -41,20 +40,8 @@ pub struct SimulateArgs {
     /// Ego speed along the route, m/s.
     #[arg(long, default_value_t = 10.0)]
     pub speed_mps: f32,
-    /// Topic of the point clouds.
-    #[arg(long, default_value = "/velodyne_points")]
-    pub topic: String,
-    /// Frame id of the point clouds.
-    #[arg(long, default_value = "velodyne")]
-    pub frame_id: String,
-    /// Log time of the first scan, seconds.
-    #[arg(long, default_value_t = 0.0)]
-    pub start_secs: f64,
-    /// Overwrite an existing OUT.
-    #[arg(long)]
-    pub force: bool,
-    /// Output MCAP.
-    pub output: PathBuf,
+    #[command(flatten)]
+    pub out: super::CloudOutputArgs,
 }
 
 /// What the user typed, resolved into library objects.
@@ -97,7 +84,7 @@ pub fn run(global: &GlobalArgs, args: SimulateArgs) -> anyhow::Result<Outcome> {
     let sim = Simulator::new(config, profile.clone());
     let effects = physics.effects();
 
-    let mut out = McapOutput::create(&args.output, args.force)?;
+    let mut out = args.out.create()?;
     out.write_metadata(
         "rangegan.simulate",
         BTreeMap::from([
@@ -111,13 +98,13 @@ pub fn run(global: &GlobalArgs, args: SimulateArgs) -> anyhow::Result<Outcome> {
             ("speed_mps".to_string(), args.speed_mps.to_string()),
         ]),
     )?;
-    let cloud_channel = out.own_channel(&args.topic, Family::Ros2, Kind::Cloud)?;
+    let cloud_channel = out.own_channel(&args.out.topic, Family::Ros2, Kind::Cloud)?;
     let tf_channel = out.own_channel("/tf", Family::Ros2, Kind::Transforms)?;
     let tf_static_channel = out.own_channel("/tf_static", Family::Ros2, Kind::Transforms)?;
-    let start_nanos = (args.start_secs.max(0.0) * 1e9).round() as u64;
+    let start_nanos = args.out.start_nanos()?;
     let mount = Transform {
         parent_frame_id: "base_link".into(),
-        child_frame_id: args.frame_id.clone(),
+        child_frame_id: args.out.frame_id.clone(),
         translation: [0.0, 0.0, sensor_height_m as f64],
         rotation: [0.0, 0.0, 0.0, 1.0],
     };
@@ -142,7 +129,7 @@ pub fn run(global: &GlobalArgs, args: SimulateArgs) -> anyhow::Result<Outcome> {
         let msg = encode(
             Family::Ros2,
             stamp,
-            &args.frame_id,
+            &args.out.frame_id,
             &Payload::Cloud {
                 layout: &layout,
                 data: &data,
@@ -173,20 +160,20 @@ pub fn run(global: &GlobalArgs, args: SimulateArgs) -> anyhow::Result<Outcome> {
     if global.json {
         println!(
             "{}",
-            serde_json::json!({ "output": args.output, "scans": args.scans, "points": points, "keep_rate": keep,
-                "sensor": profile.name, "physics": effects.ids(), "topic": args.topic })
+            serde_json::json!({ "output": args.out.output, "scans": args.scans, "points": points, "keep_rate": keep,
+                "sensor": profile.name, "physics": effects.ids(), "topic": args.out.topic })
         );
     } else if !global.quiet {
         eprintln!(
             "{}: {} scans of {} ({}x{}), physics [{}], {:.1} % of rays kept, on {} + /tf",
-            args.output.display(),
+            args.out.output.display(),
             args.scans,
             profile.name,
             profile.beams(),
             profile.columns,
             effects.ids().join(", "),
             100.0 * keep,
-            args.topic
+            args.out.topic
         );
     }
     Ok(Outcome::Success)

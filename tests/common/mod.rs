@@ -201,3 +201,18 @@ pub fn node_read(node: &Path, path: &Path) -> serde_json::Value {
     );
     serde_json::from_slice(&out.stdout).expect("reader prints JSON")
 }
+
+/// The real LiDAR data beside the repository (`../shared/real_lidar`), or `None` with a
+/// message saying why the calling test skips.
+pub fn real_data(test: &str) -> Option<PathBuf> {
+    const REAL: &str = "../shared/real_lidar";
+    let dir = Path::new(REAL);
+    if dir.is_dir() {
+        Some(dir.to_path_buf())
+    } else {
+        eprintln!(
+            "{test}: skipped, {REAL} is absent (real LiDAR data lives beside the repository, see its PROVENANCE.md)"
+        );
+        None
+    }
+}
