@@ -241,11 +241,13 @@ mod tests {
                 physics: "realistic".into(),
                 organized,
                 speed_mps: 10.0,
-                topic: "/points".into(),
-                frame_id: "velodyne".into(),
-                start_secs: 0.0,
-                force: true,
-                output: path.clone(),
+                out: crate::cli::CloudOutputArgs {
+                    topic: "/points".into(),
+                    frame_id: "velodyne".into(),
+                    start_secs: 0.0,
+                    force: true,
+                    output: path.clone(),
+                },
             };
             run(&global, args).unwrap();
             let bytes = std::fs::read(&path).unwrap();
