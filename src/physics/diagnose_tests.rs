@@ -161,24 +161,37 @@ fn u(case: u64, salt: u64) -> f32 {
     uniform(&[0xd1a9, case, salt])
 }
 
+/// The two randomised cases of one concealed effect, diagnosed with neighbour completion:
+/// `effect(case)` is the real side's physics, the scenes are `real_seed + case` and
+/// `sim_seed + case`.
+fn diagnose_cases(
+    real_seed: u64,
+    sim_seed: u64,
+    effect: impl Fn(u64) -> Vec<Box<dyn Effect>>,
+) -> impl Iterator<Item = (u64, Diagnosis)> {
+    (0..2u64).map(move |case| {
+        let (sim, real) = concealed(&hdl64(), || effect(case), real_seed + case, sim_seed + case);
+        (case, run(&sim, &real))
+    })
+}
+
 #[test]
 fn concealed_range_dropout() {
-    for case in 0..2u64 {
-        let (r50, soft) = (30.0 + 40.0 * u(case, 1), 0.2 + 0.4 * u(case, 2));
-        let effect = move || -> Vec<Box<dyn Effect>> {
-            vec![Box::new(RangeDropout {
-                enabled: true,
-                range_50_m: r50,
-                softness: soft,
-            })]
-        };
-        let (sim, real) = concealed(&hdl64(), effect, 101 + case, 202 + case);
-        let d = run(&sim, &real);
+    let r50 = |case| 30.0 + 40.0 * u(case, 1);
+    let effect = |case| -> Vec<Box<dyn Effect>> {
+        vec![Box::new(RangeDropout {
+            enabled: true,
+            range_50_m: r50(case),
+            softness: 0.2 + 0.4 * u(case, 2),
+        })]
+    };
+    for (case, d) in diagnose_cases(101, 202, effect) {
         assert_named_first(&d, "range_dropout");
         let fitted = d.report.effects[0].params["range_50_m"].as_f64().unwrap();
+        let truth = f64::from(r50(case));
         assert!(
-            (fitted / f64::from(r50)).ln().abs() < 0.35,
-            "range_50_m {fitted} vs {r50}"
+            (fitted / truth).ln().abs() < 0.35,
+            "range_50_m {fitted} vs {truth}"
         );
     }
 }
@@ -239,41 +252,38 @@ fn concealed_incidence_dropout_neighbour_fill() {
 
 #[test]
 fn concealed_material_dropout() {
-    for case in 0..2u64 {
-        let glass = 0.4 + 0.5 * u(case, 5);
+    let effect = |case| -> Vec<Box<dyn Effect>> {
         let dark = 0.2 + 0.4 * u(case, 6);
-        let effect = move || -> Vec<Box<dyn Effect>> {
-            let mut drop_prob = BTreeMap::new();
-            drop_prob.insert(Material::Glass, glass);
-            drop_prob.insert(Material::DarkPaint, dark);
-            drop_prob.insert(Material::Rubber, dark);
-            vec![Box::new(MaterialDropout {
-                enabled: true,
-                drop_prob,
-                drop_prob_by_class: BTreeMap::new(),
-            })]
-        };
-        let (sim, real) = concealed(&hdl64(), effect, 121 + case, 222 + case);
-        assert_named_first(&run(&sim, &real), "material_dropout");
+        let drop_prob = BTreeMap::from([
+            (Material::Glass, 0.4 + 0.5 * u(case, 5)),
+            (Material::DarkPaint, dark),
+            (Material::Rubber, dark),
+        ]);
+        vec![Box::new(MaterialDropout {
+            enabled: true,
+            drop_prob,
+            drop_prob_by_class: BTreeMap::new(),
+        })]
+    };
+    for (_, d) in diagnose_cases(121, 222, effect) {
+        assert_named_first(&d, "material_dropout");
     }
 }
 
 #[test]
 fn concealed_beam_dropout() {
-    for case in 0..2u64 {
-        let (mean, spread) = (0.04 + 0.08 * u(case, 7), 0.5 + 0.5 * u(case, 8));
-        let effect = move || -> Vec<Box<dyn Effect>> {
-            vec![Box::new(BeamDropout {
-                enabled: true,
-                rates: None,
-                mean_rate: mean,
-                spread,
-                beam_seed: case,
-                dead_beams: vec![],
-            })]
-        };
-        let (sim, real) = concealed(&hdl64(), effect, 131 + case, 232 + case);
-        assert_named_first(&run(&sim, &real), "beam_dropout");
+    let effect = |case| -> Vec<Box<dyn Effect>> {
+        vec![Box::new(BeamDropout {
+            enabled: true,
+            rates: None,
+            mean_rate: 0.04 + 0.08 * u(case, 7),
+            spread: 0.5 + 0.5 * u(case, 8),
+            beam_seed: case,
+            dead_beams: vec![],
+        })]
+    };
+    for (_, d) in diagnose_cases(131, 232, effect) {
+        assert_named_first(&d, "beam_dropout");
     }
 }
 
@@ -293,10 +303,8 @@ fn occlusion(case: u64) -> SelfOcclusion {
 
 #[test]
 fn concealed_self_occlusion() {
-    for case in 0..2u64 {
-        let effect = move || -> Vec<Box<dyn Effect>> { vec![Box::new(occlusion(case))] };
-        let (sim, real) = concealed(&hdl64(), effect, 141 + case, 242 + case);
-        let d = run(&sim, &real);
+    let effect = |case| -> Vec<Box<dyn Effect>> { vec![Box::new(occlusion(case))] };
+    for (_, d) in diagnose_cases(141, 242, effect) {
         assert_named_first(&d, "self_occlusion");
         let text = d.report.effects[0].location.clone();
         assert!(text.contains("azimuth"), "{text}");
@@ -305,21 +313,16 @@ fn concealed_self_occlusion() {
 
 #[test]
 fn concealed_range_noise() {
-    for case in 0..2u64 {
-        let (s0, k) = (0.015 + 0.035 * u(case, 12), 0.001 * u(case, 13));
-        let effect = move || -> Vec<Box<dyn Effect>> {
-            vec![Box::new(RangeNoise {
-                enabled: true,
-                sigma0_m: s0,
-                k,
-            })]
-        };
-        let (sim, real) = concealed(&hdl64(), effect, 151 + case, 252 + case);
-        let d = run(&sim, &real);
+    let noise = |case| RangeNoise {
+        enabled: true,
+        sigma0_m: 0.015 + 0.035 * u(case, 12),
+        k: 0.001 * u(case, 13),
+    };
+    for (case, d) in diagnose_cases(151, 252, |case| vec![Box::new(noise(case))]) {
         assert_named_first(&d, "range_noise");
         let fitted = d.report.effects[0].params["sigma0_m"].as_f64().unwrap()
             + 20.0 * d.report.effects[0].params["k"].as_f64().unwrap();
-        let truth = f64::from(s0 + 20.0 * k);
+        let truth = f64::from(noise(case).sigma0_m + 20.0 * noise(case).k);
         assert!(
             (fitted / truth).ln().abs() < 0.5,
             "sigma(20 m) {fitted} vs {truth}"
@@ -329,20 +332,17 @@ fn concealed_range_noise() {
 
 #[test]
 fn concealed_mixed_pixels() {
-    for case in 0..2u64 {
-        let prob = 0.3 + 0.5 * u(case, 14);
-        let effect = move || -> Vec<Box<dyn Effect>> {
-            vec![Box::new(MixedPixels {
-                enabled: true,
-                prob,
-                min_gap_m: 1.0,
-            })]
-        };
-        let (sim, real) = concealed(&hdl64(), effect, 161 + case, 262 + case);
+    let effect = |case| -> Vec<Box<dyn Effect>> {
+        vec![Box::new(MixedPixels {
+            enabled: true,
+            prob: 0.3 + 0.5 * u(case, 14),
+            min_gap_m: 1.0,
+        })]
+    };
+    for (_, d) in diagnose_cases(161, 262, effect) {
         // Mixed pixels drop nothing, so nothing conceals the two scenes' own
         // drop differences; a weak drop model may be claimed beside it
         // (docs/diagnose.md). Mixed pixels must be named and fit better.
-        let d = run(&sim, &real);
         let e = d.report.effects.iter().find(|e| e.id == "mixed_pixels");
         let e = e.unwrap_or_else(|| panic!("mixed_pixels not named:\n{}", summary(&d)));
         assert!(e.fit.after < e.fit.before, "{:?}", e.fit);
@@ -352,16 +352,14 @@ fn concealed_mixed_pixels() {
 
 #[test]
 fn concealed_motion_distortion() {
-    for case in 0..2u64 {
-        let scale = 0.6 + 0.4 * u(case, 15);
-        let effect = move || -> Vec<Box<dyn Effect>> {
-            vec![Box::new(MotionDistortion {
-                enabled: true,
-                scale,
-            })]
-        };
-        let (sim, real) = concealed(&hdl64(), effect, 171 + case, 272 + case);
-        assert_named_first(&run(&sim, &real), "motion_distortion");
+    let effect = |case| -> Vec<Box<dyn Effect>> {
+        vec![Box::new(MotionDistortion {
+            enabled: true,
+            scale: 0.6 + 0.4 * u(case, 15),
+        })]
+    };
+    for (_, d) in diagnose_cases(171, 272, effect) {
+        assert_named_first(&d, "motion_distortion");
     }
 }
 
