@@ -139,6 +139,15 @@ fn load_scans(data: &Path) -> Result<Vec<Scan>> {
     Ok(out)
 }
 
+/// The methods compared on the upsampling and row-restoration tasks, in `mae`'s order.
+const GRID_METHODS: [&str; 5] = [
+    "gan_fast",
+    "nearest",
+    "bilinear",
+    "anchored_add",
+    "anchored_mul",
+];
+
 /// Mean absolute error in meters over pixels where `truth` is measured, `mask` allows and
 /// every prediction has a value.
 fn mae(truth: &[f32], preds: &[&[f32]], mask: &dyn Fn(usize) -> bool) -> (Vec<f64>, usize) {
@@ -509,16 +518,7 @@ fn main() -> Result<()> {
                 ))
             })
             .collect::<Result<_>>()?;
-        Ok(summarize(
-            &per,
-            &[
-                "gan_fast",
-                "nearest",
-                "bilinear",
-                "anchored_add",
-                "anchored_mul",
-            ],
-        ))
+        Ok(summarize(&per, &GRID_METHODS))
     };
     let rows16 = lines_case(16)?;
     eprintln!("upsample rows 16->64: {rows16}");
@@ -587,16 +587,7 @@ fn main() -> Result<()> {
                 ))
             })
             .collect::<Result<_>>()?;
-        summarize(
-            &per,
-            &[
-                "gan_fast",
-                "nearest",
-                "bilinear",
-                "anchored_add",
-                "anchored_mul",
-            ],
-        )
+        summarize(&per, &GRID_METHODS)
     };
     eprintln!("upsample columns 512->2048: {columns}");
 
