@@ -101,7 +101,7 @@ fn main() -> Res<()> {
     }
 
     std::fs::create_dir_all(&out)?;
-    register_font();
+    rangegan_mcap::report::plot::register_font();
     let sets = [(&real, BLACK), (&ideal, BLUE), (&realistic, RED)];
     curves_png(&out.join("simulator_realism.png"), &sets)?;
     classes_png(&out.join("simulator_classes.png"), &sets)?;
@@ -110,22 +110,6 @@ fn main() -> Res<()> {
     }
     print_table(&sets);
     Ok(())
-}
-
-fn register_font() {
-    // plotters draws text with ab_glyph; use the system's DejaVu Sans if present.
-    for path in [
-        "/usr/share/fonts/truetype/dejavu/DejaVuSans.ttf",
-        "/usr/share/fonts/TTF/DejaVuSans.ttf",
-    ] {
-        if let Ok(bytes) = std::fs::read(path) {
-            let bytes: &'static [u8] = Box::leak(bytes.into_boxed_slice());
-            if plotters::style::register_font("sans-serif", FontStyle::Normal, bytes).is_ok() {
-                return;
-            }
-        }
-    }
-    eprintln!("no DejaVuSans.ttf found: plots will have no text");
 }
 
 fn save_png(path: &Path, buf: &[u8], size: (u32, u32)) -> Res<()> {

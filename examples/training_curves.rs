@@ -41,22 +41,6 @@ fn read_log(run: &Path) -> Res<Vec<serde_json::Value>> {
     Ok(by_step.into_values().collect())
 }
 
-fn register_font() {
-    // plotters draws text with ab_glyph; use the system's DejaVu Sans if present.
-    for path in [
-        "/usr/share/fonts/truetype/dejavu/DejaVuSans.ttf",
-        "/usr/share/fonts/TTF/DejaVuSans.ttf",
-    ] {
-        if let Ok(bytes) = std::fs::read(path) {
-            let bytes: &'static [u8] = Box::leak(bytes.into_boxed_slice());
-            if plotters::style::register_font("sans-serif", FontStyle::Normal, bytes).is_ok() {
-                return;
-            }
-        }
-    }
-    eprintln!("no DejaVuSans.ttf found: plots will have no text");
-}
-
 fn main() -> Res<()> {
     let mut args = std::env::args().skip(1);
     let out = PathBuf::from(
@@ -72,7 +56,7 @@ fn main() -> Res<()> {
     if runs.is_empty() {
         return Err("no runs given".into());
     }
-    register_font();
+    rangegan_mcap::report::plot::register_font();
     let colours = [RED, BLUE, GREEN, MAGENTA, CYAN];
     let panels = [
         ("discriminator loss", "loss_d"),

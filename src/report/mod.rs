@@ -4,7 +4,7 @@
 //! located mismatch highlighted) and `report.html` tying them together. Every
 //! file is written atomically. Knows nothing of MCAP or of how the fit works.
 
-pub mod raster;
+pub mod plot;
 
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
@@ -12,7 +12,7 @@ use std::path::{Path, PathBuf};
 use anyhow::Context;
 
 use crate::physics::diagnose::{Curve, Diagnosis};
-use raster::{Axes, FITTED, REAL, SIM, line_chart, ramp, write_atomic};
+use plot::{FITTED, LineChart, REAL, SIM, Series, line_chart, viridis, write_atomic};
 
 /// Where the inputs came from, for the HTML header.
 #[derive(Debug, Clone, Default)]
@@ -31,53 +31,61 @@ struct Figure {
 }
 
 fn curve_figure(dir: &Path, curve: &Curve) -> anyhow::Result<Figure> {
-    let finite = |v: &[f64]| {
-        v.iter()
-            .copied()
-            .filter(|x| x.is_finite())
-            .collect::<Vec<_>>()
-    };
-    let all: Vec<f64> = [&curve.real, &curve.sim, &curve.fitted]
-        .iter()
-        .flat_map(|v| finite(v))
-        .collect();
-    let y_max = all.iter().copied().fold(0.0f64, f64::max).max(0.01) * 1.05;
-    let (x_min, x_max) = (
-        curve.x.first().copied().unwrap_or(0.0),
-        curve.x.last().copied().unwrap_or(1.0),
-    );
-    let chart = line_chart(
-        &curve.x,
-        &[
-            (SIM, &curve.sim),
-            (FITTED, &curve.fitted),
-            (REAL, &curve.real),
-        ],
-        Axes {
-            x_min,
-            x_max,
-            y_min: 0.0,
-            y_max,
-        },
-    );
     let file = format!("drop_vs_{}.png", curve.feature);
-    write_atomic(&dir.join(&file), &chart.png())
-        .with_context(|| format!("cannot write {}", dir.join(&file).display()))?;
-    let unit = if curve.unit.is_empty() {
-        String::new()
+    let x_label = if curve.unit.is_empty() {
+        curve.feature.to_string()
     } else {
-        format!(" ({})", curve.unit)
+        format!("{} ({})", curve.feature, curve.unit)
     };
+    let png = line_chart(&LineChart {
+        title: &format!("Drop rate against {}", curve.feature),
+        x_label: &x_label,
+        y_label: "drop rate",
+        x: &curve.x,
+        series: &[
+            Series {
+                label: "real held-out scans",
+                colour: REAL,
+                y: &curve.real,
+            },
+            Series {
+                label: "sim as given",
+                colour: SIM,
+                y: &curve.sim,
+            },
+            Series {
+                label: "sim + fitted effects",
+                colour: FITTED,
+                y: &curve.fitted,
+            },
+        ],
+    })
+    .with_context(|| format!("cannot draw {}", dir.join(&file).display()))?;
+    write_atomic(&dir.join(&file), &png)
+        .with_context(|| format!("cannot write {}", dir.join(&file).display()))?;
     Ok(Figure {
         file,
         caption: format!(
-            "Drop rate against {}{unit}: x from {x_min:.1} to {x_max:.1}, y from 0 to {y_max:.3} (grid: tenths). \
+            "Drop rate against {x_label}: \
              <span style='color:#d62728'>red: real (held-out scans)</span>, \
              <span style='color:#1f77b4'>blue: sim as given</span>, \
-             <span style='color:#2ca02c'>green: sim + fitted effects</span>.",
-            curve.feature
+             <span style='color:#2ca02c'>green: sim + fitted effects</span>; gaps where a bin has too few pixels."
         ),
     })
+}
+
+/// Writes a false-colour image (`plot::image`) as `dir/file`.
+fn image_file(
+    dir: &Path,
+    file: &str,
+    (h, w): (usize, usize),
+    colour: impl Fn(usize) -> plot::Rgb,
+) -> anyhow::Result<()> {
+    let row_scale = (256 / h.max(1)).clamp(1, 4);
+    let png = plot::image(h, w, row_scale, colour)
+        .with_context(|| format!("cannot draw {}", dir.join(file).display()))?;
+    write_atomic(&dir.join(file), &png)
+        .with_context(|| format!("cannot write {}", dir.join(file).display()))
 }
 
 fn map_figure(
@@ -89,17 +97,14 @@ fn map_figure(
     max: f32,
     caption: String,
 ) -> anyhow::Result<Figure> {
-    let row_scale = (256 / h.max(1)).clamp(1, 4);
-    let img = raster::image(h, w, row_scale, |k| {
+    image_file(dir, file, (h, w), |k| {
         let v = values.get(k).copied().unwrap_or(f32::NAN);
         if v.is_finite() {
-            ramp(v / max.max(1e-6))
+            viridis(v / max.max(1e-6))
         } else {
             [255, 255, 255]
         }
-    });
-    write_atomic(&dir.join(file), &img.png())
-        .with_context(|| format!("cannot write {}", dir.join(file).display()))?;
+    })?;
     Ok(Figure {
         file: file.into(),
         caption,
@@ -154,8 +159,7 @@ pub fn write(dir: &Path, d: &Diagnosis, provenance: &Provenance) -> anyhow::Resu
     // One held-out real scan: grey by range, black where dropped, red where the
     // fitted effects add drop probability (the located mismatch).
     let max_range = m.example_range_m.iter().copied().fold(1.0f32, f32::max);
-    let row_scale = (256 / h.max(1)).clamp(1, 4);
-    let img = raster::image(h, w, row_scale, |k| {
+    image_file(dir, "example_scan.png", (h, w), |k| {
         let r = m.example_range_m.get(k).copied().unwrap_or(0.0);
         let hl = m
             .example_highlight
@@ -175,9 +179,7 @@ pub fn write(dir: &Path, d: &Diagnosis, provenance: &Provenance) -> anyhow::Resu
         } else {
             [grey, grey, grey]
         }
-    });
-    write_atomic(&dir.join("example_scan.png"), &img.png())
-        .with_context(|| format!("cannot write {}/example_scan.png", dir.display()))?;
+    })?;
     figures.push(Figure {
         file: "example_scan.png".into(),
         caption: "One held-out real scan: grey by range (light near, dark far), black where dropped, red where the fitted effects located the mismatch (extra drop probability; the scan seam for motion distortion).".into(),
