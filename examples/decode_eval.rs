@@ -5,6 +5,7 @@
 //!
 //!     cargo run --release --example decode_eval -- --data ../shared/real_lidar \
 //!         [--paper-scans 2] [--fast-scans 26] [--encoder DIR] [--model DIR] [--out eval.json]
+//!         [--png docs/img/raydrop_reliability.png]
 //!
 //! Held out: `semantickitti_mini/00`, `/07` (every 4th point, ~512 per ring) and the
 //! full-resolution `semantickitti_ssv3`, `patchworkpp` (~2010 per ring; ground truth for the
@@ -36,6 +37,8 @@ struct Args {
     fast_schedule: Option<rangegan_mcap::decode::Schedule>,
     /// Stop after the reconstruction numbers (for tuning the fast schedule).
     only_reconstruction: bool,
+    /// Write the ray-drop reliability curves here (PNG).
+    png: Option<PathBuf>,
 }
 
 fn parse_args() -> Result<Args> {
@@ -48,6 +51,7 @@ fn parse_args() -> Result<Args> {
         out: None,
         fast_schedule: None,
         only_reconstruction: false,
+        png: None,
     };
     let mut it = std::env::args().skip(1);
     while let Some(flag) = it.next() {
@@ -59,6 +63,7 @@ fn parse_args() -> Result<Args> {
             "--encoder" => a.encoder = Some(PathBuf::from(value()?)),
             "--model" => a.model = Some(PathBuf::from(value()?)),
             "--out" => a.out = Some(PathBuf::from(value()?)),
+            "--png" => a.png = Some(PathBuf::from(value()?)),
             "--only-reconstruction" => a.only_reconstruction = true,
             "--fast-schedule" => {
                 let v = value()?;
@@ -396,8 +401,7 @@ fn main() -> Result<()> {
     }
 
     // ---- Ray-drop calibration (fast decodes of the full scans) ---------------------------
-    let bins = 10;
-    let mut rel = vec![(0.0f64, 0.0f64, 0usize); bins];
+    let (mut rel, mut rel_raw) = (Reliability::new(10), Reliability::new(10));
     let (mut nll, mut nll_raw, mut n_pix) = (0.0f64, 0.0f64, 0usize);
     let mut rows_drop = vec![(0.0f64, 0usize); 64];
     for (s, (d, _)) in scans[..fast_n].iter().zip(&fast_res) {
@@ -408,10 +412,8 @@ fn main() -> Result<()> {
             nll -= if dropped { p.ln() } else { (1.0 - p).ln() };
             nll_raw += bernoulli_nll(f64::from(*raw), !dropped);
             n_pix += 1;
-            let b = ((p * bins as f64) as usize).min(bins - 1);
-            rel[b].0 += p;
-            rel[b].1 += f64::from(u8::from(dropped));
-            rel[b].2 += 1;
+            rel.add(p, dropped);
+            rel_raw.add(1.0 / (1.0 + f64::from(*raw).exp()), dropped);
             let row = k / s.image.width;
             rows_drop[row].0 += f64::from(u8::from(dropped));
             rows_drop[row].1 += 1;
@@ -484,12 +486,13 @@ fn main() -> Result<()> {
         "calibration": fast.calibration_source(), "nll_global_rate": nll_global / n, "nll_per_row_rate": nll_row / n,
         "drop_rate_heldout": rows_drop.iter().map(|r| r.0).sum::<f64>() / n,
         "drop_rate_train": global,
-        "reliability": rel.iter().enumerate().map(|(i, (sp, sd, c))| json!({
-            "bin": format!("{:.1}-{:.1}", i as f64 / bins as f64, (i + 1) as f64 / bins as f64),
-            "pixels": c, "mean_xn": sp / (*c).max(1) as f64, "observed_drop_rate": sd / (*c).max(1) as f64,
-        })).collect::<Vec<_>>(),
+        "reliability": rel.json(),
+        "reliability_uncalibrated": rel_raw.json(),
     });
     eprintln!("calibration: {calibration}");
+    if let Some(png) = &args.png {
+        reliability_chart(png, &rel, &rel_raw)?;
+    }
 
     // ---- Upsampling and restoration (fast decoding from sparse observations) -------------
     let grid512 = model_grid();
@@ -608,6 +611,79 @@ fn main() -> Result<()> {
     }
     println!("{text}");
     Ok(())
+}
+
+/// A reliability curve: per x_n bin, the summed x_n, the drops and the pixel count.
+struct Reliability(Vec<(f64, f64, usize)>);
+
+impl Reliability {
+    fn new(bins: usize) -> Self {
+        Reliability(vec![(0.0, 0.0, 0); bins])
+    }
+
+    fn add(&mut self, x_n: f64, dropped: bool) {
+        let n = self.0.len();
+        let bin = &mut self.0[((x_n * n as f64) as usize).min(n - 1)];
+        bin.0 += x_n;
+        bin.1 += f64::from(u8::from(dropped));
+        bin.2 += 1;
+    }
+
+    /// Observed drop rate per bin; NaN where a bin has too few pixels to say.
+    fn observed(&self) -> Vec<f64> {
+        self.0
+            .iter()
+            .map(|(_, d, c)| if *c >= 100 { d / *c as f64 } else { f64::NAN })
+            .collect()
+    }
+
+    fn json(&self) -> serde_json::Value {
+        let n = self.0.len() as f64;
+        self.0
+            .iter()
+            .enumerate()
+            .map(|(i, (sp, sd, c))| {
+                json!({
+                    "bin": format!("{:.1}-{:.1}", i as f64 / n, (i + 1) as f64 / n),
+                    "pixels": c, "mean_xn": sp / (*c).max(1) as f64,
+                    "observed_drop_rate": sd / (*c).max(1) as f64,
+                })
+            })
+            .collect()
+    }
+}
+
+/// The reliability curves of the calibrated and the raw x_n against the diagonal.
+fn reliability_chart(path: &Path, calibrated: &Reliability, raw: &Reliability) -> Result<()> {
+    use rangegan_mcap::report::plot::{FITTED, LineChart, SIM, Series, line_chart, write_atomic};
+    let n = calibrated.0.len();
+    let x: Vec<f64> = (0..n).map(|i| (i as f64 + 0.5) / n as f64).collect();
+    let (cal, unc) = (calibrated.observed(), raw.observed());
+    let chart = LineChart {
+        title: "Ray-drop calibration, 26 held-out KITTI scans",
+        x_label: "predicted drop probability x_n (bin centre)",
+        y_label: "observed drop rate",
+        x: &x,
+        series: &[
+            Series {
+                label: "calibrated x_n (shipped)",
+                colour: FITTED,
+                y: &cal,
+            },
+            Series {
+                label: "raw x_n of the generator",
+                colour: SIM,
+                y: &unc,
+            },
+            Series {
+                label: "perfect calibration",
+                colour: plotters::style::RGBColor(120, 120, 120),
+                y: &x,
+            },
+        ],
+    };
+    write_atomic(path, &line_chart(&chart)?)
+        .with_context(|| format!("failed to write {}", path.display()))
 }
 
 /// Pixel-weighted mean MAE per method over scans.
