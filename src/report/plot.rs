@@ -160,8 +160,8 @@ pub fn image(
     encode_png(size(w)?, size(h * row_scale)?, &buf)
 }
 
-/// PNG bytes of an 8-bit RGB image.
-fn encode_png(w: u32, h: u32, rgb: &[u8]) -> anyhow::Result<Vec<u8>> {
+/// PNG bytes of an 8-bit RGB buffer (`w` x `h`, row-major).
+pub fn encode_png(w: u32, h: u32, rgb: &[u8]) -> anyhow::Result<Vec<u8>> {
     let mut out = Vec::new();
     let mut enc = png::Encoder::new(&mut out, w, h);
     enc.set_color(png::ColorType::Rgb);
