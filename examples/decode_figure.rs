@@ -73,7 +73,9 @@ fn main() -> Result<()> {
         .collect();
     let panels = vec![
         Panel {
-            title: "measured range, 64 x 512 (log scale: yellow 1.45 m, dark 80 m; black: no return)".into(),
+            title:
+                "measured range, 64 x 512 (log scale: yellow 1.45 m, dark 80 m; black: no return)"
+                    .into(),
             h: 64,
             w: 512,
             colour: Box::new(move |k| depth_colour(range[k])),
@@ -100,7 +102,8 @@ fn main() -> Result<()> {
             colour: Box::new(move |k| if mask[k] { [255; 3] } else { [0; 3] }),
         },
         Panel {
-            title: "measured, columns 192-319 of 512 (the front quarter), each shown 4x wide".into(),
+            title: "measured, columns 192-319 of 512 (the front quarter), each shown 4x wide"
+                .into(),
             h: 64,
             w: 512,
             colour: Box::new(move |k| depth_colour(measured_quarter[k])),

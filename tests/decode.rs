@@ -121,6 +121,20 @@ fn decoding_is_identical_with_one_and_two_threads() {
         outs[0] == outs[1],
         "1 and 2 threads must give the same bytes"
     );
+    // The output says what made its decoded channels.
+    let ours = mcap::read::LinearReader::new(&outs[0])
+        .unwrap()
+        .find_map(|r| match r.unwrap() {
+            mcap::records::Record::Metadata(m) if m.name == "rangegan" => Some(m.metadata),
+            _ => None,
+        })
+        .expect("rangegan metadata record");
+    assert_eq!(ours["decode_model"], "shipped + encoder shipped");
+    assert_eq!(ours["decode_steps"], "2 w + 2 tuning");
+    assert!(
+        ours["raydrop_calibration"].contains("KITTI training scans"),
+        "{ours:?}"
+    );
 }
 
 #[test]

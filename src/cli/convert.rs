@@ -199,7 +199,8 @@ pub fn run(global: &GlobalArgs, args: ConvertArgs) -> anyhow::Result<Outcome> {
     let file = std::fs::File::open(&args.input)
         .with_context(|| format!("cannot open {}", args.input.display()))?;
     let len = file.metadata().ok().map(|m| m.len());
-    let metadata = BTreeMap::from([
+    let decoding = resolve_decoding(&args)?;
+    let mut metadata = BTreeMap::from([
         ("tool".to_string(), "rangegan-mcap".to_string()),
         ("version".to_string(), env!("CARGO_PKG_VERSION").to_string()),
         (
@@ -208,6 +209,21 @@ pub fn run(global: &GlobalArgs, args: ConvertArgs) -> anyhow::Result<Outcome> {
         ),
         ("input".to_string(), args.input.display().to_string()),
     ]);
+    if let Some((decoder, _)) = &decoding {
+        // What made the decoded channels, so a regenerated dataset says which weights it used.
+        let schedule = &decoder.options().schedule;
+        metadata.extend([
+            ("decode_model".to_string(), decoder.source.clone()),
+            (
+                "decode_steps".to_string(),
+                format!("{} w + {} tuning", schedule.w_steps, schedule.tune_steps),
+            ),
+            (
+                "raydrop_calibration".to_string(),
+                decoder.calibration_source().unwrap_or("none").to_string(),
+            ),
+        ]);
+    }
     let opts = ConvertOptions {
         topics: (!args.topic.is_empty()).then(|| args.topic.clone()),
         sensor: sensor_choice(&args.sensor)?,
@@ -217,7 +233,6 @@ pub fn run(global: &GlobalArgs, args: ConvertArgs) -> anyhow::Result<Outcome> {
         metadata,
         ..ConvertOptions::default()
     };
-    let decoding = resolve_decoding(&args)?;
     let decode_stage = match &decoding {
         Some((decoder, outputs)) => Some(DecodeStage::new(decoder, outputs)?),
         None => None,
