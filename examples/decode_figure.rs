@@ -71,7 +71,7 @@ fn main() -> Result<()> {
             image.range_m[r * 512 + c]
         })
         .collect();
-    let panels = vec![
+    let panels = [
         Panel {
             title:
                 "measured range, 64 x 512 (log scale: yellow 1.45 m, dark 80 m; black: no return)"
