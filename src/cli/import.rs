@@ -8,8 +8,8 @@ use std::path::{Path, PathBuf};
 use anyhow::{Context, bail};
 
 use super::{GlobalArgs, Outcome};
-use crate::io::encoders::{Kind, Payload, encode};
-use crate::io::{Family, pointcloud};
+use crate::io::Family;
+use crate::io::encoders::{Kind, encode_cloud};
 use crate::lidar::{kitti, projection::ring_order_ids};
 
 #[derive(Debug, clap::Args)]
@@ -73,17 +73,8 @@ pub fn run(global: &GlobalArgs, args: ImportArgs) -> anyhow::Result<Outcome> {
                 .map(|r| r.min(u16::MAX as u32) as u16)
                 .collect(),
         );
-        let (layout, data) = pointcloud::encode(&scan, &[]);
         let stamp = start_nanos + i as u64 * 100_000_000;
-        let msg = encode(
-            Family::Ros2,
-            stamp,
-            &args.out.frame_id,
-            &Payload::Cloud {
-                layout: &layout,
-                data: &data,
-            },
-        );
+        let msg = encode_cloud(Family::Ros2, stamp, &args.out.frame_id, &scan, &[]);
         out.write_own(channel, stamp, stamp, &msg)?;
         bar.inc(1);
     }

@@ -8,8 +8,8 @@ use std::collections::BTreeMap;
 use anyhow::Context;
 
 use super::{GlobalArgs, Outcome};
-use crate::io::encoders::{Kind, Payload, Transform, encode};
-use crate::io::{Family, pointcloud};
+use crate::io::Family;
+use crate::io::encoders::{Kind, Payload, Transform, encode, encode_cloud};
 use crate::lidar::SensorProfile;
 use crate::physics::PhysicsConfig;
 use crate::sim::{SceneConfig, Simulator};
@@ -125,16 +125,7 @@ pub fn run(global: &GlobalArgs, args: SimulateArgs) -> anyhow::Result<Outcome> {
         points += cloud.returns() as u64;
         pixels += scan.len() as u64;
         let stamp = start_nanos + (sim.scan_time(index) * 1e9).round() as u64;
-        let (layout, data) = pointcloud::encode(&cloud, &[]);
-        let msg = encode(
-            Family::Ros2,
-            stamp,
-            &args.out.frame_id,
-            &Payload::Cloud {
-                layout: &layout,
-                data: &data,
-            },
-        );
+        let msg = encode_cloud(Family::Ros2, stamp, &args.out.frame_id, &cloud, &[]);
         out.write_own(cloud_channel, stamp, stamp, &msg)?;
         // Ego pose at the scan start: base_link on the road under the sensor.
         let pose = scan.pose;

@@ -7,6 +7,7 @@ use foxglove::Encode;
 use super::decoders::{DecodedCloud, Family};
 use super::pointcloud::CloudLayout;
 use super::wire::WireWriter;
+use crate::lidar::Scan;
 
 /// A schema record to register: name, schema encoding and text/bytes.
 #[derive(Debug, Clone, PartialEq, Eq)]
@@ -288,14 +289,31 @@ fn encode_foxglove(stamp_nanos: u64, frame_id: &str, payload: &Payload<'_>) -> V
     }
 }
 
-/// Encodes a scan as a point-cloud message of `family` (x, y, z and the scan's
-/// optional fields, then `extra` float channels).
+/// Encodes a decoded cloud's scan again, with its stamp and frame (see [`encode_cloud`]).
 pub fn encode_scan(family: Family, cloud: &DecodedCloud, extra: &[(&str, &[f32])]) -> Vec<u8> {
-    let (layout, data) = super::pointcloud::encode(&cloud.scan, extra);
-    encode(
+    encode_cloud(
         family,
         cloud.stamp_nanos,
         &cloud.frame_id,
+        &cloud.scan,
+        extra,
+    )
+}
+
+/// Encodes a scan as a point-cloud message of `family` (x, y, z and the scan's
+/// optional fields, then `extra` float channels).
+pub fn encode_cloud(
+    family: Family,
+    stamp_nanos: u64,
+    frame_id: &str,
+    scan: &Scan,
+    extra: &[(&str, &[f32])],
+) -> Vec<u8> {
+    let (layout, data) = super::pointcloud::encode(scan, extra);
+    encode(
+        family,
+        stamp_nanos,
+        frame_id,
         &Payload::Cloud {
             layout: &layout,
             data: &data,
@@ -303,9 +321,6 @@ pub fn encode_scan(family: Family, cloud: &DecodedCloud, extra: &[(&str, &[f32])
     )
 }
 
-/// Encodes bare points (x, y, z, then `extra` float channels, one value per point) as an
-/// unorganized point-cloud message of `family`, e.g. a completed scan with `range` and
-/// `raydrop_prob`.
 /// A float image (`32FC1`) of `width x height` row-major values.
 pub fn encode_f32_image(
     family: Family,
@@ -342,6 +357,9 @@ pub fn encode_mask(
     encode(family, stamp_nanos, frame_id, &image)
 }
 
+/// Encodes bare points (x, y, z, then `extra` float channels, one value per point) as an
+/// unorganized point-cloud message of `family`, e.g. a completed scan with `range` and
+/// `raydrop_prob`.
 pub fn encode_points(
     family: Family,
     stamp_nanos: u64,
