@@ -5,7 +5,7 @@
 //!
 //!     cargo run --release --example decode_eval -- --data ../shared/real_lidar \
 //!         [--paper-scans 2] [--fast-scans 26] [--encoder DIR] [--model DIR] [--out eval.json]
-//!         [--png docs/img/raydrop_reliability.png]
+//!         [--png docs/img/raydrop_reliability.png] [--sparse-paper-scans 4]
 //!
 //! Held out: `semantickitti_mini/00`, `/07` (every 4th point, ~512 per ring) and the
 //! full-resolution `semantickitti_ssv3`, `patchworkpp` (~2010 per ring; ground truth for the
@@ -39,6 +39,8 @@ struct Args {
     only_reconstruction: bool,
     /// Write the ray-drop reliability curves here (PNG).
     png: Option<PathBuf>,
+    /// Also run the row upsampling / restoration cases with `paper` decodes on this many scans.
+    sparse_paper_scans: usize,
 }
 
 fn parse_args() -> Result<Args> {
@@ -52,6 +54,7 @@ fn parse_args() -> Result<Args> {
         fast_schedule: None,
         only_reconstruction: false,
         png: None,
+        sparse_paper_scans: 0,
     };
     let mut it = std::env::args().skip(1);
     while let Some(flag) = it.next() {
@@ -64,6 +67,7 @@ fn parse_args() -> Result<Args> {
             "--model" => a.model = Some(PathBuf::from(value()?)),
             "--out" => a.out = Some(PathBuf::from(value()?)),
             "--png" => a.png = Some(PathBuf::from(value()?)),
+            "--sparse-paper-scans" => a.sparse_paper_scans = value()?.parse()?,
             "--only-reconstruction" => a.only_reconstruction = true,
             "--fast-schedule" => {
                 let v = value()?;
@@ -496,12 +500,12 @@ fn main() -> Result<()> {
 
     // ---- Upsampling and restoration (fast decoding from sparse observations) -------------
     let grid512 = model_grid();
-    let lines_case = |n_lines: usize| -> Result<serde_json::Value> {
-        let mut opts = DecodeOptions::new(Quality::Fast);
+    let lines_case = |n_lines: usize, quality: Quality, n: usize| -> Result<serde_json::Value> {
+        let mut opts = DecodeOptions::new(quality);
         opts.restore = Some(Sparsify::Lines(n_lines));
         let d = decoder(&args.model, &args.encoder, opts, &args.fast_schedule)?;
         let kept = Sparsify::kept_rows(n_lines, 64);
-        let per: Vec<(Vec<f64>, usize)> = scans[..fast_n]
+        let per: Vec<(Vec<f64>, usize)> = scans[..n]
             .par_iter()
             .enumerate()
             .map(|(i, s)| -> Result<(Vec<f64>, usize)> {
@@ -523,10 +527,20 @@ fn main() -> Result<()> {
             .collect::<Result<_>>()?;
         Ok(summarize(&per, &GRID_METHODS))
     };
-    let rows16 = lines_case(16)?;
+    let rows16 = lines_case(16, Quality::Fast, fast_n)?;
     eprintln!("upsample rows 16->64: {rows16}");
-    let rows8 = lines_case(8)?;
+    let rows8 = lines_case(8, Quality::Fast, fast_n)?;
     eprintln!("restore 8 of 64 lines: {rows8}");
+    // The same from `paper` decodes (minutes per scan): does a longer inversion close the gap?
+    let paper_rows = if args.sparse_paper_scans > 0 {
+        let n = args.sparse_paper_scans.min(scans.len());
+        let r16 = lines_case(16, Quality::Paper, n)?;
+        let r8 = lines_case(8, Quality::Paper, n)?;
+        eprintln!("paper: upsample rows 16->64: {r16}; restore 8 of 64 lines: {r8}");
+        json!({"upsample_rows_16_to_64_mae_m": r16, "restore_8_of_64_lines_mae_m": r8})
+    } else {
+        serde_json::Value::Null
+    };
 
     let fraction = {
         let mut opts = DecodeOptions::new(Quality::Fast);
@@ -604,6 +618,7 @@ fn main() -> Result<()> {
         "upsample_columns_512_to_2048_mae_m": columns,
         "restore_8_of_64_lines_mae_m": rows8,
         "restore_10_percent_points_mae_m": fraction,
+        "paper_decodes_of_sparse_rows": paper_rows,
     });
     let text = serde_json::to_string_pretty(&report)?;
     if let Some(out) = &args.out {
