@@ -15,7 +15,8 @@ use crate::decode::{Decoder, PreparedGrid, Rendered, scan_seed};
 use crate::error::Location;
 use crate::io::encoders::{Kind, encode_f32_image, encode_mask, encode_points};
 use crate::io::{
-    CloudFormat, DecodedCloud, Family, McapOutput, OnError, ReadReport, decode_cloud, read_records,
+    ChannelEntry, ChannelTable, CloudFormat, DecodedCloud, Family, McapOutput, OnError, ReadReport,
+    decode_cloud, read_records,
 };
 use crate::lidar::{RangeImage, SensorProfile, Strategy, estimate_profile, project};
 
@@ -260,11 +261,6 @@ pub struct RecordCounts {
     pub metadata: u64,
 }
 
-struct ChannelInfo {
-    topic: String,
-    format: Option<CloudFormat>,
-}
-
 /// A point-cloud message waiting for its batch (the message itself is already
 /// copied; its outputs follow when the batch is processed).
 struct Pending {
@@ -352,49 +348,33 @@ struct Converter<'a> {
     opts: &'a ConvertOptions,
     processor: ScanProcessor<'a>,
     file: std::path::PathBuf,
-    schemas: HashMap<u16, (String, String)>,
-    channels: HashMap<u16, ChannelInfo>,
+    table: ChannelTable,
     batch: Vec<Pending>,
     scans_done: u64,
     report: ConvertReport,
 }
 
 impl Converter<'_> {
-    fn selected(&self, topic: &str) -> bool {
-        self.opts
+    /// The point-cloud format of a channel whose scans are converted (`--topic` selects).
+    fn converted(opts: &ConvertOptions, channel: &ChannelEntry) -> Option<CloudFormat> {
+        let selected = opts
             .topics
             .as_ref()
-            .is_none_or(|t| t.iter().any(|x| x == topic))
+            .is_none_or(|t| t.contains(&channel.topic));
+        channel.cloud.filter(|_| selected)
     }
 
     fn visit(&mut self, record: &Record<'_>) -> anyhow::Result<()> {
+        if let Some((_, channel)) = self.table.observe(record)
+            && let Some(format) = Self::converted(self.opts, channel)
+        {
+            let topic = self.report.topics.entry(channel.topic.clone());
+            topic.or_default().format = Some(format);
+        }
         let counts = &mut self.report.records_in;
         match record {
-            Record::Schema { header, .. } => {
-                counts.schemas += 1;
-                self.schemas
-                    .insert(header.id, (header.name.clone(), header.encoding.clone()));
-            }
-            Record::Channel(c) => {
-                counts.channels += 1;
-                let schema_name = self.schemas.get(&c.schema_id).map_or("", |s| s.0.as_str());
-                let format = CloudFormat::detect(&c.message_encoding, schema_name)
-                    .filter(|_| self.selected(&c.topic));
-                if let Some(f) = format {
-                    self.report
-                        .topics
-                        .entry(c.topic.clone())
-                        .or_default()
-                        .format = Some(f);
-                }
-                self.channels.insert(
-                    c.id,
-                    ChannelInfo {
-                        topic: c.topic.clone(),
-                        format,
-                    },
-                );
-            }
+            Record::Schema { .. } => counts.schemas += 1,
+            Record::Channel(_) => counts.channels += 1,
             Record::Message { .. } => counts.messages += 1,
             Record::Attachment { .. } => counts.attachments += 1,
             Record::Metadata(_) => counts.metadata += 1,
@@ -403,14 +383,12 @@ impl Converter<'_> {
         // Copy first: the input record reaches the output whatever happens to its scan.
         self.out.copy_record(record)?;
         if let Record::Message { header, data } = record
-            && let Some(ChannelInfo {
-                topic,
-                format: Some(format),
-            }) = self.channels.get(&header.channel_id)
+            && let Some(channel) = self.table.get(header.channel_id)
+            && let Some(format) = Self::converted(self.opts, channel)
         {
             self.batch.push(Pending {
-                topic: topic.clone(),
-                format: *format,
+                topic: channel.topic.clone(),
+                format,
                 log_time: header.log_time,
                 publish_time: header.publish_time,
                 data: data.to_vec(),
@@ -500,8 +478,7 @@ pub fn convert(
             profiles: Mutex::new(HashMap::new()),
         },
         file: input.to_path_buf(),
-        schemas: HashMap::new(),
-        channels: HashMap::new(),
+        table: ChannelTable::default(),
         batch: Vec::new(),
         scans_done: 0,
         report: ConvertReport::default(),

@@ -10,7 +10,7 @@ use anyhow::Context;
 use mcap::records::Record;
 
 use crate::error::Location;
-use crate::io::{CloudFormat, DecodedCloud, OnError, decode_cloud, read_records};
+use crate::io::{ChannelTable, CloudFormat, DecodedCloud, OnError, decode_cloud, read_records};
 use crate::lidar::projection::choose_strategy;
 use crate::lidar::{RangeImage, SensorProfile, estimate_profile, project};
 
@@ -86,7 +86,7 @@ pub fn read(path: &Path, topic: Option<&str>, grid: &Grid) -> anyhow::Result<Rec
     let file =
         std::fs::File::open(path).with_context(|| format!("cannot open {}", path.display()))?;
     let len = file.metadata().ok().map(|m| m.len());
-    let mut schemas: HashMap<u16, String> = HashMap::new();
+    let mut table = ChannelTable::default();
     let mut clouds: HashMap<u16, (String, CloudFormat)> = HashMap::new();
     let mut chosen: Option<(String, CloudFormat)> = None;
     let mut metadata = BTreeMap::new();
@@ -98,23 +98,19 @@ pub fn read(path: &Path, topic: Option<&str>, grid: &Grid) -> anyhow::Result<Rec
         len,
         OnError::Fail,
         |record| {
+            if let Some((id, entry)) = table.observe(record)
+                && let Some(format) = entry.cloud
+            {
+                if !cloud_topics.contains(&entry.topic) {
+                    cloud_topics.push(entry.topic.clone());
+                }
+                let wanted = topic.is_none_or(|t| t == entry.topic);
+                if wanted && chosen.as_ref().is_none_or(|(t, _)| *t == entry.topic) {
+                    chosen = Some((entry.topic.clone(), format));
+                    clouds.insert(id, (entry.topic.clone(), format));
+                }
+            }
             match record {
-                Record::Schema { header, .. } => {
-                    schemas.insert(header.id, header.name.clone());
-                }
-                Record::Channel(c) => {
-                    let schema = schemas.get(&c.schema_id).map_or("", String::as_str);
-                    if let Some(format) = CloudFormat::detect(&c.message_encoding, schema) {
-                        if !cloud_topics.contains(&c.topic) {
-                            cloud_topics.push(c.topic.clone());
-                        }
-                        let wanted = topic.is_none_or(|t| t == c.topic);
-                        if wanted && chosen.as_ref().is_none_or(|(t, _)| *t == c.topic) {
-                            chosen = Some((c.topic.clone(), format));
-                            clouds.insert(c.id, (c.topic.clone(), format));
-                        }
-                    }
-                }
                 Record::Metadata(m) => {
                     metadata.insert(m.name.clone(), m.metadata.clone());
                 }

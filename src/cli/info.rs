@@ -7,7 +7,7 @@ use anyhow::Context;
 use mcap::records::Record;
 
 use super::{GlobalArgs, Outcome};
-use crate::io::{CloudFormat, OnError, decode_cloud, read_records};
+use crate::io::{ChannelTable, CloudFormat, OnError, decode_cloud, read_records};
 use crate::lidar::estimate_profile;
 use crate::lidar::{Strategy, project};
 use crate::pipeline::SensorChoice;
@@ -61,7 +61,7 @@ pub fn run(global: &GlobalArgs, args: InfoArgs) -> anyhow::Result<Outcome> {
         .with_context(|| format!("cannot open {}", args.input.display()))?;
     let len = file.metadata().ok().map(|m| m.len());
     let sensor = super::convert::sensor_choice(&args.sensor)?;
-    let mut schemas: BTreeMap<u16, (String, String)> = BTreeMap::new();
+    let mut table = ChannelTable::default();
     let mut channels: BTreeMap<u16, ChannelInfo> = BTreeMap::new();
     let (mut attachments, mut metadata) = (Vec::new(), Vec::new());
     let reader = std::io::BufReader::with_capacity(1 << 20, file);
@@ -70,24 +70,18 @@ pub fn run(global: &GlobalArgs, args: InfoArgs) -> anyhow::Result<Outcome> {
         len,
         OnError::Skip,
         |rec| {
+            if let Some((id, c)) = table.observe(rec) {
+                channels.entry(id).or_insert_with(|| ChannelInfo {
+                    id,
+                    topic: c.topic.clone(),
+                    schema: c.schema.clone(),
+                    schema_encoding: c.schema_encoding.clone(),
+                    message_encoding: c.message_encoding.clone(),
+                    point_cloud: c.cloud,
+                    ..Default::default()
+                });
+            }
             match rec {
-                Record::Schema { header, .. } => {
-                    schemas.insert(header.id, (header.name.clone(), header.encoding.clone()));
-                }
-                Record::Channel(c) => {
-                    let (schema, schema_encoding) =
-                        schemas.get(&c.schema_id).cloned().unwrap_or_default();
-                    let point_cloud = CloudFormat::detect(&c.message_encoding, &schema);
-                    channels.entry(c.id).or_insert(ChannelInfo {
-                        id: c.id,
-                        topic: c.topic.clone(),
-                        schema,
-                        schema_encoding,
-                        message_encoding: c.message_encoding.clone(),
-                        point_cloud,
-                        ..Default::default()
-                    });
-                }
                 Record::Message { header, data } => {
                     if let Some(ch) = channels.get_mut(&header.channel_id) {
                         ch.messages += 1;

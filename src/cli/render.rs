@@ -19,7 +19,7 @@ use mcap::records::Record;
 use super::{GlobalArgs, Outcome};
 use crate::decode::{sample_masks, scan_seed};
 use crate::io::encoders::encode_scan;
-use crate::io::{CloudFormat, DecodedCloud, McapOutput, OnError, decode_cloud, read_records};
+use crate::io::{ChannelTable, DecodedCloud, McapOutput, OnError, decode_cloud, read_records};
 use crate::lidar::projection::choose_strategy;
 use crate::lidar::{RangeImage, SensorProfile, project};
 use crate::physics::diagnose_completion::par_gan_render;
@@ -307,8 +307,7 @@ pub fn run(global: &GlobalArgs, args: RenderArgs) -> anyhow::Result<Outcome> {
             ("seed".to_string(), args.seed.to_string()),
         ]),
     )?;
-    let mut schemas: HashMap<u16, String> = HashMap::new();
-    let mut cloud_channels: HashMap<u16, CloudFormat> = HashMap::new();
+    let mut table = ChannelTable::default();
     let mut strategy = None;
     let (mut scans, mut kept, mut pixels, mut skipped) = (0u64, 0u64, 0u64, Vec::new());
     let file = std::fs::File::open(&args.input)
@@ -319,69 +318,57 @@ pub fn run(global: &GlobalArgs, args: RenderArgs) -> anyhow::Result<Outcome> {
         len,
         OnError::Fail,
         |record| {
-            match record {
-                Record::Schema { header, .. } => {
-                    schemas.insert(header.id, header.name.clone());
-                }
-                Record::Channel(c) if c.topic == input.topic => {
-                    let schema = schemas.get(&c.schema_id).map_or("", String::as_str);
-                    if let Some(f) = CloudFormat::detect(&c.message_encoding, schema) {
-                        cloud_channels.insert(c.id, f);
-                    }
-                }
-                Record::Message { header, data } => {
-                    if let Some(format) = cloud_channels.get(&header.channel_id) {
-                        let rendered = decode_cloud(*format, data)
-                            .map_err(|e| e.to_string())
-                            .and_then(|cloud| {
-                                let s = *strategy
-                                    .get_or_insert_with(|| choose_strategy(&cloud.scan, &profile));
-                                let image =
-                                    project(&cloud.scan, &profile, s).map_err(|e| e.to_string())?;
-                                let mut scan = as_sim_scan(image, scans as u32, &profile, speed);
-                                physics.apply(&mut scan, args.seed);
-                                if gan {
-                                    let prob = gan_drop
-                                        .get_mut(&header.log_time)
-                                        .and_then(VecDeque::pop_front)
-                                        .unwrap_or_else(
-                                            || Err("not among the decoded scans".into()),
-                                        )
-                                        .map_err(|e| format!("auto-decoding: {e}"))?;
-                                    let seed = scan_seed(&input.topic, header.log_time)
-                                        ^ args.seed.wrapping_mul(0x9e37_79b9_7f4a_7c15);
-                                    drop_bernoulli(&mut scan, &prob, seed);
-                                }
-                                kept += scan.image.valid_count() as u64;
-                                pixels += scan.len() as u64;
-                                let out_cloud = DecodedCloud {
-                                    scan: scan.to_scan(cloud.scan.is_organized()),
-                                    stamp_nanos: cloud.stamp_nanos,
-                                    frame_id: cloud.frame_id,
-                                };
-                                Ok(encode_scan(format.family(), &out_cloud, &[]))
-                            });
-                        match rendered {
-                            Ok(bytes) => {
-                                scans += 1;
-                                out.copy_record(&Record::Message {
-                                    header: *header,
-                                    data: Cow::Owned(bytes),
-                                })?;
-                                return Ok(());
-                            }
-                            Err(e) => skipped.push(format!(
-                                "{}: {e}; message copied unchanged",
-                                crate::error::Location::message(
-                                    &args.input,
-                                    &input.topic,
-                                    header.log_time
-                                )
-                            )),
+            table.observe(record);
+            let ours = |id: u16| {
+                table
+                    .get(id)
+                    .filter(|c| c.topic == input.topic)
+                    .and_then(|c| c.cloud)
+            };
+            if let Record::Message { header, data } = record
+                && let Some(format) = ours(header.channel_id)
+            {
+                let rendered = decode_cloud(format, data)
+                    .map_err(|e| e.to_string())
+                    .and_then(|cloud| {
+                        let s =
+                            *strategy.get_or_insert_with(|| choose_strategy(&cloud.scan, &profile));
+                        let image = project(&cloud.scan, &profile, s).map_err(|e| e.to_string())?;
+                        let mut scan = as_sim_scan(image, scans as u32, &profile, speed);
+                        physics.apply(&mut scan, args.seed);
+                        if gan {
+                            let prob = gan_drop
+                                .get_mut(&header.log_time)
+                                .and_then(VecDeque::pop_front)
+                                .unwrap_or_else(|| Err("not among the decoded scans".into()))
+                                .map_err(|e| format!("auto-decoding: {e}"))?;
+                            let seed = scan_seed(&input.topic, header.log_time)
+                                ^ args.seed.wrapping_mul(0x9e37_79b9_7f4a_7c15);
+                            drop_bernoulli(&mut scan, &prob, seed);
                         }
+                        kept += scan.image.valid_count() as u64;
+                        pixels += scan.len() as u64;
+                        let out_cloud = DecodedCloud {
+                            scan: scan.to_scan(cloud.scan.is_organized()),
+                            stamp_nanos: cloud.stamp_nanos,
+                            frame_id: cloud.frame_id,
+                        };
+                        Ok(encode_scan(format.family(), &out_cloud, &[]))
+                    });
+                match rendered {
+                    Ok(bytes) => {
+                        scans += 1;
+                        out.copy_record(&Record::Message {
+                            header: *header,
+                            data: Cow::Owned(bytes),
+                        })?;
+                        return Ok(());
                     }
+                    Err(e) => skipped.push(format!(
+                        "{}: {e}; message copied unchanged",
+                        crate::error::Location::message(&args.input, &input.topic, header.log_time)
+                    )),
                 }
-                _ => {}
             }
             out.copy_record(record)?;
             Ok(())

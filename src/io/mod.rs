@@ -1,9 +1,11 @@
 //! Bytes <-> messages. Owns MCAP reading ([`reader`]: streaming, chunk by chunk,
 //! corrupt chunks named and truncated files read up to the damage) and writing
-//! ([`writer`]: atomic, records copied unchanged), the ROS wire formats
-//! ([`wire`]), point-cloud decoding ([`decoders`], [`pointcloud`]) and the single
-//! encoding layer for every output channel ([`encoders`]). Knows MCAP, not GANs.
+//! ([`writer`]: atomic, records copied unchanged), what each channel carries
+//! ([`channels`]), the ROS wire formats ([`wire`]), point-cloud decoding ([`decoders`],
+//! [`pointcloud`]) and the single encoding layer for every output channel
+//! ([`encoders`]). Knows MCAP, not GANs.
 
+pub mod channels;
 pub mod decoders;
 pub mod encoders;
 pub mod pointcloud;
@@ -11,6 +13,7 @@ pub mod reader;
 pub mod wire;
 pub mod writer;
 
+pub use channels::{ChannelEntry, ChannelTable};
 pub use decoders::{CloudFormat, DecodedCloud, Family, decode_cloud};
 pub use encoders::{Kind, Payload, PixelFormat, Transform};
 pub use reader::{OnError, ReadReport, read_records};
