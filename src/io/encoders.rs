@@ -367,17 +367,7 @@ pub fn encode_points(
     xyz: Vec<[f32; 3]>,
     extra: &[(&str, &[f32])],
 ) -> Vec<u8> {
-    let scan = crate::lidar::Scan::from_xyz(xyz);
-    let (layout, data) = super::pointcloud::encode(&scan, extra);
-    encode(
-        family,
-        stamp_nanos,
-        frame_id,
-        &Payload::Cloud {
-            layout: &layout,
-            data: &data,
-        },
-    )
+    encode_cloud(family, stamp_nanos, frame_id, &Scan::from_xyz(xyz), extra)
 }
 
 #[cfg(test)]

@@ -111,6 +111,31 @@ pub struct Scene {
 }
 
 /// Collects primitives, applying the global slope to everything it places.
+/// Ranges (low, high) of a tree's random dimensions.
+struct TreeShape {
+    trunk_height_m: (f32, f32),
+    trunk_radius_m: (f32, f32),
+    crown_radius_m: (f32, f32),
+    crown_elongation: (f32, f32),
+}
+
+impl TreeShape {
+    /// Street trees between the curb and the sidewalk: young, small crowns.
+    const STREET: TreeShape = TreeShape {
+        trunk_height_m: (1.2, 2.4),
+        trunk_radius_m: (0.1, 0.22),
+        crown_radius_m: (1.4, 3.0),
+        crown_elongation: (0.9, 1.4),
+    };
+    /// Trees in yards and verges behind the sidewalk.
+    const YARD: TreeShape = TreeShape {
+        trunk_height_m: (1.5, 4.0),
+        trunk_radius_m: (0.12, 0.3),
+        crown_radius_m: (1.5, 4.0),
+        crown_elongation: (0.8, 1.3),
+    };
+}
+
 struct Builder {
     prims: Vec<Primitive>,
     slope: [f32; 2],
@@ -236,6 +261,28 @@ impl Builder {
             instance,
         });
     }
+    /// A trunk and an ellipsoid crown standing at `(x, y, ground)`; the shape's ranges are
+    /// drawn in the order trunk height, trunk radius, crown radius, crown elongation.
+    fn tree(
+        &mut self,
+        rng: &mut Rng,
+        (x, y, ground): (f32, f32, f32),
+        shape: &TreeShape,
+        instance: u16,
+    ) {
+        let trunk_h = rng.range(shape.trunk_height_m.0, shape.trunk_height_m.1);
+        let trunk_r = rng.range(shape.trunk_radius_m.0, shape.trunk_radius_m.1);
+        self.cylinder(x, y, ground, trunk_r, trunk_h + 0.5, S::TRUNK, instance);
+        let r = rng.range(shape.crown_radius_m.0, shape.crown_radius_m.1);
+        let elongation = rng.range(shape.crown_elongation.0, shape.crown_elongation.1);
+        self.ellipsoid(
+            v3(x, y, ground + trunk_h + r * 0.9),
+            v3(r, r, r * elongation),
+            S::FOLIAGE,
+            instance,
+        );
+    }
+
     fn ellipsoid(&mut self, centre: Vec3, radii: Vec3, surface: u16, instance: u16) {
         let centre = self.lift(centre);
         self.prims.push(Primitive {
@@ -844,23 +891,7 @@ fn side_furniture(
         while s < side.len - 3.0 {
             let p = side.at(s, 0.9);
             let inst = b.instance();
-            let trunk_h = rng.range(1.2, 2.4);
-            b.cylinder(
-                p[0],
-                p[1],
-                curb,
-                rng.range(0.1, 0.22),
-                trunk_h + 0.5,
-                S::TRUNK,
-                inst,
-            );
-            let r = rng.range(1.4, 3.0);
-            b.ellipsoid(
-                v3(p[0], p[1], curb + trunk_h + r * 0.9),
-                v3(r, r, r * rng.range(0.9, 1.4)),
-                S::FOLIAGE,
-                inst,
-            );
+            b.tree(rng, (p[0], p[1], curb), &TreeShape::STREET, inst);
             s += rng.range(6.0, 12.0);
         }
     }
@@ -1097,23 +1128,7 @@ fn frontage(b: &mut Builder, rng: &mut Rng, layout: &Layout, side: &BlockSide) {
             );
             let inst = b.instance();
             if rng.chance(0.5) {
-                let trunk_h = rng.range(1.5, 4.0);
-                b.cylinder(
-                    p[0],
-                    p[1],
-                    curb,
-                    rng.range(0.12, 0.3),
-                    trunk_h + 0.5,
-                    S::TRUNK,
-                    inst,
-                );
-                let r = rng.range(1.5, 4.0);
-                b.ellipsoid(
-                    v3(p[0], p[1], curb + trunk_h + r * 0.9),
-                    v3(r, r, r * rng.range(0.8, 1.3)),
-                    S::FOLIAGE,
-                    inst,
-                );
+                b.tree(rng, (p[0], p[1], curb), &TreeShape::YARD, inst);
             } else {
                 let r = rng.range(0.5, 1.8);
                 b.ellipsoid(
