@@ -32,7 +32,7 @@ pub struct ConvertArgs {
     pub columns: Option<usize>,
     /// How a point's row is found (default: chosen from the data).
     #[arg(long, value_enum, default_value = "auto")]
-    pub projection: ProjectionArg,
+    pub projection: Strategy,
     /// What to do with a corrupt chunk.
     #[arg(long, value_enum, default_value = "fail")]
     pub on_error: OnError,
@@ -150,29 +150,6 @@ fn resolve_decoding(args: &ConvertArgs) -> anyhow::Result<Option<(Decoder, Decod
     )))
 }
 
-#[derive(Debug, Clone, Copy, clap::ValueEnum)]
-pub enum ProjectionArg {
-    Auto,
-    RingField,
-    RingOrder,
-    ColumnMajor,
-    RowMajor,
-    Spherical,
-}
-
-impl From<ProjectionArg> for Strategy {
-    fn from(p: ProjectionArg) -> Self {
-        match p {
-            ProjectionArg::Auto => Strategy::Auto,
-            ProjectionArg::RingField => Strategy::RingField,
-            ProjectionArg::RingOrder => Strategy::RingOrder,
-            ProjectionArg::ColumnMajor => Strategy::ColumnMajor,
-            ProjectionArg::RowMajor => Strategy::RowMajor,
-            ProjectionArg::Spherical => Strategy::Spherical,
-        }
-    }
-}
-
 /// Resolves the sensor argument shared by several subcommands.
 pub(crate) fn sensor_choice(sensor: &str) -> anyhow::Result<SensorChoice> {
     Ok(if sensor == "auto" {
@@ -228,7 +205,7 @@ pub fn run(global: &GlobalArgs, args: ConvertArgs) -> anyhow::Result<Outcome> {
         topics: (!args.topic.is_empty()).then(|| args.topic.clone()),
         sensor: sensor_choice(&args.sensor)?,
         columns: args.columns,
-        strategy: args.projection.into(),
+        strategy: args.projection,
         on_error: args.on_error,
         metadata,
         ..ConvertOptions::default()

@@ -5,11 +5,13 @@
 use super::range_image::azimuth_column;
 use super::{RangeImage, Scan, SensorProfile};
 
-/// How a point's row (beam) is found.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, serde::Serialize, serde::Deserialize)]
+/// How a point's row (beam) is found (also `convert --projection`).
+#[derive(
+    Debug, Clone, Copy, PartialEq, Eq, Hash, serde::Serialize, serde::Deserialize, clap::ValueEnum,
+)]
 #[serde(rename_all = "kebab-case")]
 pub enum Strategy {
-    /// Pick one of the others from the data (see [`choose_strategy`]).
+    /// Pick one of the others from the data (`choose_strategy`).
     Auto,
     /// A `ring` / `channel` / `laser_id` field; rings ordered by their median elevation.
     RingField,
