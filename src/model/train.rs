@@ -889,31 +889,44 @@ mod tests {
         );
     }
 
+    /// A dataset cache of `n` 64 x 64 images in `dir`: each pixel dropped (-1) with
+    /// probability 0.2, else `value(pixel index, rng)`.
+    fn synthetic_cache(
+        dir: &Path,
+        n: usize,
+        seed: u64,
+        value: impl Fn(usize, &mut Rng) -> f32,
+    ) -> PathBuf {
+        let grid = SensorProfile::kitti_hdl64e().with_columns(64).angle_grid();
+        let (h, w) = (grid.height, grid.width);
+        let mut rng = Rng::new(seed);
+        let images: Vec<f32> = (0..n * h * w)
+            .map(|i| {
+                if rng.uniform() < 0.2 {
+                    -1.0
+                } else {
+                    value(i, &mut rng)
+                }
+            })
+            .collect();
+        let data = RangeDataset {
+            height: h,
+            width: w,
+            images,
+            angles: grid,
+        };
+        let cache = dir.join("ds.bin");
+        data.save(&cache).expect("cache");
+        cache
+    }
+
     /// The baselines run through the same loop (fixed 64x64 output here).
     #[test]
     fn baselines_train_a_few_steps() {
         for arch in [Arch::Dusty1, Arch::Vanilla] {
             let dir = tempfile::tempdir().expect("tempdir");
-            let grid = SensorProfile::kitti_hdl64e().with_columns(64).angle_grid();
-            let (h, w) = (grid.height, grid.width);
-            let mut rng = Rng::new(4);
-            let images: Vec<f32> = (0..4 * h * w)
-                .map(|_| {
-                    if rng.uniform() < 0.2 {
-                        -1.0
-                    } else {
-                        rng.uniform() - 0.5
-                    }
-                })
-                .collect();
-            let data = RangeDataset {
-                height: h,
-                width: w,
-                images,
-                angles: grid,
-            };
-            let cache = dir.path().join("ds.bin");
-            data.save(&cache).expect("cache");
+            let (h, w) = (64, 64);
+            let cache = synthetic_cache(dir.path(), 4, 4, |_, rng| rng.uniform() - 0.5);
             let config = TrainConfig::new()
                 .with_arch(arch)
                 .with_conv_generator(
@@ -953,26 +966,9 @@ mod tests {
     #[test]
     fn trains_checkpoints_and_resumes() {
         let dir = tempfile::tempdir().expect("tempdir");
-        let grid = SensorProfile::kitti_hdl64e().with_columns(64).angle_grid();
-        let (h, w) = (grid.height, grid.width);
-        let mut rng = Rng::new(3);
-        let images: Vec<f32> = (0..8 * h * w)
-            .map(|i| {
-                if rng.uniform() < 0.2 {
-                    -1.0
-                } else {
-                    ((i % w) as f32 / w as f32) - 0.5
-                }
-            })
-            .collect();
-        let data = RangeDataset {
-            height: h,
-            width: w,
-            images,
-            angles: grid,
-        };
-        let cache = dir.path().join("ds.bin");
-        data.save(&cache).expect("cache");
+        let cache = synthetic_cache(dir.path(), 8, 3, |i, _| (i % 64) as f32 / 64.0 - 0.5);
+        let data = RangeDataset::load(&cache).expect("cache");
+        let (h, w) = (data.height, data.width);
         let generator = GeneratorConfig::new()
             .with_mapping(
                 super::super::generator::MappingConfig::new()
