@@ -88,7 +88,7 @@ fn gan_completed(images: &[RangeImage], topic: &str) -> Vec<ScanFeatures> {
         .map(|i| scan_seed(topic, 300_000_000 * i))
         .collect();
     // The encoder's prediction alone (no tuning steps): cheap enough for a unit test;
-    // `fast` (20 steps) names the effect in both cases too (docs/diagnose.md).
+    // with 20 tuning steps it names the effect in both cases too (docs/diagnose.md).
     let decoder = super::diagnose_completion::test_decoder(0);
     let done = gan_features(decoder, images, &seeds, &FeatureOptions::default());
     assert!(done.fallbacks.is_empty(), "{:?}", done.fallbacks);
