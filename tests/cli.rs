@@ -255,3 +255,20 @@ fn sample_writes_generated_scans_readable_by_independent_readers() {
     assert!(!bad.status.success());
     assert!(stderr(&bad).contains("--n must be > 0"), "{}", stderr(&bad));
 }
+
+/// `rangegan-mcap info IN --json | head -1`: a reader that stops early ends the process
+/// quietly (as Unix tools do), not with a panic about a broken pipe.
+#[test]
+fn a_closed_stdout_ends_quietly() {
+    let mut child = bin()
+        .args(["info", "sample_logs/drive_realistic.mcap", "--json"])
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .expect("binary runs");
+    drop(child.stdout.take()); // the reader goes away before anything is printed
+    let out = child.wait_with_output().unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!err.contains("panicked"), "{err}");
+    assert_ne!(out.status.code(), Some(101), "{err}");
+}
