@@ -113,13 +113,9 @@ fn main() -> Res<()> {
 }
 
 fn save_png(path: &Path, buf: &[u8], size: (u32, u32)) -> Res<()> {
-    let file = std::io::BufWriter::new(
-        std::fs::File::create(path).map_err(|e| format!("{}: {e}", path.display()))?,
-    );
-    let mut enc = png::Encoder::new(file, size.0, size.1);
-    enc.set_color(png::ColorType::Rgb);
-    enc.set_depth(png::BitDepth::Eight);
-    enc.write_header()?.write_image_data(buf)?;
+    let png = rangegan_mcap::report::plot::encode_png(size.0, size.1, buf)?;
+    rangegan_mcap::report::plot::write_atomic(path, &png)
+        .map_err(|e| format!("{}: {e}", path.display()))?;
     println!("wrote {}", path.display());
     Ok(())
 }

@@ -123,11 +123,9 @@ fn main() -> Res<()> {
         }
         root.present()?;
     }
-    let file = std::io::BufWriter::new(std::fs::File::create(&out)?);
-    let mut enc = png::Encoder::new(file, size.0, size.1);
-    enc.set_color(png::ColorType::Rgb);
-    enc.set_depth(png::BitDepth::Eight);
-    enc.write_header()?.write_image_data(&buf)?;
+    let png = rangegan_mcap::report::plot::encode_png(size.0, size.1, &buf)?;
+    rangegan_mcap::report::plot::write_atomic(&out, &png)
+        .map_err(|e| format!("{}: {e}", out.display()))?;
     println!("wrote {}", out.display());
     Ok(())
 }

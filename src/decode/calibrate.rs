@@ -19,8 +19,11 @@ pub fn raydrop_samples(decoder: &Decoder, scans: &[RangeImage]) -> Result<Vec<Be
         .enumerate()
         .map(|(i, scan)| -> Result<(Vec<f32>, Vec<f32>, Vec<f32>)> {
             let decoded = decoder.decode(scan, scan_seed("calibration", i as u64))?;
-            let (_, returned) = decoder.observe(scan);
             let (depth, logits) = decoded.depth_and_keep_logits(decoder);
+            // A ray returned where the decoder saw it or held it out (restoration).
+            let returned = (decoded.observed_m.iter().zip(&decoded.held_out_m))
+                .map(|(seen, held)| if *seen > 0.0 || *held > 0.0 { 1.0 } else { 0.0 })
+                .collect();
             Ok((logits, depth, returned))
         })
         .collect::<Result<_>>()?;

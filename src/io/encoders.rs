@@ -330,13 +330,14 @@ pub fn encode_f32_image(
     values: &[f32],
 ) -> Vec<u8> {
     let data: Vec<u8> = values.iter().flat_map(|v| v.to_le_bytes()).collect();
-    let image = Payload::Image {
-        width: width as u32,
-        height: height as u32,
-        format: PixelFormat::F32,
-        data: &data,
-    };
-    encode(family, stamp_nanos, frame_id, &image)
+    encode_image(
+        family,
+        stamp_nanos,
+        frame_id,
+        (width, height),
+        PixelFormat::F32,
+        &data,
+    )
 }
 
 /// A ray-drop mask (`mono8`, 255 = the return was kept, 0 = dropped).
@@ -348,11 +349,30 @@ pub fn encode_mask(
     kept: &[bool],
 ) -> Vec<u8> {
     let data: Vec<u8> = kept.iter().map(|&k| if k { 255 } else { 0 }).collect();
+    encode_image(
+        family,
+        stamp_nanos,
+        frame_id,
+        (width, height),
+        PixelFormat::Mono8,
+        &data,
+    )
+}
+
+/// An image message of `family` from its pixel bytes (row-major, `format`).
+fn encode_image(
+    family: Family,
+    stamp_nanos: u64,
+    frame_id: &str,
+    (width, height): (usize, usize),
+    format: PixelFormat,
+    data: &[u8],
+) -> Vec<u8> {
     let image = Payload::Image {
         width: width as u32,
         height: height as u32,
-        format: PixelFormat::Mono8,
-        data: &data,
+        format,
+        data,
     };
     encode(family, stamp_nanos, frame_id, &image)
 }

@@ -35,6 +35,19 @@ fn drop_rate(scans: &[ScanFeatures]) -> f64 {
     scans.iter().map(|s| s.drop_rate()).sum::<f64>() / scans.len() as f64
 }
 
+/// Uniform dropout with `prob`: the only physics of a concealing sim side.
+fn uniform_dropout(prob: f32) -> Vec<Box<dyn Effect>> {
+    vec![Box::new(UniformDropout {
+        enabled: true,
+        prob,
+    })]
+}
+
+/// The uniform dropout probability that lifts drop rate `ideal` to `real`.
+fn matching_prob(real: f64, ideal: f64) -> f32 {
+    ((real - ideal).max(0.0) / (1.0 - ideal)) as f32
+}
+
 /// Real side (scene `real_seed`) with `effects`; sim side (scene `sim_seed`) with
 /// only uniform dropout, raised until the global drop rates match.
 fn concealed(
@@ -49,15 +62,11 @@ fn concealed(
     if r <= s0 + 1e-3 {
         return (ideal, real);
     }
-    let prob = ((r - s0) / (1.0 - s0)) as f32;
     let sim = simulated_recording_with(
         profile,
         sim_seed,
         SCANS,
-        vec![Box::new(UniformDropout {
-            enabled: true,
-            prob,
-        })],
+        uniform_dropout(matching_prob(r, s0)),
     );
     assert!(
         (drop_rate(&sim) - r).abs() < 0.01,
@@ -112,15 +121,11 @@ fn concealed_gan(
             / images.len() as f64
     };
     let (r, s0) = (rate(&real), drop_rate(&ideal));
-    let prob = ((r - s0).max(0.0) / (1.0 - s0)) as f32;
     let sim = simulated_images_with(
         profile,
         sim_seed,
         SCANS,
-        vec![Box::new(UniformDropout {
-            enabled: true,
-            prob,
-        })],
+        uniform_dropout(matching_prob(r, s0)),
     );
     assert!(
         (rate(&sim) - r).abs() < 0.01,
@@ -365,15 +370,9 @@ fn concealed_motion_distortion() {
 
 #[test]
 fn same_physics_other_scenes_claims_nothing() {
-    let uniform = || -> Vec<Box<dyn Effect>> {
-        vec![Box::new(UniformDropout {
-            enabled: true,
-            prob: 0.1,
-        })]
-    };
     for (sim_seed, real_seed) in [(404, 303), (7, 8)] {
-        let sim = simulated_recording_with(&hdl64(), sim_seed, SCANS, uniform());
-        let real = simulated_recording_with(&hdl64(), real_seed, SCANS, uniform());
+        let sim = simulated_recording_with(&hdl64(), sim_seed, SCANS, uniform_dropout(0.1));
+        let real = simulated_recording_with(&hdl64(), real_seed, SCANS, uniform_dropout(0.1));
         let d = run(&sim, &real);
         assert!(d.report.effects.is_empty(), "false alarm:\n{}", summary(&d));
     }
