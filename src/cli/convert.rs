@@ -8,7 +8,7 @@ use anyhow::{Context, bail};
 
 use super::{GlobalArgs, Outcome};
 use crate::decode::amortised::TrainedEncoder;
-use crate::decode::{DecodeOptions, Decoder, Quality, Sparsify};
+use crate::decode::{DecodeOptions, Decoder, Fill, Quality, Sparsify};
 use crate::io::{McapOutput, OnError};
 use crate::lidar::{SensorProfile, Strategy};
 use crate::model::weights::Model;
@@ -83,6 +83,14 @@ pub struct ConvertArgs {
     /// Decode from a random fraction (0..1) of the measured points (restoration).
     #[arg(long)]
     pub restore_fraction: Option<f32>,
+    /// What the `--upsample` and `--target-sensor` grids and a `--restore-*` depth hold:
+    /// `guided` (measured returns kept, new pixels interpolated only from the neighbouring
+    /// returns the decoded scene puts on the same surface), `edge-aware` (the same without
+    /// the decoded scene), `bilinear` (inverse-distance weighting for scattered points),
+    /// `nearest`, or `gan` (the decoded scene's rendering). Where no observed return
+    /// reaches, the rendering fills in.
+    #[arg(long, value_enum, default_value_t = Fill::DEFAULT)]
+    pub upsample_method: Fill,
 }
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
@@ -146,6 +154,7 @@ fn resolve_decoding(args: &ConvertArgs) -> anyhow::Result<Option<(Decoder, Decod
             mask_samples: args.mask_samples,
             upsample: args.upsample.clone(),
             target_sensors,
+            fill: args.upsample_method,
         },
     )))
 }
