@@ -114,12 +114,11 @@ impl Decoded {
     /// gives the rendering x_d.
     pub fn interpolate_restored(&self, fill: Fill, rule: &SurfaceRule) -> Vec<f32> {
         let grid = &self.model.grid;
-        let (h, w) = (grid.height, grid.width);
         match (fill, self.restore) {
             (Fill::Gan, _) => self.model.depth_m.clone(),
             (_, None) => self.observed_m.clone(),
             (_, Some(Sparsify::Lines(n))) => {
-                let kept = Sparsify::kept_rows(n, h);
+                let kept = Sparsify::kept_rows(n, grid.height);
                 let source = rows_image(grid, &self.observed_m, &kept);
                 let guide_source = rows_image(grid, &self.model.depth_m, &kept).range_m;
                 resample(&source, &guide_source, &self.model, fill, rule)
@@ -140,7 +139,7 @@ impl Decoded {
                         guide: Some(&self.model.depth_m),
                     },
                 };
-                fill_scattered(&self.observed_m, h, w, how)
+                fill_scattered(&self.observed_m, grid, how)
             }
         }
     }

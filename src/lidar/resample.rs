@@ -317,8 +317,8 @@ fn resample_with(image: &RangeImage, target: &AngleGrid, read: Read<'_>) -> Rang
             for c in corners.iter_mut() {
                 c.guide = guide.map_or(0.0, |g| g.source(c.index));
             }
-            keep_surface(&mut corners, guide.map_or(0.0, |g| g.target(k)), rule);
-            inverse = rule.inverse_depth;
+            let one = keep_surface(&mut corners, guide.map_or(0.0, |g| g.target(k)), rule, None);
+            inverse = rule.inverse_depth && one;
         }
         // The nearest corner is valid and weighs >= 1/4, so something is left.
         if corners.is_empty() {
@@ -350,6 +350,8 @@ fn copy_pixel(image: &RangeImage, from: usize, out: &mut RangeImage, to: usize) 
     out.point_index[to] = image.point_index[from];
 }
 
+const MIN_CORNER_WEIGHT: f32 = 1e-4;
+
 /// The valid ones of the four source pixels around `(u, v)` with their bilinear weights,
 /// renormalised to sum 1 (columns circular, rows clamped).
 fn valid_corners(image: &RangeImage, u: f32, v: f32, corners: &mut Vec<Neighbour>) {
@@ -366,11 +368,14 @@ fn valid_corners(image: &RangeImage, u: f32, v: f32, corners: &mut Vec<Neighbour
         (r1 * w + c0, t * (1.0 - s)),
         (r1 * w + c1, t * s),
     ] {
-        if image.is_valid(index) && weight > 0.0 {
+        // Weights of float noise (a target row on a source row) would add a corner of
+        // another beam, so a corner needs a real share.
+        if image.is_valid(index) && weight > MIN_CORNER_WEIGHT {
             corners.push(Neighbour {
                 index,
                 depth: image.range_m[index],
                 weight,
+                direction: image.angles.direction(index),
                 guide: 0.0,
             });
         }
@@ -620,11 +625,11 @@ mod tests {
         }
     }
 
-    /// 8 x 64: rows 0-3 a wall at 10 m, rows 4-7 the road at 40 m (slightly varying).
+    /// 8 x 512: rows 0-3 a wall at 10 m, rows 4-7 the road at 40 m (slightly varying).
     fn edge_image(p: &SensorProfile) -> RangeImage {
         let mut img = smooth_image(p);
         for k in 0..img.len() {
-            let d = if k / 64 < 4 { 10.0 } else { 40.0 + 0.01 * (k % 64) as f32 };
+            let d = if k / 512 < 4 { 10.0 } else { 40.0 + 0.001 * (k % 512) as f32 };
             img.range_m[k] = d;
             let [x, y, z] = img.angles.direction(k);
             img.xyz[k] = [d * x, d * y, d * z];
@@ -634,49 +639,60 @@ mod tests {
 
     #[test]
     fn surface_resampling_never_averages_across_a_depth_edge() {
-        let p = uniform_profile(8, 64, 7.0, -7.0);
+        let p = uniform_profile(8, 512, 7.0, -7.0);
         let img = edge_image(&p);
-        let fine = p.angle_grid().resized(16, 64);
-        let on_a_surface = |d: f32| d == 10.0 || (40.0..=40.64).contains(&d);
+        let fine = p.angle_grid().resized(16, 512);
+        let on_a_surface = |d: f32| (d - 10.0).abs() < 1e-4 || (40.0..=40.52).contains(&d);
         let bilinear = resample_image(&img, &fine, Interpolation::Bilinear);
         assert!(bilinear.range_m.iter().any(|d| !on_a_surface(*d)));
-        // Without a guide the nearest row decides: new rows 7 (source row 3.25) and 8
-        // (3.75) go to the wall and to the road.
-        let edge = resample_by_surface(&img, &fine, &SurfaceRule::default(), None);
+        // Without a guide, with the edge between rows (2 deg apart) trusted, the nearest row
+        // decides: new rows 7 (source row 3.25) and 8 (3.75) go to the wall and to the road.
+        let trusting = SurfaceRule {
+            trust_below_deg: 3.0,
+            ..SurfaceRule::default()
+        };
+        let edge = resample_by_surface(&img, &fine, &trusting, None);
         assert_eq!(edge.valid_count(), bilinear.valid_count());
         for (k, d) in edge.range_m.iter().enumerate() {
             assert!(on_a_surface(*d), "pixel {k}: {d}");
         }
-        assert_eq!(edge.range_m[7 * 64 + 5], 10.0);
-        assert!(edge.range_m[8 * 64 + 5] >= 40.0);
+        assert!(on_a_surface(edge.range_m[7 * 512 + 5]) && edge.range_m[7 * 512 + 5] < 11.0);
+        assert!(edge.range_m[8 * 512 + 5] >= 40.0);
         // A guide that puts new row 7 on the road wins over the nearer wall row.
         let guide_target: Vec<f32> = (0..fine.len())
-            .map(|k| if k / 64 < 7 { 11.0 } else { 38.0 })
+            .map(|k| if k / 512 < 7 { 11.0 } else { 38.0 })
             .collect();
         let guide_source: Vec<f32> = (0..img.len())
-            .map(|k| if k / 64 < 4 { 11.0 } else { 38.0 })
+            .map(|k| if k / 512 < 4 { 11.0 } else { 38.0 })
             .collect();
-        let guided = resample_by_surface(
-            &img,
-            &fine,
-            &SurfaceRule::default(),
-            Some(Guide {
-                target_m: &guide_target,
-                source_m: &guide_source,
-            }),
-        );
+        let guide = Some(Guide {
+            target_m: &guide_target,
+            source_m: &guide_source,
+        });
+        // With the shipped margin the guide overrides the blend only where it clearly
+        // disagrees with it: new row 7 (a quarter road) goes to the road, new row 8 (three
+        // quarters road) is blended, as bilinear would.
+        let margin = resample_by_surface(&img, &fine, &SurfaceRule::default(), guide);
+        assert!(margin.range_m[7 * 512 + 5] >= 40.0);
+        assert!((margin.range_m[8 * 512 + 5] - bilinear.range_m[8 * 512 + 5]).abs() < 1e-3);
+        // A guide that sees the edge exactly, trusted without a margin: never averaged.
+        let exact = SurfaceRule {
+            guide_jump: 0.0,
+            ..SurfaceRule::default()
+        };
+        let guided = resample_by_surface(&img, &fine, &exact, guide);
         for (k, d) in guided.range_m.iter().enumerate() {
             assert!(on_a_surface(*d), "pixel {k}: {d}");
         }
-        assert!(guided.range_m[7 * 64 + 5] >= 40.0);
-        assert_eq!(guided.range_m[6 * 64 + 5], 10.0);
+        assert!(guided.range_m[7 * 512 + 5] >= 40.0);
+        assert!((guided.range_m[6 * 512 + 5] - 10.0).abs() < 1e-4);
     }
 
     #[test]
     fn surface_resampling_keeps_measured_returns_exactly() {
-        let p = uniform_profile(8, 64, 7.0, -7.0);
+        let p = uniform_profile(8, 512, 7.0, -7.0);
         let mut img = edge_image(&p);
-        img.range_m[3 * 64 + 9] = 0.0;
+        img.range_m[3 * 512 + 9] = 0.0;
         let out = resample_by_surface(&img, &p.angle_grid(), &SurfaceRule::default(), None);
         for k in 0..img.len() {
             assert_eq!(out.range_m[k].to_bits(), img.range_m[k].to_bits(), "{k}");
