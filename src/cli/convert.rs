@@ -84,10 +84,10 @@ pub struct ConvertArgs {
     #[arg(long)]
     pub restore_fraction: Option<f32>,
     /// What the `--upsample` and `--target-sensor` grids and a `--restore-*` depth hold:
-    /// `guided` (measured returns kept, new pixels interpolated only from the neighbouring
-    /// returns the decoded scene puts on the same surface), `edge-aware` (the same without
-    /// the decoded scene), `bilinear` (inverse-distance weighting for scattered points),
-    /// `nearest`, or `gan` (the decoded scene's rendering). Where no observed return
+    /// `edge-aware` (measured returns kept, new pixels interpolated only from neighbouring
+    /// returns on their own surface), `guided` (the same, the decoded scene picking the
+    /// surface where it clearly can), `bilinear` (inverse-distance weighting for scattered
+    /// points), `nearest`, or `gan` (the decoded scene's rendering). Where no observed return
     /// reaches, the rendering fills in.
     #[arg(long, value_enum, default_value_t = Fill::DEFAULT)]
     pub upsample_method: Fill,

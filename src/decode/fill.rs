@@ -16,11 +16,13 @@ use crate::lidar::{
 )]
 #[serde(rename_all = "kebab-case")]
 pub enum Fill {
-    /// Measured returns kept; a new pixel interpolated from the neighbouring returns that
-    /// the decoded scene puts on the same surface (never across a depth edge).
-    Guided,
-    /// The same without the decoded scene: the nearest return's surface.
+    /// Measured returns kept; a new pixel interpolated only from the neighbouring returns on
+    /// its own surface ([`SurfaceRule`]): across a trusted depth edge (adjacent pixels) the
+    /// nearest return's surface, else the blend; inverse depth within a surface.
     EdgeAware,
+    /// The same, but the decoded scene may pick the surface where its depth clearly agrees
+    /// with one surface rather than with the blend.
+    Guided,
     /// Bilinear between rows and columns; inverse-distance weighting for scattered points.
     Bilinear,
     /// The nearest observed return.
@@ -31,7 +33,7 @@ pub enum Fill {
 
 impl Fill {
     /// The best measured (BENCHMARKS.md).
-    pub const DEFAULT: Fill = Fill::Guided;
+    pub const DEFAULT: Fill = Fill::EdgeAware;
 
     pub fn name(self) -> &'static str {
         match self {
@@ -124,6 +126,11 @@ impl Decoded {
                 resample(&source, &guide_source, &self.model, fill, rule)
             }
             (_, Some(Sparsify::Fraction(_))) => {
+                // Inverse depth measured worse for scattered points (training scans).
+                let scattered = SurfaceRule {
+                    inverse_depth: false,
+                    ..*rule
+                };
                 let how = match fill {
                     Fill::Nearest => ScatterFill::Nearest,
                     Fill::Bilinear => ScatterFill::Idw {
@@ -131,11 +138,11 @@ impl Decoded {
                         guide: None,
                     },
                     Fill::EdgeAware => ScatterFill::Idw {
-                        rule: *rule,
+                        rule: scattered,
                         guide: None,
                     },
                     Fill::Guided | Fill::Gan => ScatterFill::Idw {
-                        rule: *rule,
+                        rule: scattered,
                         guide: Some(&self.model.depth_m),
                     },
                 };
