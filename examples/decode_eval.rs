@@ -23,9 +23,7 @@ use std::time::Instant;
 
 use anyhow::{Context, Result, bail};
 use rangegan_mcap::decode::amortised::TrainedEncoder;
-use rangegan_mcap::decode::{
-    DecodeOptions, Decoded, Decoder, Fill, Quality, Sparsify, model_grid,
-};
+use rangegan_mcap::decode::{DecodeOptions, Decoded, Decoder, Fill, Quality, Sparsify, model_grid};
 use rangegan_mcap::lidar::{
     self, AngleGrid, Interpolation, RangeImage, SensorProfile, Strategy, SurfaceRule,
     resample_image,
@@ -142,7 +140,11 @@ fn load_scan(data: &Path, path: &Path, full: bool) -> Result<Scan> {
     } else {
         None
     };
-    let name = path.strip_prefix(data).unwrap_or(path).display().to_string();
+    let name = path
+        .strip_prefix(data)
+        .unwrap_or(path)
+        .display()
+        .to_string();
     Ok(Scan { name, image, full })
 }
 
@@ -900,29 +902,32 @@ fn tune(args: &Args, fast: &Decoder, n: usize) -> Result<()> {
     let mut variants = Vec::new();
     for inverse_depth in [false, true] {
         let inv = if inverse_depth { " 1/d" } else { "" };
-        for jump_per_deg in [0.1f32, 0.2, 0.3, 0.5, f32::INFINITY] {
-            let jump = jump_per_deg;
-            variants.push(Variant {
-                name: format!("edge_aware j={jump}{inv}"),
-                fill: Fill::EdgeAware,
-                rule: SurfaceRule {
-                    jump_per_deg,
-                    guide_jump: f32::INFINITY,
-                    inverse_depth,
-                    ..SurfaceRule::default()
-                },
-            });
-            for guide_jump in [0.1f32, 0.2, 0.3] {
+        for jump_per_deg in [0.2f32, 0.3, 0.5] {
+            for trust_below_deg in [0.0f32, 1.0, 1.5] {
+                let jump = jump_per_deg;
+                let t = trust_below_deg;
                 variants.push(Variant {
-                    name: format!("guided j={jump} g={guide_jump}{inv}"),
-                    fill: Fill::Guided,
+                    name: format!("edge_aware j={jump} t={t}{inv}"),
+                    fill: Fill::EdgeAware,
                     rule: SurfaceRule {
                         jump_per_deg,
-                        guide_jump,
+                        trust_below_deg,
                         inverse_depth,
                         ..SurfaceRule::default()
                     },
                 });
+                for guide_jump in [0.1f32, 0.2, 0.3] {
+                    variants.push(Variant {
+                        name: format!("guided j={jump} t={t} g={guide_jump}{inv}"),
+                        fill: Fill::Guided,
+                        rule: SurfaceRule {
+                            jump_per_deg,
+                            guide_jump,
+                            trust_below_deg,
+                            inverse_depth,
+                        },
+                    });
+                }
             }
         }
     }
@@ -952,7 +957,10 @@ fn tune(args: &Args, fast: &Decoder, n: usize) -> Result<()> {
         println!("| {} | {} | {ratio:.3} |", v.name, cells.join(" | "));
     }
     for (case, base) in keys {
-        println!("{case}: {base} {:.3}", cases[case][base]["mae"].as_f64().unwrap_or(f64::NAN));
+        println!(
+            "{case}: {base} {:.3}",
+            cases[case][base]["mae"].as_f64().unwrap_or(f64::NAN)
+        );
     }
     Ok(())
 }

@@ -21,5 +21,5 @@ pub use profile::SensorProfile;
 pub use projection::{ProjectionError, Strategy, project};
 pub use range_image::{AngleGrid, RangeImage};
 pub use resample::{Interpolation, resample_by_surface, resample_image, resample_to_profile};
-pub use surface::{Guide, ScatterFill, SurfaceRule, fill_scattered};
 pub use scan::Scan;
+pub use surface::{Guide, ScatterFill, SurfaceRule, fill_scattered};

@@ -300,8 +300,8 @@ fn resample_with(image: &RangeImage, target: &AngleGrid, read: Read<'_>) -> Rang
         if !image.is_valid(nearest) {
             continue;
         }
-        let on_source = (u - u.round()).abs() < ON_SOURCE_PIXEL
-            && (v - v.round()).abs() < ON_SOURCE_PIXEL;
+        let on_source =
+            (u - u.round()).abs() < ON_SOURCE_PIXEL && (v - v.round()).abs() < ON_SOURCE_PIXEL;
         let blend = match &read {
             Read::Nearest => false,
             Read::Bilinear => true,
@@ -629,7 +629,11 @@ mod tests {
     fn edge_image(p: &SensorProfile) -> RangeImage {
         let mut img = smooth_image(p);
         for k in 0..img.len() {
-            let d = if k / 512 < 4 { 10.0 } else { 40.0 + 0.001 * (k % 512) as f32 };
+            let d = if k / 512 < 4 {
+                10.0
+            } else {
+                40.0 + 0.001 * (k % 512) as f32
+            };
             img.range_m[k] = d;
             let [x, y, z] = img.angles.direction(k);
             img.xyz[k] = [d * x, d * y, d * z];

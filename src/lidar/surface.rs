@@ -103,7 +103,8 @@ fn angle_deg(a: [f32; 3], b: [f32; 3]) -> f32 {
 /// neighbours' guide depths the same way; a single surface is kept when its prediction
 /// beats the blend's by more than `rule.guide_jump` (log depth). Where the guide does not
 /// decide (or there is none), the surface with the most weight is kept if a split is
-/// trusted (`rule.trust_below_deg`; never with `spacing_deg`), else the blend.
+/// trusted (`rule.trust_below_deg`; never with `spacing_deg`: trusting close scattered
+/// neighbours measured worse on training scans), else the blend.
 ///
 /// Returns whether what is kept is one surface (false: a blend across an edge).
 pub(crate) fn keep_surface(
@@ -241,7 +242,10 @@ pub fn fill_scattered(observed: &[f32], grid: &AngleGrid, how: ScatterFill) -> V
                     }
                 }
             }
-            let Some(nearest) = ns.iter().min_by(|a, b| a.weight.total_cmp(&b.weight)).copied()
+            let Some(nearest) = ns
+                .iter()
+                .min_by(|a, b| a.weight.total_cmp(&b.weight))
+                .copied()
             else {
                 continue;
             };
@@ -286,7 +290,11 @@ mod tests {
 
     #[test]
     fn without_a_guide_the_nearest_return_picks_the_surface() {
-        let mut ns = vec![n(0, 10.0, 0.6, 0.0), n(1, 10.5, 0.1, 0.0), n(2, 40.0, 0.3, 0.0)];
+        let mut ns = vec![
+            n(0, 10.0, 0.6, 0.0),
+            n(1, 10.5, 0.1, 0.0),
+            n(2, 40.0, 0.3, 0.0),
+        ];
         keep_surface(&mut ns, 0.0, &SurfaceRule::default(), None);
         assert_eq!(ns.iter().map(|n| n.index).collect::<Vec<_>>(), vec![0, 1]);
         // A smooth slope (the road between two beams) is one surface.
@@ -302,7 +310,11 @@ mod tests {
     fn the_guide_picks_the_surface_even_against_the_nearest_return() {
         // The nearest return is on a wall at 10 m; the guide says the new pixel lies on
         // the road behind it (its depth agrees with the far neighbours').
-        let mut ns = vec![n(0, 10.0, 0.6, 11.0), n(1, 41.0, 0.3, 39.0), n(2, 40.0, 0.1, 38.0)];
+        let mut ns = vec![
+            n(0, 10.0, 0.6, 11.0),
+            n(1, 41.0, 0.3, 39.0),
+            n(2, 40.0, 0.1, 38.0),
+        ];
         keep_surface(&mut ns, 38.5, &SurfaceRule::default(), None);
         let mut kept: Vec<usize> = ns.iter().map(|n| n.index).collect();
         kept.sort();
