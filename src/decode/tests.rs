@@ -163,14 +163,14 @@ fn fills_keep_measured_returns_and_complete_with_the_rendering() {
         assert_eq!(out.drop_prob, r.model.drop_prob);
         let interpolated = r.interpolate_restored(Fill::Guided, &SurfaceRule::default());
         let mut filled = 0;
-        for k in 0..out.depth_m.len() {
+        for (k, (d, i)) in out.depth_m.iter().zip(&interpolated).enumerate() {
             if r.observed_m[k] > 0.0 {
-                assert_eq!(out.depth_m[k].to_bits(), r.observed_m[k].to_bits(), "{k}");
-            } else if interpolated[k] > 0.0 {
-                assert_eq!(out.depth_m[k], interpolated[k]);
+                assert_eq!(d.to_bits(), r.observed_m[k].to_bits(), "{k}");
+            } else if *i > 0.0 {
+                assert_eq!(d, i);
                 filled += 1;
             } else {
-                assert_eq!(out.depth_m[k], r.model.depth_m[k], "completed by x_d");
+                assert_eq!(*d, r.model.depth_m[k], "completed by x_d");
             }
         }
         assert!(filled > 10_000, "{restore:?}: {filled} pixels interpolated");
