@@ -6,7 +6,8 @@
 
 use std::collections::{BTreeMap, HashMap};
 use std::io::Read;
-use std::sync::Mutex;
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::{Arc, Mutex};
 
 use mcap::records::Record;
 use rayon::prelude::*;
@@ -42,6 +43,8 @@ pub struct ConvertOptions {
     pub batch_scans: usize,
     /// Entries of the `rangegan` metadata record written to the output.
     pub metadata: BTreeMap<String, String>,
+    /// Counts scans as their stages finish (before their batch is written), for progress.
+    pub scans_processed: Option<Arc<AtomicU64>>,
 }
 
 /// Scans per parallel batch. Fixed rather than tied to the thread count: outputs of a batch are
@@ -59,6 +62,7 @@ impl Default for ConvertOptions {
             on_error: OnError::Fail,
             batch_scans: DEFAULT_BATCH_SCANS,
             metadata: BTreeMap::new(),
+            scans_processed: None,
         }
     }
 }
@@ -154,6 +158,17 @@ impl<'d> DecodeStage<'d> {
             mask_samples: outputs.mask_samples,
             extra_grids,
         })
+    }
+
+    /// The channels (suffixes) [`run`](Self::run) writes; `raydrop_mask` stands for every mask.
+    pub fn channel_names(&self) -> Vec<String> {
+        let mut names: Vec<String> = ["depth", "raydrop_prob", "raydrop_mask", "points"]
+            .map(String::from)
+            .into();
+        for (suffix, _) in &self.extra_grids {
+            names.extend([format!("depth_{suffix}"), format!("points_{suffix}")]);
+        }
+        names
     }
 
     /// Decode one scan and encode its channels.
@@ -338,6 +353,9 @@ impl ScanProcessor<'_> {
                 Ok(o) => outputs.extend(o),
                 Err(e) => failed.push(format!("{e:#}")),
             }
+        }
+        if let Some(counter) = &self.opts.scans_processed {
+            counter.fetch_add(1, Ordering::Relaxed);
         }
         Ok((outputs, kept, (profile, strategy), failed))
     }

@@ -4,6 +4,7 @@
 
 mod calibrate;
 mod convert;
+mod convert_dataset;
 mod diagnose;
 mod import;
 mod info;
@@ -108,6 +109,8 @@ pub enum Outcome {
     Success,
     /// Done, but some input was skipped or could not be read (exit code 3).
     DataSkipped,
+    /// Some files of a dataset could not be converted; the others were (exit code 4).
+    FilesFailed,
 }
 
 impl Outcome {
@@ -115,6 +118,7 @@ impl Outcome {
         match self {
             Outcome::Success => ExitCode::SUCCESS,
             Outcome::DataSkipped => ExitCode::from(3),
+            Outcome::FilesFailed => ExitCode::from(4),
         }
     }
 }
@@ -180,6 +184,15 @@ mod tests {
             panic!("not convert")
         };
         assert_eq!(c.topic, vec!["/a".to_string(), "/b".to_string()]);
+        assert_eq!(c.inputs, vec![std::path::PathBuf::from("in.mcap")]);
+        let Command::Convert(c) =
+            Args::try_parse_from(["rangegan-mcap", "convert", "a", "b/", "c", "--jobs", "2"])
+                .unwrap()
+                .command
+        else {
+            panic!("not convert")
+        };
+        assert_eq!((c.inputs.len(), c.output.to_str()), (2, Some("c")));
         assert!(Args::try_parse_from(["rangegan-mcap", "convert", "in.mcap"]).is_err());
         assert!(
             Args::try_parse_from(["rangegan-mcap", "convert", "a", "b", "--on-error", "maybe"])
