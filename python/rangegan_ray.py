@@ -108,9 +108,10 @@ def main(argv=None):
     parser.add_argument("--binary", default="rangegan-mcap", help="rangegan-mcap on every node")
     parser.add_argument("--retries", type=int, default=3, help="retries of a task whose worker died")
     parser.add_argument("--cpus-per-task", type=float, default=1)
-    parser.add_argument("convert_args", nargs=argparse.REMAINDER, help="-- then convert options")
-    args = parser.parse_args(argv)
-    convert_args = [a for a in args.convert_args if a != "--"]
+    argv = list(sys.argv[1:] if argv is None else argv)
+    split = argv.index("--") if "--" in argv else len(argv)
+    args = parser.parse_args(argv[:split])
+    convert_args = argv[split + 1:]  # after `--`: options of `rangegan-mcap convert`
     binary = args.binary if os.sep not in args.binary else os.path.abspath(args.binary)
     in_dir, out_dir = os.path.abspath(args.in_dir), os.path.abspath(args.out_dir)
 
@@ -124,6 +125,9 @@ def main(argv=None):
     os.makedirs(out_dir, exist_ok=True)
     manifest = ManifestWriter(os.path.join(out_dir, MANIFEST))
 
+    if __name__ != "__main__":
+        # Imported (e.g. by a test): ship this module's code to the workers with the task.
+        ray.cloudpickle.register_pickle_by_value(sys.modules[__name__])
     ray.init(address=args.address, logging_level="ERROR", log_to_driver=False)
     task = convert_file.options(num_cpus=args.cpus_per_task, max_retries=args.retries,
                                 retry_exceptions=True)
@@ -139,6 +143,7 @@ def main(argv=None):
         failed += entry["status"] != "ok"
         manifest.append(entry)
         print(f"{rel}: {entry['status']}", file=sys.stderr)
+    ray.shutdown()
     secs = time.monotonic() - started
     print(f"{len(todo)} converted ({failed} failed) in {secs:.1f} s", file=sys.stderr)
     return 4 if failed else 0

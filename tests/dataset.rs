@@ -321,3 +321,85 @@ fn chosen_channels_and_writer_settings() {
     }
     assert!(sizes[0] < sizes[2] && sizes[1] < sizes[2], "{sizes:?}");
 }
+
+/// Runs the shard command of each recipe in `deploy/` for every shard index (the Slurm script
+/// itself, the Kubernetes Job's container command) with `--quality off`: the union of the
+/// shards is the single-process conversion.
+#[test]
+fn deployment_recipes_convert_every_shard() {
+    let dir = tempfile::tempdir().unwrap();
+    let input = dir.path().join("recordings");
+    let rels: Vec<String> = (0..5).map(|i| format!("r{i}.mcap")).collect();
+    write_dataset(&input, &rels.iter().map(|r| r.as_str()).collect::<Vec<_>>());
+    let whole = dir.path().join("whole");
+    assert!(convert_dataset(&[s(&input), s(&whole)]).status.success());
+    let expected = outputs(&whole);
+    let bin_dir = Path::new(env!("CARGO_BIN_EXE_rangegan-mcap"))
+        .parent()
+        .unwrap();
+    let path = format!(
+        "{}:{}",
+        bin_dir.display(),
+        std::env::var("PATH").unwrap_or_default()
+    );
+    let quick = |cmd: &str| cmd.replace("--quality fast", "--quality off");
+
+    // Slurm: the script, checked by bash, run once per array index.
+    let script = std::fs::read_to_string("deploy/slurm-array.sh").unwrap();
+    let o = std::process::Command::new("bash")
+        .args(["-n", "deploy/slurm-array.sh"])
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert!(script.contains("#SBATCH --array=0-7") && script.contains("SHARDS=${SHARDS:-8}"));
+    let slurm_out = dir.path().join("slurm");
+    for i in 0..8 {
+        let o = std::process::Command::new("bash")
+            .arg("-c")
+            .arg(quick(&script))
+            .args(["slurm-array.sh", s(&input), s(&slurm_out)])
+            .env("PATH", &path)
+            .env("SLURM_ARRAY_TASK_ID", i.to_string())
+            .output()
+            .unwrap();
+        assert!(o.status.success(), "task {i}: {}", stderr(&o));
+    }
+    assert_eq!(outputs(&slurm_out), expected);
+
+    // Kubernetes: the Indexed Job parsed as YAML; its container command run per index.
+    let Some(python) = python() else { return };
+    let parse = "import json, sys, yaml; j = yaml.safe_load(open('deploy/k8s-indexed-job.yaml')); \
+        s = j['spec']; c = s['template']['spec']['containers'][0]; \
+        print(json.dumps([j['kind'], s['completionMode'], s['completions'], c['env'][0]['value'], c['command'], c['args'][0]]))";
+    let o = std::process::Command::new(&python)
+        .args(["-c", parse])
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", stderr(&o));
+    let job: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    assert_eq!(
+        (job[0].as_str(), job[1].as_str()),
+        (Some("Job"), Some("Indexed"))
+    );
+    let shards = job[2].as_u64().unwrap();
+    assert_eq!(
+        job[3].as_str(),
+        Some(shards.to_string().as_str()),
+        "SHARDS = completions"
+    );
+    assert_eq!(job[4], serde_json::json!(["/bin/sh", "-c"]));
+    let data = dir.path().to_str().unwrap();
+    let k8s_out = dir.path().join("converted");
+    for i in 0..shards {
+        let cmd = quick(job[5].as_str().unwrap()).replace("/data", data);
+        let o = std::process::Command::new("/bin/sh")
+            .args(["-c", &cmd])
+            .env("PATH", &path)
+            .env("SHARDS", shards.to_string())
+            .env("JOB_COMPLETION_INDEX", i.to_string())
+            .output()
+            .unwrap();
+        assert!(o.status.success(), "index {i}: {}", stderr(&o));
+    }
+    assert_eq!(outputs(&k8s_out), expected);
+}
