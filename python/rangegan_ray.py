@@ -128,7 +128,8 @@ def main(argv=None):
     if __name__ != "__main__":
         # Imported (e.g. by a test): ship this module's code to the workers with the task.
         ray.cloudpickle.register_pickle_by_value(sys.modules[__name__])
-    ray.init(address=args.address, logging_level="ERROR", log_to_driver=False)
+    if not ray.is_initialized():  # a caller may have connected already
+        ray.init(address=args.address, logging_level="ERROR", log_to_driver=False)
     task = convert_file.options(num_cpus=args.cpus_per_task, max_retries=args.retries,
                                 retry_exceptions=True)
     pending = {task.remote(binary, in_dir, rel, out_dir, convert_args): rel for rel in todo}

@@ -45,6 +45,8 @@ pub struct ConvertOptions {
     pub metadata: BTreeMap<String, String>,
     /// Counts scans as their stages finish (before their batch is written), for progress.
     pub scans_processed: Option<Arc<AtomicU64>>,
+    /// Warn when a topic's scans are far from what the decoding model saw.
+    pub check_model_fit: bool,
 }
 
 /// Scans per parallel batch. Fixed rather than tied to the thread count: outputs of a batch are
@@ -63,6 +65,7 @@ impl Default for ConvertOptions {
             batch_scans: DEFAULT_BATCH_SCANS,
             metadata: BTreeMap::new(),
             scans_processed: None,
+            check_model_fit: false,
         }
     }
 }
@@ -264,6 +267,8 @@ pub struct ConvertReport {
     pub outputs_written: u64,
     pub topics: BTreeMap<String, TopicReport>,
     pub warnings: Vec<Warning>,
+    /// Topics whose sensor is far from the decoding model's (their decoded channels are rough).
+    pub model_fit: Vec<Warning>,
 }
 
 /// Counts of input records by kind (the ones a copy must preserve).
@@ -291,6 +296,8 @@ struct ScanProcessor<'a> {
     opts: &'a ConvertOptions,
     stages: &'a [&'a Stage<'a>],
     profiles: Mutex<HashMap<String, (SensorProfile, Strategy)>>,
+    file: std::path::PathBuf,
+    fit_warnings: Mutex<Vec<Warning>>,
 }
 
 /// A processed scan: the stages' outputs, the kept fraction, the profile and projection used,
@@ -307,6 +314,7 @@ impl ScanProcessor<'_> {
     fn profile_for(
         &self,
         topic: &str,
+        log_time: u64,
         cloud: &DecodedCloud,
     ) -> Result<(SensorProfile, Strategy), String> {
         let mut map = self.profiles.lock().unwrap_or_else(|e| e.into_inner());
@@ -330,12 +338,24 @@ impl ScanProcessor<'_> {
             s => s,
         };
         map.insert(topic.to_string(), (profile.clone(), strategy));
+        if self.opts.check_model_fit
+            && let Some(w) =
+                crate::decode::fit::model_fit(&cloud.scan).and_then(|f| f.warning(&profile.name))
+        {
+            let loc = Location::message(&self.file, topic, log_time);
+            let mut warnings = self.fit_warnings.lock().unwrap_or_else(|e| e.into_inner());
+            warnings.push(Warning {
+                topic: topic.to_string(),
+                log_time_nanos: log_time,
+                message: format!("{loc}: {w}"),
+            });
+        }
         Ok((profile, strategy))
     }
 
     fn process(&self, p: &Pending) -> Result<Processed, String> {
         let cloud = decode_cloud(p.format, &p.data).map_err(|e| e.to_string())?;
-        let (profile, strategy) = self.profile_for(&p.topic, &cloud)?;
+        let (profile, strategy) = self.profile_for(&p.topic, p.log_time, &cloud)?;
         let image = project(&cloud.scan, &profile, strategy).map_err(|e| e.to_string())?;
         let returns = cloud.scan.returns().max(1);
         let kept = image.valid_count() as f64 / returns as f64;
@@ -494,6 +514,8 @@ pub fn convert(
             opts,
             stages,
             profiles: Mutex::new(HashMap::new()),
+            file: input.to_path_buf(),
+            fit_warnings: Mutex::new(Vec::new()),
         },
         file: input.to_path_buf(),
         table: ChannelTable::default(),
@@ -523,6 +545,13 @@ pub fn convert(
     let mut report = conv.report;
     report.read = read;
     report.copied = conv.out.copied;
+    report.model_fit = std::mem::take(
+        &mut conv
+            .processor
+            .fit_warnings
+            .lock()
+            .unwrap_or_else(|e| e.into_inner()),
+    );
     for t in report.topics.values_mut() {
         if t.scans > 0 {
             t.kept_fraction /= t.scans as f64;

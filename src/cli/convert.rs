@@ -414,6 +414,7 @@ impl<'d> FileConverter<'d> {
                 on_error: args.on_error,
                 metadata,
                 scans_processed: Some(counters.scans.clone()),
+                check_model_fit: decoding.is_some(),
                 ..ConvertOptions::default()
             },
             writer: writer_settings(args)?,
@@ -491,6 +492,7 @@ fn total_malformed(report: &ConvertReport) -> u64 {
 /// Warnings a conversion reported (per message, per skipped chunk, a truncated end, orphans).
 fn warning_count(report: &ConvertReport) -> u64 {
     report.warnings.len() as u64
+        + report.model_fit.len() as u64
         + report.read.bad_chunks.len() as u64
         + u64::from(report.read.stopped.is_some())
         + u64::from(report.copied.orphan_messages > 0)
@@ -552,7 +554,7 @@ pub(crate) fn finish_entry(entry: &mut Entry, output: &Path) -> anyhow::Result<(
 pub(crate) fn print_file_summary(global: &GlobalArgs, input: &Path, output: &Path, c: &Converted) {
     let report = &c.report;
     if !global.quiet {
-        for w in &report.warnings {
+        for w in report.warnings.iter().chain(&report.model_fit) {
             eprintln!("warning: {}", w.message);
         }
     }

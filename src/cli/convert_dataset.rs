@@ -5,7 +5,7 @@
 
 use std::path::{Path, PathBuf};
 use std::sync::Mutex;
-use std::sync::atomic::{AtomicUsize, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
 
 use anyhow::bail;
 use rayon::prelude::*;
@@ -48,6 +48,9 @@ impl DatasetArgs {
 pub fn is_dataset(args: &ConvertArgs) -> bool {
     args.inputs.len() > 1 || args.inputs[0].is_dir() || args.output.is_dir()
 }
+
+/// Whether a converted file had data skipped (what `--strict` turns into exit code 3).
+static DATA_SKIPPED: AtomicBool = AtomicBool::new(false);
 
 /// What a run does with one file.
 struct Planned {
@@ -191,13 +194,9 @@ pub fn run(global: &GlobalArgs, args: &ConvertArgs) -> anyhow::Result<Outcome> {
             totals.scans_per_s,
         );
     }
-    // Skipped data shows as warnings (malformed scans, failed stages, lost chunks).
-    let data_skipped = entries
-        .iter()
-        .any(|e| e.status == Status::Ok && (e.warnings > 0 || e.malformed > 0));
     Ok(if failed > 0 {
         Outcome::FilesFailed
-    } else if data_skipped && args.strict {
+    } else if DATA_SKIPPED.load(Ordering::Relaxed) && args.strict {
         Outcome::DataSkipped
     } else {
         Outcome::Success
@@ -338,7 +337,12 @@ fn convert_one(
             .and_then(|_| converter.convert(&p.file.path, &p.file.rel, &output, true, counters)),
     };
     match &result {
-        Ok(c) => convert::print_file_summary(global, &p.file.path, &output, c),
+        Ok(c) => {
+            if convert::data_skipped(&c.report) {
+                DATA_SKIPPED.store(true, Ordering::Relaxed);
+            }
+            convert::print_file_summary(global, &p.file.path, &output, c)
+        }
         Err(e) => eprintln!("error: {e:#}"), // errors name the file
     }
     let hash = p.input_hash.clone().unwrap_or_default();

@@ -77,7 +77,8 @@ pub struct CloudOutputArgs {
     /// Frame id of the point clouds.
     #[arg(long, default_value = "velodyne")]
     pub frame_id: String,
-    /// Log time of the first scan, seconds; scans follow at 10 Hz.
+    /// Log time of the first scan, seconds since 1970-01-01 UTC; scans follow at 10 Hz.
+    /// 0 shows as 1970 in Foxglove: give a real date, e.g. `--start-secs $(date +%s)`.
     #[arg(long, default_value_t = 0.0)]
     pub start_secs: f64,
     /// Overwrite an existing OUT.

@@ -60,8 +60,7 @@ def start_cluster(work):
         time.sleep(0.5)
     else:
         raise RuntimeError("Ray worker node did not join")
-    ray_api.shutdown()
-    return address, [head, worker]
+    return address, [head, worker]  # still connected: the driver reuses the connection
 
 
 def stop_cluster(nodes):
