@@ -339,8 +339,8 @@ impl ScanProcessor<'_> {
         };
         map.insert(topic.to_string(), (profile.clone(), strategy));
         if self.opts.check_model_fit
-            && let Some(w) =
-                crate::decode::fit::model_fit(&cloud.scan).and_then(|f| f.warning(&profile.name))
+            && let Some(w) = crate::decode::fit::model_fit(&cloud.scan)
+                .and_then(|f| f.warning(&format!("{}, {} beams", profile.name, profile.beams())))
         {
             let loc = Location::message(&self.file, topic, log_time);
             let mut warnings = self.fit_warnings.lock().unwrap_or_else(|e| e.into_inner());

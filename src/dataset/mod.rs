@@ -177,7 +177,7 @@ mod tests {
             std::fs::create_dir_all(p.parent().unwrap()).unwrap();
             std::fs::write(&p, b"x").unwrap();
         }
-        let files = list(&[root.clone()], &[root.join("out")]).unwrap();
+        let files = list(std::slice::from_ref(&root), &[root.join("out")]).unwrap();
         let rels: Vec<&str> = files.iter().map(|f| f.rel.as_str()).collect();
         assert_eq!(rels, ["a/1.mcap", "b/2.mcap", "c.mcap"]);
         // A file given twice (as itself and inside its folder) is refused.
