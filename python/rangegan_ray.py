@@ -51,13 +51,15 @@ def _die_with_parent():
 
 
 @ray.remote
-def convert_file(binary, in_dir, rel, out_dir, convert_args):
+def convert_file(binary, in_dir, rel, out_dir, convert_args, threads):
     """Runs the one-file form on `rel` and returns its manifest line (status failed when
     the binary refused the file). The input is named by its relative path, so the output
-    is the same bytes as in a single-machine run of the whole folder."""
+    is the same bytes as in a single-machine run of the whole folder. The binary uses
+    `threads` threads (the task's CPUs) unless the convert options set `--threads`."""
     output = os.path.join(out_dir, rel)
     os.makedirs(os.path.dirname(output) or ".", exist_ok=True)
-    cmd = [binary, "--json", "--quiet", "convert", rel, output, "--force", *convert_args]
+    threads = [] if "--threads" in convert_args else ["--threads", str(threads)]
+    cmd = [binary, "--json", "--quiet", *threads, "convert", rel, output, "--force", *convert_args]
     started = time.monotonic()
     done = subprocess.run(
         cmd, cwd=in_dir, capture_output=True, text=True, check=False, preexec_fn=_die_with_parent
@@ -107,7 +109,8 @@ def main(argv=None):
     parser.add_argument("--address", default=None, help="Ray cluster (default: RAY_ADDRESS or a local one)")
     parser.add_argument("--binary", default="rangegan-mcap", help="rangegan-mcap on every node")
     parser.add_argument("--retries", type=int, default=3, help="retries of a task whose worker died")
-    parser.add_argument("--cpus-per-task", type=float, default=1)
+    parser.add_argument("--cpus-per-task", type=float, default=1,
+                        help="CPUs Ray reserves per file; also the binary's --threads")
     argv = list(sys.argv[1:] if argv is None else argv)
     split = argv.index("--") if "--" in argv else len(argv)
     args = parser.parse_args(argv[:split])
@@ -132,7 +135,9 @@ def main(argv=None):
         ray.init(address=args.address, logging_level="ERROR", log_to_driver=False)
     task = convert_file.options(num_cpus=args.cpus_per_task, max_retries=args.retries,
                                 retry_exceptions=True)
-    pending = {task.remote(binary, in_dir, rel, out_dir, convert_args): rel for rel in todo}
+    threads = max(1, int(args.cpus_per_task))
+    pending = {task.remote(binary, in_dir, rel, out_dir, convert_args, threads): rel
+               for rel in todo}
     failed = 0
     while pending:
         ready, _ = ray.wait(list(pending), num_returns=1)
