@@ -20,6 +20,7 @@ pub mod amortised;
 pub mod calibrate;
 pub mod encoder_train;
 pub mod fill;
+pub mod fit;
 pub mod invert;
 pub mod loss;
 
