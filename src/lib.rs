@@ -12,6 +12,7 @@
 
 pub mod cli;
 pub mod decode;
+pub mod diagnose;
 pub mod error;
 pub mod io;
 pub mod lidar;

@@ -11,12 +11,12 @@ use anyhow::Context;
 use super::{GlobalArgs, Outcome};
 use crate::decode::amortised::TrainedEncoder;
 use crate::decode::{DecodeOptions, Decoder, Quality, scan_seed};
+use crate::diagnose::completion::{Completion, gan_features, neighbour_features};
+use crate::diagnose::features::{FeatureOptions, ScanFeatures};
+use crate::diagnose::report::{DiagnoseOptions, diagnose};
 use crate::error::Location;
 use crate::lidar::SensorProfile;
 use crate::model::weights::Model;
-use crate::physics::diagnose::{DiagnoseOptions, diagnose};
-use crate::physics::diagnose_completion::{Completion, gan_features, neighbour_features};
-use crate::physics::diagnose_features::{FeatureOptions, ScanFeatures};
 use crate::recording::{self, Grid, Recording};
 use crate::report;
 
@@ -180,7 +180,7 @@ pub fn run(global: &GlobalArgs, args: DiagnoseArgs) -> anyhow::Result<Outcome> {
     let completion_s = started.elapsed().as_secs_f64();
     let options = DiagnoseOptions {
         max_effects: args.max_effects,
-        residual: crate::physics::diagnose_residual::ResidualContext {
+        residual: crate::diagnose::residual::ResidualContext {
             speed_mps: args.real_speed_mps.or(real.speed_mps()),
             period_s: 0.1,
         },

@@ -11,7 +11,7 @@ use std::path::{Path, PathBuf};
 
 use anyhow::Context;
 
-use crate::physics::diagnose::{Curve, Diagnosis};
+use crate::diagnose::report::{Curve, Diagnosis};
 use plot::{FITTED, LineChart, REAL, SIM, Series, line_chart, viridis, write_atomic};
 
 /// Where the inputs came from, for the HTML header.

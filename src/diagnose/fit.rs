@@ -1,4 +1,4 @@
-//! Maximum-likelihood selection of the drop models a simulator left out (issue 6).
+//! Maximum-likelihood selection of the drop models a simulator left out.
 //!
 //! Every pixel of a real scan is kept with probability
 //! `keep = c · B(x) · Π_e (1 − p_e(x))`:
@@ -22,7 +22,7 @@
 //! [`QTable`] by (candidate bin, level of the rest-of-model keep probability `q`),
 //! and the likelihood of any per-bin drop curve is a sum over its cells.
 
-use super::diagnose_features::ScanFeatures;
+use super::features::ScanFeatures;
 
 /// Smallest held-out gain (nats per pixel) an effect must show: pixels of a scan
 /// are correlated, so the BIC term alone (which assumes independence) is too lax.

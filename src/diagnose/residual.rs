@@ -1,4 +1,4 @@
-//! Range-residual effects of the diagnosis (issue 6): effects that move returns
+//! Range-residual effects of the diagnosis: effects that move returns
 //! instead of dropping them. Unpaired scenes have no per-pixel truth, so each
 //! family looks at a local statistic whose distribution the scene hardly changes,
 //! takes the simulated recording's empirical distribution of it as the
@@ -13,8 +13,8 @@
 
 use serde_json::{Map, json};
 
-use super::diagnose_features::ScanFeatures;
-use super::diagnose_stats::erfc;
+use super::features::ScanFeatures;
+use super::stats::erfc;
 
 /// Observations of one statistic: (value, covariate), pooled over scans.
 pub type Obs = Vec<(f32, f32)>;

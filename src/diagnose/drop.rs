@@ -1,6 +1,6 @@
 //! The candidate drop models of the diagnosis, one [`DropFamily`] each: what
 //! feature bin a pixel falls in and how the per-bin drop probabilities are fitted
-//! by maximum likelihood (see `diagnose_fit` for the model and the selection).
+//! by maximum likelihood (see `fit` for the model and the selection).
 //!
 //! | family | feature | model |
 //! |---|---|---|
@@ -12,9 +12,9 @@
 
 use serde_json::{Map, Value, json};
 
-use super::diagnose_fit::{DropFamily, DropFit, Pixels, QTable, golden};
-use super::dropout::{IncidenceDropout, RangeDropout};
-use super::{Effect, RayFeatures};
+use super::fit::{DropFamily, DropFit, Pixels, QTable, golden};
+use crate::physics::dropout::{IncidenceDropout, RangeDropout};
+use crate::physics::{Effect, RayFeatures};
 use crate::sim::Material;
 use crate::sim::material::label;
 

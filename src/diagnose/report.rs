@@ -1,18 +1,18 @@
-//! Sim2Real diagnosis (issue 6), end to end on projected scans: features of both
-//! recordings, where the drop rates diverge (`diagnose_stats`), which left-out
-//! effects explain the divergence (`diagnose_fit` with the drop candidates of
-//! `diagnose_drop`, and `diagnose_residual` for effects that move returns), and
+//! Sim2Real diagnosis, end to end on projected scans: features of both
+//! recordings, where the drop rates diverge (`stats`), which left-out
+//! effects explain the divergence (`fit` with the drop candidates of
+//! `drop`, and `residual` for effects that move returns), and
 //! the numbers the report and its plots show. No I/O: the CLI reads the
 //! recordings and writes the report (`crate::report`).
 
 use serde::Serialize;
 use serde_json::{Map, Value};
 
-use super::diagnose_drop;
-use super::diagnose_features::ScanFeatures;
-use super::diagnose_fit::{self, Baseline, DropFamily, DropSelection, FitError, Pixels};
-use super::diagnose_residual::{self, ResidualContext, ResidualFit};
-use super::diagnose_stats::{BinOptions, DropCounts, Feature, TestOptions, compare};
+use super::drop;
+use super::features::ScanFeatures;
+use super::fit::{self, Baseline, DropFamily, DropSelection, FitError, Pixels};
+use super::residual::{self, ResidualContext, ResidualFit};
+use super::stats::{BinOptions, DropCounts, Feature, TestOptions, compare};
 
 /// Settings of a diagnosis.
 #[derive(Debug, Clone, PartialEq)]
@@ -219,7 +219,7 @@ pub fn diagnose(
     }
     let train: Vec<ScanFeatures> = real.iter().step_by(2).cloned().collect();
     let test: Vec<ScanFeatures> = real.iter().skip(1).step_by(2).cloned().collect();
-    let reach_m = diagnose_fit::reach_m(sim, real);
+    let reach_m = fit::reach_m(sim, real);
 
     // Where: conditional drop rates, BH-corrected.
     let bins = BinOptions {
@@ -236,9 +236,9 @@ pub fn diagnose(
     let px_train = Pixels::collect(&train, reach_m);
     let px_test = Pixels::collect(&test, reach_m);
     let baseline = Baseline::from_sim(&px_sim, reach_m);
-    let boxed = diagnose_drop::families();
+    let boxed = drop::families();
     let families: Vec<&dyn DropFamily> = boxed.iter().map(|b| b.as_ref()).collect();
-    let selection = diagnose_fit::select(
+    let selection = fit::select(
         &families,
         &baseline,
         &px_train,
@@ -247,7 +247,7 @@ pub fn diagnose(
     )?;
 
     // What else: range-residual candidates.
-    let residual_fits: Vec<ResidualFit> = diagnose_residual::families()
+    let residual_fits: Vec<ResidualFit> = residual::families()
         .iter()
         .filter_map(|family| {
             family.fit(
@@ -364,7 +364,7 @@ pub fn diagnose(
         completion_fallback_scans: 0,
     };
 
-    let keep_after = diagnose_fit::keep_under(&families, &selection, &baseline, &px_test);
+    let keep_after = fit::keep_under(&families, &selection, &baseline, &px_test);
     // "Before" for the maps: the sim with the fitted keep scale but no effect, so
     // the maps show where the effects act rather than the overall rate.
     let keep_before: Vec<f64> = baseline
@@ -515,7 +515,7 @@ fn maps(
     let fitted_extra_drop = grid(test, &|i| (keep_before[i] - keep_after[i]).max(0.0));
     // The example scan: every pixel (not only those within reach).
     let px = Pixels::collect(std::slice::from_ref(example), f32::INFINITY);
-    let after = diagnose_fit::keep_under(families, selection, baseline, &px);
+    let after = fit::keep_under(families, selection, baseline, &px);
     let before: Vec<f64> = baseline
         .keep_of(&px)
         .iter()
