@@ -96,6 +96,8 @@ pub struct InputsReport {
     pub completion_model: Option<String>,
     /// Scans the GAN could not decode, completed by the neighbour fill instead.
     pub completion_fallback_scans: usize,
+    /// Tests and candidates left out because one side lacks their feature, why.
+    pub left_out: Vec<String>,
 }
 
 /// The report (`report.json`): `effects` and `fit` are the contract other
@@ -219,7 +221,7 @@ pub fn diagnose(
     }
     let train: Vec<ScanFeatures> = real.iter().step_by(2).cloned().collect();
     let test: Vec<ScanFeatures> = real.iter().skip(1).step_by(2).cloned().collect();
-    let reach_m = fit::reach_m(sim, real);
+    let reach_m = fit::reach_m(sim);
 
     // Where: conditional drop rates, BH-corrected.
     let bins = BinOptions {
@@ -229,6 +231,23 @@ pub fn diagnose(
     let (mut c_sim, mut c_real) = (DropCounts::default(), DropCounts::default());
     sim.iter().for_each(|f| c_sim.add(f, &bins));
     real.iter().for_each(|f| c_real.add(f, &bins));
+    // A side without labels makes every pixel "class 0": comparing classes
+    // would report that artefact, so the class test and candidate are left out.
+    let mut left_out = Vec::new();
+    let unlabelled: Vec<&str> = [("sim", sim), ("real", real)]
+        .iter()
+        .filter(|(_, scans)| !labelled(scans))
+        .map(|(side, _)| *side)
+        .collect();
+    if !unlabelled.is_empty() {
+        for c in [&mut c_sim, &mut c_real] {
+            c.bins.retain(|(feature, _), _| *feature != Feature::Class);
+        }
+        left_out.push(format!(
+            "material_dropout and the drop rate by class: the {} recording has no semantic labels",
+            unlabelled.join(" and ")
+        ));
+    }
     let comparison = compare(&c_sim, &c_real, &bins, &options.tests);
 
     // What: drop candidates by forward selection.
@@ -237,7 +256,11 @@ pub fn diagnose(
     let px_test = Pixels::collect(&test, reach_m);
     let baseline = Baseline::from_sim(&px_sim, reach_m);
     let boxed = drop::families();
-    let families: Vec<&dyn DropFamily> = boxed.iter().map(|b| b.as_ref()).collect();
+    let families: Vec<&dyn DropFamily> = boxed
+        .iter()
+        .map(|b| b.as_ref())
+        .filter(|f| unlabelled.is_empty() || f.id() != "material_dropout")
+        .collect();
     let selection = fit::select(
         &families,
         &baseline,
@@ -362,6 +385,7 @@ pub fn diagnose(
         completion: completion.into(),
         completion_model: None,
         completion_fallback_scans: 0,
+        left_out,
     };
 
     let keep_after = fit::keep_under(&families, &selection, &baseline, &px_test);
@@ -398,6 +422,21 @@ pub fn diagnose(
         curves,
         maps,
     })
+}
+
+/// Whether a recording carries semantic labels: at least 5 % of its returns
+/// have a class.
+fn labelled(scans: &[ScanFeatures]) -> bool {
+    let (mut kept, mut classed) = (0usize, 0usize);
+    for f in scans {
+        for k in 0..f.len() {
+            if f.kept[k] {
+                kept += 1;
+                classed += usize::from(f.class[k] != 0);
+            }
+        }
+    }
+    classed as f64 >= 0.05 * kept.max(1) as f64
 }
 
 /// Folds the fitted keep scale `c` into the physics' uniform dropout:

@@ -574,7 +574,7 @@ mod tests {
             simulated_recording(8, 6, uniform()),
         );
         let bins = BinOptions {
-            reach_m: reach_m(&sim, &real),
+            reach_m: reach_m(&sim),
             ..BinOptions::default()
         };
         let count = |scans: &[ScanFeatures]| {

@@ -414,6 +414,13 @@ impl Scene {
                     }
                     x += rng.range(3.0, 9.0);
                 }
+                // Cars parked at farm gates along the road.
+                let mut x = x0 + rng.range(0.0, 20.0);
+                while x < x1 {
+                    let y = rng.pick(&[-1.0f32, 1.0]) * (half + 1.2);
+                    car(&mut o, &mut rng, x, y, true);
+                    x += rng.range(15.0, 40.0);
+                }
                 let fence_y = half + rng.range(1.0, 3.0);
                 let wood = surf(label::FENCE, Material::Wood, 0.3);
                 wall(&mut o, [x0, fence_y, 0.0], [x1, fence_y + 0.1, 1.1], wood);
@@ -594,7 +601,7 @@ impl Sensor {
 }
 
 /// Scans a side and their spacing in time.
-pub const SCANS: u32 = 10;
+pub const SCANS: u32 = 16;
 const STRIDE_S: f32 = 0.3;
 
 /// Ideal scan `index` of `scene` with `sensor`: one ray per pixel from the pose
@@ -815,7 +822,6 @@ fn features(scan: &SimScan, sensor: &Sensor) -> ScanFeatures {
     if !sensor.ring_field {
         cloud.ring = None;
     }
-    cloud.label = None; // real recordings are unlabelled
     let strategy = choose_strategy(&cloud, &sensor.profile);
     let image = project(&cloud, &sensor.profile, strategy).expect("projection");
     ScanFeatures::from_image(&image, &FeatureOptions::default())
@@ -827,9 +833,17 @@ fn features(scan: &SimScan, sensor: &Sensor) -> ScanFeatures {
 /// drop rates. Both sides always carry a little uniform dropout (real sensors
 /// drop some rays everywhere).
 pub fn pair(seed: u64, effects: &[&str], beams: usize) -> Pair {
+    pair_with(seed, effects, beams, None)
+}
+
+/// As [`pair`], the cloud organized or not as `organized` says (None: drawn).
+pub fn pair_with(seed: u64, effects: &[&str], beams: usize, organized: Option<bool>) -> Pair {
     let mut rng = Rng::new(seed);
     let kind = rng.pick(&Kind::ALL);
-    let sensor = Sensor::random(&mut rng, beams);
+    let mut sensor = Sensor::random(&mut rng, beams);
+    if let Some(o) = organized {
+        sensor.organized = o;
+    }
     let length = 30.0 * STRIDE_S * SCANS as f32;
     let real_scene = Scene::generate(kind, seed, length);
     let sim_scene = Scene::generate(kind, seed ^ 0x5151_5151, length);
@@ -875,12 +889,13 @@ pub fn pair(seed: u64, effects: &[&str], beams: usize) -> Pair {
     }
 }
 
-/// The evaluation's plan: every effect alone three times, six nulls, six pairs
-/// of two and two of three effects, beams cycling through 16 / 32 / 64 / 128.
+/// The evaluation's plan: every effect alone four times, six nulls, six pairs
+/// of two and two of three effects (46 pairs), beams cycling through 16 / 32 /
+/// 64 / 128.
 pub fn plan(seed: u64) -> Vec<(u64, Vec<&'static str>, usize)> {
     let mut rng = Rng::new(seed);
     let mut cases: Vec<Vec<&'static str>> = Vec::new();
-    for _ in 0..3 {
+    for _ in 0..4 {
         cases.extend(EFFECTS.iter().map(|e| vec![*e]));
     }
     cases.extend((0..6).map(|_| vec![]));
