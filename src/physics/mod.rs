@@ -19,6 +19,7 @@
 pub mod config;
 pub mod dropout;
 pub mod perturb;
+pub mod pretraining;
 
 pub use config::{PhysicsConfig, PhysicsError, Preset};
 
