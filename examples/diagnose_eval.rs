@@ -12,7 +12,7 @@
 #[path = "../tests/common/testgen.rs"]
 mod testgen;
 
-use rangegan_mcap::diagnose::{DiagnoseOptions, Diagnosis, diagnose};
+use rangegan_mcap::diagnose::Diagnosis;
 use rayon::prelude::*;
 
 struct Outcome {
@@ -102,14 +102,7 @@ fn main() {
         .map(|(i, (pair_seed, effects, beams))| {
             let t = std::time::Instant::now();
             let p = testgen::pair(*pair_seed, effects, *beams);
-            let d = diagnose(
-                &p.sim,
-                &p.real,
-                &serde_json::Map::new(),
-                "neighbour-fill",
-                &DiagnoseOptions::default(),
-            )
-            .expect("diagnosis");
+            let d = testgen::diagnose_pair(&p);
             let o = judge(&p, &d, t.elapsed().as_secs_f64());
             eprintln!("{i}: {}", o.line);
             if std::env::var_os("DIAGNOSE_EVAL_VERBOSE").is_some() {

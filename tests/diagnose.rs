@@ -120,6 +120,17 @@ fn diagnose_names_a_concealed_range_dropout_and_render_applies_it() {
         assert!(page.broken.is_empty(), "images that did not load: {page:?}");
         assert!(page.min_width >= 400, "{page:?}");
         assert!(page.script_errors.is_empty(), "{page:?}");
+        // The check sees a missing image.
+        let broken = d.join("report_broken");
+        std::fs::create_dir(&broken).unwrap();
+        for entry in std::fs::read_dir(&report).unwrap() {
+            let path = entry.unwrap().path();
+            if path.file_name().unwrap() != "drop_vs_row.png" {
+                std::fs::copy(&path, broken.join(path.file_name().unwrap())).unwrap();
+            }
+        }
+        let page = browser::render(&broken.join("report.html"), d).unwrap();
+        assert_eq!(page.broken, vec!["drop_vs_row.png".to_string()], "{page:?}");
     }
     // The report folder is not overwritten without --force.
     let again = diagnose(&sim, &real, &report, &["--completion", "neighbour"]);
@@ -313,7 +324,6 @@ fn diagnose_errors_name_the_file_and_topic() {
 /// together, and a null pair. The full evaluation is `examples/diagnose_eval.rs`.
 #[test]
 fn independent_generator_pairs_are_named() {
-    use rangegan_mcap::diagnose::{DiagnoseOptions, diagnose};
     let cases: [(u64, &[&str], usize, Option<bool>); 5] = [
         (91_001, &["incidence_dropout"], 32, Some(true)),
         (91_002, &["mixed_pixels"], 64, None),
@@ -323,14 +333,7 @@ fn independent_generator_pairs_are_named() {
     ];
     for (seed, effects, beams, organized) in cases {
         let p = testgen::pair_with(seed, effects, beams, organized);
-        let d = diagnose(
-            &p.sim,
-            &p.real,
-            &serde_json::Map::new(),
-            "neighbour-fill",
-            &DiagnoseOptions::default(),
-        )
-        .unwrap();
+        let d = testgen::diagnose_pair(&p);
         let named: Vec<&str> = d.report.effects.iter().map(|e| e.id.as_str()).collect();
         let context = format!(
             "pair {seed} ({}, {}): truth {:?}, named {named:?}, candidates {:?}",

@@ -168,8 +168,7 @@ impl Pixels {
             if f.height != px.height || f.width != px.width {
                 continue;
             }
-            let enclosure = enclosure_px(f);
-            for k in 0..f.len() {
+            for (k, enclosure) in enclosure_px(f).into_iter().enumerate() {
                 let r = f.range_m[k];
                 if r > reach_m || (r.is_nan() && f.elevation_rad[k] > open_above) {
                     continue;
@@ -181,7 +180,7 @@ impl Pixels {
                 px.cos_incidence.push(f.incidence_rad[k].cos());
                 px.class.push((f.class[k] & 0xffff) as u16);
                 px.kept.push(f.kept[k]);
-                px.enclosure_px.push(enclosure[k]);
+                px.enclosure_px.push(enclosure);
             }
         }
         px
@@ -453,16 +452,19 @@ fn model_keep(
         .collect()
 }
 
+/// NLL of one pixel's kept/dropped state under keep probability `k`.
+fn pixel_nll(kept: bool, k: f64) -> f64 {
+    let k = k.clamp(1e-12, KEEP_MAX);
+    if kept { -k.ln() } else { -(1.0 - k).ln() }
+}
+
 /// Mean per-pixel NLL of the kept/dropped masks under per-pixel keep probabilities.
 pub fn mask_nll(px: &Pixels, keep: &[f64]) -> f64 {
     let total: f64 = px
         .kept
         .iter()
         .zip(keep)
-        .map(|(&kept, &k)| {
-            let k = k.clamp(1e-12, KEEP_MAX);
-            if kept { -k.ln() } else { -(1.0 - k).ln() }
-        })
+        .map(|(&kept, &k)| pixel_nll(kept, k))
         .sum();
     total / px.len().max(1) as f64
 }
@@ -477,9 +479,7 @@ fn mask_nll_ahead_behind(px: &Pixels, keep: &[f64]) -> [f64; 2] {
             .get(px.column[i] as usize)
             .copied()
             .unwrap_or(0.0);
-        let k = k.clamp(1e-12, KEEP_MAX);
-        total[usize::from(a.abs() > std::f32::consts::FRAC_PI_2)] -=
-            if kept { k.ln() } else { (1.0 - k).ln() };
+        total[usize::from(a.abs() > std::f32::consts::FRAC_PI_2)] += pixel_nll(kept, k);
     }
     total
 }

@@ -15,6 +15,7 @@
 use std::collections::BTreeMap;
 
 use rangegan_mcap::diagnose::features::{FeatureOptions, ScanFeatures};
+use rangegan_mcap::diagnose::{DiagnoseOptions, Diagnosis, diagnose};
 use rangegan_mcap::lidar::projection::choose_strategy;
 use rangegan_mcap::lidar::{RangeImage, SensorProfile, project};
 use rangegan_mcap::physics::dropout::{
@@ -309,7 +310,7 @@ impl Scene {
         let x0 = -90.0;
         let x1 = length_m + 90.0;
         let asphalt = surf(label::ROAD, Material::Asphalt, rng.range(0.08, 0.2));
-        let scene = match kind {
+        match kind {
             Kind::ParkingLot => {
                 // Rows of parked cars across the lot, lamp posts, a low wall around.
                 let mut x = x0;
@@ -480,8 +481,7 @@ impl Scene {
                     lane_y_m: 0.0,
                 }
             }
-        };
-        scene
+        }
     }
 
     /// Nearest hit of a ray from `o` along unit `d` within `max_m`, among the
@@ -927,4 +927,17 @@ pub fn plan(seed: u64) -> Vec<(u64, Vec<&'static str>, usize)> {
             )
         })
         .collect()
+}
+
+/// The diagnosis of a pair as `diagnose` runs it (default options, neighbour
+/// completion, the sim side ideal but for its uniform dropout).
+pub fn diagnose_pair(p: &Pair) -> Diagnosis {
+    diagnose(
+        &p.sim,
+        &p.real,
+        &serde_json::Map::new(),
+        "neighbour-fill",
+        &DiagnoseOptions::default(),
+    )
+    .expect("diagnosis")
 }
