@@ -159,19 +159,10 @@ pub(crate) fn sensor_choice(sensor: &str) -> anyhow::Result<SensorChoice> {
     })
 }
 
-fn same_file(a: &std::path::Path, b: &std::path::Path) -> bool {
-    match (a.canonicalize(), b.canonicalize()) {
-        (Ok(a), Ok(b)) => a == b,
-        _ => false,
-    }
-}
-
 pub fn run(global: &GlobalArgs, args: ConvertArgs) -> anyhow::Result<Outcome> {
-    if args.input == args.output || same_file(&args.input, &args.output) {
-        bail!(
-            "{}: output is the input; write to another file (inputs are never modified)",
-            args.output.display()
-        );
+    crate::io::writer::refuse_overwriting_inputs(&args.output, &[&args.input])?;
+    if let Some(c) = args.columns {
+        crate::lidar::profile::check_columns(c).map_err(anyhow::Error::msg)?;
     }
     let file = std::fs::File::open(&args.input)
         .with_context(|| format!("cannot open {}", args.input.display()))?;
@@ -208,6 +199,7 @@ pub fn run(global: &GlobalArgs, args: ConvertArgs) -> anyhow::Result<Outcome> {
         strategy: args.projection,
         on_error: args.on_error,
         metadata,
+        strict: args.strict,
         ..ConvertOptions::default()
     };
     let decode_stage = match &decoding {
@@ -241,11 +233,12 @@ pub fn run(global: &GlobalArgs, args: ConvertArgs) -> anyhow::Result<Outcome> {
             eprintln!("warning: {}", w.message);
         }
     }
-    for c in &report.read.bad_chunks {
+    super::warn_read_damage(&args.input, &report.read);
+    if report.records_in.messages == 0 {
         eprintln!(
-            "warning: {}: skipped {c} ({} messages lost)",
+            "warning: {}: no message could be read{}",
             args.input.display(),
-            c.messages
+            if report.read.damaged() { " (see above)" } else { "; the recording is empty" }
         );
     }
     if let Some(why) = &report.read.stopped {
@@ -286,13 +279,11 @@ pub fn run(global: &GlobalArgs, args: ConvertArgs) -> anyhow::Result<Outcome> {
             scans as f64 / secs.max(1e-9),
         );
     }
-    let stage_failures: u64 = report.topics.values().map(|t| t.stage_failures).sum();
-    let skipped = malformed > 0
-        || stage_failures > 0
-        || report.read.stopped.is_some()
-        || !report.read.bad_chunks.is_empty()
-        || report.copied.orphan_messages > 0;
-    Ok(if skipped && args.strict {
+    Ok(if report.skipped_anything() && args.strict {
+        eprintln!(
+            "{}: not written (--strict: input was skipped or unreadable)",
+            args.output.display()
+        );
         Outcome::DataSkipped
     } else {
         Outcome::Success

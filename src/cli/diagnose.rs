@@ -134,7 +134,7 @@ fn features(
 }
 
 pub fn run(global: &GlobalArgs, args: DiagnoseArgs) -> anyhow::Result<Outcome> {
-    anyhow::ensure!(args.columns > 0, "--columns must be > 0");
+    crate::lidar::profile::check_columns(args.columns).map_err(anyhow::Error::msg)?;
     let grid = match &args.sensor {
         Some(s) => Grid::Fixed(
             SensorProfile::resolve(s)

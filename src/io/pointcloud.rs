@@ -142,7 +142,7 @@ pub enum CloudError {
     #[error("field \"{name}\" ends at byte {end}, beyond the {point_step}-byte point")]
     FieldOutsidePoint {
         name: String,
-        end: u32,
+        end: u64,
         point_step: u32,
     },
     #[error("data holds {len} bytes, but height {height} x row_step {row_step} needs {need}")]
@@ -182,7 +182,7 @@ impl CloudLayout {
             if end > self.point_step as u64 {
                 return Err(CloudError::FieldOutsidePoint {
                     name: f.name.clone(),
-                    end: end as u32,
+                    end,
                     point_step: self.point_step,
                 });
             }

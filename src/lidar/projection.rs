@@ -94,24 +94,46 @@ pub(crate) fn azimuth(p: [f32; 3]) -> f32 {
     p[1].atan2(p[0])
 }
 
+/// Fewest returns a KITTI ring-order ring may have: a lone point whose azimuth reads
+/// exactly 0 (real KITTI drive_a at 4.2 s ends with one) is no new ring.
+const MIN_RING_RETURNS: usize = 8;
+
 /// Ring id of every point in KITTI raw ring order (see [`Strategy::RingOrder`]).
-/// Points without a return keep the current ring.
+/// Points without a return keep the current ring; a "ring" of fewer than
+/// [`MIN_RING_RETURNS`] returns belongs to the ring before it.
 pub fn ring_order_ids(scan: &Scan) -> Vec<u32> {
     let mut ring = 0u32;
     let mut prev_az: Option<f32> = None;
     let mut ids = Vec::with_capacity(scan.len());
+    let mut returns = vec![0usize];
     for i in 0..scan.len() {
         if scan.is_return(i) {
             let p = scan.xyz[i];
             let az = azimuth(p);
             if prev_az.is_some_and(|prev| prev < 0.0 && az >= 0.0 && p[0] > 0.0) {
                 ring += 1;
+                returns.push(0);
             }
             prev_az = Some(az);
+            returns[ring as usize] += 1;
         }
         ids.push(ring);
     }
-    ids
+    // Renumber with short rings folded into their predecessor (the first into the next).
+    let mut new_id = Vec::with_capacity(returns.len());
+    let mut next = 0u32;
+    for (r, &n) in returns.iter().enumerate() {
+        if r > 0 && n < MIN_RING_RETURNS {
+            new_id.push(next - 1);
+        } else {
+            new_id.push(next);
+            next += 1;
+        }
+    }
+    if returns.len() > 1 && returns[0] < MIN_RING_RETURNS {
+        new_id.iter_mut().skip(1).for_each(|r| *r = r.saturating_sub(1));
+    }
+    ids.iter().map(|&r| new_id[r as usize]).collect()
 }
 
 /// Maps arbitrary group ids (rings, laser ids) to rows of `profile`, ordered by
