@@ -540,7 +540,7 @@ pub fn convert(
         }
     }
     if opts.strict && report.skipped_anything() {
-        conv.out.discard();
+        conv.out.discard_and_clear_target()?;
     } else {
         conv.out.finish()?;
     }

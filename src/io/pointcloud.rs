@@ -451,6 +451,10 @@ mod tests {
             layout.decode(&data),
             Err(CloudError::FieldOutsidePoint { .. })
         ));
+        // An offset near 2^32 must not wrap around to a small end byte.
+        layout.fields[0].offset = u32::MAX - 1;
+        let err = layout.decode(&data).unwrap_err().to_string();
+        assert!(err.contains("ends at byte 4294967298"), "{err}");
         layout.fields.remove(0);
         let err = layout.decode(&data).unwrap_err().to_string();
         assert!(

@@ -356,6 +356,19 @@ impl McapOutput {
 
     /// Abandons the output: the temporary file is removed and the target left as it was.
     pub fn discard(self) {}
+
+    /// Abandons the output and removes what stood at its path before (which this run
+    /// was allowed to replace), so no earlier file passes for this run's output.
+    pub fn discard_and_clear_target(self) -> anyhow::Result<()> {
+        let path = self.path.clone();
+        drop(self);
+        match std::fs::remove_file(&path) {
+            Err(e) if e.kind() != std::io::ErrorKind::NotFound => {
+                Err(anyhow::anyhow!("cannot remove {}: {e}", path.display()))
+            }
+            _ => Ok(()),
+        }
+    }
 }
 
 impl Drop for McapOutput {

@@ -436,6 +436,18 @@ mod tests {
         (Scan::from_xyz(xyz), profile)
     }
 
+    /// A lone trailing point whose azimuth reads exactly 0 (as in real KITTI) does not
+    /// open a ring of its own.
+    #[test]
+    fn a_lone_point_at_azimuth_zero_is_no_new_ring() {
+        let (mut scan, _) = ring_order_scan(4, 64, 10.0);
+        scan.xyz.push([13.0, -0.0, -6.0]);
+        scan.width = scan.xyz.len();
+        let ids = ring_order_ids(&scan);
+        assert_eq!(ids.iter().max(), Some(&3), "4 rings, not 5");
+        assert_eq!(ids.last(), Some(&3));
+    }
+
     #[test]
     fn ring_order_projection_keeps_every_point_and_round_trips() {
         let (scan, profile) = ring_order_scan(4, 64, 10.0);
