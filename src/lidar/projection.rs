@@ -189,6 +189,9 @@ fn rows_by_median_elevation(
 /// More medians than rows cannot be matched: the extra ones get `usize::MAX`.
 pub(crate) fn match_rows(medians: &[f32], table: &[f32]) -> Vec<usize> {
     let (n, m) = (medians.len(), table.len());
+    if n == 0 {
+        return Vec::new(); // no group has a return
+    }
     if n >= m {
         return (0..n).map(|k| if k < m { k } else { usize::MAX }).collect();
     }
@@ -572,6 +575,7 @@ mod tests {
             vec![0, 2, 4]
         );
         assert_eq!(match_rows(&[0.3, 0.1], &[0.3, 0.1]), vec![0, 1]);
+        assert!(match_rows(&[], &[0.3, 0.1]).is_empty(), "no returns, no rows");
     }
 
     #[test]
