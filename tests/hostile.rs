@@ -621,3 +621,25 @@ fn sampled_depths_stay_within_the_model_range() {
     }
     assert_eq!(depths, 2);
 }
+
+#[path = "common/fuzz.rs"]
+mod fuzz;
+
+/// Every input the fuzzer (`examples/fuzz_reader.rs`) ever crashed on reads without a
+/// panic now, through the reader, the decoders, estimation and projection.
+#[test]
+fn fuzz_regressions_read_without_panic() {
+    let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/fuzz_regressions");
+    let mut inputs: Vec<PathBuf> = std::fs::read_dir(&dir)
+        .unwrap()
+        .filter_map(|e| e.ok().map(|e| e.path()))
+        .filter(|p| p.extension().is_some_and(|e| e == "mcap"))
+        .collect();
+    inputs.sort();
+    assert!(!inputs.is_empty(), "the regression corpus is in {}", dir.display());
+    for input in inputs {
+        let bytes = std::fs::read(&input).unwrap();
+        let result = std::panic::catch_unwind(|| fuzz::exercise(&bytes));
+        assert!(result.is_ok(), "{} panics", input.display());
+    }
+}

@@ -37,7 +37,7 @@ pub struct ConvertArgs {
     #[arg(long, value_enum, default_value = "fail")]
     pub on_error: OnError,
     /// Exit non-zero (3) when anything was skipped or unreadable (truncated input,
-    /// skipped chunks, undecodable point clouds).
+    /// skipped chunks, undecodable point clouds), and keep no file at OUT then.
     #[arg(long)]
     pub strict: bool,
     /// Overwrite an existing OUT.
