@@ -42,7 +42,11 @@ fn scan(points: usize, seed: usize) -> Scan {
                 let az = i as f32 * 0.37 + seed as f32;
                 let el = ((i % 8) as f32 - 4.0) * 0.03;
                 let r = 4.0 + (i % 13) as f32;
-                [r * el.cos() * az.cos(), r * el.cos() * az.sin(), r * el.sin()]
+                [
+                    r * el.cos() * az.cos(),
+                    r * el.cos() * az.sin(),
+                    r * el.sin(),
+                ]
             })
             .collect(),
     );
@@ -67,12 +71,20 @@ fn seeds() -> Vec<Vec<u8>> {
                 .use_chunks(chunked)
                 .create(std::io::Cursor::new(Vec::new()))
                 .expect("writer");
-            for (c, family) in [Family::Ros2, Family::Ros1, Family::Foxglove].iter().enumerate() {
+            for (c, family) in [Family::Ros2, Family::Ros1, Family::Foxglove]
+                .iter()
+                .enumerate()
+            {
                 let s = encoders::schema(*family, encoders::Kind::Cloud);
                 let schema = w.add_schema(&s.name, &s.encoding, &s.data).expect("schema");
                 let topic = format!("/lidar{c}");
                 let channel = w
-                    .add_channel(schema, &topic, encoders::message_encoding(*family), &BTreeMap::new())
+                    .add_channel(
+                        schema,
+                        &topic,
+                        encoders::message_encoding(*family),
+                        &BTreeMap::new(),
+                    )
                     .expect("channel");
                 for i in 0..3u64 {
                     let cloud = DecodedCloud {
@@ -134,7 +146,10 @@ fn length_fields(bytes: &[u8]) -> Vec<usize> {
     while pos + 9 <= bytes.len() {
         fields.push(pos + 1);
         let len = u64::from_le_bytes(bytes[pos + 1..pos + 9].try_into().unwrap_or_default());
-        match usize::try_from(len).ok().and_then(|l| (pos + 9).checked_add(l)) {
+        match usize::try_from(len)
+            .ok()
+            .and_then(|l| (pos + 9).checked_add(l))
+        {
             Some(next) if next > pos => pos = next,
             _ => break,
         }
@@ -142,7 +157,17 @@ fn length_fields(bytes: &[u8]) -> Vec<usize> {
     fields
 }
 
-const INTERESTING: [u64; 9] = [0, 1, 0x7f, 0x80, 0xff, 0xffff, 1 << 31, u32::MAX as u64, 1 << 62];
+const INTERESTING: [u64; 9] = [
+    0,
+    1,
+    0x7f,
+    0x80,
+    0xff,
+    0xffff,
+    1 << 31,
+    u32::MAX as u64,
+    1 << 62,
+];
 
 /// One to four mutations of `input`.
 fn mutate(input: &[u8], rng: &mut Rng) -> Vec<u8> {
@@ -219,7 +244,8 @@ fn main() {
         assert!(fuzz::exercise(s) > 0, "every seed recording reads");
     }
     cap_address_space(4 << 30);
-    let current = std::env::temp_dir().join(format!("fuzz_reader_current_{}.mcap", std::process::id()));
+    let current =
+        std::env::temp_dir().join(format!("fuzz_reader_current_{}.mcap", std::process::id()));
     let mut rng = Rng(seed);
     let started = Instant::now();
     let mut cases = 0u64;
@@ -230,11 +256,15 @@ fn main() {
             let _ = std::fs::write(&current, &input);
         }
         if std::panic::catch_unwind(|| fuzz::exercise(&input)).is_err() {
-            let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/fuzz_regressions");
+            let dir =
+                std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/fuzz_regressions");
             let _ = std::fs::create_dir_all(&dir);
             let path = dir.join(format!("seed{seed}_case{cases}.mcap"));
             std::fs::write(&path, &input).expect("save the crashing input");
-            eprintln!("fuzz_reader: panic on case {cases} (seed {seed}); input saved as {}", path.display());
+            eprintln!(
+                "fuzz_reader: panic on case {cases} (seed {seed}); input saved as {}",
+                path.display()
+            );
             std::process::exit(1);
         }
         cases += 1;

@@ -39,7 +39,11 @@ fn distinct_rings(n: usize) -> Scan {
         (0..n)
             .map(|i| {
                 let (az, el) = (i as f32 * 0.0001, (i as f32 / n as f32 - 0.5) * 0.5);
-                [10.0 * el.cos() * az.cos(), 10.0 * el.cos() * az.sin(), 10.0 * el.sin()]
+                [
+                    10.0 * el.cos() * az.cos(),
+                    10.0 * el.cos() * az.sin(),
+                    10.0 * el.sin(),
+                ]
             })
             .collect(),
     );
@@ -87,7 +91,8 @@ fn chunks(bytes: &[u8]) -> Vec<usize> {
         if bytes[pos] == 0x06 {
             found.push(pos);
         }
-        pos += 9 + u64::from_le_bytes(bytes[pos + 1..pos + 9].try_into().expect("8 bytes")) as usize;
+        pos +=
+            9 + u64::from_le_bytes(bytes[pos + 1..pos + 9].try_into().expect("8 bytes")) as usize;
     }
     found
 }
@@ -105,20 +110,39 @@ fn main() {
     let scans: Vec<Scan> = (0..40).map(|i| wall(5.0 + i as f32 * 0.5)).collect();
     let valid = write(&dir.join("valid.mcap"), &scans, Some(16 * 1024));
     // The same drive, 5 times over, in one chunk: the largest record sets the bound.
-    let long: Vec<Scan> = (0..200).map(|i| wall(5.0 + (i % 40) as f32 * 0.5)).collect();
+    let long: Vec<Scan> = (0..200)
+        .map(|i| wall(5.0 + (i % 40) as f32 * 0.5))
+        .collect();
     write(&dir.join("one_big_chunk.mcap"), &long, None);
     let at = chunks(&valid);
     let middle = at[at.len() / 2];
     // Chunk body: start, end, uncompressed size (u64), CRC (u32), compression (u32 + name).
     let damaged = [
-        ("huge_chunk_size.mcap", patched(&valid, at[1] + 9 + 16, 1 << 50, 8)),
-        ("huge_record_length.mcap", patched(&valid, middle + 1, 1 << 62, 8)),
-        ("huge_string_length.mcap", patched(&valid, middle + 9 + 28, 0xffff_ff00, 4)),
+        (
+            "huge_chunk_size.mcap",
+            patched(&valid, at[1] + 9 + 16, 1 << 50, 8),
+        ),
+        (
+            "huge_record_length.mcap",
+            patched(&valid, middle + 1, 1 << 62, 8),
+        ),
+        (
+            "huge_string_length.mcap",
+            patched(&valid, middle + 9 + 28, 0xffff_ff00, 4),
+        ),
     ];
     for (name, bytes) in damaged {
         std::fs::write(dir.join(name), bytes).expect("write");
     }
-    write(&dir.join("rings_20000.mcap"), &[distinct_rings(20_000)], Some(16 * 1024));
-    write(&dir.join("rings_65536.mcap"), &[distinct_rings(65_536)], Some(16 * 1024));
+    write(
+        &dir.join("rings_20000.mcap"),
+        &[distinct_rings(20_000)],
+        Some(16 * 1024),
+    );
+    write(
+        &dir.join("rings_65536.mcap"),
+        &[distinct_rings(65_536)],
+        Some(16 * 1024),
+    );
     println!("hostile recordings written to {}", dir.display());
 }

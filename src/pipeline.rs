@@ -486,7 +486,9 @@ pub fn convert(
     mut progress: impl FnMut(Progress),
 ) -> anyhow::Result<ConvertReport> {
     out.write_metadata("rangegan", opts.metadata.clone())?;
-    if let Some(summary) = file_len.and_then(|len| crate::io::reader::Summary::read(&mut src, len).ok()) {
+    if let Some(summary) =
+        file_len.and_then(|len| crate::io::reader::Summary::read(&mut src, len).ok())
+    {
         out.reserve_input_topics(summary.channels.values().map(|c| c.topic.as_str()));
     }
     let mut conv = Converter {
@@ -529,11 +531,13 @@ pub fn convert(
     let mut report = conv.report;
     report.read = read;
     report.copied = conv.out.copied;
-    report.warnings.extend(conv.out.notes.drain(..).map(|message| Warning {
-        topic: String::new(),
-        log_time_nanos: 0,
-        message: format!("{}: {message}", input.display()),
-    }));
+    report
+        .warnings
+        .extend(conv.out.notes.drain(..).map(|message| Warning {
+            topic: String::new(),
+            log_time_nanos: 0,
+            message: format!("{}: {message}", input.display()),
+        }));
     for t in report.topics.values_mut() {
         if t.scans > 0 {
             t.kept_fraction /= t.scans as f64;

@@ -149,16 +149,24 @@ fn distinct_ring_values_beyond_any_sensor_are_bounded_and_reported() {
         (0..n)
             .map(|i| {
                 let (az, el) = (i as f32 * 0.0001, (i as f32 / n as f32 - 0.5) * 0.5);
-                [10.0 * el.cos() * az.cos(), 10.0 * el.cos() * az.sin(), 10.0 * el.sin()]
+                [
+                    10.0 * el.cos() * az.cos(),
+                    10.0 * el.cos() * az.sin(),
+                    10.0 * el.sin(),
+                ]
             })
             .collect(),
     );
     scan.ring = Some((0..n).map(|i| i as u16).collect());
-    let mut w = mcap::Writer::new(std::io::BufWriter::new(std::fs::File::create(&input).unwrap()))
-        .unwrap();
+    let mut w = mcap::Writer::new(std::io::BufWriter::new(
+        std::fs::File::create(&input).unwrap(),
+    ))
+    .unwrap();
     let s = encoders::schema(Family::Ros2, Kind::Cloud);
     let schema = w.add_schema(&s.name, &s.encoding, &s.data).unwrap();
-    let channel = w.add_channel(schema, "/points", "cdr", &BTreeMap::new()).unwrap();
+    let channel = w
+        .add_channel(schema, "/points", "cdr", &BTreeMap::new())
+        .unwrap();
     let cloud = DecodedCloud {
         scan,
         stamp_nanos: 5,
@@ -181,14 +189,24 @@ fn distinct_ring_values_beyond_any_sensor_are_bounded_and_reported() {
         let s = json(&o);
         assert_eq!(copied_messages(&s), 1);
         assert_eq!(s["report"]["topics"]["/points"]["malformed"], 1, "{s}");
-        let warning = s["report"]["warnings"][0]["message"].as_str().unwrap().to_string();
-        assert!(warning.contains("rings") || warning.contains("ring values"), "{warning}");
+        let warning = s["report"]["warnings"][0]["message"]
+            .as_str()
+            .unwrap()
+            .to_string();
+        assert!(
+            warning.contains("rings") || warning.contains("ring values"),
+            "{warning}"
+        );
     }
     let o = convert(&input, &output, &["--strict"]);
     assert_eq!(o.status.code(), Some(3));
     let o = convert(&input, &output, &["--columns", "4000000000"]);
     assert_eq!(o.status.code(), Some(1));
-    assert!(stderr(&o).contains("give 1 to 16384 columns"), "{}", stderr(&o));
+    assert!(
+        stderr(&o).contains("give 1 to 16384 columns"),
+        "{}",
+        stderr(&o)
+    );
 }
 
 /// SIGTERM and SIGINT in the middle of a conversion remove the temporary output
@@ -208,7 +226,10 @@ fn interrupted_conversions_leave_no_temporary_file() {
             .unwrap();
         let started = std::time::Instant::now();
         while !has_temporary_file(dir.path()) {
-            assert!(started.elapsed().as_secs() < 60, "no temporary file appeared");
+            assert!(
+                started.elapsed().as_secs() < 60,
+                "no temporary file appeared"
+            );
             std::thread::sleep(std::time::Duration::from_millis(20));
         }
         std::thread::sleep(std::time::Duration::from_millis(300));
@@ -251,17 +272,47 @@ fn no_command_writes_over_its_inputs() {
     std::fs::hard_link(&sim, p("sim_hard.mcap")).unwrap();
     let s = |path: &PathBuf| path.to_str().unwrap().to_string();
     let attempts: Vec<Vec<String>> = vec![
-        vec!["render".into(), "--physics".into(), "ideal".into(), s(&sim), s(&sim)],
-        vec!["render".into(), "--raydrop".into(), "global".into(), "--real".into(), s(&real), s(&sim), s(&real)],
-        vec!["render".into(), "--physics".into(), "ideal".into(), s(&sim), s(&p("sim_link.mcap"))],
-        vec!["render".into(), "--physics".into(), "ideal".into(), s(&sim), s(&p("sim_hard.mcap"))],
+        vec![
+            "render".into(),
+            "--physics".into(),
+            "ideal".into(),
+            s(&sim),
+            s(&sim),
+        ],
+        vec![
+            "render".into(),
+            "--raydrop".into(),
+            "global".into(),
+            "--real".into(),
+            s(&real),
+            s(&sim),
+            s(&real),
+        ],
+        vec![
+            "render".into(),
+            "--physics".into(),
+            "ideal".into(),
+            s(&sim),
+            s(&p("sim_link.mcap")),
+        ],
+        vec![
+            "render".into(),
+            "--physics".into(),
+            "ideal".into(),
+            s(&sim),
+            s(&p("sim_hard.mcap")),
+        ],
         vec!["convert".into(), s(&sim), s(&p("sim_hard.mcap"))],
         vec!["convert".into(), s(&p("sim_link.mcap")), s(&sim)],
     ];
     for args in attempts {
         let o = bin().args(&args).arg("--force").output().unwrap();
         assert_eq!(o.status.code(), Some(1), "{args:?}");
-        assert!(stderr(&o).contains("output is the input"), "{args:?}: {}", stderr(&o));
+        assert!(
+            stderr(&o).contains("output is the input"),
+            "{args:?}: {}",
+            stderr(&o)
+        );
     }
     assert_eq!(
         (std::fs::read(&sim).unwrap(), std::fs::read(&real).unwrap()),
@@ -269,7 +320,10 @@ fn no_command_writes_over_its_inputs() {
     );
     let kitti = p("kitti");
     std::fs::create_dir(&kitti).unwrap();
-    let scan: Vec<u8> = [1.0f32, 2.0, 0.5, 0.3].iter().flat_map(|f| f.to_le_bytes()).collect();
+    let scan: Vec<u8> = [1.0f32, 2.0, 0.5, 0.3]
+        .iter()
+        .flat_map(|f| f.to_le_bytes())
+        .collect();
     std::fs::write(kitti.join("000000.bin"), &scan).unwrap();
     let o = bin()
         .args(["import", kitti.to_str().unwrap()])
@@ -297,8 +351,21 @@ fn schemas_lost_with_a_chunk_come_from_the_summary() {
     let s = json(&o);
     assert_eq!(s["report"]["copied"]["orphan_messages"], 0, "{s}");
     assert_eq!(copied_messages(&s) + lost_in_chunks(&s), total);
-    assert!(s["report"]["topics"]["/lidar_ros2"]["scans"].as_u64().unwrap() >= 5, "{s}");
-    assert!(s["report"]["read"]["from_summary"].as_array().unwrap().len() >= 2, "{s}");
+    assert!(
+        s["report"]["topics"]["/lidar_ros2"]["scans"]
+            .as_u64()
+            .unwrap()
+            >= 5,
+        "{s}"
+    );
+    assert!(
+        s["report"]["read"]["from_summary"]
+            .as_array()
+            .unwrap()
+            .len()
+            >= 2,
+        "{s}"
+    );
     assert!(output_topics(&output).contains(&"/lidar_ros2".to_string()));
 }
 
@@ -312,7 +379,10 @@ fn a_damaged_summary_record_is_named_and_loses_nothing() {
     let (mut bytes, total) = recording(&input, 4, Some(mcap::Compression::Zstd));
     let records = top_level_records(&bytes);
     let data_end = records.iter().position(|r| r.0 == DATA_END).unwrap();
-    let (_, offset, _) = *records[data_end..].iter().find(|r| r.0 == CHUNK_INDEX).unwrap();
+    let (_, offset, _) = *records[data_end..]
+        .iter()
+        .find(|r| r.0 == CHUNK_INDEX)
+        .unwrap();
     // Chunk index body: 4 u64s, then the byte length of the message index offsets.
     bytes[offset + 9 + 32..offset + 9 + 36].copy_from_slice(&u32::MAX.to_le_bytes());
     std::fs::write(&input, &bytes).unwrap();
@@ -322,11 +392,21 @@ fn a_damaged_summary_record_is_named_and_loses_nothing() {
     assert_eq!(copied_messages(&s), total);
     let bad = &s["report"]["read"]["bad_records"][0];
     assert_eq!(bad["offset"], offset as u64, "{s}");
-    assert!(bad["record"].as_str().unwrap().contains("chunk index"), "{s}");
+    assert!(
+        bad["record"].as_str().unwrap().contains("chunk index"),
+        "{s}"
+    );
     let o = convert(&input, &output, &["--strict"]);
     assert_eq!(o.status.code(), Some(3));
-    assert!(stderr(&o).contains(&format!("offset {offset}")), "{}", stderr(&o));
-    assert!(!output.exists(), "--strict keeps no output when it exits non-zero");
+    assert!(
+        stderr(&o).contains(&format!("offset {offset}")),
+        "{}",
+        stderr(&o)
+    );
+    assert!(
+        !output.exists(),
+        "--strict keeps no output when it exits non-zero"
+    );
 }
 
 /// A chunk header whose compression-name length or records length is damaged: that
@@ -345,11 +425,18 @@ fn a_damaged_chunk_header_costs_only_that_chunk() {
         std::fs::write(&input, &bytes).unwrap();
         let o = convert(&input, &output, &[]);
         assert_eq!(o.status.code(), Some(1), "field {field}: {}", stderr(&o));
-        assert!(stderr(&o).contains(&format!("offset {offset}")), "{}", stderr(&o));
+        assert!(
+            stderr(&o).contains(&format!("offset {offset}")),
+            "{}",
+            stderr(&o)
+        );
         let o = convert(&input, &output, &["--on-error", "skip", "--json"]);
         assert!(o.status.success(), "{}", stderr(&o));
         let s = json(&o);
-        assert_eq!(s["report"]["read"]["bad_chunks"].as_array().unwrap().len(), 1);
+        assert_eq!(
+            s["report"]["read"]["bad_chunks"].as_array().unwrap().len(),
+            1
+        );
         assert_eq!(copied_messages(&s) + lost_in_chunks(&s), total, "{s}");
     }
 }
@@ -373,7 +460,10 @@ fn an_impossible_record_length_resyncs_from_the_chunk_index() {
     let s = json(&o);
     assert_eq!(s["report"]["topics"]["/lidar_ros2"]["scans"], 19, "{s}");
     assert!(copied_messages(&s) >= total - 2, "{s}");
-    assert_eq!(s["report"]["read"]["bad_records"][0]["offset"], offset as u64);
+    assert_eq!(
+        s["report"]["read"]["bad_records"][0]["offset"],
+        offset as u64
+    );
     assert!(s["report"]["read"]["stopped"].is_null(), "{s}");
 
     let o = convert(&input, &output, &["--on-error", "skip", "--strict"]);
@@ -381,7 +471,11 @@ fn an_impossible_record_length_resyncs_from_the_chunk_index() {
     assert!(!output.exists());
     let o = convert(&input, &output, &[]);
     assert_eq!(o.status.code(), Some(1));
-    assert!(stderr(&o).contains(&format!("offset {offset}")), "{}", stderr(&o));
+    assert!(
+        stderr(&o).contains(&format!("offset {offset}")),
+        "{}",
+        stderr(&o)
+    );
 }
 
 /// A channel naming a schema that is nowhere in the file: its messages are copied on a
@@ -392,10 +486,14 @@ fn a_channel_with_a_missing_schema_is_copied_with_a_warning() {
     let (input, output) = (dir.path().join("in.mcap"), dir.path().join("out.mcap"));
     let mut w = mcap::WriteOptions::new()
         .use_chunks(false)
-        .create(std::io::BufWriter::new(std::fs::File::create(&input).unwrap()))
+        .create(std::io::BufWriter::new(
+            std::fs::File::create(&input).unwrap(),
+        ))
         .unwrap();
     let schema = w.add_schema("custom/Thing", "jsonschema", b"{}").unwrap();
-    let channel = w.add_channel(schema, "/things", "json", &BTreeMap::new()).unwrap();
+    let channel = w
+        .add_channel(schema, "/things", "json", &BTreeMap::new())
+        .unwrap();
     for t in 0..3u64 {
         let header = mcap::records::MessageHeader {
             channel_id: channel,
@@ -423,7 +521,10 @@ fn a_channel_with_a_missing_schema_is_copied_with_a_warning() {
     let s = json(&o);
     assert_eq!(copied_messages(&s), 3, "{s}");
     let warnings = s["report"]["warnings"].to_string();
-    assert!(warnings.contains("/things") && warnings.contains(&format!("schema {schema}")), "{warnings}");
+    assert!(
+        warnings.contains("/things") && warnings.contains(&format!("schema {schema}")),
+        "{warnings}"
+    );
     assert!(output_topics(&output).contains(&"/things".to_string()));
 }
 
@@ -433,12 +534,16 @@ fn a_channel_with_a_missing_schema_is_copied_with_a_warning() {
 fn an_input_topic_named_like_ours_is_not_duplicated() {
     let dir = tempfile::tempdir().unwrap();
     let (input, output) = (dir.path().join("in.mcap"), dir.path().join("out.mcap"));
-    let mut w = mcap::Writer::new(std::io::BufWriter::new(std::fs::File::create(&input).unwrap()))
-        .unwrap();
+    let mut w = mcap::Writer::new(std::io::BufWriter::new(
+        std::fs::File::create(&input).unwrap(),
+    ))
+    .unwrap();
     let s = encoders::schema(Family::Ros2, Kind::Cloud);
     let schema = w.add_schema(&s.name, &s.encoding, &s.data).unwrap();
     for (k, topic) in ["/points", "/points/rangegan/range"].iter().enumerate() {
-        let channel = w.add_channel(schema, topic, "cdr", &BTreeMap::new()).unwrap();
+        let channel = w
+            .add_channel(schema, topic, "cdr", &BTreeMap::new())
+            .unwrap();
         let cloud = DecodedCloud {
             scan: common::synthetic_scan(6.0, k as u32),
             stamp_nanos: 9,
@@ -461,7 +566,10 @@ fn an_input_topic_named_like_ours_is_not_duplicated() {
     let mut unique = topics.clone();
     unique.dedup();
     assert_eq!(topics, unique, "two channels of one name");
-    assert!(topics.contains(&"/points/rangegan/range~2".to_string()), "{topics:?}");
+    assert!(
+        topics.contains(&"/points/rangegan/range~2".to_string()),
+        "{topics:?}"
+    );
     let warnings = json(&o)["report"]["warnings"].to_string();
     assert!(warnings.contains("/points/rangegan/range~2"), "{warnings}");
 }
@@ -481,7 +589,9 @@ fn a_full_disk_names_the_output_and_the_os_error() {
         .output()
         .is_ok_and(|o| o.status.success());
     if !mounted {
-        eprintln!("a_full_disk_names_the_output_and_the_os_error: skipped, cannot mount a small tmpfs (needs root)");
+        eprintln!(
+            "a_full_disk_names_the_output_and_the_os_error: skipped, cannot mount a small tmpfs (needs root)"
+        );
         return;
     }
     struct Unmount<'a>(&'a Path);
@@ -515,13 +625,20 @@ fn unreadable_and_truncated_inputs_under_strict_leave_no_output() {
     std::fs::write(&input, &bytes[..first + 200]).unwrap();
     let o = convert(&input, &output, &[]);
     assert!(o.status.success(), "{}", stderr(&o));
-    assert!(stderr(&o).contains("no message could be read"), "{}", stderr(&o));
+    assert!(
+        stderr(&o).contains("no message could be read"),
+        "{}",
+        stderr(&o)
+    );
     std::fs::remove_file(&output).unwrap();
     for cut in [first + 200, bytes.len() * 2 / 3] {
         std::fs::write(&input, &bytes[..cut]).unwrap();
         let o = convert(&input, &output, &["--strict"]);
         assert_eq!(o.status.code(), Some(3), "{}", stderr(&o));
-        assert!(!output.exists(), "--strict keeps no output when it exits non-zero");
+        assert!(
+            !output.exists(),
+            "--strict keeps no output when it exits non-zero"
+        );
         no_temporary_files(dir.path());
     }
 }
@@ -539,8 +656,14 @@ fn import_reads_labels_beside_scans_and_reports_what_it_leaves_out() {
             [10.0 * az.cos(), 10.0 * az.sin(), -1.0, 0.5]
         })
         .collect();
-    let scan_bytes: Vec<u8> = points.iter().flatten().flat_map(|f| f.to_le_bytes()).collect();
-    let labels: Vec<u8> = (0..64u32).flat_map(|l| (40 + l % 3).to_le_bytes()).collect();
+    let scan_bytes: Vec<u8> = points
+        .iter()
+        .flatten()
+        .flat_map(|f| f.to_le_bytes())
+        .collect();
+    let labels: Vec<u8> = (0..64u32)
+        .flat_map(|l| (40 + l % 3).to_le_bytes())
+        .collect();
     std::fs::write(data.join("000000.bin"), &scan_bytes).unwrap();
     std::fs::write(data.join("000000.label"), &labels).unwrap();
     std::fs::write(data.join("000001.bin"), b"").unwrap();
@@ -553,13 +676,25 @@ fn import_reads_labels_beside_scans_and_reports_what_it_leaves_out() {
         .unwrap();
     assert!(o.status.success(), "{}", stderr(&o));
     let s = json(&o);
-    assert_eq!((s["scans"].as_u64(), s["labelled"].as_u64()), (Some(1), Some(1)), "{s}");
+    assert_eq!(
+        (s["scans"].as_u64(), s["labelled"].as_u64()),
+        (Some(1), Some(1)),
+        "{s}"
+    );
     let warnings = s["warnings"].to_string();
-    assert!(warnings.contains("000009.label") && warnings.contains("000001.bin"), "{warnings}");
+    assert!(
+        warnings.contains("000009.label") && warnings.contains("000001.bin"),
+        "{warnings}"
+    );
     let bytes = std::fs::read(&output).unwrap();
-    let message = mcap::MessageStream::new(&bytes).unwrap().next().unwrap().unwrap();
-    let cloud = rangegan_mcap::io::decode_cloud(rangegan_mcap::io::CloudFormat::Ros2Cdr, &message.data)
+    let message = mcap::MessageStream::new(&bytes)
+        .unwrap()
+        .next()
+        .unwrap()
         .unwrap();
+    let cloud =
+        rangegan_mcap::io::decode_cloud(rangegan_mcap::io::CloudFormat::Ros2Cdr, &message.data)
+            .unwrap();
     assert_eq!(cloud.scan.label.unwrap()[..3], [40, 41, 42]);
 }
 
@@ -579,12 +714,21 @@ fn import_writes_64_rings_for_every_real_kitti_scan() {
     )
     .unwrap();
     let output = dir.path().join("out.mcap");
-    let o = bin().args(["import", "--quiet"]).args([&data, &output]).output().unwrap();
+    let o = bin()
+        .args(["import", "--quiet"])
+        .args([&data, &output])
+        .output()
+        .unwrap();
     assert!(o.status.success(), "{}", stderr(&o));
     let bytes = std::fs::read(&output).unwrap();
-    let message = mcap::MessageStream::new(&bytes).unwrap().next().unwrap().unwrap();
-    let cloud = rangegan_mcap::io::decode_cloud(rangegan_mcap::io::CloudFormat::Ros2Cdr, &message.data)
+    let message = mcap::MessageStream::new(&bytes)
+        .unwrap()
+        .next()
+        .unwrap()
         .unwrap();
+    let cloud =
+        rangegan_mcap::io::decode_cloud(rangegan_mcap::io::CloudFormat::Ros2Cdr, &message.data)
+            .unwrap();
     assert_eq!(cloud.scan.ring.unwrap().iter().max(), Some(&63));
 }
 
@@ -636,7 +780,11 @@ fn fuzz_regressions_read_without_panic() {
         .filter(|p| p.extension().is_some_and(|e| e == "mcap"))
         .collect();
     inputs.sort();
-    assert!(!inputs.is_empty(), "the regression corpus is in {}", dir.display());
+    assert!(
+        !inputs.is_empty(),
+        "the regression corpus is in {}",
+        dir.display()
+    );
     for input in inputs {
         let bytes = std::fs::read(&input).unwrap();
         let result = std::panic::catch_unwind(|| fuzz::exercise(&bytes));

@@ -238,7 +238,11 @@ pub fn run(global: &GlobalArgs, args: ConvertArgs) -> anyhow::Result<Outcome> {
         eprintln!(
             "warning: {}: no message could be read{}",
             args.input.display(),
-            if report.read.damaged() { " (see above)" } else { "; the recording is empty" }
+            if report.read.damaged() {
+                " (see above)"
+            } else {
+                "; the recording is empty"
+            }
         );
     }
     if let Some(why) = &report.read.stopped {

@@ -71,7 +71,12 @@ fn dataset_files(dir: &Path) -> anyhow::Result<Dataset> {
         .iter()
         .zip(&used)
         .filter(|(_, used)| !**used)
-        .map(|(l, _)| format!("{}: no .bin scan of that name; label file not used", l.display()))
+        .map(|(l, _)| {
+            format!(
+                "{}: no .bin scan of that name; label file not used",
+                l.display()
+            )
+        })
         .collect();
     let scans: Vec<(PathBuf, Option<PathBuf>)> = scans;
     let unlabelled: Vec<_> = scans.iter().filter(|s| s.1.is_none()).collect();
@@ -112,7 +117,10 @@ pub fn run(global: &GlobalArgs, args: ImportArgs) -> anyhow::Result<Outcome> {
     for (bin, label) in &files {
         let mut scan = kitti::read_scan(bin, label.as_deref())?;
         if scan.returns() == 0 {
-            warnings.push(format!("{}: no point with a return; scan not written", bin.display()));
+            warnings.push(format!(
+                "{}: no point with a return; scan not written",
+                bin.display()
+            ));
             bar.inc(1);
             continue;
         }

@@ -245,7 +245,11 @@ fn resolve_physics(
 }
 
 pub fn run(global: &GlobalArgs, args: RenderArgs) -> anyhow::Result<Outcome> {
-    let physics_file = args.physics.as_deref().map(Path::new).filter(|p| p.is_file());
+    let physics_file = args
+        .physics
+        .as_deref()
+        .map(Path::new)
+        .filter(|p| p.is_file());
     let inputs: Vec<&Path> = std::iter::once(args.input.as_path())
         .chain(args.real.as_deref())
         .chain(physics_file)

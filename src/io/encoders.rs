@@ -500,9 +500,12 @@ mod tests {
         // An integer that is no NumericType is reported as such, not as malformed JSON.
         let mut bad = json.clone();
         bad["fields"][0]["type"] = serde_json::json!(99);
-        let err = decode_cloud(CloudFormat::FoxgloveJson, &serde_json::to_vec(&bad).unwrap())
-            .unwrap_err()
-            .to_string();
+        let err = decode_cloud(
+            CloudFormat::FoxgloveJson,
+            &serde_json::to_vec(&bad).unwrap(),
+        )
+        .unwrap_err()
+        .to_string();
         assert!(err.contains("json"), "{err}");
     }
 

@@ -203,7 +203,10 @@ where
     P: FnMut(u64),
 {
     fn run<R: Read + Seek>(&mut self, mut src: R) -> Result<(), ReadError> {
-        let limit = self.file_len.unwrap_or(MAX_RECORD_BYTES).min(MAX_RECORD_BYTES);
+        let limit = self
+            .file_len
+            .unwrap_or(MAX_RECORD_BYTES)
+            .min(MAX_RECORD_BYTES);
         let mut reader = linear_reader(false, limit);
         // File offset of the next byte handed to the reader, and of the next record.
         let (mut fed, mut next_record) = (0u64, 8u64);
@@ -300,7 +303,9 @@ where
 
     fn stop(&mut self, offset: u64, why: String) {
         self.report.stopped = Some(if why.contains("UnexpectedEof") || why.contains("ends") {
-            format!("the file ends in the middle of the record at offset {offset} (truncated recording): {why}")
+            format!(
+                "the file ends in the middle of the record at offset {offset} (truncated recording): {why}"
+            )
         } else {
             format!("unreadable record at offset {offset}: {why}")
         });
@@ -382,7 +387,9 @@ where
         }
         if let Some((at, error)) = damage {
             let mut bad = describe_bad_chunk(
-                format!("record at byte {at} of the chunk is unreadable ({error}); the chunk's later records are lost"),
+                format!(
+                    "record at byte {at} of the chunk is unreadable ({error}); the chunk's later records are lost"
+                ),
                 header,
                 &[],
                 &self.topics,
@@ -435,7 +442,10 @@ where
         };
         if let Some(id) = channel
             && !self.seen_channels.contains(&id)
-            && let Some(c) = self.summary.as_ref().and_then(|s| s.channels.get(&id).cloned())
+            && let Some(c) = self
+                .summary
+                .as_ref()
+                .and_then(|s| s.channels.get(&id).cloned())
         {
             self.report
                 .from_summary
@@ -444,7 +454,10 @@ where
         }
         if let Some(id) = schema.filter(|&s| s != 0)
             && !self.seen_schemas.contains(&id)
-            && let Some((header, data)) = self.summary.as_ref().and_then(|s| s.schemas.get(&id).cloned())
+            && let Some((header, data)) = self
+                .summary
+                .as_ref()
+                .and_then(|s| s.schemas.get(&id).cloned())
         {
             self.report
                 .from_summary
@@ -690,7 +703,11 @@ impl Summary {
             Ok(())
         })
         .map_err(|_| "unreadable summary record".to_string())?;
-        summary.chunk_offsets = summary.chunks.iter().map(|c| c.chunk_start_offset).collect();
+        summary.chunk_offsets = summary
+            .chunks
+            .iter()
+            .map(|c| c.chunk_start_offset)
+            .collect();
         summary.chunk_offsets.sort_unstable();
         summary.chunk_offsets.retain(|&o| o >= 8 && o < start);
         Ok(summary)
@@ -729,7 +746,7 @@ fn decompress(header: &mcap::records::ChunkHeader, data: &[u8]) -> Result<Vec<u8
     let mut out = Vec::with_capacity((size as usize).min(data.len().saturating_mul(4) + 4096));
     let limit = size + 1; // one byte more reveals a chunk longer than declared
     let read = match header.compression.as_str() {
-        "" => (&data[..]).take(limit).read_to_end(&mut out),
+        "" => data.take(limit).read_to_end(&mut out),
         "zstd" => zstd::stream::read::Decoder::with_buffer(data)
             .and_then(|d| d.take(limit).read_to_end(&mut out)),
         "lz4" => lz4::Decoder::new(data).and_then(|d| d.take(limit).read_to_end(&mut out)),
@@ -746,7 +763,11 @@ fn open_chunk(header: &mcap::records::ChunkHeader, data: &[u8]) -> Result<Vec<u8
         return Err(format!(
             "chunk holds {}{} bytes, header says {}",
             records.len(),
-            if records.len() as u64 > header.uncompressed_size { " or more" } else { "" },
+            if records.len() as u64 > header.uncompressed_size {
+                " or more"
+            } else {
+                ""
+            },
             header.uncompressed_size
         ));
     }
@@ -764,7 +785,10 @@ fn open_chunk(header: &mcap::records::ChunkHeader, data: &[u8]) -> Result<Vec<u8
 
 enum ChunkWalk {
     /// The record at byte `at` of the buffer is cut short or unparsable.
-    Record { at: usize, error: String },
+    Record {
+        at: usize,
+        error: String,
+    },
     Visitor(anyhow::Error),
 }
 
@@ -852,5 +876,52 @@ fn describe_bad_chunk(
         end_nanos: header.message_end_time,
         messages,
         offset: 0,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A channel record whose topic length claims 4 GB: refused by the length check,
+    /// so the mcap parser never allocates it.
+    #[test]
+    fn length_fields_beyond_the_record_are_refused() {
+        let mut channel = Vec::new();
+        channel.extend_from_slice(&1u16.to_le_bytes());
+        channel.extend_from_slice(&0u16.to_le_bytes());
+        channel.extend_from_slice(&u32::MAX.to_le_bytes());
+        channel.extend_from_slice(b"/points");
+        let err = parse_record(op::CHANNEL, &channel).unwrap_err();
+        assert!(err.contains("4294967295 bytes"), "{err}");
+        // The same record with true lengths parses.
+        let mut good = Vec::new();
+        good.extend_from_slice(&1u16.to_le_bytes());
+        good.extend_from_slice(&0u16.to_le_bytes());
+        for text in ["/points", "json"] {
+            good.extend_from_slice(&(text.len() as u32).to_le_bytes());
+            good.extend_from_slice(text.as_bytes());
+        }
+        good.extend_from_slice(&0u32.to_le_bytes());
+        assert!(
+            matches!(parse_record(op::CHANNEL, &good), Ok(Record::Channel(c)) if c.topic == "/points")
+        );
+    }
+
+    /// A chunk that inflates past its declared size is cut at the size plus one byte.
+    #[test]
+    fn decompression_stops_one_byte_past_the_declared_size() {
+        let data = zstd::bulk::compress(&[7u8; 100_000], 3).unwrap();
+        let header = mcap::records::ChunkHeader {
+            message_start_time: 0,
+            message_end_time: 0,
+            uncompressed_size: 10,
+            uncompressed_crc: 0,
+            compression: "zstd".into(),
+            compressed_size: data.len() as u64,
+        };
+        assert_eq!(decompress(&header, &data).unwrap().len(), 11);
+        let err = open_chunk(&header, &data).unwrap_err();
+        assert!(err.contains("11 or more bytes, header says 10"), "{err}");
     }
 }

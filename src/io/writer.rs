@@ -146,7 +146,10 @@ impl McapOutput {
         &mut self,
         f: impl FnOnce(&mut mcap::Writer<BufWriter<File>>) -> mcap::McapResult<T>,
     ) -> anyhow::Result<T> {
-        let writer = self.writer.as_mut().context("MCAP writer already finished")?;
+        let writer = self
+            .writer
+            .as_mut()
+            .context("MCAP writer already finished")?;
         f(writer).map_err(|e| write_error(&self.path, e))
     }
 

@@ -131,7 +131,10 @@ pub fn ring_order_ids(scan: &Scan) -> Vec<u32> {
         }
     }
     if returns.len() > 1 && returns[0] < MIN_RING_RETURNS {
-        new_id.iter_mut().skip(1).for_each(|r| *r = r.saturating_sub(1));
+        new_id
+            .iter_mut()
+            .skip(1)
+            .for_each(|r| *r = r.saturating_sub(1));
     }
     ids.iter().map(|&r| new_id[r as usize]).collect()
 }
@@ -575,7 +578,10 @@ mod tests {
             vec![0, 2, 4]
         );
         assert_eq!(match_rows(&[0.3, 0.1], &[0.3, 0.1]), vec![0, 1]);
-        assert!(match_rows(&[], &[0.3, 0.1]).is_empty(), "no returns, no rows");
+        assert!(
+            match_rows(&[], &[0.3, 0.1]).is_empty(),
+            "no returns, no rows"
+        );
     }
 
     #[test]

@@ -59,7 +59,13 @@ pub fn write_recording(
     scans: usize,
     chunk_size: Option<u64>,
 ) -> u64 {
-    write_recording_with(path, families, scans, chunk_size, Some(mcap::Compression::Zstd))
+    write_recording_with(
+        path,
+        families,
+        scans,
+        chunk_size,
+        Some(mcap::Compression::Zstd),
+    )
 }
 
 /// [`write_recording`] with the chunk compression given.
