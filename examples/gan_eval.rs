@@ -1,8 +1,10 @@
-//! GAN quality on held-out real scans (issue 4): SWD of inverse depth (paper protocol:
+//! GAN quality on held-out real scans: SWD of inverse depth (paper protocol:
 //! 3-level Laplacian pyramid, 7x7 patches, 128 per image per level, 4 x 128 projections)
 //! between each model's samples and the held-out KITTI scans (SemanticKITTI 00 and 07), with
 //! the training set's own SWD against the same scans as the floor; plus each model's keep rate
-//! and a picture of samples (x_G) next to real scans.
+//! and a picture of samples (x_G) next to real scans; and the paper's 1-NNA (Chamfer distance
+//! on 2048 farthest-point-sampled points scaled by 1/80 m; 0.5 is ideal) between as many
+//! samples as held-out scans and those scans, with the training set's own as the floor.
 //!
 //! ```text
 //! cargo run --release --example gan_eval -- --data ../shared/real_lidar \
@@ -16,7 +18,9 @@ use std::path::PathBuf;
 use anyhow::{Context, Result, bail};
 use burn::tensor::Device;
 use rangegan_mcap::model::data::{RangeDataset, kitti_heldout_files, kitti_training_files};
-use rangegan_mcap::model::metrics::{SwdConfig, SwdReport, swd_between, swd_of_model};
+use rangegan_mcap::model::metrics::{
+    SwdConfig, SwdReport, one_nna, point_sets, swd_between, swd_of_model,
+};
 use rangegan_mcap::model::sample::{SampleOptions, sample};
 use rangegan_mcap::model::train::write_png;
 use rangegan_mcap::model::weights::Model;
@@ -71,6 +75,9 @@ fn summary(reports: &[SwdReport]) -> serde_json::Value {
     serde_json::json!({ "mean": mean, "std_over_seeds": std, "per_level": per_level })
 }
 
+/// Points per scan for 1-NNA, as in the paper.
+const NNA_POINTS: usize = 2048;
+
 fn keep_rate(images: &[f32]) -> f64 {
     images.iter().filter(|v| **v > -1.0).count() as f64 / images.len().max(1) as f64
 }
@@ -94,11 +101,23 @@ fn main() -> Result<()> {
         .iter()
         .map(|c| swd_between(&train, &heldout, c))
         .collect();
+    // 1-NNA: as many generated (or training) scans as held-out ones, 2048 points each.
+    let n = heldout.height * heldout.width;
+    let heldout_points = point_sets(
+        &heldout.images.chunks_exact(n).collect::<Vec<_>>(),
+        &heldout.angles,
+        NNA_POINTS,
+    );
+    let stride = (train.len() / heldout.len()).max(1);
+    let train_sub: Vec<&[f32]> = (0..heldout.len()).map(|i| train.image(i * stride)).collect();
+    let train_nna = one_nna(
+        &point_sets(&train_sub, &train.angles, NNA_POINTS),
+        &heldout_points,
+    );
     let mut rows = vec![serde_json::json!({
         "label": "training set (floor)", "images": train.len(), "swd": summary(&floor),
-        "keep_rate": keep_rate(&train.images),
+        "keep_rate": keep_rate(&train.images), "one_nna": train_nna,
     })];
-    let n = heldout.height * heldout.width;
     let mut picture: Vec<Vec<f32>> = Vec::new();
     for (label, dir) in &args.models {
         let model = Model::load(dir.as_deref(), &device).with_context(|| label.clone())?;
@@ -114,6 +133,19 @@ fn main() -> Result<()> {
             grid: Some(heldout.angles.clone()),
         };
         let samples = sample(&model, &opts, &device)?;
+        let x_g: Vec<Vec<f32>> = samples
+            .iter()
+            .take(heldout.len())
+            .map(|s| {
+                s.x_d
+                    .iter()
+                    .zip(&s.mask)
+                    .map(|(x, &m)| if m { 2.0 * x - 1.0 } else { -1.0 })
+                    .collect()
+            })
+            .collect();
+        let refs: Vec<&[f32]> = x_g.iter().map(|v| v.as_slice()).collect();
+        let nna = one_nna(&point_sets(&refs, &heldout.angles, NNA_POINTS), &heldout_points);
         let kept =
             samples.iter().flat_map(|s| &s.mask).filter(|m| **m).count() as f64 / (64 * n) as f64;
         for s in samples.iter().take(3) {
@@ -128,7 +160,7 @@ fn main() -> Result<()> {
         }
         rows.push(serde_json::json!({
             "label": label, "model": model.source, "arch": model.config.arch,
-            "swd": summary(&reports), "keep_rate": kept,
+            "swd": summary(&reports), "keep_rate": kept, "one_nna": nna,
         }));
     }
     if let Some(png) = &args.png {

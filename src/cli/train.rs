@@ -1,7 +1,9 @@
 //! `rangegan-mcap train RUN_DIR`: train the range-image GAN (DUSty v2 or a baseline) on the
 //! KITTI training scans; an existing run directory resumes from its checkpoint.
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
+
+use anyhow::Context;
 use std::time::Duration;
 
 use super::{GlobalArgs, Outcome};
@@ -9,7 +11,8 @@ use crate::model::Arch;
 use crate::model::data::kitti_training_files;
 use crate::model::discriminator::DiscriminatorConfig;
 use crate::model::generator::GeneratorConfig;
-use crate::model::train::{Backend, TrainConfig, TrainOptions, run};
+use crate::model::train::{Backend, TrainConfig, TrainOptions, load_config, run};
+use crate::physics::pretraining::PretrainingSet;
 
 #[derive(Debug, Clone, Copy, clap::ValueEnum)]
 pub enum ArchArg {
@@ -77,14 +80,30 @@ pub struct TrainArgs {
     /// Use the paper's network widths instead of the CPU ones.
     #[arg(long)]
     pub reference_size: bool,
+    /// Pretrain on this many simulated HDL-64E scans (many procedural scenes, `realistic`
+    /// physics with randomised strengths) instead of the real ones.
+    #[arg(long, value_name = "N")]
+    pub sim_scans: Option<usize>,
+    /// Start a new run from a pretrained run (or model directory) and fine-tune it: its
+    /// architecture and settings are taken over, the image count starts at 0 and the early
+    /// pixel dropout is off.
+    #[arg(long, value_name = "DIR")]
+    pub init_from: Option<PathBuf>,
 }
 
 pub fn run_train(global: &GlobalArgs, args: TrainArgs) -> anyhow::Result<Outcome> {
-    let mut config = TrainConfig::new().with_arch(match args.arch {
-        ArchArg::Dusty2 => Arch::Dusty2,
-        ArchArg::Dusty1 => Arch::Dusty1,
-        ArchArg::Vanilla => Arch::Vanilla,
-    });
+    let mut config = match &args.init_from {
+        // A fine-tuning run keeps the pretrained network's shapes and recipe; it is past the
+        // early pixel-dropout phase, and its image budget is its own.
+        Some(src) => load_config(&src.join("config.json"))?
+            .with_pixel_drop_start(0.0)
+            .with_total_images(TrainConfig::new().total_images),
+        None => TrainConfig::new().with_arch(match args.arch {
+            ArchArg::Dusty2 => Arch::Dusty2,
+            ArchArg::Dusty1 => Arch::Dusty1,
+            ArchArg::Vanilla => Arch::Vanilla,
+        }),
+    };
     if args.reference_size {
         config = config
             .with_generator(GeneratorConfig::new())
@@ -96,10 +115,18 @@ pub fn run_train(global: &GlobalArgs, args: TrainArgs) -> anyhow::Result<Outcome
     if let Some(s) = args.run.seed {
         config = config.with_seed(s);
     }
+    let dataset_cache = args.run.cache_path();
+    if let Some(n) = args.sim_scans {
+        build_simulated_cache(global, &dataset_cache, n)?;
+    }
+    let scans = match args.sim_scans {
+        Some(_) => vec![],
+        None => kitti_training_files(&args.run.data)?,
+    };
     let opts = TrainOptions {
-        dataset_cache: args.run.cache_path(),
+        dataset_cache,
         max_duration: args.run.max_duration(),
-        scans: kitti_training_files(&args.run.data)?,
+        scans,
         run_dir: args.run.run_dir,
         config,
         backend: match args.backend {
@@ -108,7 +135,28 @@ pub fn run_train(global: &GlobalArgs, args: TrainArgs) -> anyhow::Result<Outcome
         },
         total_images: args.total_images,
         progress: !global.quiet,
+        init_from: args.init_from,
     };
     run(&opts)?;
     Ok(Outcome::Success)
+}
+
+/// Simulates the pretraining set into `cache` unless it is there already (a resumed run).
+fn build_simulated_cache(global: &GlobalArgs, cache: &Path, scans: usize) -> anyhow::Result<()> {
+    anyhow::ensure!(scans > 0, "--sim-scans must be > 0");
+    if cache.exists() {
+        return Ok(());
+    }
+    let bar = super::progress_bar(global, scans as u64);
+    let set = PretrainingSet {
+        scans,
+        ..Default::default()
+    };
+    let data = set.build(|n| bar.inc(n as u64));
+    bar.finish_and_clear();
+    if let Some(dir) = cache.parent() {
+        std::fs::create_dir_all(dir)
+            .with_context(|| format!("failed to create '{}'", dir.display()))?;
+    }
+    data.save(cache)
 }

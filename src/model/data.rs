@@ -44,30 +44,38 @@ pub fn network_to_range(x: &[f32]) -> Vec<f32> {
         .collect()
 }
 
-/// The training scans of `real_lidar/`: `kitti_raw_drive_a/*.bin` and
-/// `semantickitti_mini/SS/velodyne/*.bin` for every SS except 00 and 07 (held out for
-/// evaluation together with `semantickitti_ssv3` and `patchworkpp`).
+/// The training scans of `real_lidar/`: every KITTI raw drive (`kitti_raw_*/*.bin`) and
+/// `semantickitti_mini/SS/velodyne/*.bin` for every SS except 00 and 07. Those two sequences,
+/// `semantickitti_ssv3` and `patchworkpp` are the evaluation data and never trained on.
 pub fn kitti_training_files(real_lidar: &Path) -> Result<Vec<PathBuf>> {
-    let mut files = bins_in(&real_lidar.join("kitti_raw_drive_a"))?;
-    let mini = real_lidar.join("semantickitti_mini");
-    let mut seqs: Vec<PathBuf> = std::fs::read_dir(&mini)
-        .with_context(|| format!("failed to list '{}'", mini.display()))?
-        .filter_map(|e| e.ok().map(|e| e.path()))
-        .filter(|p| p.is_dir())
-        .collect();
-    seqs.sort();
-    for seq in seqs {
-        let name = seq.file_name().and_then(|n| n.to_str()).unwrap_or("");
-        if HELD_OUT_SEQUENCES.contains(&name) {
-            continue;
+    let mut files = Vec::new();
+    for drive in subdirs(real_lidar)? {
+        if dir_name(&drive).starts_with(KITTI_RAW_PREFIX) {
+            files.extend(bins_in(&drive)?);
         }
-        files.extend(bins_in(&seq.join("velodyne"))?);
+    }
+    for seq in subdirs(&real_lidar.join("semantickitti_mini"))? {
+        if !HELD_OUT_SEQUENCES.contains(&dir_name(&seq)) {
+            files.extend(bins_in(&seq.join("velodyne"))?);
+        }
+    }
+    if files.is_empty() {
+        bail!(
+            "no training scans in '{}' (expected {KITTI_RAW_PREFIX}*/ or semantickitti_mini/)",
+            real_lidar.display()
+        );
     }
     Ok(files)
 }
 
+/// Folders of KITTI raw drives (training data) start with this.
+pub const KITTI_RAW_PREFIX: &str = "kitti_raw_";
+
 /// SemanticKITTI sequences kept out of training.
 pub const HELD_OUT_SEQUENCES: [&str; 2] = ["00", "07"];
+
+/// Folders of `real_lidar/` that are evaluation data only, besides the held-out sequences.
+pub const EVALUATION_FOLDERS: [&str; 2] = ["semantickitti_ssv3", "patchworkpp"];
 
 /// The held-out evaluation scans (sequences 00 and 07 of `semantickitti_mini`).
 pub fn kitti_heldout_files(real_lidar: &Path) -> Result<Vec<PathBuf>> {
@@ -81,6 +89,21 @@ pub fn kitti_heldout_files(real_lidar: &Path) -> Result<Vec<PathBuf>> {
         )?);
     }
     Ok(files)
+}
+
+fn dir_name(p: &Path) -> &str {
+    p.file_name().and_then(|n| n.to_str()).unwrap_or("")
+}
+
+/// Sub-folders of `dir`, sorted.
+fn subdirs(dir: &Path) -> Result<Vec<PathBuf>> {
+    let mut v: Vec<PathBuf> = std::fs::read_dir(dir)
+        .with_context(|| format!("failed to list '{}'", dir.display()))?
+        .filter_map(|e| e.ok().map(|e| e.path()))
+        .filter(|p| p.is_dir())
+        .collect();
+    v.sort();
+    Ok(v)
 }
 
 fn bins_in(dir: &Path) -> Result<Vec<PathBuf>> {
@@ -116,33 +139,44 @@ impl RangeDataset {
         &self.images[i * n..(i + 1) * n]
     }
 
-    /// Project KITTI `.bin` scans with the HDL-64E profile at `width` columns.
+    /// Project KITTI `.bin` scans with the HDL-64E profile at `width` columns (in parallel,
+    /// in file order). A scan that cannot be read or projected fails the whole build, naming
+    /// the file.
     pub fn from_kitti_files(files: &[PathBuf], width: usize) -> Result<Self> {
+        use rayon::prelude::*;
         let profile = SensorProfile::kitti_hdl64e().with_columns(width);
         let angles = profile.angle_grid();
         let (height, width) = (angles.height, angles.width);
-        let mut images = Vec::with_capacity(files.len() * height * width);
-        for path in files {
-            let scan = lidar::kitti::read_bin(path)
-                .with_context(|| format!("failed to read '{}'", path.display()))?;
-            let image = lidar::project(&scan, &profile, Strategy::Auto)
-                .with_context(|| format!("failed to project '{}'", path.display()))?;
-            if image.height != height || image.width != width {
-                bail!(
-                    "'{}' projected to {}x{}",
-                    path.display(),
-                    image.height,
-                    image.width
-                );
-            }
-            images.extend(range_to_network(&image.range_m));
-        }
-        Ok(Self {
-            height,
-            width,
+        let per_file: Vec<Vec<f32>> = files
+            .par_iter()
+            .map(|path| -> Result<Vec<f32>> {
+                let scan = lidar::kitti::read_bin(path)
+                    .with_context(|| format!("failed to read '{}'", path.display()))?;
+                let image = lidar::project(&scan, &profile, Strategy::Auto)
+                    .with_context(|| format!("failed to project '{}'", path.display()))?;
+                if image.height != height || image.width != width {
+                    bail!(
+                        "'{}' projected to {}x{}",
+                        path.display(),
+                        image.height,
+                        image.width
+                    );
+                }
+                Ok(range_to_network(&image.range_m))
+            })
+            .collect::<Result<_>>()?;
+        Ok(Self::from_images(angles, per_file.concat()))
+    }
+
+    /// A dataset from images in network units on `angles`' grid, `[n, H, W]` row-major.
+    pub fn from_images(angles: AngleGrid, images: Vec<f32>) -> Self {
+        debug_assert_eq!(images.len() % angles.len().max(1), 0);
+        Self {
+            height: angles.height,
+            width: angles.width,
             images,
             angles,
-        })
+        }
     }
 
     const MAGIC: &'static [u8; 8] = b"RGDSv001";
@@ -264,7 +298,7 @@ mod tests {
     }
 
     #[test]
-    fn split_keeps_sequences_00_and_07_out() {
+    fn split_trains_on_every_drive_and_keeps_evaluation_data_out() {
         let root = Path::new("../shared/real_lidar");
         let root = if root.exists() {
             root.to_path_buf()
@@ -278,9 +312,20 @@ mod tests {
         let train = kitti_training_files(&root).expect("list");
         let held = kitti_heldout_files(&root).expect("list");
         assert!(!train.is_empty() && !held.is_empty());
-        for f in &train {
-            let s = f.to_string_lossy();
-            assert!(!s.contains("semantickitti_mini/00/") && !s.contains("semantickitti_mini/07/"));
+        let lossy = |f: &PathBuf| f.to_string_lossy().into_owned();
+        for f in train.iter().map(lossy) {
+            assert!(!f.contains("semantickitti_mini/00/") && !f.contains("semantickitti_mini/07/"));
+            for eval in EVALUATION_FOLDERS {
+                assert!(!f.contains(eval), "{f} is evaluation data");
+            }
         }
+        // Every KITTI raw drive present is trained on.
+        for drive in subdirs(&root).expect("list") {
+            if dir_name(&drive).starts_with(KITTI_RAW_PREFIX) {
+                let d = lossy(&drive);
+                assert!(train.iter().any(|f| lossy(f).starts_with(&d)), "{d} missing");
+            }
+        }
+        assert!(held.iter().all(|f| !train.contains(f)));
     }
 }

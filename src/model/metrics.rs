@@ -274,6 +274,98 @@ pub fn swd_between(
     SwdReport::new(swd(&sa, &sb, a.height, a.width, cfg), sa.len(), sb.len())
 }
 
+/// Points of a set's returns, as the paper's point-set metrics see them: back-projected on
+/// `angles`, farthest-point sampled to `n_points` and scaled by 1/80 m.
+pub fn point_sets(
+    images: &[&[f32]],
+    angles: &crate::lidar::AngleGrid,
+    n_points: usize,
+) -> Vec<Vec<[f32; 3]>> {
+    use rayon::prelude::*;
+    images
+        .par_iter()
+        .map(|img| {
+            let range = super::data::network_to_range(img);
+            let points: Vec<[f32; 3]> = range
+                .iter()
+                .enumerate()
+                .filter(|(_, d)| **d > 0.0)
+                .map(|(k, d)| {
+                    let (el, az) = (angles.elevation_rad[k], angles.azimuth_rad[k]);
+                    let r = d / super::data::MAX_DEPTH_M;
+                    [r * el.cos() * az.cos(), r * el.cos() * az.sin(), r * el.sin()]
+                })
+                .collect();
+            farthest_point_sample(&points, n_points)
+        })
+        .collect()
+}
+
+/// Farthest-point sampling from the first point (deterministic); all points if there are
+/// fewer than `k`.
+pub fn farthest_point_sample(points: &[[f32; 3]], k: usize) -> Vec<[f32; 3]> {
+    if points.len() <= k {
+        return points.to_vec();
+    }
+    let mut nearest = vec![f32::INFINITY; points.len()];
+    let mut picked = Vec::with_capacity(k);
+    let mut next = 0;
+    for _ in 0..k {
+        let p = points[next];
+        picked.push(p);
+        let mut far = (0, -1.0f32);
+        for (i, q) in points.iter().enumerate() {
+            let d = dist2(p, *q).min(nearest[i]);
+            nearest[i] = d;
+            if d > far.1 {
+                far = (i, d);
+            }
+        }
+        next = far.0;
+    }
+    picked
+}
+
+fn dist2(a: [f32; 3], b: [f32; 3]) -> f32 {
+    (a[0] - b[0]).powi(2) + (a[1] - b[1]).powi(2) + (a[2] - b[2]).powi(2)
+}
+
+/// Chamfer distance: mean squared distance to the nearest point of the other set, both ways.
+pub fn chamfer(a: &[[f32; 3]], b: &[[f32; 3]]) -> f64 {
+    let one_way = |x: &[[f32; 3]], y: &[[f32; 3]]| -> f64 {
+        let sum: f64 = x
+            .iter()
+            .map(|p| y.iter().map(|q| dist2(*p, *q)).fold(f32::INFINITY, f32::min) as f64)
+            .sum();
+        sum / x.len().max(1) as f64
+    };
+    one_way(a, b) + one_way(b, a)
+}
+
+/// 1-nearest-neighbour accuracy (the paper's 1-NNA, here with the Chamfer distance): each set
+/// member is labelled by its nearest neighbour in the union of both sets without itself; the
+/// accuracy is 0.5 when the sets are indistinguishable and 1.0 when they are apart.
+pub fn one_nna(generated: &[Vec<[f32; 3]>], real: &[Vec<[f32; 3]>]) -> f64 {
+    use rayon::prelude::*;
+    let all: Vec<(&[[f32; 3]], bool)> = generated
+        .iter()
+        .map(|p| (p.as_slice(), true))
+        .chain(real.iter().map(|p| (p.as_slice(), false)))
+        .collect();
+    let correct = (0..all.len())
+        .into_par_iter()
+        .filter(|&i| {
+            let nn = (0..all.len())
+                .filter(|&j| j != i)
+                .map(|j| (chamfer(all[i].0, all[j].0), j))
+                .min_by(|a, b| a.0.total_cmp(&b.0))
+                .map(|(_, j)| j);
+            nn.is_some_and(|j| all[j].1 == all[i].1)
+        })
+        .count();
+    correct as f64 / all.len().max(1) as f64
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -302,6 +394,31 @@ mod tests {
 
     fn slices(v: &[Vec<f32>]) -> Vec<&[f32]> {
         v.iter().map(|x| x.as_slice()).collect()
+    }
+
+    fn cloud(rng: &mut Rng, n: usize, centre: [f32; 3]) -> Vec<[f32; 3]> {
+        (0..n)
+            .map(|_| centre.map(|c| c + 0.1 * rng.normal()))
+            .collect()
+    }
+
+    #[test]
+    fn one_nna_is_half_for_one_distribution_and_one_for_two() {
+        let mut rng = Rng::new(4);
+        let a: Vec<_> = (0..10).map(|_| cloud(&mut rng, 64, [0.0; 3])).collect();
+        let a2: Vec<_> = (0..10).map(|_| cloud(&mut rng, 64, [0.0; 3])).collect();
+        let b: Vec<_> = (0..10).map(|_| cloud(&mut rng, 64, [1.0, 0.0, 0.0])).collect();
+        assert_eq!(one_nna(&a, &b), 1.0);
+        let same = one_nna(&a, &a2);
+        assert!((0.2..=0.8).contains(&same), "{same}");
+    }
+
+    #[test]
+    fn farthest_point_sampling_spreads_out() {
+        let pts: Vec<[f32; 3]> = (0..100).map(|i| [i as f32, 0.0, 0.0]).collect();
+        let s = farthest_point_sample(&pts, 3);
+        assert_eq!(s, vec![[0.0, 0.0, 0.0], [99.0, 0.0, 0.0], [49.0, 0.0, 0.0]]);
+        assert_eq!(farthest_point_sample(&pts[..2], 3).len(), 2);
     }
 
     #[test]

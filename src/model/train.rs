@@ -142,6 +142,9 @@ pub struct TrainOptions {
     /// Stop after this much wall time (checkpointing first).
     pub max_duration: Option<Duration>,
     pub progress: bool,
+    /// Start a new run from these weights (fine-tuning): a training run (its checkpoint's
+    /// G, EMA G and D) or a model directory (EMA G only; D starts fresh).
+    pub init_from: Option<PathBuf>,
 }
 
 /// Mutable training state saved with each checkpoint.
@@ -311,6 +314,17 @@ impl Trainer {
                 .map_err(|e| load_err("opt_d", e))?;
             let text = std::fs::read_to_string(ck.join("state.json"))?;
             state = serde_json::from_str(&text).context("bad checkpoint/state.json")?;
+        } else if let Some(src) = &opts.init_from {
+            (g, g_ema, d) = init_from(src, g, g_ema, d)?;
+            std::fs::write(
+                opts.run_dir.join("init_from.json"),
+                serde_json::to_string_pretty(&serde_json::json!({
+                    "init_from": src,
+                    "source_state": std::fs::read_to_string(src.join(CHECKPOINT).join("state.json"))
+                        .ok()
+                        .and_then(|t| serde_json::from_str::<serde_json::Value>(&t).ok()),
+                }))?,
+            )?;
         } else {
             // The EMA starts as a copy of the generator.
             g_ema = g.valid();
@@ -643,6 +657,39 @@ impl Trainer {
     }
 }
 
+/// The weights of a fine-tuning run's start: from a training run's checkpoint (G, EMA G,
+/// D), or from a model directory (`g_ema.bpk`: G and EMA G; D keeps its fresh weights).
+fn init_from(
+    src: &Path,
+    g: AnyGenerator,
+    g_ema: AnyGenerator,
+    d: Discriminator,
+) -> Result<(AnyGenerator, AnyGenerator, Discriminator)> {
+    let err = |what: &str, e: burn::store::RecordError| {
+        anyhow::anyhow!("failed to load {what} from '{}': {e}", src.display())
+    };
+    let ck = src.join(CHECKPOINT);
+    if ck.join("g.bpk").exists() {
+        let g = g.try_load_file(ck.join("g.bpk")).map_err(|e| err("g", e))?;
+        let g_ema = g_ema
+            .try_load_file(ck.join("g_ema.bpk"))
+            .map_err(|e| err("g_ema", e))?;
+        let d = d.try_load_file(ck.join("d.bpk")).map_err(|e| err("d", e))?;
+        Ok((g, g_ema, d))
+    } else {
+        let file = src.join("g_ema.bpk");
+        if !file.exists() {
+            bail!(
+                "'{}' holds neither a training checkpoint nor g_ema.bpk",
+                src.display()
+            );
+        }
+        let g = g.try_load_file(&file).map_err(|e| err("g_ema", e))?;
+        let g_ema = g_ema.try_load_file(&file).map_err(|e| err("g_ema", e))?;
+        Ok((g, g_ema, d))
+    }
+}
+
 struct StepMetrics {
     loss_d: f32,
     loss_g: f32,
@@ -949,6 +996,7 @@ mod tests {
                 total_images: None,
                 max_duration: None,
                 progress: false,
+                init_from: None,
             };
             run(&opts).expect("train");
             let (g, c) = load_generator(&opts.run_dir, &Device::flex()).expect("load");
@@ -997,6 +1045,7 @@ mod tests {
             total_images: None,
             max_duration: None,
             progress: false,
+            init_from: None,
         };
         run(&opts).expect("train");
         let state: TrainState = serde_json::from_str(
@@ -1022,6 +1071,25 @@ mod tests {
         );
         let (g, _) = load_generator(&opts.run_dir, &Device::flex()).expect("load ema");
         assert_eq!(g.d_z(), 8);
+        // Fine-tuning: a new run initialised from this one starts from its weights, at 0 images.
+        let ft = TrainOptions {
+            run_dir: dir.path().join("fine-tune"),
+            init_from: Some(opts.run_dir.clone()),
+            ..opts.clone()
+        };
+        std::fs::create_dir_all(&ft.run_dir).expect("mkdir");
+        let t = Trainer::new(&ft.config, &ft, &data).expect("init from run");
+        assert_eq!(t.state.images, 0);
+        t.g_ema
+            .clone()
+            .save_file(ft.run_dir.join("start.bpk"))
+            .expect("save");
+        assert_eq!(
+            std::fs::read(ft.run_dir.join("start.bpk")).expect("read"),
+            std::fs::read(opts.run_dir.join("checkpoint/g_ema.bpk")).expect("read"),
+            "the fine-tuning run starts from the source's EMA generator"
+        );
+        assert!(ft.run_dir.join("init_from.json").exists());
         // Sampling from the run, on the training grid and on a 2x denser one.
         let mut sopts = super::super::sample::SampleOptions {
             n: 3,

@@ -27,6 +27,7 @@ pub mod diagnose_stats;
 mod diagnose_tests;
 pub mod dropout;
 pub mod perturb;
+pub mod pretraining;
 
 pub use config::{PhysicsConfig, PhysicsError, Preset};
 
