@@ -63,7 +63,7 @@ pub struct BadRecord {
     /// Its kind, e.g. "chunk index (opcode 0x08)", as far as it could be read.
     pub record: String,
     pub reason: String,
-    /// Bytes skipped from `offset` to where reading went on (0: the record alone).
+    /// Bytes from `offset` to where reading goes on (0: the record alone).
     pub skipped_bytes: u64,
 }
 
@@ -77,7 +77,7 @@ impl std::fmt::Display for BadRecord {
         if self.skipped_bytes > 0 {
             write!(
                 f,
-                "; resumed {} bytes later at the next chunk in the summary's chunk index",
+                "; the next chunk in the summary's chunk index starts {} bytes later",
                 self.skipped_bytes
             )?;
         }

@@ -234,12 +234,13 @@ pub fn top_level_records(bytes: &[u8]) -> Vec<(u8, usize, usize)> {
     records
 }
 
-/// The real LiDAR data beside the repository (`../shared/real_lidar`), or `None` with a
-/// message saying why the calling test skips.
+/// The real LiDAR data beside the repository (`../shared/real_lidar`, or
+/// `/work/shared/real_lidar` from a worktree), or `None` with a message saying why the
+/// calling test skips.
 pub fn real_data(test: &str) -> Option<PathBuf> {
     const REAL: &str = "../shared/real_lidar";
-    let dir = Path::new(REAL);
-    if dir.is_dir() {
+    const FALLBACK: &str = "/work/shared/real_lidar";
+    if let Some(dir) = [REAL, FALLBACK].map(Path::new).into_iter().find(|d| d.is_dir()) {
         Some(dir.to_path_buf())
     } else {
         eprintln!(
