@@ -109,7 +109,9 @@ fn main() -> Result<()> {
         NNA_POINTS,
     );
     let stride = (train.len() / heldout.len()).max(1);
-    let train_sub: Vec<&[f32]> = (0..heldout.len()).map(|i| train.image(i * stride)).collect();
+    let train_sub: Vec<&[f32]> = (0..heldout.len())
+        .map(|i| train.image(i * stride))
+        .collect();
     let train_nna = one_nna(
         &point_sets(&train_sub, &train.angles, NNA_POINTS),
         &heldout_points,
@@ -145,7 +147,10 @@ fn main() -> Result<()> {
             })
             .collect();
         let refs: Vec<&[f32]> = x_g.iter().map(|v| v.as_slice()).collect();
-        let nna = one_nna(&point_sets(&refs, &heldout.angles, NNA_POINTS), &heldout_points);
+        let nna = one_nna(
+            &point_sets(&refs, &heldout.angles, NNA_POINTS),
+            &heldout_points,
+        );
         let kept =
             samples.iter().flat_map(|s| &s.mask).filter(|m| **m).count() as f64 / (64 * n) as f64;
         for s in samples.iter().take(3) {

@@ -51,7 +51,9 @@ fn pad_select(x: Tensor<4>, p: usize) -> Tensor<4> {
     let [_, _, h, w] = x.dims();
     let dev = x.device();
     let cols = (0..w + 2 * p).map(|j| ((j + w - p) % w) as i64).collect();
-    let rows = (0..h + 2 * p).map(|i| (i as i64 - p as i64).clamp(0, h as i64 - 1)).collect();
+    let rows = (0..h + 2 * p)
+        .map(|i| (i as i64 - p as i64).clamp(0, h as i64 - 1))
+        .collect();
     x.select(3, index(cols, &dev)).select(2, index(rows, &dev))
 }
 
@@ -59,10 +61,18 @@ fn downsample_conv(x: Tensor<4>) -> Tensor<4> {
     let [b, c, h, w] = x.dims();
     let dev = x.device();
     let taps = [1.0f32, 3.0, 3.0, 1.0];
-    let k: Vec<f32> = taps.iter().flat_map(|a| taps.iter().map(move |b| a * b / 64.0)).collect();
+    let k: Vec<f32> = taps
+        .iter()
+        .flat_map(|a| taps.iter().map(move |b| a * b / 64.0))
+        .collect();
     let k = Tensor::<4>::from_data(burn::tensor::TensorData::new(k, [1, 1, 4, 4]), &dev);
     let x = pad_circular(x.reshape([b * c, 1, h, w]), 1);
-    let y = burn::tensor::module::conv2d(x, k, None, burn::tensor::ops::ConvOptions::new([2, 2], [0, 0], [1, 1], 1));
+    let y = burn::tensor::module::conv2d(
+        x,
+        k,
+        None,
+        burn::tensor::ops::ConvOptions::new([2, 2], [0, 0], [1, 1], 1),
+    );
     y.reshape([b, c, h / 2, w / 2])
 }
 
@@ -89,7 +99,15 @@ fn main() {
         let w = g.mapping.forward(z);
         let out = g.render(w, &cache, None);
         let grads = (out.x_d.sum() + out.keep_logit.sum()).backward();
-        sync(g.blocks[0].conv0.weight.val().grad(&grads).expect("grad").sum());
+        sync(
+            g.blocks[0]
+                .conv0
+                .weight
+                .val()
+                .grad(&grads)
+                .expect("grad")
+                .sum(),
+        );
     });
     let d = DiscriminatorConfig::cpu().init(&device);
     let d_s = median_secs(reps, || {
@@ -106,16 +124,45 @@ fn main() {
     println!("G fwd+bwd            {g_s:.3}");
     println!("D fwd+bwd            {d_s:.3}");
     println!("D fwd (no autodiff)  {d_fwd:.3}");
-    println!("pad_circular {big:?} fwd+bwd {:.3}", op(&device, big, reps, |x| pad_circular(x, 1)));
-    println!("downsample2x {big:?} fwd+bwd {:.3}", op(&device, big, reps, downsample2x));
-    println!("roll W       {big:?} fwd+bwd {:.3}", op(&device, big, reps, |x| roll(x, 1, 3)));
-    println!("pad_select   {big:?} fwd+bwd {:.3}", op(&device, big, reps, |x| pad_select(x, 1)));
-    println!("downsample_conv {big:?} fwd+bwd {:.3}", op(&device, big, reps, downsample_conv));
+    println!(
+        "pad_circular {big:?} fwd+bwd {:.3}",
+        op(&device, big, reps, |x| pad_circular(x, 1))
+    );
+    println!(
+        "downsample2x {big:?} fwd+bwd {:.3}",
+        op(&device, big, reps, downsample2x)
+    );
+    println!(
+        "roll W       {big:?} fwd+bwd {:.3}",
+        op(&device, big, reps, |x| roll(x, 1, 3))
+    );
+    println!(
+        "pad_select   {big:?} fwd+bwd {:.3}",
+        op(&device, big, reps, |x| pad_select(x, 1))
+    );
+    println!(
+        "downsample_conv {big:?} fwd+bwd {:.3}",
+        op(&device, big, reps, downsample_conv)
+    );
     let a = downsample2x(Rng::new(5).normal_tensor(big, &Device::flex()));
     let b = downsample_conv(Rng::new(5).normal_tensor(big, &Device::flex()));
-    println!("downsample_conv - downsample2x max |diff| {}", (a - b).abs().max().into_scalar::<f32>());
+    println!(
+        "downsample_conv - downsample2x max |diff| {}",
+        (a - b).abs().max().into_scalar::<f32>()
+    );
     let conv = burn::tensor::module::conv2d;
     let wt = Rng::new(6).normal_tensor([8, 8, 3, 3], &device);
-    println!("conv3x3 8->8 (pre-padded) fwd+bwd {:.3}", op(&device, [batch, 8, 66, 514], reps, |x| conv(x, wt.clone(), None, burn::tensor::ops::ConvOptions::new([1, 1], [0, 0], [1, 1], 1))));
-    println!("mul_scalar   {big:?} fwd+bwd {:.3}", op(&device, big, reps, |x| x.mul_scalar(2.0)));
+    println!(
+        "conv3x3 8->8 (pre-padded) fwd+bwd {:.3}",
+        op(&device, [batch, 8, 66, 514], reps, |x| conv(
+            x,
+            wt.clone(),
+            None,
+            burn::tensor::ops::ConvOptions::new([1, 1], [0, 0], [1, 1], 1)
+        ))
+    );
+    println!(
+        "mul_scalar   {big:?} fwd+bwd {:.3}",
+        op(&device, big, reps, |x| x.mul_scalar(2.0))
+    );
 }

@@ -323,7 +323,10 @@ mod tests {
         for drive in subdirs(&root).expect("list") {
             if dir_name(&drive).starts_with(KITTI_RAW_PREFIX) {
                 let d = lossy(&drive);
-                assert!(train.iter().any(|f| lossy(f).starts_with(&d)), "{d} missing");
+                assert!(
+                    train.iter().any(|f| lossy(f).starts_with(&d)),
+                    "{d} missing"
+                );
             }
         }
         assert!(held.iter().all(|f| !train.contains(f)));

@@ -293,7 +293,11 @@ pub fn point_sets(
                 .map(|(k, d)| {
                     let (el, az) = (angles.elevation_rad[k], angles.azimuth_rad[k]);
                     let r = d / super::data::MAX_DEPTH_M;
-                    [r * el.cos() * az.cos(), r * el.cos() * az.sin(), r * el.sin()]
+                    [
+                        r * el.cos() * az.cos(),
+                        r * el.cos() * az.sin(),
+                        r * el.sin(),
+                    ]
                 })
                 .collect();
             farthest_point_sample(&points, n_points)
@@ -335,7 +339,11 @@ pub fn chamfer(a: &[[f32; 3]], b: &[[f32; 3]]) -> f64 {
     let one_way = |x: &[[f32; 3]], y: &[[f32; 3]]| -> f64 {
         let sum: f64 = x
             .iter()
-            .map(|p| y.iter().map(|q| dist2(*p, *q)).fold(f32::INFINITY, f32::min) as f64)
+            .map(|p| {
+                y.iter()
+                    .map(|q| dist2(*p, *q))
+                    .fold(f32::INFINITY, f32::min) as f64
+            })
             .sum();
         sum / x.len().max(1) as f64
     };
@@ -407,7 +415,9 @@ mod tests {
         let mut rng = Rng::new(4);
         let a: Vec<_> = (0..10).map(|_| cloud(&mut rng, 64, [0.0; 3])).collect();
         let a2: Vec<_> = (0..10).map(|_| cloud(&mut rng, 64, [0.0; 3])).collect();
-        let b: Vec<_> = (0..10).map(|_| cloud(&mut rng, 64, [1.0, 0.0, 0.0])).collect();
+        let b: Vec<_> = (0..10)
+            .map(|_| cloud(&mut rng, 64, [1.0, 0.0, 0.0]))
+            .collect();
         assert_eq!(one_nna(&a, &b), 1.0);
         let same = one_nna(&a, &a2);
         assert!((0.2..=0.8).contains(&same), "{same}");

@@ -83,9 +83,8 @@ impl PretrainingSet {
 /// The `realistic` preset with every effect's strength scaled by a factor drawn from `seed`
 /// (log-uniform, 1/2 to 2 for drop rates), so pretraining covers the range of real sensors.
 pub fn randomised_realistic(beams: usize, seed: u64) -> PhysicsConfig {
-    let factor = |what: u64, spread: f32| -> f32 {
-        spread.powf(2.0 * uniform(&[seed, 0xfac7, what]) - 1.0)
-    };
+    let factor =
+        |what: u64, spread: f32| -> f32 { spread.powf(2.0 * uniform(&[seed, 0xfac7, what]) - 1.0) };
     let mut c = Preset::Realistic.config_for_beams(beams);
     if let Some(b) = c.beam_dropout.as_mut()
         && let Some(rates) = b.rates.as_mut()
@@ -101,7 +100,9 @@ pub fn randomised_realistic(beams: usize, seed: u64) -> PhysicsConfig {
     }
     if let Some(m) = c.material_dropout.as_mut() {
         let f = factor(4, 2.0);
-        m.drop_prob.values_mut().for_each(|p| *p = (*p * f).min(1.0));
+        m.drop_prob
+            .values_mut()
+            .for_each(|p| *p = (*p * f).min(1.0));
     }
     if let Some(u) = c.uniform_dropout.as_mut() {
         u.prob = (u.prob * factor(5, 2.0)).min(1.0);
@@ -109,7 +110,9 @@ pub fn randomised_realistic(beams: usize, seed: u64) -> PhysicsConfig {
     if let Some(o) = c.self_occlusion.as_mut() {
         // Other cars, other mounts: the blind spots' depth varies by a few degrees.
         let shift = 3.0 * (2.0 * uniform(&[seed, 0xfac7, 6]) - 1.0);
-        o.sectors.iter_mut().for_each(|s| s.elevation_max_deg += shift);
+        o.sectors
+            .iter_mut()
+            .for_each(|s| s.elevation_max_deg += shift);
     }
     if let Some(n) = c.range_noise.as_mut() {
         n.sigma0_m *= factor(7, 2.0);

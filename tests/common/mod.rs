@@ -240,7 +240,11 @@ pub fn top_level_records(bytes: &[u8]) -> Vec<(u8, usize, usize)> {
 pub fn real_data(test: &str) -> Option<PathBuf> {
     const REAL: &str = "../shared/real_lidar";
     const FALLBACK: &str = "/work/shared/real_lidar";
-    if let Some(dir) = [REAL, FALLBACK].map(Path::new).into_iter().find(|d| d.is_dir()) {
+    if let Some(dir) = [REAL, FALLBACK]
+        .map(Path::new)
+        .into_iter()
+        .find(|d| d.is_dir())
+    {
         Some(dir.to_path_buf())
     } else {
         eprintln!(
