@@ -49,6 +49,19 @@ fn convert(input: &Path, output: &Path, flags: &[&str]) -> Output {
     run_limited(&args)
 }
 
+/// A temporary folder with the paths of an input and an output in it.
+fn in_out() -> (tempfile::TempDir, PathBuf, PathBuf) {
+    let dir = tempfile::tempdir().unwrap();
+    let (input, output) = (dir.path().join("in.mcap"), dir.path().join("out.mcap"));
+    (dir, input, output)
+}
+
+/// `o` exited with `code` and its stderr says `needle`.
+fn expect_exit(o: &Output, code: i32, needle: &str) {
+    assert_eq!(o.status.code(), Some(code), "{}", stderr(o));
+    assert!(stderr(o).contains(needle), "{}", stderr(o));
+}
+
 fn json(o: &Output) -> serde_json::Value {
     serde_json::from_slice(&o.stdout)
         .unwrap_or_else(|e| panic!("{e}: {}\n{}", String::from_utf8_lossy(&o.stdout), stderr(o)))
@@ -105,8 +118,7 @@ fn output_topics(path: &Path) -> Vec<String> {
 /// `--on-error skip`, for `convert` and `info`; no temporary file is left.
 #[test]
 fn huge_declared_chunk_sizes_are_refused_before_allocating() {
-    let dir = tempfile::tempdir().unwrap();
-    let (input, output) = (dir.path().join("in.mcap"), dir.path().join("out.mcap"));
+    let (dir, input, output) = in_out();
     for compression in [mcap::Compression::Zstd, mcap::Compression::Lz4] {
         for (byte, bit) in [(6, 0x04), (3, 0x80)] {
             let (mut bytes, total) = recording(&input, 4, Some(compression));
@@ -201,12 +213,7 @@ fn distinct_ring_values_beyond_any_sensor_are_bounded_and_reported() {
     let o = convert(&input, &output, &["--strict"]);
     assert_eq!(o.status.code(), Some(3));
     let o = convert(&input, &output, &["--columns", "4000000000"]);
-    assert_eq!(o.status.code(), Some(1));
-    assert!(
-        stderr(&o).contains("give 1 to 16384 columns"),
-        "{}",
-        stderr(&o)
-    );
+    expect_exit(&o, 1, "give 1 to 16384 columns");
 }
 
 /// SIGTERM and SIGINT in the middle of a conversion remove the temporary output
@@ -214,8 +221,7 @@ fn distinct_ring_values_beyond_any_sensor_are_bounded_and_reported() {
 /// run writing the same output.
 #[test]
 fn interrupted_conversions_leave_no_temporary_file() {
-    let dir = tempfile::tempdir().unwrap();
-    let (input, output) = (dir.path().join("in.mcap"), dir.path().join("out.mcap"));
+    let (dir, input, output) = in_out();
     write_recording(&input, &[Family::Ros2], 40, Some(16 * 1024));
     for (signal, code) in [("TERM", 143), ("INT", 130)] {
         // Auto-decoding makes the run long enough to be interrupted.
@@ -340,8 +346,7 @@ fn no_command_writes_over_its_inputs() {
 /// the later chunks' messages; every message is copied or reported lost.
 #[test]
 fn schemas_lost_with_a_chunk_come_from_the_summary() {
-    let dir = tempfile::tempdir().unwrap();
-    let (input, output) = (dir.path().join("in.mcap"), dir.path().join("out.mcap"));
+    let (_dir, input, output) = in_out();
     let (mut bytes, total) = recording(&input, 6, Some(mcap::Compression::Zstd));
     let (offset, len) = chunks(&bytes)[0];
     bytes[offset + 9 + len - 10] ^= 0xff;
@@ -374,8 +379,7 @@ fn schemas_lost_with_a_chunk_come_from_the_summary() {
 /// leaves no output.
 #[test]
 fn a_damaged_summary_record_is_named_and_loses_nothing() {
-    let dir = tempfile::tempdir().unwrap();
-    let (input, output) = (dir.path().join("in.mcap"), dir.path().join("out.mcap"));
+    let (_dir, input, output) = in_out();
     let (mut bytes, total) = recording(&input, 4, Some(mcap::Compression::Zstd));
     let records = top_level_records(&bytes);
     let data_end = records.iter().position(|r| r.0 == DATA_END).unwrap();
@@ -397,12 +401,7 @@ fn a_damaged_summary_record_is_named_and_loses_nothing() {
         "{s}"
     );
     let o = convert(&input, &output, &["--strict"]);
-    assert_eq!(o.status.code(), Some(3));
-    assert!(
-        stderr(&o).contains(&format!("offset {offset}")),
-        "{}",
-        stderr(&o)
-    );
+    expect_exit(&o, 3, &format!("offset {offset}"));
     assert!(
         !output.exists(),
         "--strict keeps no output when it exits non-zero"
@@ -413,8 +412,7 @@ fn a_damaged_summary_record_is_named_and_loses_nothing() {
 /// chunk is named (offset, error) and, with `--on-error skip`, skipped alone.
 #[test]
 fn a_damaged_chunk_header_costs_only_that_chunk() {
-    let dir = tempfile::tempdir().unwrap();
-    let (input, output) = (dir.path().join("in.mcap"), dir.path().join("out.mcap"));
+    let (_dir, input, output) = in_out();
     // Chunk body: 3 u64s, CRC u32, compression (u32 length + "zstd"), records length u64.
     for (field, value) in [(28usize, 0xffff_ff00u64), (36, 1 << 40)] {
         let (mut bytes, total) = recording(&input, 6, Some(mcap::Compression::Zstd));
@@ -424,12 +422,7 @@ fn a_damaged_chunk_header_costs_only_that_chunk() {
         bytes[at..at + width].copy_from_slice(&value.to_le_bytes()[..width]);
         std::fs::write(&input, &bytes).unwrap();
         let o = convert(&input, &output, &[]);
-        assert_eq!(o.status.code(), Some(1), "field {field}: {}", stderr(&o));
-        assert!(
-            stderr(&o).contains(&format!("offset {offset}")),
-            "{}",
-            stderr(&o)
-        );
+        expect_exit(&o, 1, &format!("offset {offset}"));
         let o = convert(&input, &output, &["--on-error", "skip", "--json"]);
         assert!(o.status.success(), "{}", stderr(&o));
         let s = json(&o);
@@ -446,8 +439,7 @@ fn a_damaged_chunk_header_costs_only_that_chunk() {
 /// `--strict` exits 3 without output, and without `--on-error skip` the run fails.
 #[test]
 fn an_impossible_record_length_resyncs_from_the_chunk_index() {
-    let dir = tempfile::tempdir().unwrap();
-    let (input, output) = (dir.path().join("in.mcap"), dir.path().join("out.mcap"));
+    let (_dir, input, output) = in_out();
     let (mut bytes, total) = recording(&input, 20, Some(mcap::Compression::Zstd));
     let all = chunks(&bytes);
     assert!(all.len() >= 20, "{} chunks", all.len());
@@ -470,20 +462,14 @@ fn an_impossible_record_length_resyncs_from_the_chunk_index() {
     assert_eq!(o.status.code(), Some(3));
     assert!(!output.exists());
     let o = convert(&input, &output, &[]);
-    assert_eq!(o.status.code(), Some(1));
-    assert!(
-        stderr(&o).contains(&format!("offset {offset}")),
-        "{}",
-        stderr(&o)
-    );
+    expect_exit(&o, 1, &format!("offset {offset}"));
 }
 
 /// A channel naming a schema that is nowhere in the file: its messages are copied on a
 /// channel without schema, with a warning naming the topic.
 #[test]
 fn a_channel_with_a_missing_schema_is_copied_with_a_warning() {
-    let dir = tempfile::tempdir().unwrap();
-    let (input, output) = (dir.path().join("in.mcap"), dir.path().join("out.mcap"));
+    let (_dir, input, output) = in_out();
     let mut w = mcap::WriteOptions::new()
         .use_chunks(false)
         .create(std::io::BufWriter::new(
@@ -532,8 +518,7 @@ fn a_channel_with_a_missing_schema_is_copied_with_a_warning() {
 /// gets no two channels of one name, and a warning says which name was chosen.
 #[test]
 fn an_input_topic_named_like_ours_is_not_duplicated() {
-    let dir = tempfile::tempdir().unwrap();
-    let (input, output) = (dir.path().join("in.mcap"), dir.path().join("out.mcap"));
+    let (_dir, input, output) = in_out();
     let mut w = mcap::Writer::new(std::io::BufWriter::new(
         std::fs::File::create(&input).unwrap(),
     ))
@@ -618,8 +603,7 @@ fn a_full_disk_names_the_output_and_the_os_error() {
 /// `--strict` exits 3 and leaves no file at OUT. The same for a file cut later.
 #[test]
 fn unreadable_and_truncated_inputs_under_strict_leave_no_output() {
-    let dir = tempfile::tempdir().unwrap();
-    let (input, output) = (dir.path().join("in.mcap"), dir.path().join("out.mcap"));
+    let (dir, input, output) = in_out();
     let (bytes, _) = recording(&input, 6, Some(mcap::Compression::Zstd));
     let (first, _) = chunks(&bytes)[0];
     std::fs::write(&input, &bytes[..first + 200]).unwrap();
