@@ -600,7 +600,8 @@ fn a_full_disk_names_the_output_and_the_os_error() {
 }
 
 /// A file cut inside its first chunk: a warning says nothing could be read, exit 0;
-/// `--strict` exits 3 and leaves no file at OUT. The same for a file cut later.
+/// `--strict` exits 3 and leaves no file at OUT. The same for a file cut later; a file
+/// cut before its first record is no MCAP (exit 1).
 #[test]
 fn unreadable_and_truncated_inputs_under_strict_leave_no_output() {
     let (dir, input, output) = in_out();
@@ -615,6 +616,10 @@ fn unreadable_and_truncated_inputs_under_strict_leave_no_output() {
         stderr(&o)
     );
     std::fs::remove_file(&output).unwrap();
+    for cut in [0, 5, 12] {
+        std::fs::write(&input, &bytes[..cut]).unwrap();
+        expect_exit(&convert(&input, &output, &[]), 1, "not an MCAP file");
+    }
     for cut in [first + 200, bytes.len() * 2 / 3] {
         std::fs::write(&input, &bytes[..cut]).unwrap();
         let o = convert(&input, &output, &["--strict"]);

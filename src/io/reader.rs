@@ -1,8 +1,12 @@
 //! Streaming MCAP reader on the mcap crate's sans-io `LinearReader`: reads any
-//! `Read` front to back, one record (or one chunk) in memory at a time, so memory
-//! does not grow with the file. Chunks are opened here rather than inside the
-//! crate so that a corrupt chunk can be named (topics, time range) and skipped,
-//! and a truncated file yields every complete record before the damage.
+//! `Read + Seek` front to back, one record (or one chunk) in memory at a time, so memory
+//! does not grow with the file. Every length read from the file is checked against
+//! what the file (or [`MAX_RECORD_BYTES`]) can hold before anything is allocated.
+//! Chunks are opened here rather than inside the crate so that a corrupt chunk can be
+//! named (offset, topics, time range) and skipped, and a truncated file yields every
+//! complete record before the damage. When the footer and summary section are intact
+//! (CRC-checked), the summary supplies schemas and channels whose own records were
+//! lost, and its chunk index lets reading resume after a damaged record.
 
 use std::collections::{BTreeSet, HashMap, HashSet};
 use std::io::{Read, Seek, SeekFrom};
@@ -91,7 +95,7 @@ pub enum ReadError {
     #[error("{0}")]
     Io(#[from] std::io::Error),
     #[error("not an MCAP file or unreadable from the start: {0}")]
-    NotMcap(mcap::McapError),
+    NotMcap(String),
     #[error("{0}; use --on-error skip to drop this chunk and go on")]
     BadChunk(BadChunk),
     #[error("{0}; use --on-error skip to skip it and go on")]
@@ -234,9 +238,12 @@ where
                     (self.progress)(self.report.bytes_read);
                     continue;
                 }
-                Err(e) if !seen_any => return Err(ReadError::NotMcap(e)),
                 Err(e) => e.to_string(),
             };
+            // Damage before the first record: only an intact summary can tell this is MCAP.
+            if !seen_any && self.summary.is_none() {
+                return Err(ReadError::NotMcap(failure));
+            }
             self.settle_bad_chunk()?;
             match self.resync_target(next_record) {
                 Some(target) => {
