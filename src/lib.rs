@@ -11,6 +11,7 @@
 //!    copied input record, atomically.
 
 pub mod cli;
+pub mod dataset;
 pub mod decode;
 pub mod error;
 pub mod io;

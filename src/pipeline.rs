@@ -6,7 +6,8 @@
 
 use std::collections::{BTreeMap, HashMap};
 use std::io::{Read, Seek};
-use std::sync::Mutex;
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::{Arc, Mutex};
 
 use mcap::records::Record;
 use rayon::prelude::*;
@@ -44,6 +45,10 @@ pub struct ConvertOptions {
     pub metadata: BTreeMap<String, String>,
     /// Keep no output when anything was skipped (the run then exits non-zero).
     pub strict: bool,
+    /// Counts scans as their stages finish (before their batch is written), for progress.
+    pub scans_processed: Option<Arc<AtomicU64>>,
+    /// Warn when a topic's scans are far from what the decoding model saw.
+    pub check_model_fit: bool,
 }
 
 /// Scans per parallel batch. Fixed rather than tied to the thread count: outputs of a batch are
@@ -62,6 +67,8 @@ impl Default for ConvertOptions {
             batch_scans: DEFAULT_BATCH_SCANS,
             metadata: BTreeMap::new(),
             strict: false,
+            scans_processed: None,
+            check_model_fit: false,
         }
     }
 }
@@ -159,6 +166,17 @@ impl<'d> DecodeStage<'d> {
         })
     }
 
+    /// The channels (suffixes) [`run`](Self::run) writes; `raydrop_mask` stands for every mask.
+    pub fn channel_names(&self) -> Vec<String> {
+        let mut names: Vec<String> = ["depth", "raydrop_prob", "raydrop_mask", "points"]
+            .map(String::from)
+            .into();
+        for (suffix, _) in &self.extra_grids {
+            names.extend([format!("depth_{suffix}"), format!("points_{suffix}")]);
+        }
+        names
+    }
+
     /// Decode one scan and encode its channels.
     pub fn run(&self, input: &ScanInput<'_>) -> anyhow::Result<Vec<StageOutput>> {
         let seed = scan_seed(input.topic, input.log_time);
@@ -252,6 +270,8 @@ pub struct ConvertReport {
     pub outputs_written: u64,
     pub topics: BTreeMap<String, TopicReport>,
     pub warnings: Vec<Warning>,
+    /// Topics whose sensor is far from the decoding model's (their decoded channels are rough).
+    pub model_fit: Vec<Warning>,
 }
 
 impl ConvertReport {
@@ -291,6 +311,8 @@ struct ScanProcessor<'a> {
     opts: &'a ConvertOptions,
     stages: &'a [&'a Stage<'a>],
     profiles: Mutex<HashMap<String, (SensorProfile, Strategy)>>,
+    file: std::path::PathBuf,
+    fit_warnings: Mutex<Vec<Warning>>,
 }
 
 /// A processed scan: the stages' outputs, the kept fraction, the profile and projection used,
@@ -307,6 +329,7 @@ impl ScanProcessor<'_> {
     fn profile_for(
         &self,
         topic: &str,
+        log_time: u64,
         cloud: &DecodedCloud,
     ) -> Result<(SensorProfile, Strategy), String> {
         let mut map = self.profiles.lock().unwrap_or_else(|e| e.into_inner());
@@ -330,12 +353,24 @@ impl ScanProcessor<'_> {
             s => s,
         };
         map.insert(topic.to_string(), (profile.clone(), strategy));
+        if self.opts.check_model_fit
+            && let Some(w) = crate::decode::fit::model_fit(&cloud.scan)
+                .and_then(|f| f.warning(&format!("{}, {} beams", profile.name, profile.beams())))
+        {
+            let loc = Location::message(&self.file, topic, log_time);
+            let mut warnings = self.fit_warnings.lock().unwrap_or_else(|e| e.into_inner());
+            warnings.push(Warning {
+                topic: topic.to_string(),
+                log_time_nanos: log_time,
+                message: format!("{loc}: {w}"),
+            });
+        }
         Ok((profile, strategy))
     }
 
     fn process(&self, p: &Pending) -> Result<Processed, String> {
         let cloud = decode_cloud(p.format, &p.data).map_err(|e| e.to_string())?;
-        let (profile, strategy) = self.profile_for(&p.topic, &cloud)?;
+        let (profile, strategy) = self.profile_for(&p.topic, p.log_time, &cloud)?;
         let image = project(&cloud.scan, &profile, strategy).map_err(|e| e.to_string())?;
         let returns = cloud.scan.returns().max(1);
         let kept = image.valid_count() as f64 / returns as f64;
@@ -353,6 +388,9 @@ impl ScanProcessor<'_> {
                 Ok(o) => outputs.extend(o),
                 Err(e) => failed.push(format!("{e:#}")),
             }
+        }
+        if let Some(counter) = &self.opts.scans_processed {
+            counter.fetch_add(1, Ordering::Relaxed);
         }
         Ok((outputs, kept, (profile, strategy), failed))
     }
@@ -498,6 +536,8 @@ pub fn convert(
             opts,
             stages,
             profiles: Mutex::new(HashMap::new()),
+            file: input.to_path_buf(),
+            fit_warnings: Mutex::new(Vec::new()),
         },
         file: input.to_path_buf(),
         table: ChannelTable::default(),
@@ -538,6 +578,13 @@ pub fn convert(
             log_time_nanos: 0,
             message: format!("{}: {message}", input.display()),
         }));
+    report.model_fit = std::mem::take(
+        &mut conv
+            .processor
+            .fit_warnings
+            .lock()
+            .unwrap_or_else(|e| e.into_inner()),
+    );
     for t in report.topics.values_mut() {
         if t.scans > 0 {
             t.kept_fraction /= t.scans as f64;

@@ -1,24 +1,36 @@
 //! `rangegan-mcap convert IN OUT`: copy every record, add range-image channels and (unless
-//! `--quality off`) the auto-decoded depth, ray-drop and completed-cloud channels.
+//! `--quality off`) the auto-decoded depth, ray-drop and completed-cloud channels. One file
+//! here; several files or folders go to [`super::convert_dataset`], which converts each
+//! file with the same [`FileConverter`].
 
 use std::collections::BTreeMap;
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 
 use anyhow::{Context, bail};
+use clap::ValueEnum;
 
+use super::convert_dataset::{self, DatasetArgs};
 use super::{GlobalArgs, Outcome};
+use crate::dataset::manifest::{self, Entry, Status};
 use crate::decode::amortised::TrainedEncoder;
 use crate::decode::{DecodeOptions, Decoder, Quality, Sparsify};
-use crate::io::{McapOutput, OnError};
+use crate::io::{McapOutput, OnError, WriterSettings};
 use crate::lidar::{SensorProfile, Strategy};
 use crate::model::weights::Model;
-use crate::pipeline::{self, ConvertOptions, DecodeOutputs, DecodeStage, SensorChoice, Stage};
+use crate::pipeline::{
+    self, ConvertOptions, ConvertReport, DecodeOutputs, DecodeStage, SensorChoice, StageOutput,
+};
 
 #[derive(Debug, clap::Args)]
 pub struct ConvertArgs {
-    /// Input MCAP recording (never modified).
-    pub input: PathBuf,
-    /// Output MCAP (written to a temporary file and renamed when complete).
+    /// Input MCAP recordings, or folders searched for `*.mcap` (never modified).
+    #[arg(required = true, num_args = 1..)]
+    pub inputs: Vec<PathBuf>,
+    /// Output MCAP (written to a temporary file and renamed when complete); with several
+    /// inputs or a folder, the output folder, where each output keeps its input's relative
+    /// path and `rangegan-manifest.jsonl` records every file.
     pub output: PathBuf,
     /// Point-cloud topics to process (repeatable); default: every point-cloud topic.
     #[arg(long)]
@@ -40,9 +52,23 @@ pub struct ConvertArgs {
     /// skipped chunks, undecodable point clouds), and keep no file at OUT then.
     #[arg(long)]
     pub strict: bool,
-    /// Overwrite an existing OUT.
+    /// Overwrite an existing OUT; for folders, convert every file again even when the
+    /// manifest says its output is up to date.
     #[arg(long)]
     pub force: bool,
+    /// Channels to write, comma-separated (default: all): `range`, and with decoding
+    /// `depth`, `raydrop_prob`, `raydrop_mask`, `points` and the `depth_*` / `points_*` of
+    /// `--upsample` / `--target-sensor`. Without a decoded channel nothing is decoded.
+    #[arg(long, value_delimiter = ',')]
+    pub channels: Vec<String>,
+    /// Output chunk size in bytes (before compression).
+    #[arg(long, default_value_t = 4 * 1024 * 1024)]
+    pub chunk_size: u64,
+    /// Output chunk compression.
+    #[arg(long, value_enum, default_value = "zstd")]
+    pub compression: CompressionArg,
+    #[command(flatten)]
+    pub dataset: DatasetArgs,
     /// Auto-decoding with the range-image GAN: `fast` (amortised encoder + 14 pivotal-tuning
     /// steps), `paper` (the paper's 1000-step pivotal tuning inversion, minutes per scan) or
     /// `off` (range images only).
@@ -86,6 +112,13 @@ pub struct ConvertArgs {
 }
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum CompressionArg {
+    Zstd,
+    Lz4,
+    None,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
 pub enum QualityArg {
     Fast,
     Paper,
@@ -93,7 +126,9 @@ pub enum QualityArg {
 }
 
 /// The decoder and its extra outputs, from the decoding flags (`None` for `--quality off`).
-fn resolve_decoding(args: &ConvertArgs) -> anyhow::Result<Option<(Decoder, DecodeOutputs)>> {
+pub(crate) fn resolve_decoding(
+    args: &ConvertArgs,
+) -> anyhow::Result<Option<(Decoder, DecodeOutputs)>> {
     let quality = match args.quality {
         QualityArg::Off => {
             let used = args.mask_samples != 1
@@ -112,6 +147,9 @@ fn resolve_decoding(args: &ConvertArgs) -> anyhow::Result<Option<(Decoder, Decod
         QualityArg::Fast => Quality::Fast,
         QualityArg::Paper => Quality::Paper,
     };
+    if !args.channels.is_empty() && args.channels.iter().all(|c| c == "range") {
+        return Ok(None); // no decoded channel chosen: nothing to decode
+    }
     let mut opts = DecodeOptions::new(quality);
     opts.calibrate_raydrop = !args.raw_raydrop;
     if let Some(n) = args.w_steps {
@@ -159,85 +197,369 @@ pub(crate) fn sensor_choice(sensor: &str) -> anyhow::Result<SensorChoice> {
     })
 }
 
-pub fn run(global: &GlobalArgs, args: ConvertArgs) -> anyhow::Result<Outcome> {
-    crate::io::writer::refuse_overwriting_inputs(&args.output, &[&args.input])?;
-    if let Some(c) = args.columns {
-        crate::lidar::profile::check_columns(c).map_err(anyhow::Error::msg)?;
-    }
-    let file = std::fs::File::open(&args.input)
-        .with_context(|| format!("cannot open {}", args.input.display()))?;
-    let len = file.metadata().ok().map(|m| m.len());
-    let decoding = resolve_decoding(&args)?;
-    let mut metadata = BTreeMap::from([
-        ("tool".to_string(), "rangegan-mcap".to_string()),
-        ("version".to_string(), env!("CARGO_PKG_VERSION").to_string()),
+/// A value's name on the command line.
+fn flag_value(v: &impl ValueEnum) -> String {
+    v.to_possible_value()
+        .map(|p| p.get_name().to_string())
+        .unwrap_or_default()
+}
+
+/// Every setting that changes the output bytes, as one normalised command line: written into
+/// each output's metadata and the manifest, and compared by reruns. Paths of the recordings,
+/// threads, jobs and shards are left out: they do not change any output.
+pub(crate) fn output_settings(args: &ConvertArgs) -> String {
+    let mut parts = vec![
+        format!("--quality {}", flag_value(&args.quality)),
+        format!("--sensor {}", args.sensor),
+        format!("--projection {}", flag_value(&args.projection)),
+        format!("--on-error {}", flag_value(&args.on_error)),
+        format!("--compression {}", flag_value(&args.compression)),
+        format!("--chunk-size {}", args.chunk_size),
+    ];
+    parts.extend(args.topic.iter().map(|t| format!("--topic {t}")));
+    let optional = [
+        ("--columns", args.columns.map(|v| v.to_string())),
         (
-            "args".to_string(),
-            std::env::args().skip(1).collect::<Vec<_>>().join(" "),
+            "--model",
+            args.model.as_ref().map(|p| p.display().to_string()),
         ),
-        ("input".to_string(), args.input.display().to_string()),
-    ]);
-    if let Some((decoder, _)) = &decoding {
-        // What made the decoded channels, so a regenerated dataset says which weights it used.
-        let schedule = &decoder.options().schedule;
-        metadata.extend([
-            ("decode_model".to_string(), decoder.source.clone()),
-            (
-                "decode_steps".to_string(),
-                format!("{} w + {} tuning", schedule.w_steps, schedule.tune_steps),
-            ),
-            (
-                "raydrop_calibration".to_string(),
-                decoder.calibration_source().unwrap_or("none").to_string(),
-            ),
-        ]);
+        (
+            "--encoder",
+            args.encoder.as_ref().map(|p| p.display().to_string()),
+        ),
+        ("--w-steps", args.w_steps.map(|v| v.to_string())),
+        ("--tune-steps", args.tune_steps.map(|v| v.to_string())),
+        ("--restore-lines", args.restore_lines.map(|v| v.to_string())),
+        (
+            "--restore-fraction",
+            args.restore_fraction.map(|v| v.to_string()),
+        ),
+    ];
+    for (flag, value) in optional {
+        if let Some(v) = value {
+            parts.push(format!("{flag} {v}"));
+        }
     }
-    let opts = ConvertOptions {
-        topics: (!args.topic.is_empty()).then(|| args.topic.clone()),
-        sensor: sensor_choice(&args.sensor)?,
-        columns: args.columns,
-        strategy: args.projection,
-        on_error: args.on_error,
-        metadata,
-        strict: args.strict,
-        ..ConvertOptions::default()
-    };
-    let decode_stage = match &decoding {
-        Some((decoder, outputs)) => Some(DecodeStage::new(decoder, outputs)?),
-        None => None,
-    };
-    let out = McapOutput::create(&args.output, args.force)?;
+    if args.quality != QualityArg::Off {
+        parts.push(format!("--mask-samples {}", args.mask_samples));
+    }
+    if args.raw_raydrop {
+        parts.push("--raw-raydrop".into());
+    }
+    let list = |v: &[String]| v.join(",");
+    let upsample: Vec<String> = args.upsample.iter().map(|f| f.to_string()).collect();
+    for (flag, values) in [
+        ("--upsample", upsample),
+        ("--target-sensor", args.target_sensor.clone()),
+        ("--channels", args.channels.clone()),
+    ] {
+        if !values.is_empty() {
+            parts.push(format!("{flag} {}", list(&values)));
+        }
+    }
+    parts.join(" ")
+}
 
-    let bar = super::progress_bar(global, len.unwrap_or(0));
+/// The writer settings of `--compression` and `--chunk-size`.
+fn writer_settings(args: &ConvertArgs) -> anyhow::Result<WriterSettings> {
+    if args.chunk_size == 0 {
+        bail!("--chunk-size must be > 0 bytes");
+    }
+    Ok(WriterSettings {
+        compression: match args.compression {
+            CompressionArg::Zstd => Some(mcap::Compression::Zstd),
+            CompressionArg::Lz4 => Some(mcap::Compression::Lz4),
+            CompressionArg::None => None,
+        },
+        chunk_size: Some(args.chunk_size),
+    })
+}
+
+/// Whether a stage output belongs to one of the `--channels` (`raydrop_mask` covers
+/// `raydrop_mask_1`, ...).
+fn channel_selected(channels: &[String], suffix: &str) -> bool {
+    channels.is_empty()
+        || channels.iter().any(|c| {
+            c == suffix
+                || (c == "raydrop_mask"
+                    && suffix
+                        .strip_prefix("raydrop_mask_")
+                        .is_some_and(|n| n.parse::<usize>().is_ok()))
+        })
+}
+
+/// What progress bars read while files convert: bytes read and scans whose stages finished
+/// (counted before their batch is written), over every file of a run.
+#[derive(Debug, Default)]
+pub(crate) struct Counters {
+    pub bytes: AtomicU64,
+    pub scans: Arc<AtomicU64>,
+    pub files_done: AtomicU64,
+}
+
+/// Draws `bar` from `counters` every 100 ms while `work` runs (scans advance while a batch
+/// decodes, not only when it is written).
+pub(crate) fn with_progress<R>(
+    bar: &indicatif::ProgressBar,
+    counters: &Counters,
+    files: Option<usize>,
+    work: impl FnOnce() -> R,
+) -> R {
     let started = std::time::Instant::now();
-    let decode_fn = |input: &pipeline::ScanInput<'_>| match &decode_stage {
-        Some(s) => s.run(input),
-        None => Ok(Vec::new()),
-    };
-    let stages: [&Stage<'_>; 2] = [&pipeline::range_stage, &decode_fn];
-    let reader = std::io::BufReader::with_capacity(1 << 20, file);
-    let report = pipeline::convert(&args.input, reader, len, out, &opts, &stages, |p| {
-        bar.set_position(p.bytes_read);
+    let stop = AtomicBool::new(false);
+    let draw = || {
+        bar.set_position(counters.bytes.load(Ordering::Relaxed));
+        let scans = counters.scans.load(Ordering::Relaxed);
         let secs = started.elapsed().as_secs_f64().max(1e-3);
+        let files = files.map_or(String::new(), |n| {
+            format!(
+                "{}/{n} files, ",
+                counters.files_done.load(Ordering::Relaxed)
+            )
+        });
         bar.set_message(format!(
-            "{} scans, {:.1} scans/s",
-            p.scans,
-            p.scans as f64 / secs
+            "{files}{scans} scans, {:.1} scans/s",
+            scans as f64 / secs
         ));
-    })?;
+    };
+    let result = std::thread::scope(|scope| {
+        if !bar.is_hidden() {
+            scope.spawn(|| {
+                while !stop.load(Ordering::Relaxed) {
+                    draw();
+                    std::thread::sleep(std::time::Duration::from_millis(100));
+                }
+            });
+        }
+        let result = work();
+        stop.store(true, Ordering::Relaxed);
+        result
+    });
     bar.finish_and_clear();
-    let secs = started.elapsed().as_secs_f64();
+    result
+}
 
-    for w in &report.warnings {
-        if !global.quiet {
+/// Converts files with one set of settings; the decoder is loaded once and shared by
+/// every file (and every thread).
+pub(crate) struct FileConverter<'d> {
+    decode_stage: Option<DecodeStage<'d>>,
+    write_range: bool,
+    channels: Vec<String>,
+    opts: ConvertOptions,
+    writer: WriterSettings,
+    /// [`output_settings`].
+    pub settings: String,
+}
+
+/// One converted file.
+pub(crate) struct Converted {
+    pub report: ConvertReport,
+    pub seconds: f64,
+}
+
+impl<'d> FileConverter<'d> {
+    pub fn new(
+        args: &ConvertArgs,
+        decoding: Option<&'d (Decoder, DecodeOutputs)>,
+        counters: &Counters,
+    ) -> anyhow::Result<Self> {
+        let settings = output_settings(args);
+        let mut metadata = BTreeMap::from([
+            ("tool".to_string(), "rangegan-mcap".to_string()),
+            ("version".to_string(), env!("CARGO_PKG_VERSION").to_string()),
+            ("args".to_string(), settings.clone()),
+        ]);
+        let decode_stage = match decoding {
+            Some((decoder, outputs)) => Some(DecodeStage::new(decoder, outputs)?),
+            None => None,
+        };
+        let known: Vec<String> = std::iter::once("range".to_string())
+            .chain(decode_stage.iter().flat_map(|s| s.channel_names()))
+            .collect();
+        if let Some(unknown) = args.channels.iter().find(|c| !known.contains(c)) {
+            bail!(
+                "--channels {unknown}: this conversion writes {}{}",
+                known.join(", "),
+                if decode_stage.is_none() {
+                    " (decoded channels need --quality fast or paper)"
+                } else {
+                    ""
+                }
+            );
+        }
+        if let (Some((decoder, _)), Some(_)) = (decoding, &decode_stage) {
+            // What made the decoded channels, so a regenerated dataset says which weights it used.
+            let schedule = &decoder.options().schedule;
+            metadata.extend([
+                ("decode_model".to_string(), decoder.source.clone()),
+                (
+                    "decode_steps".to_string(),
+                    format!("{} w + {} tuning", schedule.w_steps, schedule.tune_steps),
+                ),
+                (
+                    "raydrop_calibration".to_string(),
+                    decoder.calibration_source().unwrap_or("none").to_string(),
+                ),
+            ]);
+        }
+        Ok(FileConverter {
+            decode_stage,
+            write_range: channel_selected(&args.channels, "range"),
+            channels: args.channels.clone(),
+            opts: ConvertOptions {
+                topics: (!args.topic.is_empty()).then(|| args.topic.clone()),
+                sensor: sensor_choice(&args.sensor)?,
+                columns: args.columns,
+                strategy: args.projection,
+                on_error: args.on_error,
+                metadata,
+                scans_processed: Some(counters.scans.clone()),
+                check_model_fit: decoding.is_some(),
+                ..ConvertOptions::default()
+            },
+            writer: writer_settings(args)?,
+            settings,
+        })
+    }
+
+    /// Converts `input` into `output` (atomically; an existing `output` only with
+    /// `overwrite`). `name` is the input's name in the output's metadata: its relative
+    /// path in a dataset, so outputs do not depend on where the dataset is mounted.
+    pub fn convert(
+        &self,
+        input: &Path,
+        name: &str,
+        output: &Path,
+        overwrite: bool,
+        counters: &Counters,
+    ) -> anyhow::Result<Converted> {
+        let started = std::time::Instant::now();
+        let file = std::fs::File::open(input)
+            .with_context(|| format!("cannot open {}", input.display()))?;
+        let len = file.metadata().ok().map(|m| m.len());
+        let mut opts = self.opts.clone();
+        opts.metadata.insert("input".into(), name.into());
+        let out = McapOutput::create_with(output, overwrite, self.writer)?;
+        let range = |i: &pipeline::ScanInput<'_>| {
+            if self.write_range {
+                pipeline::range_stage(i)
+            } else {
+                Ok(Vec::new())
+            }
+        };
+        let decode = |i: &pipeline::ScanInput<'_>| match &self.decode_stage {
+            Some(s) => {
+                let mut outputs: Vec<StageOutput> = s.run(i)?;
+                outputs.retain(|o| channel_selected(&self.channels, &o.suffix));
+                Ok(outputs)
+            }
+            None => Ok(Vec::new()),
+        };
+        let stages: [&pipeline::Stage<'_>; 2] = [&range, &decode];
+        let reader = std::io::BufReader::with_capacity(1 << 20, file);
+        let mut last = 0;
+        let result = pipeline::convert(input, reader, len, out, &opts, &stages, |p| {
+            counters
+                .bytes
+                .fetch_add(p.bytes_read.saturating_sub(last), Ordering::Relaxed);
+            last = last.max(p.bytes_read);
+        });
+        // A file that stopped early still counts as read, for the bar's total.
+        let rest = len.unwrap_or(last).saturating_sub(last);
+        counters.bytes.fetch_add(rest, Ordering::Relaxed);
+        counters.files_done.fetch_add(1, Ordering::Relaxed);
+        Ok(Converted {
+            report: result?,
+            seconds: started.elapsed().as_secs_f64(),
+        })
+    }
+}
+
+/// Input records a conversion copied.
+fn records_copied(report: &ConvertReport) -> u64 {
+    let c = &report.copied;
+    c.messages + c.schemas + c.channels + c.attachments + c.metadata
+}
+
+fn total_scans(report: &ConvertReport) -> u64 {
+    report.topics.values().map(|t| t.scans).sum()
+}
+
+fn total_malformed(report: &ConvertReport) -> u64 {
+    report.topics.values().map(|t| t.malformed).sum()
+}
+
+/// Warnings a conversion reported (per message, per skipped chunk, a truncated end, orphans).
+fn warning_count(report: &ConvertReport) -> u64 {
+    report.warnings.len() as u64
+        + report.model_fit.len() as u64
+        + report.read.bad_chunks.len() as u64
+        + report.read.bad_records.len() as u64
+        + u64::from(report.read.stopped.is_some())
+        + u64::from(report.copied.orphan_messages > 0)
+}
+
+/// Whether anything was skipped or unreadable (what `--strict` turns into exit code 3).
+pub(crate) fn data_skipped(report: &ConvertReport) -> bool {
+    report.skipped_anything()
+}
+
+/// What was read and how it went; the output fields are filled by [`finish_entry`].
+pub(crate) fn manifest_entry(
+    rel_input: &str,
+    size: u64,
+    input_hash: String,
+    rel_output: &str,
+    settings: &str,
+    result: &anyhow::Result<Converted>,
+) -> Entry {
+    let (status, error, report, seconds) = match result {
+        Ok(c) => (Status::Ok, None, Some(&c.report), c.seconds),
+        Err(e) => (Status::Failed, Some(format!("{e:#}")), None, 0.0),
+    };
+    Entry {
+        input: rel_input.into(),
+        input_size: size,
+        input_hash,
+        output: rel_output.into(),
+        output_size: None,
+        output_hash: None,
+        status,
+        error,
+        records_copied: report.map_or(0, records_copied),
+        scans: report.map_or(0, total_scans),
+        malformed: report.map_or(0, total_malformed),
+        warnings: report.map_or(0, warning_count),
+        seconds,
+        tool: "rangegan-mcap".into(),
+        version: env!("CARGO_PKG_VERSION").into(),
+        args: settings.into(),
+    }
+}
+
+/// Adds the output's size and hash to an entry of a converted file.
+pub(crate) fn finish_entry(entry: &mut Entry, output: &Path) -> anyhow::Result<()> {
+    // A --strict run that skipped data keeps no output.
+    if entry.status == Status::Ok && output.exists() {
+        entry.output_size = Some(std::fs::metadata(output)?.len());
+        entry.output_hash = Some(manifest::hash_file(output)?);
+    }
+    Ok(())
+}
+
+/// Prints a file's warnings and its summary line on stderr.
+pub(crate) fn print_file_summary(global: &GlobalArgs, input: &Path, output: &Path, c: &Converted) {
+    let report = &c.report;
+    if !global.quiet {
+        for w in report.warnings.iter().chain(&report.model_fit) {
             eprintln!("warning: {}", w.message);
         }
     }
-    super::warn_read_damage(&args.input, &report.read);
+    super::warn_read_damage(input, &report.read);
     if report.records_in.messages == 0 {
         eprintln!(
             "warning: {}: no message could be read{}",
-            args.input.display(),
+            input.display(),
             if report.read.damaged() {
                 " (see above)"
             } else {
@@ -248,42 +570,82 @@ pub fn run(global: &GlobalArgs, args: ConvertArgs) -> anyhow::Result<Outcome> {
     if let Some(why) = &report.read.stopped {
         eprintln!(
             "warning: {}: {why}; {} bytes after the last complete record could not be read (every complete message was processed)",
-            args.input.display(),
+            input.display(),
             report.read.unread_bytes
         );
     }
     if report.copied.orphan_messages > 0 {
         eprintln!(
             "warning: {}: {} messages on channels that were never defined were dropped",
-            args.input.display(),
+            input.display(),
             report.copied.orphan_messages
         );
     }
-    let scans: u64 = report.topics.values().map(|t| t.scans).sum();
-    let malformed: u64 = report.topics.values().map(|t| t.malformed).sum();
-    if global.json {
-        let summary = serde_json::json!({ "input": args.input, "output": args.output, "seconds": secs, "report": report });
-        println!("{}", serde_json::to_string_pretty(&summary)?);
-    }
     if !global.quiet {
+        let secs = c.seconds.max(1e-9);
         eprintln!(
             "{} -> {}: {} records copied, {} scans on {} topics -> {} new messages, {} malformed, {:.1} MB/s, {:.1} scans/s",
-            args.input.display(),
-            args.output.display(),
-            report.copied.messages
-                + report.copied.schemas
-                + report.copied.channels
-                + report.copied.attachments
-                + report.copied.metadata,
-            scans,
+            input.display(),
+            output.display(),
+            records_copied(report),
+            total_scans(report),
             report.topics.len(),
             report.outputs_written,
-            malformed,
-            report.read.bytes_read as f64 / 1e6 / secs.max(1e-9),
-            scans as f64 / secs.max(1e-9),
+            total_malformed(report),
+            report.read.bytes_read as f64 / 1e6 / secs,
+            total_scans(report) as f64 / secs,
         );
     }
-    Ok(if report.skipped_anything() && args.strict {
+}
+
+pub fn run(global: &GlobalArgs, args: ConvertArgs) -> anyhow::Result<Outcome> {
+    if convert_dataset::is_dataset(&args) {
+        return convert_dataset::run(global, &args);
+    }
+    args.dataset.refuse_in_one_file_form()?;
+    let input = &args.inputs[0];
+    crate::io::writer::refuse_overwriting_inputs(&args.output, &[input])?;
+    if let Some(c) = args.columns {
+        crate::lidar::profile::check_columns(c).map_err(anyhow::Error::msg)?;
+    }
+    std::fs::File::open(input).with_context(|| format!("cannot open {}", input.display()))?;
+    let decoding = resolve_decoding(&args)?;
+    let counters = Counters::default();
+    let mut converter = FileConverter::new(&args, decoding.as_ref(), &counters)?;
+    // One file: a --strict run that exits non-zero keeps no output.
+    converter.opts.strict = args.strict;
+    let size = std::fs::metadata(input).map(|m| m.len()).unwrap_or(0);
+    let bar = super::progress_bar(global, size);
+    let name = input.display().to_string();
+    let converted = with_progress(&bar, &counters, None, || {
+        converter.convert(input, &name, &args.output, args.force, &counters)
+    })?;
+    print_file_summary(global, input, &args.output, &converted);
+    if global.json {
+        // The manifest line of this file, so a driver running one file per task (e.g. on
+        // Ray) can assemble a dataset's manifest.
+        let mut entry = manifest_entry(
+            &name,
+            size,
+            manifest::hash_file(input)?,
+            &args.output.display().to_string(),
+            &converter.settings,
+            &Ok(Converted {
+                report: converted.report.clone(),
+                seconds: converted.seconds,
+            }),
+        );
+        finish_entry(&mut entry, &args.output)?;
+        let summary = serde_json::json!({
+            "input": input,
+            "output": args.output,
+            "seconds": converted.seconds,
+            "report": converted.report,
+            "manifest": entry,
+        });
+        println!("{}", serde_json::to_string_pretty(&summary)?);
+    }
+    Ok(if data_skipped(&converted.report) && args.strict {
         eprintln!(
             "{}: not written (--strict: input was skipped or unreadable)",
             args.output.display()

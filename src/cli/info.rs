@@ -144,6 +144,9 @@ pub fn run(global: &GlobalArgs, args: InfoArgs) -> anyhow::Result<Outcome> {
             "  {:>4} {} [{} / {}] {} messages",
             ch.id, ch.topic, ch.schema, ch.message_encoding, ch.messages
         );
+        if let (Some(first), Some(last)) = (ch.first_log_time, ch.last_log_time) {
+            println!("       {}", time_span(first, last, ch.messages));
+        }
         if let Some(l) = &ch.layout {
             println!(
                 "       point cloud {}x{} ({} returns), fields {}",
@@ -182,6 +185,40 @@ pub fn run(global: &GlobalArgs, args: InfoArgs) -> anyhow::Result<Outcome> {
         println!("metadata: {}", metadata.join(", "));
     }
     Ok(Outcome::Success)
+}
+
+/// `2024-01-01 00:00:00.000 UTC, 12.300 s, 10.0 Hz`: when a topic starts, how long it lasts
+/// and its mean rate (log times).
+fn time_span(first: u64, last: u64, messages: u64) -> String {
+    let secs = last.saturating_sub(first) as f64 / 1e9;
+    let rate = if messages > 1 && secs > 0.0 {
+        format!(", {:.1} Hz", (messages - 1) as f64 / secs)
+    } else {
+        String::new()
+    };
+    format!("from {}, {secs:.3} s{rate}", utc(first))
+}
+
+/// A log time as a UTC date (days-from-civil inverse, proleptic Gregorian).
+fn utc(nanos: u64) -> String {
+    let secs = nanos / 1_000_000_000;
+    let (days, rest) = ((secs / 86_400) as i64, secs % 86_400);
+    let z = days + 719_468;
+    let era = z.div_euclid(146_097);
+    let doe = z - era * 146_097;
+    let yoe = (doe - doe / 1_460 + doe / 36_524 - doe / 146_096) / 365;
+    let doy = doe - (365 * yoe + yoe / 4 - yoe / 100);
+    let mp = (5 * doy + 2) / 153;
+    let day = doy - (153 * mp + 2) / 5 + 1;
+    let month = if mp < 10 { mp + 3 } else { mp - 9 };
+    let year = yoe + era * 400 + i64::from(month <= 2);
+    format!(
+        "{year:04}-{month:02}-{day:02} {:02}:{:02}:{:02}.{:03} UTC",
+        rest / 3600,
+        rest / 60 % 60,
+        rest % 60,
+        nanos % 1_000_000_000 / 1_000_000
+    )
 }
 
 fn describe(format: CloudFormat, data: &[u8], sensor: &SensorChoice) -> CloudLayoutInfo {
@@ -254,4 +291,27 @@ fn describe(format: CloudFormat, data: &[u8], sensor: &SensorChoice) -> CloudLay
         Err(e) => info.error = Some(e.to_string()),
     }
     info
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn log_times_read_as_utc_dates_with_rates() {
+        assert_eq!(utc(0), "1970-01-01 00:00:00.000 UTC");
+        assert_eq!(
+            utc(1_704_067_200_250_000_000),
+            "2024-01-01 00:00:00.250 UTC"
+        );
+        assert_eq!(utc(951_825_600_000_000_000), "2000-02-29 12:00:00.000 UTC");
+        assert_eq!(
+            time_span(1_000_000_000, 2_000_000_000, 11),
+            "from 1970-01-01 00:00:01.000 UTC, 1.000 s, 10.0 Hz"
+        );
+        assert_eq!(
+            time_span(5, 5, 1),
+            "from 1970-01-01 00:00:00.000 UTC, 0.000 s"
+        );
+    }
 }

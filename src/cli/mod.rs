@@ -4,6 +4,7 @@
 
 mod calibrate;
 mod convert;
+mod convert_dataset;
 mod diagnose;
 mod import;
 mod info;
@@ -76,7 +77,8 @@ pub struct CloudOutputArgs {
     /// Frame id of the point clouds.
     #[arg(long, default_value = "velodyne")]
     pub frame_id: String,
-    /// Log time of the first scan, seconds; scans follow at 10 Hz.
+    /// Log time of the first scan, seconds since 1970-01-01 UTC; scans follow at 10 Hz.
+    /// 0 shows as 1970 in Foxglove: give a real date, e.g. `--start-secs $(date +%s)`.
     #[arg(long, default_value_t = 0.0)]
     pub start_secs: f64,
     /// Overwrite an existing OUT.
@@ -129,6 +131,8 @@ pub enum Outcome {
     Success,
     /// Done, but some input was skipped or could not be read (exit code 3).
     DataSkipped,
+    /// Some files of a dataset could not be converted; the others were (exit code 4).
+    FilesFailed,
 }
 
 impl Outcome {
@@ -136,6 +140,7 @@ impl Outcome {
         match self {
             Outcome::Success => ExitCode::SUCCESS,
             Outcome::DataSkipped => ExitCode::from(3),
+            Outcome::FilesFailed => ExitCode::from(4),
         }
     }
 }
@@ -201,6 +206,15 @@ mod tests {
             panic!("not convert")
         };
         assert_eq!(c.topic, vec!["/a".to_string(), "/b".to_string()]);
+        assert_eq!(c.inputs, vec![std::path::PathBuf::from("in.mcap")]);
+        let Command::Convert(c) =
+            Args::try_parse_from(["rangegan-mcap", "convert", "a", "b/", "c", "--jobs", "2"])
+                .unwrap()
+                .command
+        else {
+            panic!("not convert")
+        };
+        assert_eq!((c.inputs.len(), c.output.to_str()), (2, Some("c")));
         assert!(Args::try_parse_from(["rangegan-mcap", "convert", "in.mcap"]).is_err());
         assert!(
             Args::try_parse_from(["rangegan-mcap", "convert", "a", "b", "--on-error", "maybe"])

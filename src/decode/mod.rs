@@ -17,6 +17,7 @@
 pub mod amortised;
 pub mod calibrate;
 pub mod encoder_train;
+pub mod fit;
 pub mod invert;
 pub mod loss;
 

@@ -18,4 +18,4 @@ pub use channels::{ChannelEntry, ChannelTable};
 pub use decoders::{CloudFormat, DecodedCloud, Family, decode_cloud};
 pub use encoders::{Kind, Payload, PixelFormat, Transform};
 pub use reader::{OnError, ReadReport, read_records};
-pub use writer::McapOutput;
+pub use writer::{McapOutput, WriterSettings};

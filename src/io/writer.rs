@@ -26,6 +26,24 @@ pub struct CopyCounts {
     pub orphan_messages: u64,
 }
 
+/// How output files are chunked and compressed.
+#[derive(Debug, Clone, Copy)]
+pub struct WriterSettings {
+    /// `None` writes uncompressed chunks.
+    pub compression: Option<mcap::Compression>,
+    /// Target bytes per chunk before compression; `None` writes no chunks.
+    pub chunk_size: Option<u64>,
+}
+
+impl Default for WriterSettings {
+    fn default() -> Self {
+        WriterSettings {
+            compression: Some(mcap::Compression::Zstd),
+            chunk_size: Some(4 * 1024 * 1024),
+        }
+    }
+}
+
 /// An MCAP file being written; becomes visible at its path only on [`finish`](Self::finish).
 pub struct McapOutput {
     writer: Option<mcap::Writer<BufWriter<File>>>,
@@ -95,6 +113,11 @@ impl McapOutput {
     /// Starts writing `path` (via a temporary file in the same folder). An existing
     /// `path` is refused unless `force`.
     pub fn create(path: &Path, force: bool) -> anyhow::Result<Self> {
+        Self::create_with(path, force, WriterSettings::default())
+    }
+
+    /// [`create`](Self::create) with the given chunking and compression.
+    pub fn create_with(path: &Path, force: bool, settings: WriterSettings) -> anyhow::Result<Self> {
         if path.exists() && !force {
             bail!("{} exists; pass --force to overwrite it", path.display());
         }
@@ -112,9 +135,9 @@ impl McapOutput {
             .with_context(|| format!("cannot create {}", tmp_path.display()))?;
         super::cleanup::register(&tmp_path);
         let options = mcap::WriteOptions::new()
-            .compression(Some(mcap::Compression::Zstd))
+            .compression(settings.compression)
             .compression_level(3)
-            .chunk_size(Some(4 * 1024 * 1024))
+            .chunk_size(settings.chunk_size)
             .library(format!("rangegan-mcap {}", env!("CARGO_PKG_VERSION")));
         let writer = match options.create(BufWriter::with_capacity(1 << 20, file)) {
             Ok(w) => w,

@@ -1,0 +1,362 @@
+//! `rangegan-mcap convert IN... OUT` over a dataset: every `*.mcap` below the inputs is
+//! converted to the same relative path below OUT, several files at a time, each output
+//! atomic; the manifest records every file so a rerun converts only what changed, and a
+//! shard takes a fixed subset so machines can split a dataset without talking.
+
+use std::path::{Path, PathBuf};
+use std::sync::Mutex;
+use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
+
+use anyhow::bail;
+use rayon::prelude::*;
+
+use super::convert::{self, ConvertArgs, Counters, FileConverter, finish_entry, manifest_entry};
+use super::{GlobalArgs, Outcome};
+use crate::dataset::manifest::{self, Entry, ManifestWriter, Status};
+use crate::dataset::{self, DatasetFile, Shard};
+
+/// Flags of dataset mode (several inputs, a folder, or an existing output folder).
+#[derive(Debug, clap::Args)]
+pub struct DatasetArgs {
+    /// Files converted at once; the threads (`--threads`, default one per core) are split
+    /// between them and the scans inside each file. Outputs are the same bytes whatever N.
+    #[arg(long, default_value_t = 1)]
+    pub jobs: usize,
+    /// Convert only shard I of N (0-based, e.g. `--shard 3/8`): a fixed subset chosen by a
+    /// hash of each file's relative path, so N machines each run one shard into a shared
+    /// OUT; each writes `rangegan-manifest.shard-I-of-N.jsonl`.
+    #[arg(long)]
+    pub shard: Option<String>,
+    /// List each file with what a run would do (convert, or skip as up to date) and stop.
+    #[arg(long)]
+    pub dry_run: bool,
+}
+
+impl DatasetArgs {
+    /// The flags that only mean something for a dataset.
+    pub fn refuse_in_one_file_form(&self) -> anyhow::Result<()> {
+        if self.shard.is_some() || self.dry_run || self.jobs != 1 {
+            bail!(
+                "--shard, --dry-run and --jobs convert datasets: give a folder, several inputs or an existing output folder"
+            );
+        }
+        Ok(())
+    }
+}
+
+/// Dataset mode: several inputs, a folder, or an output folder that exists.
+pub fn is_dataset(args: &ConvertArgs) -> bool {
+    args.inputs.len() > 1 || args.inputs[0].is_dir() || args.output.is_dir()
+}
+
+/// Whether a converted file had data skipped (what `--strict` turns into exit code 3).
+static DATA_SKIPPED: AtomicBool = AtomicBool::new(false);
+
+/// What a run does with one file.
+struct Planned {
+    file: DatasetFile,
+    input_hash: Result<String, String>,
+    /// `None`: up to date (its manifest line).
+    todo: Result<Option<&'static str>, Entry>,
+}
+
+/// Hashes every file and compares it with its latest manifest line.
+fn plan(
+    files: Vec<DatasetFile>,
+    out: &Path,
+    settings: &str,
+    force: bool,
+) -> anyhow::Result<Vec<Planned>> {
+    let earlier = if force {
+        Default::default()
+    } else {
+        manifest::load_latest(out)?
+    };
+    Ok(files
+        .into_par_iter()
+        .map(|file| {
+            let input_hash = manifest::hash_file(&file.path).map_err(|e| format!("{e:#}"));
+            let output = out.join(&file.rel);
+            let todo = match (&input_hash, earlier.get(&file.rel)) {
+                (Ok(hash), Some(e)) => match manifest::stale_reason(e, hash, settings, &output) {
+                    Ok(None) => Err(e.clone()),
+                    Ok(Some(why)) => Ok(Some(why)),
+                    Err(_) => Ok(Some("output unreadable")),
+                },
+                (_, None) if output.exists() && !force => Ok(Some("exists, not in the manifest")),
+                _ => Ok(None),
+            };
+            Planned {
+                file,
+                input_hash,
+                todo,
+            }
+        })
+        .collect())
+}
+
+/// The totals of a run.
+#[derive(Debug, Default, serde::Serialize)]
+struct Totals {
+    files: usize,
+    ok: usize,
+    failed: usize,
+    skipped: usize,
+    bytes_read: u64,
+    scans: u64,
+    seconds: f64,
+    files_per_s: f64,
+    scans_per_s: f64,
+}
+
+pub fn run(global: &GlobalArgs, args: &ConvertArgs) -> anyhow::Result<Outcome> {
+    let out = &args.output;
+    if out.is_file() {
+        bail!(
+            "{}: converting several files or a folder needs an output folder",
+            out.display()
+        );
+    }
+    for input in &args.inputs {
+        let same = input.canonicalize().ok() == out.canonicalize().ok() && out.exists();
+        if same {
+            bail!(
+                "{}: output folder is an input; write to another folder (inputs are never modified)",
+                out.display()
+            );
+        }
+    }
+    let shard = args
+        .dataset
+        .shard
+        .as_deref()
+        .map(Shard::parse)
+        .transpose()?;
+    let mut files = dataset::list(&args.inputs, std::slice::from_ref(out))?;
+    if let Some(s) = shard {
+        files.retain(|f| s.contains(&f.rel));
+    }
+    let settings = convert::output_settings(args);
+    let started = std::time::Instant::now();
+    let planned = plan(files, out, &settings, args.force)?;
+    if args.dataset.dry_run {
+        return dry_run(global, &planned);
+    }
+    std::fs::create_dir_all(out)?;
+    let todo: Vec<&Planned> = planned.iter().filter(|p| p.todo.is_ok()).collect();
+    let mut entries: Vec<Entry> = planned
+        .iter()
+        .filter_map(|p| p.todo.as_ref().err())
+        .map(|e| Entry {
+            status: Status::Skipped,
+            ..e.clone()
+        })
+        .collect();
+    if !global.quiet && !entries.is_empty() {
+        eprintln!(
+            "{} of {} files up to date (--force converts them again)",
+            entries.len(),
+            planned.len()
+        );
+    }
+    if !todo.is_empty() {
+        let manifest_path = out.join(manifest::manifest_name(shard));
+        let writer = Mutex::new(ManifestWriter::open(&manifest_path)?);
+        let decoding = super::convert::resolve_decoding(args)?;
+        let counters = Counters::default();
+        let converter = FileConverter::new(args, decoding.as_ref(), &counters)?;
+        let bytes = todo.iter().map(|p| p.file.size).sum();
+        let bar = super::progress_bar(global, bytes);
+        let done = convert::with_progress(&bar, &counters, Some(todo.len()), || {
+            convert_all(global, args, &todo, &converter, &counters, &writer)
+        })?;
+        entries.extend(done);
+    }
+    let failed = entries
+        .iter()
+        .filter(|e| e.status == Status::Failed)
+        .count();
+    let totals = totals(&entries, started.elapsed().as_secs_f64());
+    if global.json {
+        let summary = serde_json::json!({ "output": out, "files": entries, "total": totals });
+        println!("{}", serde_json::to_string_pretty(&summary)?);
+    }
+    if !global.quiet {
+        eprintln!(
+            "{} files: {} converted, {} up to date, {} failed; {} scans in {:.1} s ({:.2} files/s, {:.1} scans/s)",
+            totals.files,
+            totals.ok,
+            totals.skipped,
+            totals.failed,
+            totals.scans,
+            totals.seconds,
+            totals.files_per_s,
+            totals.scans_per_s,
+        );
+    }
+    Ok(if failed > 0 {
+        Outcome::FilesFailed
+    } else if DATA_SKIPPED.load(Ordering::Relaxed) && args.strict {
+        Outcome::DataSkipped
+    } else {
+        Outcome::Success
+    })
+}
+
+fn totals(entries: &[Entry], seconds: f64) -> Totals {
+    let count = |s: Status| entries.iter().filter(|e| e.status == s).count();
+    let converted = entries.iter().filter(|e| e.status == Status::Ok);
+    let scans = converted.clone().map(|e| e.scans).sum();
+    Totals {
+        files: entries.len(),
+        ok: count(Status::Ok),
+        failed: count(Status::Failed),
+        skipped: count(Status::Skipped),
+        bytes_read: converted.map(|e| e.input_size).sum(),
+        scans,
+        seconds,
+        files_per_s: count(Status::Ok) as f64 / seconds.max(1e-9),
+        scans_per_s: scans as f64 / seconds.max(1e-9),
+    }
+}
+
+/// `--dry-run`: each file with what a run would do.
+fn dry_run(global: &GlobalArgs, planned: &[Planned]) -> anyhow::Result<Outcome> {
+    let rows: Vec<serde_json::Value> = planned
+        .iter()
+        .map(|p| {
+            let (action, reason) = match &p.todo {
+                Err(_) => ("skip", "up to date"),
+                Ok(Some("exists, not in the manifest")) => (
+                    "refuse",
+                    "output exists, not in the manifest; --force overwrites it",
+                ),
+                Ok(Some(why)) => ("convert", *why),
+                Ok(None) => ("convert", "new"),
+            };
+            serde_json::json!({
+                "input": p.file.rel, "path": p.file.path, "size": p.file.size,
+                "action": action, "reason": reason,
+            })
+        })
+        .collect();
+    if global.json {
+        println!(
+            "{}",
+            serde_json::to_string_pretty(&serde_json::json!({ "files": rows }))?
+        );
+    } else {
+        for r in &rows {
+            println!(
+                "{}\t{}\t{}",
+                r["action"].as_str().unwrap_or(""),
+                r["input"].as_str().unwrap_or(""),
+                r["reason"].as_str().unwrap_or("")
+            );
+        }
+    }
+    Ok(Outcome::Success)
+}
+
+/// Converts `todo` on `--jobs` workers, each with its share of the threads; appends each
+/// file's manifest line as soon as it is done.
+fn convert_all(
+    global: &GlobalArgs,
+    args: &ConvertArgs,
+    todo: &[&Planned],
+    converter: &FileConverter<'_>,
+    counters: &Counters,
+    writer: &Mutex<ManifestWriter>,
+) -> anyhow::Result<Vec<Entry>> {
+    let threads = global
+        .threads
+        .or_else(|| std::thread::available_parallelism().ok().map(|n| n.get()))
+        .unwrap_or(1);
+    let jobs = args.dataset.jobs.clamp(1, todo.len().max(1));
+    let per_job = (threads / jobs).max(1);
+    let next = AtomicUsize::new(0);
+    let entries = Mutex::new(Vec::new());
+    std::thread::scope(|scope| -> anyhow::Result<()> {
+        let workers: Vec<_> = (0..jobs)
+            .map(|_| {
+                scope.spawn(|| -> anyhow::Result<()> {
+                    let pool = rayon::ThreadPoolBuilder::new()
+                        .num_threads(per_job)
+                        .build()?;
+                    loop {
+                        let i = next.fetch_add(1, Ordering::Relaxed);
+                        let Some(p) = todo.get(i) else {
+                            return Ok(());
+                        };
+                        let entry =
+                            pool.install(|| convert_one(global, args, p, converter, counters));
+                        let line = writer
+                            .lock()
+                            .unwrap_or_else(|e| e.into_inner())
+                            .append(&entry);
+                        entries
+                            .lock()
+                            .unwrap_or_else(|e| e.into_inner())
+                            .push(entry);
+                        line?;
+                    }
+                })
+            })
+            .collect();
+        for w in workers {
+            w.join()
+                .map_err(|_| anyhow::anyhow!("a conversion worker panicked"))??;
+        }
+        Ok(())
+    })?;
+    let mut entries = entries.into_inner().unwrap_or_else(|e| e.into_inner());
+    entries.sort_by(|a, b| a.input.cmp(&b.input));
+    Ok(entries)
+}
+
+/// Converts one file of the dataset; its failure becomes its manifest line.
+fn convert_one(
+    global: &GlobalArgs,
+    args: &ConvertArgs,
+    p: &Planned,
+    converter: &FileConverter<'_>,
+    counters: &Counters,
+) -> Entry {
+    let output: PathBuf = args.output.join(&p.file.rel);
+    let refused = matches!(p.todo, Ok(Some("exists, not in the manifest")));
+    let result = match (&p.input_hash, refused) {
+        (Err(e), _) => Err(anyhow::anyhow!("{e}")), // names the file
+        (_, true) => Err(anyhow::anyhow!(
+            "{} exists and is not in the manifest; pass --force to overwrite it",
+            output.display()
+        )),
+        _ => output
+            .parent()
+            .map_or(Ok(()), std::fs::create_dir_all)
+            .map_err(anyhow::Error::from)
+            .and_then(|_| converter.convert(&p.file.path, &p.file.rel, &output, true, counters)),
+    };
+    match &result {
+        Ok(c) => {
+            if convert::data_skipped(&c.report) {
+                DATA_SKIPPED.store(true, Ordering::Relaxed);
+            }
+            convert::print_file_summary(global, &p.file.path, &output, c)
+        }
+        Err(e) => eprintln!("error: {e:#}"), // errors name the file
+    }
+    let hash = p.input_hash.clone().unwrap_or_default();
+    let mut entry = manifest_entry(
+        &p.file.rel,
+        p.file.size,
+        hash,
+        &p.file.rel,
+        &converter.settings,
+        &result,
+    );
+    if let Err(e) = finish_entry(&mut entry, &output) {
+        entry.status = Status::Failed;
+        entry.error = Some(format!("{e:#}"));
+    }
+    entry
+}

@@ -1,0 +1,263 @@
+//! The manifest of a converted dataset: one JSON line per input file saying what was
+//! read (relative path, size, content hash), what was written (path, hash), how it went
+//! and with which tool version and arguments. Lines are appended one at a time and
+//! synced, so a killed run leaves at most one torn last line, which the next run drops.
+//! A rerun skips an input whose latest line still matches.
+
+use std::collections::HashMap;
+use std::fs::{File, OpenOptions};
+use std::io::{Read, Seek, SeekFrom, Write};
+use std::path::{Path, PathBuf};
+
+use anyhow::Context;
+use serde::{Deserialize, Serialize};
+
+/// The manifest's file name in the output folder.
+pub const MANIFEST_NAME: &str = "rangegan-manifest.jsonl";
+
+/// The manifest a shard writes (shards' manifests concatenate into the whole).
+pub fn manifest_name(shard: Option<super::Shard>) -> String {
+    match shard {
+        None => MANIFEST_NAME.to_string(),
+        Some(s) => format!("rangegan-manifest.shard-{}-of-{}.jsonl", s.index, s.count),
+    }
+}
+
+/// Whether `name` is a manifest file (the whole or a shard's).
+pub fn is_manifest_name(name: &str) -> bool {
+    name.starts_with("rangegan-manifest") && name.ends_with(".jsonl")
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Status {
+    /// Converted; the output is complete.
+    Ok,
+    /// Not converted (see `error`); no output was written.
+    Failed,
+    /// Up to date from an earlier run (reported in summaries; not appended).
+    Skipped,
+}
+
+/// One input file's line.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Entry {
+    /// Input path relative to its dataset folder (`/` separators).
+    pub input: String,
+    pub input_size: u64,
+    /// `blake3:<hex>` of the input's bytes.
+    pub input_hash: String,
+    /// Output path relative to the output folder.
+    pub output: String,
+    #[serde(default)]
+    pub output_size: Option<u64>,
+    #[serde(default)]
+    pub output_hash: Option<String>,
+    pub status: Status,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub error: Option<String>,
+    /// Input records copied (schemas, channels, messages, attachments, metadata).
+    pub records_copied: u64,
+    pub scans: u64,
+    pub malformed: u64,
+    pub warnings: u64,
+    pub seconds: f64,
+    pub tool: String,
+    pub version: String,
+    /// The conversion's settings (every flag that changes the output bytes).
+    pub args: String,
+}
+
+/// `blake3:<hex>` of a file's bytes.
+pub fn hash_file(path: &Path) -> anyhow::Result<String> {
+    let mut file = File::open(path).with_context(|| format!("cannot open {}", path.display()))?;
+    let mut hasher = blake3::Hasher::new();
+    let mut buf = vec![0u8; 1 << 20];
+    loop {
+        let n = file
+            .read(&mut buf)
+            .with_context(|| format!("cannot read {}", path.display()))?;
+        if n == 0 {
+            break;
+        }
+        hasher.update(&buf[..n]);
+    }
+    Ok(format!("blake3:{}", hasher.finalize().to_hex()))
+}
+
+/// The latest line per input of every manifest in `dir` (the whole and the shards'), so a
+/// run resumes whatever split the earlier runs used. Unreadable lines (a torn last line)
+/// are ignored.
+pub fn load_latest(dir: &Path) -> anyhow::Result<HashMap<String, Entry>> {
+    let mut latest = HashMap::new();
+    let Ok(listing) = std::fs::read_dir(dir) else {
+        return Ok(latest); // no output folder yet
+    };
+    let mut names: Vec<PathBuf> = listing
+        .filter_map(|e| e.ok())
+        .map(|e| e.path())
+        .filter(|p| {
+            p.file_name()
+                .is_some_and(|n| is_manifest_name(&n.to_string_lossy()))
+        })
+        .collect();
+    names.sort();
+    for path in names {
+        let text = std::fs::read_to_string(&path)
+            .with_context(|| format!("cannot read {}", path.display()))?;
+        for line in text.lines() {
+            if let Ok(e) = serde_json::from_str::<Entry>(line) {
+                latest.insert(e.input.clone(), e);
+            }
+        }
+    }
+    Ok(latest)
+}
+
+/// Why an earlier line does not let a rerun skip its input, or `None` when it does.
+pub fn stale_reason(
+    earlier: &Entry,
+    input_hash: &str,
+    args: &str,
+    output: &Path,
+) -> anyhow::Result<Option<&'static str>> {
+    Ok(Some(if earlier.status != Status::Ok {
+        "failed before"
+    } else if earlier.input_hash != input_hash {
+        "input changed"
+    } else if earlier.args != args || earlier.version != env!("CARGO_PKG_VERSION") {
+        "other settings or tool version"
+    } else if !output.is_file() {
+        "output missing"
+    } else if std::fs::metadata(output)?.len() != earlier.output_size.unwrap_or(u64::MAX)
+        || earlier.output_hash.as_deref() != Some(hash_file(output)?.as_str())
+    {
+        "output changed"
+    } else {
+        return Ok(None);
+    }))
+}
+
+/// A manifest open for appending.
+pub struct ManifestWriter {
+    file: File,
+    path: PathBuf,
+}
+
+impl ManifestWriter {
+    /// Opens (or creates) `path` for appending; a torn last line left by a killed run is cut
+    /// off first, so the next line starts on a line of its own.
+    pub fn open(path: &Path) -> anyhow::Result<Self> {
+        let mut file = OpenOptions::new()
+            .read(true)
+            .write(true)
+            .create(true)
+            .truncate(false)
+            .open(path)
+            .with_context(|| format!("cannot open {}", path.display()))?;
+        let mut text = Vec::new();
+        file.read_to_end(&mut text)?;
+        if !text.is_empty() && !text.ends_with(b"\n") {
+            let keep = text.iter().rposition(|&b| b == b'\n').map_or(0, |i| i + 1);
+            file.set_len(keep as u64)?;
+        }
+        file.seek(SeekFrom::End(0))?;
+        Ok(ManifestWriter {
+            file,
+            path: path.to_path_buf(),
+        })
+    }
+
+    /// Appends one line (in one write) and syncs it to disk.
+    pub fn append(&mut self, entry: &Entry) -> anyhow::Result<()> {
+        let mut line = serde_json::to_vec(entry)?;
+        line.push(b'\n');
+        self.file
+            .write_all(&line)
+            .and_then(|_| self.file.sync_data())
+            .with_context(|| format!("cannot append to {}", self.path.display()))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn entry(input: &str, status: Status) -> Entry {
+        Entry {
+            input: input.into(),
+            input_size: 1,
+            input_hash: "blake3:aa".into(),
+            output: input.into(),
+            output_size: Some(3),
+            output_hash: None,
+            status,
+            error: None,
+            records_copied: 0,
+            scans: 0,
+            malformed: 0,
+            warnings: 0,
+            seconds: 0.0,
+            tool: "rangegan-mcap".into(),
+            version: env!("CARGO_PKG_VERSION").into(),
+            args: "--quality off".into(),
+        }
+    }
+
+    #[test]
+    fn a_torn_last_line_is_dropped_and_the_latest_line_wins() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join(MANIFEST_NAME);
+        let mut w = ManifestWriter::open(&path).unwrap();
+        w.append(&entry("a.mcap", Status::Failed)).unwrap();
+        w.append(&entry("a.mcap", Status::Ok)).unwrap();
+        drop(w);
+        // A run killed in the middle of a line.
+        let mut f = OpenOptions::new().append(true).open(&path).unwrap();
+        f.write_all(b"{\"input\":\"b.mc").unwrap();
+        drop(f);
+        let mut w = ManifestWriter::open(&path).unwrap();
+        w.append(&entry("c.mcap", Status::Ok)).unwrap();
+        let text = std::fs::read_to_string(&path).unwrap();
+        assert_eq!(text.lines().count(), 3);
+        assert!(
+            text.lines()
+                .all(|l| serde_json::from_str::<Entry>(l).is_ok())
+        );
+        let latest = load_latest(dir.path()).unwrap();
+        assert_eq!(latest.len(), 2);
+        assert_eq!(latest["a.mcap"].status, Status::Ok);
+    }
+
+    #[test]
+    fn only_a_matching_line_with_its_output_skips() {
+        let dir = tempfile::tempdir().unwrap();
+        let out = dir.path().join("a.mcap");
+        let mut e = entry("a.mcap", Status::Ok);
+        let reason = |e: &Entry, hash: &str, args: &str| stale_reason(e, hash, args, &out).unwrap();
+        assert_eq!(
+            reason(&e, "blake3:aa", "--quality off"),
+            Some("output missing")
+        );
+        std::fs::write(&out, b"abc").unwrap();
+        assert_eq!(
+            reason(&e, "blake3:aa", "--quality off"),
+            Some("output changed")
+        );
+        e.output_hash = Some(hash_file(&out).unwrap());
+        assert_eq!(reason(&e, "blake3:aa", "--quality off"), None);
+        assert_eq!(
+            reason(&e, "blake3:bb", "--quality off"),
+            Some("input changed")
+        );
+        assert_eq!(
+            reason(&e, "blake3:aa", "--quality fast"),
+            Some("other settings or tool version")
+        );
+        e.status = Status::Failed;
+        assert_eq!(
+            reason(&e, "blake3:aa", "--quality off"),
+            Some("failed before")
+        );
+    }
+}
