@@ -5,7 +5,7 @@
 //! whatever the thread count and memory does not grow with the file.
 
 use std::collections::{BTreeMap, HashMap};
-use std::io::Read;
+use std::io::{Read, Seek};
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
 
@@ -43,6 +43,8 @@ pub struct ConvertOptions {
     pub batch_scans: usize,
     /// Entries of the `rangegan` metadata record written to the output.
     pub metadata: BTreeMap<String, String>,
+    /// Keep no output when anything was skipped (the run then exits non-zero).
+    pub strict: bool,
     /// Counts scans as their stages finish (before their batch is written), for progress.
     pub scans_processed: Option<Arc<AtomicU64>>,
     /// Warn when a topic's scans are far from what the decoding model saw.
@@ -64,6 +66,7 @@ impl Default for ConvertOptions {
             on_error: OnError::Fail,
             batch_scans: DEFAULT_BATCH_SCANS,
             metadata: BTreeMap::new(),
+            strict: false,
             scans_processed: None,
             check_model_fit: false,
         }
@@ -274,6 +277,18 @@ pub struct ConvertReport {
     pub warnings: Vec<Warning>,
     /// Topics whose sensor is far from the decoding model's (their decoded channels are rough).
     pub model_fit: Vec<Warning>,
+}
+
+impl ConvertReport {
+    /// Whether any input was skipped, unreadable or not converted: `--strict` fails then.
+    pub fn skipped_anything(&self) -> bool {
+        self.read.damaged()
+            || self.copied.orphan_messages > 0
+            || self
+                .topics
+                .values()
+                .any(|t| t.malformed > 0 || t.stage_failures > 0)
+    }
 }
 
 /// Counts of input records by kind (the ones a copy must preserve).
@@ -501,10 +516,12 @@ pub struct Progress {
 }
 
 /// Converts `input` (read as a stream from `src`) into `out`: copies every record
-/// and adds the channels of `stages` for every point-cloud topic.
+/// and adds the channels of `stages` for every point-cloud topic. With
+/// `opts.strict`, an input with anything skipped leaves no output (the temporary
+/// file is discarded).
 pub fn convert(
     input: &std::path::Path,
-    src: impl Read,
+    mut src: impl Read + Seek,
     file_len: Option<u64>,
     mut out: McapOutput,
     opts: &ConvertOptions,
@@ -512,6 +529,11 @@ pub fn convert(
     mut progress: impl FnMut(Progress),
 ) -> anyhow::Result<ConvertReport> {
     out.write_metadata("rangegan", opts.metadata.clone())?;
+    if let Some(summary) =
+        file_len.and_then(|len| crate::io::reader::Summary::read(&mut src, len).ok())
+    {
+        out.reserve_input_topics(summary.channels.values().map(|c| c.topic.as_str()));
+    }
     let mut conv = Converter {
         out,
         opts,
@@ -545,11 +567,22 @@ pub fn convert(
             })
         },
     )
-    .map_err(|e| anyhow::anyhow!("{}: {e}", input.display()))?;
+    .map_err(|e| match e {
+        // Write errors already name the output.
+        crate::io::reader::ReadError::Visitor(e) => e,
+        e => anyhow::anyhow!("{}: {e}", input.display()),
+    })?;
     conv.flush()?;
     let mut report = conv.report;
     report.read = read;
     report.copied = conv.out.copied;
+    report
+        .warnings
+        .extend(conv.out.notes.drain(..).map(|message| Warning {
+            topic: String::new(),
+            log_time_nanos: 0,
+            message: format!("{}: {message}", input.display()),
+        }));
     report.model_fit = std::mem::take(
         &mut conv
             .processor
@@ -562,6 +595,10 @@ pub fn convert(
             t.kept_fraction /= t.scans as f64;
         }
     }
-    conv.out.finish()?;
+    if opts.strict && report.skipped_anything() {
+        conv.out.discard_and_clear_target()?;
+    } else {
+        conv.out.finish()?;
+    }
     Ok(report)
 }

@@ -49,7 +49,7 @@ pub struct ConvertArgs {
     #[arg(long, value_enum, default_value = "fail")]
     pub on_error: OnError,
     /// Exit non-zero (3) when anything was skipped or unreadable (truncated input,
-    /// skipped chunks, undecodable point clouds).
+    /// skipped chunks, undecodable point clouds), and keep no file at OUT then.
     #[arg(long)]
     pub strict: bool,
     /// Overwrite an existing OUT; for folders, convert every file again even when the
@@ -503,18 +503,14 @@ fn warning_count(report: &ConvertReport) -> u64 {
     report.warnings.len() as u64
         + report.model_fit.len() as u64
         + report.read.bad_chunks.len() as u64
+        + report.read.bad_records.len() as u64
         + u64::from(report.read.stopped.is_some())
         + u64::from(report.copied.orphan_messages > 0)
 }
 
 /// Whether anything was skipped or unreadable (what `--strict` turns into exit code 3).
 pub(crate) fn data_skipped(report: &ConvertReport) -> bool {
-    let stage_failures: u64 = report.topics.values().map(|t| t.stage_failures).sum();
-    total_malformed(report) > 0
-        || stage_failures > 0
-        || report.read.stopped.is_some()
-        || !report.read.bad_chunks.is_empty()
-        || report.copied.orphan_messages > 0
+    report.skipped_anything()
 }
 
 /// What was read and how it went; the output fields are filled by [`finish_entry`].
@@ -552,7 +548,8 @@ pub(crate) fn manifest_entry(
 
 /// Adds the output's size and hash to an entry of a converted file.
 pub(crate) fn finish_entry(entry: &mut Entry, output: &Path) -> anyhow::Result<()> {
-    if entry.status == Status::Ok {
+    // A --strict run that skipped data keeps no output.
+    if entry.status == Status::Ok && output.exists() {
         entry.output_size = Some(std::fs::metadata(output)?.len());
         entry.output_hash = Some(manifest::hash_file(output)?);
     }
@@ -567,11 +564,16 @@ pub(crate) fn print_file_summary(global: &GlobalArgs, input: &Path, output: &Pat
             eprintln!("warning: {}", w.message);
         }
     }
-    for chunk in &report.read.bad_chunks {
+    super::warn_read_damage(input, &report.read);
+    if report.records_in.messages == 0 {
         eprintln!(
-            "warning: {}: skipped {chunk} ({} messages lost)",
+            "warning: {}: no message could be read{}",
             input.display(),
-            chunk.messages
+            if report.read.damaged() {
+                " (see above)"
+            } else {
+                "; the recording is empty"
+            }
         );
     }
     if let Some(why) = &report.read.stopped {
@@ -605,29 +607,22 @@ pub(crate) fn print_file_summary(global: &GlobalArgs, input: &Path, output: &Pat
     }
 }
 
-fn same_file(a: &Path, b: &Path) -> bool {
-    match (a.canonicalize(), b.canonicalize()) {
-        (Ok(a), Ok(b)) => a == b,
-        _ => false,
-    }
-}
-
 pub fn run(global: &GlobalArgs, args: ConvertArgs) -> anyhow::Result<Outcome> {
     if convert_dataset::is_dataset(&args) {
         return convert_dataset::run(global, &args);
     }
     args.dataset.refuse_in_one_file_form()?;
     let input = &args.inputs[0];
-    if *input == args.output || same_file(input, &args.output) {
-        bail!(
-            "{}: output is the input; write to another file (inputs are never modified)",
-            args.output.display()
-        );
+    crate::io::writer::refuse_overwriting_inputs(&args.output, &[input])?;
+    if let Some(c) = args.columns {
+        crate::lidar::profile::check_columns(c).map_err(anyhow::Error::msg)?;
     }
     std::fs::File::open(input).with_context(|| format!("cannot open {}", input.display()))?;
     let decoding = resolve_decoding(&args)?;
     let counters = Counters::default();
-    let converter = FileConverter::new(&args, decoding.as_ref(), &counters)?;
+    let mut converter = FileConverter::new(&args, decoding.as_ref(), &counters)?;
+    // One file: a --strict run that exits non-zero keeps no output.
+    converter.opts.strict = args.strict;
     let size = std::fs::metadata(input).map(|m| m.len()).unwrap_or(0);
     let bar = super::progress_bar(global, size);
     let name = input.display().to_string();
@@ -660,6 +655,10 @@ pub fn run(global: &GlobalArgs, args: ConvertArgs) -> anyhow::Result<Outcome> {
         println!("{}", serde_json::to_string_pretty(&summary)?);
     }
     Ok(if data_skipped(&converted.report) && args.strict {
+        eprintln!(
+            "{}: not written (--strict: input was skipped or unreadable)",
+            args.output.display()
+        );
         Outcome::DataSkipped
     } else {
         Outcome::Success

@@ -149,7 +149,7 @@ fn features(
 }
 
 pub fn run(global: &GlobalArgs, args: DiagnoseArgs) -> anyhow::Result<Outcome> {
-    anyhow::ensure!(args.columns > 0, "--columns must be > 0");
+    crate::lidar::profile::check_columns(args.columns).map_err(anyhow::Error::msg)?;
     let occupied = args.report.exists()
         && std::fs::read_dir(&args.report).map_or(true, |mut d| d.next().is_some());
     if occupied && !args.force {

@@ -21,37 +21,86 @@ pub struct ImportArgs {
     pub out: super::CloudOutputArgs,
 }
 
-/// The scans of a dataset folder, sorted, each with its label file if present.
-fn dataset_files(dir: &Path) -> anyhow::Result<Vec<(PathBuf, Option<PathBuf>)>> {
+/// A dataset folder's scans, sorted, each with its label file if present, and
+/// warnings for files that cannot take part (label files that match no scan).
+struct Dataset {
+    scans: Vec<(PathBuf, Option<PathBuf>)>,
+    warnings: Vec<String>,
+}
+
+fn files_with_extension(dir: &Path, ext: &str) -> anyhow::Result<Vec<PathBuf>> {
+    if !dir.is_dir() {
+        return Ok(Vec::new());
+    }
+    let mut files: Vec<PathBuf> = std::fs::read_dir(dir)
+        .with_context(|| format!("cannot read {}", dir.display()))?
+        .filter_map(|e| e.ok().map(|e| e.path()))
+        .filter(|p| p.extension().is_some_and(|e| e == ext))
+        .collect();
+    files.sort();
+    Ok(files)
+}
+
+/// The scans of `velodyne/*.bin` (or `*.bin` in `dir`), with labels from `labels/` or
+/// beside the `.bin` files (SemanticKITTI layouts differ).
+fn dataset_files(dir: &Path) -> anyhow::Result<Dataset> {
     let velodyne = if dir.join("velodyne").is_dir() {
         dir.join("velodyne")
     } else {
         dir.to_path_buf()
     };
-    let labels = dir.join("labels");
-    let mut bins: Vec<PathBuf> = std::fs::read_dir(&velodyne)
-        .with_context(|| format!("cannot read {}", velodyne.display()))?
-        .filter_map(|e| e.ok().map(|e| e.path()))
-        .filter(|p| p.extension().is_some_and(|e| e == "bin"))
-        .collect();
-    bins.sort();
+    let bins = files_with_extension(&velodyne, "bin")?;
     if bins.is_empty() {
         bail!("{}: no .bin scans (expected velodyne/*.bin)", dir.display());
     }
-    Ok(bins
+    let mut labels = files_with_extension(&dir.join("labels"), "label")?;
+    labels.extend(files_with_extension(&velodyne, "label")?);
+    let stem = |p: &Path| p.file_stem().map(|s| s.to_os_string());
+    let mut used = vec![false; labels.len()];
+    let scans = bins
         .into_iter()
         .map(|bin| {
-            let label = bin
-                .file_stem()
-                .map(|s| labels.join(s).with_extension("label"))
-                .filter(|l| l.exists());
-            (bin, label)
+            let found = labels.iter().position(|l| stem(l) == stem(&bin));
+            if let Some(k) = found {
+                used[k] = true;
+            }
+            (bin, found.map(|k| labels[k].clone()))
         })
-        .collect())
+        .collect();
+    let mut warnings: Vec<String> = labels
+        .iter()
+        .zip(&used)
+        .filter(|(_, used)| !**used)
+        .map(|(l, _)| {
+            format!(
+                "{}: no .bin scan of that name; label file not used",
+                l.display()
+            )
+        })
+        .collect();
+    let scans: Vec<(PathBuf, Option<PathBuf>)> = scans;
+    let unlabelled: Vec<_> = scans.iter().filter(|s| s.1.is_none()).collect();
+    if !labels.is_empty() && !unlabelled.is_empty() {
+        warnings.push(format!(
+            "{} of {} scans have no .label file (first: {}); written without labels",
+            unlabelled.len(),
+            scans.len(),
+            unlabelled[0].0.display()
+        ));
+    }
+    Ok(Dataset { scans, warnings })
 }
 
 pub fn run(global: &GlobalArgs, args: ImportArgs) -> anyhow::Result<Outcome> {
-    let files = dataset_files(&args.dir)?;
+    let Dataset {
+        scans: files,
+        mut warnings,
+    } = dataset_files(&args.dir)?;
+    let inputs: Vec<&Path> = files
+        .iter()
+        .flat_map(|(bin, label)| std::iter::once(bin.as_path()).chain(label.as_deref()))
+        .collect();
+    crate::io::writer::refuse_overwriting_inputs(&args.out.output, &inputs)?;
     let mut out = args.out.create()?;
     out.write_metadata(
         "rangegan",
@@ -64,8 +113,17 @@ pub fn run(global: &GlobalArgs, args: ImportArgs) -> anyhow::Result<Outcome> {
     let channel = out.own_channel(&args.out.topic, Family::Ros2, Kind::Cloud)?;
     let bar = super::progress_bar(global, files.len() as u64);
     let start_nanos = args.out.start_nanos()?;
-    for (i, (bin, label)) in files.iter().enumerate() {
+    let mut written = 0u64;
+    for (bin, label) in &files {
         let mut scan = kitti::read_scan(bin, label.as_deref())?;
+        if scan.returns() == 0 {
+            warnings.push(format!(
+                "{}: no point with a return; scan not written",
+                bin.display()
+            ));
+            bar.inc(1);
+            continue;
+        }
         // KITTI stores rings one after another; make the ring explicit for every reader.
         scan.ring = Some(
             ring_order_ids(&scan)
@@ -73,7 +131,8 @@ pub fn run(global: &GlobalArgs, args: ImportArgs) -> anyhow::Result<Outcome> {
                 .map(|r| r.min(u16::MAX as u32) as u16)
                 .collect(),
         );
-        let stamp = start_nanos + i as u64 * 100_000_000;
+        let stamp = start_nanos + written * 100_000_000;
+        written += 1;
         let msg = encode_cloud(Family::Ros2, stamp, &args.out.frame_id, &scan, &[]);
         out.write_own(channel, stamp, stamp, &msg)?;
         bar.inc(1);
@@ -81,17 +140,20 @@ pub fn run(global: &GlobalArgs, args: ImportArgs) -> anyhow::Result<Outcome> {
     bar.finish_and_clear();
     out.finish()?;
     let labelled = files.iter().filter(|f| f.1.is_some()).count();
+    for w in &warnings {
+        eprintln!("warning: {w}");
+    }
     if global.json {
         println!(
             "{}",
-            serde_json::json!({ "output": args.out.output, "scans": files.len(), "labelled": labelled, "topic": args.out.topic })
+            serde_json::json!({ "output": args.out.output, "scans": written, "labelled": labelled, "topic": args.out.topic, "warnings": warnings })
         );
     } else if !global.quiet {
         eprintln!(
             "{} -> {}: {} scans ({} labelled) on {}",
             args.dir.display(),
             args.out.output.display(),
-            files.len(),
+            written,
             labelled,
             args.out.topic
         );

@@ -135,6 +135,9 @@ pub fn run(global: &GlobalArgs, args: InfoArgs) -> anyhow::Result<Outcome> {
     for c in &report.bad_chunks {
         println!("  warning: {c}");
     }
+    for r in &report.bad_records {
+        println!("  warning: skipped {r}");
+    }
     println!("channels:");
     for ch in channels.values() {
         println!(

@@ -103,6 +103,27 @@ impl CloudOutputArgs {
     }
 }
 
+/// Warnings for every part of `input` that could not be read: skipped chunks and
+/// records, and the reason reading stopped early.
+pub(crate) fn warn_read_damage(input: &std::path::Path, read: &crate::io::ReadReport) {
+    for c in &read.bad_chunks {
+        eprintln!(
+            "warning: {}: skipped {c} ({} messages lost)",
+            input.display(),
+            c.messages
+        );
+    }
+    for r in &read.bad_records {
+        eprintln!("warning: {}: skipped {r}", input.display());
+    }
+    for r in &read.from_summary {
+        eprintln!(
+            "warning: {}: {r} rebuilt from the summary section (its own record was lost)",
+            input.display()
+        );
+    }
+}
+
 /// How a command ended when it did not fail outright.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Outcome {

@@ -11,7 +11,7 @@
 
 use std::borrow::Cow;
 use std::collections::{BTreeMap, HashMap, VecDeque};
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 
 use anyhow::Context;
 use mcap::records::Record;
@@ -245,6 +245,19 @@ fn resolve_physics(
 }
 
 pub fn run(global: &GlobalArgs, args: RenderArgs) -> anyhow::Result<Outcome> {
+    let physics_file = args
+        .physics
+        .as_deref()
+        .map(Path::new)
+        .filter(|p| p.is_file());
+    let inputs: Vec<&Path> = std::iter::once(args.input.as_path())
+        .chain(args.real.as_deref())
+        .chain(physics_file)
+        .collect();
+    crate::io::writer::refuse_overwriting_inputs(&args.output, &inputs)?;
+    if let Some(c) = args.columns {
+        crate::lidar::profile::check_columns(c).map_err(anyhow::Error::msg)?;
+    }
     let gan = args.raydrop == Some(RayDrop::Gan);
     anyhow::ensure!(
         gan || !args.gan.given(),

@@ -84,6 +84,10 @@ pub fn run(global: &GlobalArgs, args: SimulateArgs) -> anyhow::Result<Outcome> {
     let sim = Simulator::new(config, profile.clone());
     let effects = physics.effects();
 
+    let physics_file = std::path::Path::new(&args.physics);
+    if physics_file.is_file() {
+        crate::io::writer::refuse_overwriting_inputs(&args.out.output, &[physics_file])?;
+    }
     let mut out = args.out.create()?;
     out.write_metadata(
         "rangegan.simulate",

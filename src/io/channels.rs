@@ -93,7 +93,14 @@ mod tests {
             }
             Ok(())
         };
-        read_records(&bytes[..], None, OnError::Fail, visit, |_| {}).unwrap();
+        read_records(
+            std::io::Cursor::new(&bytes[..]),
+            None,
+            OnError::Fail,
+            visit,
+            |_| {},
+        )
+        .unwrap();
         assert!(defined.contains(&(cloud, "/points".to_string())));
         let (p, i) = (&messages[0], &messages[1]);
         assert_eq!(p.topic, "/points");

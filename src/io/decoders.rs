@@ -73,9 +73,34 @@ pub fn decode_cloud(format: CloudFormat, data: &[u8]) -> Result<DecodedCloud, Cl
             decode_foxglove(&msg)
         }
         CloudFormat::FoxgloveJson => {
-            let msg: foxglove::messages::PointCloud = serde_json::from_slice(data)
+            let mut value: serde_json::Value = serde_json::from_slice(data)
+                .map_err(|e| CloudError::Other(format!("json: {e}")))?;
+            numeric_type_names(&mut value);
+            let msg: foxglove::messages::PointCloud = serde_json::from_value(value)
                 .map_err(|e| CloudError::Other(format!("json: {e}")))?;
             decode_foxglove(&msg)
+        }
+    }
+}
+
+/// Foxglove's JSON schema gives `PackedElementField.type` as an integer code, its
+/// protobuf JSON mapping as the enum name: integer codes become names so that both
+/// parse (an unknown code stays a number and is reported as unknown by the parser).
+fn numeric_type_names(msg: &mut serde_json::Value) {
+    use foxglove::messages::packed_element_field::NumericType;
+    let Some(fields) = msg.get_mut("fields").and_then(|f| f.as_array_mut()) else {
+        return;
+    };
+    for field in fields {
+        let Some(ty) = field.get_mut("type") else {
+            continue;
+        };
+        if let Some(name) = ty
+            .as_i64()
+            .and_then(|code| i32::try_from(code).ok())
+            .and_then(|code| NumericType::try_from(code).ok())
+        {
+            *ty = serde_json::Value::String(name.as_str_name().to_string());
         }
     }
 }

@@ -476,6 +476,39 @@ mod tests {
         assert_eq!(decode_cloud(CloudFormat::FoxgloveJson, &json).unwrap(), c);
     }
 
+    /// Foxglove's JSON schema writes `PackedElementField.type` as an integer code: both
+    /// that and the enum name decode to the same cloud.
+    #[test]
+    fn foxglove_json_with_integer_type_codes_decodes() {
+        let c = cloud();
+        let (layout, data) = super::super::pointcloud::encode(&c.scan, &[]);
+        let fields: Vec<serde_json::Value> = layout
+            .fields
+            .iter()
+            .map(|f| serde_json::json!({"name": f.name, "offset": f.offset, "type": f.numeric.foxglove_code()}))
+            .collect();
+        use base64::Engine;
+        let json = serde_json::json!({
+            "timestamp": {"sec": c.stamp_nanos / 1_000_000_000, "nsec": c.stamp_nanos % 1_000_000_000},
+            "frame_id": c.frame_id,
+            "point_stride": layout.point_step,
+            "fields": fields,
+            "data": base64::engine::general_purpose::STANDARD.encode(&data),
+        });
+        let bytes = serde_json::to_vec(&json).unwrap();
+        assert_eq!(decode_cloud(CloudFormat::FoxgloveJson, &bytes).unwrap(), c);
+        // An integer that is no NumericType is reported as such, not as malformed JSON.
+        let mut bad = json.clone();
+        bad["fields"][0]["type"] = serde_json::json!(99);
+        let err = decode_cloud(
+            CloudFormat::FoxgloveJson,
+            &serde_json::to_vec(&bad).unwrap(),
+        )
+        .unwrap_err()
+        .to_string();
+        assert!(err.contains("json"), "{err}");
+    }
+
     #[test]
     fn ros2_image_has_the_sensor_msgs_layout() {
         let data: Vec<u8> = [1.5f32, 2.5].iter().flat_map(|v| v.to_le_bytes()).collect();

@@ -1,11 +1,12 @@
 //! Bytes <-> messages. Owns MCAP reading ([`reader`]: streaming, chunk by chunk,
 //! corrupt chunks named and truncated files read up to the damage) and writing
-//! ([`writer`]: atomic, records copied unchanged), what each channel carries
+//! ([`writer`]: atomic, records copied unchanged, temporary files cleaned by [`cleanup`]), what each channel carries
 //! ([`channels`]), the ROS wire formats ([`wire`]), point-cloud decoding ([`decoders`],
 //! [`pointcloud`]) and the single encoding layer for every output channel
 //! ([`encoders`]). Knows MCAP, not GANs.
 
 pub mod channels;
+pub mod cleanup;
 pub mod decoders;
 pub mod encoders;
 pub mod pointcloud;

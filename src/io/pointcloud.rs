@@ -142,7 +142,7 @@ pub enum CloudError {
     #[error("field \"{name}\" ends at byte {end}, beyond the {point_step}-byte point")]
     FieldOutsidePoint {
         name: String,
-        end: u32,
+        end: u64,
         point_step: u32,
     },
     #[error("data holds {len} bytes, but height {height} x row_step {row_step} needs {need}")]
@@ -182,7 +182,7 @@ impl CloudLayout {
             if end > self.point_step as u64 {
                 return Err(CloudError::FieldOutsidePoint {
                     name: f.name.clone(),
-                    end: end as u32,
+                    end,
                     point_step: self.point_step,
                 });
             }
@@ -451,6 +451,10 @@ mod tests {
             layout.decode(&data),
             Err(CloudError::FieldOutsidePoint { .. })
         ));
+        // An offset near 2^32 must not wrap around to a small end byte.
+        layout.fields[0].offset = u32::MAX - 1;
+        let err = layout.decode(&data).unwrap_err().to_string();
+        assert!(err.contains("ends at byte 4294967298"), "{err}");
         layout.fields.remove(0);
         let err = layout.decode(&data).unwrap_err().to_string();
         assert!(

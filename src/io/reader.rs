@@ -1,11 +1,15 @@
 //! Streaming MCAP reader on the mcap crate's sans-io `LinearReader`: reads any
-//! `Read` front to back, one record (or one chunk) in memory at a time, so memory
-//! does not grow with the file. Chunks are opened here rather than inside the
-//! crate so that a corrupt chunk can be named (topics, time range) and skipped,
-//! and a truncated file yields every complete record before the damage.
+//! `Read + Seek` front to back, one record (or one chunk) in memory at a time, so memory
+//! does not grow with the file. Every length read from the file is checked against
+//! what the file (or [`MAX_RECORD_BYTES`]) can hold before anything is allocated.
+//! Chunks are opened here rather than inside the crate so that a corrupt chunk can be
+//! named (offset, topics, time range) and skipped, and a truncated file yields every
+//! complete record before the damage. When the footer and summary section are intact
+//! (CRC-checked), the summary supplies schemas and channels whose own records were
+//! lost, and its chunk index lets reading resume after a damaged record.
 
-use std::collections::{BTreeSet, HashMap};
-use std::io::Read;
+use std::collections::{BTreeSet, HashMap, HashSet};
+use std::io::{Read, Seek, SeekFrom};
 
 use mcap::records::{Record, op};
 use mcap::sans_io::linear_reader::{LinearReadEvent, LinearReader, LinearReaderOptions};
@@ -30,6 +34,8 @@ pub struct BadChunk {
     pub end_nanos: u64,
     /// Messages in the chunk as far as they could be counted (0 if unknown).
     pub messages: u64,
+    /// File offset of the chunk record.
+    pub offset: u64,
 }
 
 impl std::fmt::Display for BadChunk {
@@ -42,12 +48,44 @@ impl std::fmt::Display for BadChunk {
         };
         write!(
             f,
-            "{} in the chunk of {} from {} s to {} s",
+            "{} in the chunk at offset {} of {} from {} s to {} s",
             self.reason,
+            self.offset,
             topics,
             t(self.start_nanos),
             t(self.end_nanos)
         )
+    }
+}
+
+/// A record that could not be read (not a chunk: those are [`BadChunk`]s), and
+/// the bytes skipped to get past it.
+#[derive(Debug, Clone, PartialEq, serde::Serialize)]
+pub struct BadRecord {
+    /// File offset of the record's opcode.
+    pub offset: u64,
+    /// Its kind, e.g. "chunk index (opcode 0x08)", as far as it could be read.
+    pub record: String,
+    pub reason: String,
+    /// Bytes from `offset` to where reading goes on (0: the record alone).
+    pub skipped_bytes: u64,
+}
+
+impl std::fmt::Display for BadRecord {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(
+            f,
+            "{} at offset {}: {}",
+            self.record, self.offset, self.reason
+        )?;
+        if self.skipped_bytes > 0 {
+            write!(
+                f,
+                "; the next chunk in the summary's chunk index starts {} bytes later",
+                self.skipped_bytes
+            )?;
+        }
+        Ok(())
     }
 }
 
@@ -57,11 +95,11 @@ pub enum ReadError {
     #[error("{0}")]
     Io(#[from] std::io::Error),
     #[error("not an MCAP file or unreadable from the start: {0}")]
-    NotMcap(mcap::McapError),
+    NotMcap(String),
     #[error("{0}; use --on-error skip to drop this chunk and go on")]
     BadChunk(BadChunk),
-    #[error("{0}")]
-    Record(mcap::McapError),
+    #[error("{0}; use --on-error skip to skip it and go on")]
+    BadRecord(BadRecord),
     #[error(transparent)]
     Visitor(#[from] anyhow::Error),
 }
@@ -77,163 +115,667 @@ pub struct ReadReport {
     pub stopped: Option<String>,
     /// Whether the footer and end magic were reached.
     pub complete: bool,
+    /// Whether a footer with an intact (CRC-checked) summary section was found and used
+    /// to resolve channels and to resynchronise after damage.
+    pub summary_used: bool,
     pub bad_chunks: Vec<BadChunk>,
+    pub bad_records: Vec<BadRecord>,
+    /// Records rebuilt from the summary section because their own copy was lost.
+    pub from_summary: Vec<String>,
 }
+
+impl ReadReport {
+    /// Whether anything of the input was skipped or could not be read.
+    pub fn damaged(&self) -> bool {
+        self.stopped.is_some() || !self.bad_chunks.is_empty() || !self.bad_records.is_empty()
+    }
+}
+
+/// Largest record or decompressed chunk read into memory when the file size does not
+/// bound it (a stream); with a known size, a record may not be longer than the file.
+pub const MAX_RECORD_BYTES: u64 = 1 << 32;
 
 /// Reads `src` to the end, calling `visit` with every record in file order; records
 /// inside chunks are visited in place of their chunk. Index and summary records
-/// are passed on too (a copier ignores them). `file_len` (if known) sizes the
-/// unread tail of a truncated file. `progress` gets the bytes read so far.
-pub fn read_records(
-    mut src: impl Read,
+/// are passed on too (a copier ignores them). `file_len` (if known) bounds every
+/// length read from the file and sizes the unread tail of a truncated file; with it,
+/// an intact summary section (CRC-checked) supplies schemas and channels whose own
+/// records were lost, and its chunk index lets reading resume after a damaged record.
+/// `progress` gets the bytes read so far.
+pub fn read_records<R: Read + Seek>(
+    mut src: R,
     file_len: Option<u64>,
     on_error: OnError,
-    mut visit: impl FnMut(&Record<'_>) -> anyhow::Result<()>,
-    mut progress: impl FnMut(u64),
+    visit: impl FnMut(&Record<'_>) -> anyhow::Result<()>,
+    progress: impl FnMut(u64),
 ) -> Result<ReadReport, ReadError> {
-    let opts = LinearReaderOptions::default()
-        .with_emit_chunks(true)
-        .with_record_length_limit(1 << 32);
-    let mut reader = LinearReader::new_with_options(opts);
-    let mut report = ReadReport {
-        bytes_read: 8,
-        ..Default::default()
+    let summary = file_len.and_then(|len| Summary::read(&mut src, len).ok());
+    src.seek(SeekFrom::Start(0))?;
+    let mut walk = Walk {
+        file_len,
+        on_error,
+        summary,
+        report: ReadReport {
+            bytes_read: 8,
+            ..Default::default()
+        },
+        topics: HashMap::new(),
+        seen_schemas: HashSet::new(),
+        seen_channels: HashSet::new(),
+        pending_bad: None,
+        in_summary_section: false,
+        visit,
+        progress,
     };
-    let mut topics: HashMap<u16, String> = HashMap::new();
-    let mut seen_any = false;
-    // A broken chunk is completed from the message indexes that follow it (they
-    // list its messages per channel) before it is reported or fails the read.
-    let mut pending_bad: Option<(BadChunk, BTreeSet<u16>, u64)> = None;
-    while let Some(event) = reader.next_event() {
-        let (opcode, data) = match event {
-            Ok(LinearReadEvent::ReadRequest(n)) => {
-                let buf = reader.insert(n);
-                let got = loop {
-                    match src.read(buf) {
-                        Ok(k) => break k,
-                        Err(e) if e.kind() == std::io::ErrorKind::Interrupted => continue,
-                        Err(e) => return Err(ReadError::Io(e)),
+    walk.report.summary_used = walk.summary.is_some();
+    walk.run(src)?;
+    Ok(walk.report)
+}
+
+/// One pass over the file: framing by the mcap crate's `LinearReader`, records parsed,
+/// checked and visited here.
+struct Walk<V, P> {
+    file_len: Option<u64>,
+    on_error: OnError,
+    summary: Option<Summary>,
+    report: ReadReport,
+    topics: HashMap<u16, String>,
+    seen_schemas: HashSet<u16>,
+    seen_channels: HashSet<u16>,
+    /// A broken chunk is completed from the message indexes that follow it (they
+    /// list its messages per channel) before it is reported or fails the read.
+    pending_bad: Option<(BadChunk, BTreeSet<u16>, u64)>,
+    /// Past the data end record: damage here loses no message.
+    in_summary_section: bool,
+    visit: V,
+    progress: P,
+}
+
+fn linear_reader(skip_start_magic: bool, limit: u64) -> LinearReader {
+    let limit = usize::try_from(limit).unwrap_or(usize::MAX);
+    LinearReader::new_with_options(
+        LinearReaderOptions::default()
+            .with_emit_chunks(true)
+            .with_skip_start_magic(skip_start_magic)
+            .with_record_length_limit(limit),
+    )
+}
+
+impl<V, P> Walk<V, P>
+where
+    V: FnMut(&Record<'_>) -> anyhow::Result<()>,
+    P: FnMut(u64),
+{
+    fn run<R: Read + Seek>(&mut self, mut src: R) -> Result<(), ReadError> {
+        let limit = self
+            .file_len
+            .unwrap_or(MAX_RECORD_BYTES)
+            .min(MAX_RECORD_BYTES);
+        let mut reader = linear_reader(false, limit);
+        // File offset of the next byte handed to the reader, and of the next record.
+        let (mut fed, mut next_record) = (0u64, 8u64);
+        let mut seen_any = false;
+        loop {
+            let Some(event) = reader.next_event() else {
+                break;
+            };
+            let failure = match event {
+                Ok(LinearReadEvent::ReadRequest(n)) => {
+                    match self.feed(&mut src, &mut reader, fed, n)? {
+                        Ok(got) => {
+                            fed += got;
+                            continue;
+                        }
+                        Err(why) => why,
                     }
-                };
-                reader.notify_read(got);
-                continue;
+                }
+                Ok(LinearReadEvent::Record { opcode, data }) => {
+                    seen_any = true;
+                    let len = 9 + data.len() as u64;
+                    self.record(next_record, opcode, data)?;
+                    next_record += len;
+                    self.report.bytes_read += len + if opcode == op::FOOTER { 8 } else { 0 };
+                    (self.progress)(self.report.bytes_read);
+                    continue;
+                }
+                Err(e) => e.to_string(),
+            };
+            // Damage before the first record: only an intact summary can tell this is MCAP.
+            if !seen_any && self.summary.is_none() {
+                return Err(ReadError::NotMcap(failure));
             }
-            Ok(LinearReadEvent::Record { opcode, data }) => (opcode, data),
-            Err(e) if !seen_any => return Err(ReadError::NotMcap(e)),
-            Err(e) => {
-                settle_bad_chunk(&mut pending_bad, &topics, on_error, &mut report)?;
-                report.stopped = Some(match e {
-                    mcap::McapError::UnexpectedEof => {
-                        "the file ends in the middle of a record (truncated recording)".into()
-                    }
-                    other => format!("unreadable record: {other}"),
-                });
-                report.unread_bytes =
-                    file_len.map_or(0, |len| len.saturating_sub(report.bytes_read));
-                return Ok(report);
+            self.settle_bad_chunk()?;
+            match self.resync_target(next_record) {
+                Some(target) => {
+                    let record = peek_record_kind(&mut src, next_record);
+                    self.damaged_record(BadRecord {
+                        offset: next_record,
+                        record,
+                        reason: failure,
+                        skipped_bytes: target - next_record,
+                    })?;
+                    src.seek(SeekFrom::Start(target))?;
+                    reader = linear_reader(true, limit);
+                    (fed, next_record) = (target, target);
+                }
+                None => {
+                    self.stop(next_record, failure);
+                    return Ok(());
+                }
+            }
+        }
+        self.settle_bad_chunk()
+    }
+
+    /// Reads up to `n` requested bytes into the reader; a request the rest of the file
+    /// cannot satisfy is refused before anything is allocated.
+    fn feed<R: Read>(
+        &mut self,
+        src: &mut R,
+        reader: &mut LinearReader,
+        fed: u64,
+        n: usize,
+    ) -> Result<Result<u64, String>, ReadError> {
+        if let Some(len) = self.file_len
+            && fed.saturating_add(n as u64) > len
+        {
+            return Ok(Err(format!(
+                "a record needs {} more bytes at offset {fed}, but the file ends {} bytes later (truncated recording or damaged length field)",
+                n,
+                len.saturating_sub(fed)
+            )));
+        }
+        let buf = reader.insert(n);
+        let got = loop {
+            match src.read(buf) {
+                Ok(k) => break k,
+                Err(e) if e.kind() == std::io::ErrorKind::Interrupted => continue,
+                Err(e) => return Err(ReadError::Io(e)),
             }
         };
-        seen_any = true;
-        report.bytes_read += 9 + data.len() as u64;
+        reader.notify_read(got);
+        Ok(Ok(got as u64))
+    }
+
+    /// Where reading can go on after damage at `offset`: the next chunk of the
+    /// summary's chunk index, else the summary section itself.
+    fn resync_target(&self, offset: u64) -> Option<u64> {
+        let s = self.summary.as_ref()?;
+        s.chunk_offsets
+            .iter()
+            .copied()
+            .find(|&o| o > offset)
+            .or((s.start > offset).then_some(s.start))
+    }
+
+    fn stop(&mut self, offset: u64, why: String) {
+        self.report.stopped = Some(if why.contains("UnexpectedEof") || why.contains("ends") {
+            format!(
+                "the file ends in the middle of the record at offset {offset} (truncated recording): {why}"
+            )
+        } else {
+            format!("unreadable record at offset {offset}: {why}")
+        });
+        self.report.unread_bytes = self
+            .file_len
+            .map_or(0, |len| len.saturating_sub(self.report.bytes_read));
+    }
+
+    /// A damaged record: fatal under [`OnError::Fail`] unless it lies in the summary
+    /// section (indexes only; every message was read before it).
+    fn damaged_record(&mut self, bad: BadRecord) -> Result<(), ReadError> {
+        if self.on_error == OnError::Fail && !self.in_summary_section {
+            return Err(ReadError::BadRecord(bad));
+        }
+        self.report.bad_records.push(bad);
+        Ok(())
+    }
+
+    /// One framed record at file offset `offset`.
+    fn record(&mut self, offset: u64, opcode: u8, data: &[u8]) -> Result<(), ReadError> {
         if opcode == op::MESSAGE_INDEX {
-            if let Some((_, channels, indexed)) = pending_bad.as_mut()
-                && let Ok(Record::MessageIndex(index)) = mcap::parse_record(opcode, data)
+            if let Some((_, channels, indexed)) = self.pending_bad.as_mut()
+                && let Ok(Record::MessageIndex(index)) = parse_record(opcode, data)
             {
                 channels.insert(index.channel_id);
                 *indexed += index.records.len() as u64;
             }
         } else {
-            settle_bad_chunk(&mut pending_bad, &topics, on_error, &mut report)?;
+            self.settle_bad_chunk()?;
         }
-        if opcode == op::FOOTER {
-            report.complete = true;
-            report.bytes_read += 8;
+        match opcode {
+            op::FOOTER => self.report.complete = true,
+            op::DATA_END => self.in_summary_section = true,
+            _ => {}
         }
-        if opcode == op::CHUNK {
-            let chunk = mcap::parse_record(opcode, data).map_err(ReadError::Record)?;
-            if let Record::Chunk { header, data } = chunk {
-                match open_chunk(&header, &data) {
-                    Ok(records) => {
-                        for_each_record(&records, |rec| {
-                            note_channel(&mut topics, rec);
-                            visit(rec)
-                        })
-                        .map_err(|e| match e {
-                            ChunkWalk::Record(e) => ReadError::Record(e),
-                            ChunkWalk::Visitor(e) => ReadError::Visitor(e),
-                        })?;
-                    }
-                    Err(reason) => {
-                        let bad = describe_bad_chunk(reason, &header, &data, &topics);
-                        pending_bad = Some((bad, BTreeSet::new(), 0));
+        match parse_record(opcode, data) {
+            Ok(Record::Chunk { header, data }) => self.chunk(offset, &header, &data),
+            Ok(rec) => self.emit(&rec),
+            Err(e) if opcode == op::CHUNK => {
+                let bad = self.bad_chunk_at(offset, format!("unreadable chunk header: {e}"));
+                self.pending_bad = Some((bad, BTreeSet::new(), 0));
+                Ok(())
+            }
+            Err(e) => self.damaged_record(BadRecord {
+                offset,
+                record: record_kind(opcode),
+                reason: e,
+                skipped_bytes: 0,
+            }),
+        }
+    }
+
+    fn chunk(
+        &mut self,
+        offset: u64,
+        header: &mcap::records::ChunkHeader,
+        data: &[u8],
+    ) -> Result<(), ReadError> {
+        let records = match open_chunk(header, data) {
+            Ok(records) => records,
+            Err(reason) => {
+                let mut bad = describe_bad_chunk(reason, header, data, &self.topics);
+                bad.offset = offset;
+                self.pending_bad = Some((bad, BTreeSet::new(), 0));
+                return Ok(());
+            }
+        };
+        let mut damage = None;
+        let walked = for_each_record(&records, |rec| {
+            self.emit(rec).map_err(|e| match e {
+                ReadError::Visitor(e) => e,
+                other => anyhow::anyhow!("{other}"),
+            })
+        });
+        match walked {
+            Ok(()) => {}
+            Err(ChunkWalk::Visitor(e)) => return Err(ReadError::Visitor(e)),
+            Err(ChunkWalk::Record { at, error }) => damage = Some((at, error)),
+        }
+        if let Some((at, error)) = damage {
+            let mut bad = describe_bad_chunk(
+                format!(
+                    "record at byte {at} of the chunk is unreadable ({error}); the chunk's later records are lost"
+                ),
+                header,
+                &[],
+                &self.topics,
+            );
+            bad.offset = offset;
+            self.pending_bad = Some((bad, BTreeSet::new(), 0));
+        }
+        Ok(())
+    }
+
+    /// What the summary's chunk index says about the chunk at `offset`.
+    fn bad_chunk_at(&self, offset: u64, reason: String) -> BadChunk {
+        let index = self
+            .summary
+            .as_ref()
+            .and_then(|s| s.chunks.iter().find(|c| c.chunk_start_offset == offset));
+        let topics = index
+            .map(|c| {
+                c.message_index_offsets
+                    .keys()
+                    .map(|id| self.topic_name(*id))
+                    .collect()
+            })
+            .unwrap_or_default();
+        BadChunk {
+            reason,
+            topics,
+            start_nanos: index.map_or(0, |c| c.message_start_time),
+            end_nanos: index.map_or(0, |c| c.message_end_time),
+            messages: 0,
+            offset,
+        }
+    }
+
+    fn topic_name(&self, id: u16) -> String {
+        self.topics
+            .get(&id)
+            .cloned()
+            .or_else(|| self.summary.as_ref().and_then(|s| s.topic(id)))
+            .unwrap_or_else(|| format!("channel {id}"))
+    }
+
+    /// Visits `rec`, first visiting the summary's copy of a schema or channel it
+    /// refers to whose own record was lost (e.g. in a skipped chunk).
+    fn emit(&mut self, rec: &Record<'_>) -> Result<(), ReadError> {
+        let (schema, channel) = match rec {
+            Record::Channel(c) => (Some(c.schema_id), None),
+            Record::Message { header, .. } => (None, Some(header.channel_id)),
+            _ => (None, None),
+        };
+        if let Some(id) = channel
+            && !self.seen_channels.contains(&id)
+            && let Some(c) = self
+                .summary
+                .as_ref()
+                .and_then(|s| s.channels.get(&id).cloned())
+        {
+            self.report
+                .from_summary
+                .push(format!("channel {id} ({})", c.topic));
+            self.emit(&Record::Channel(c))?;
+        }
+        if let Some(id) = schema.filter(|&s| s != 0)
+            && !self.seen_schemas.contains(&id)
+            && let Some((header, data)) = self
+                .summary
+                .as_ref()
+                .and_then(|s| s.schemas.get(&id).cloned())
+        {
+            self.report
+                .from_summary
+                .push(format!("schema {id} ({})", header.name));
+            self.emit(&Record::Schema {
+                header,
+                data: data.into(),
+            })?;
+        }
+        match rec {
+            Record::Schema { header, .. } => {
+                self.seen_schemas.insert(header.id);
+            }
+            Record::Channel(c) => {
+                self.seen_channels.insert(c.id);
+                self.topics.insert(c.id, c.topic.clone());
+            }
+            _ => {}
+        }
+        (self.visit)(rec)?;
+        Ok(())
+    }
+
+    /// Reports (or, with [`OnError::Fail`], raises) a broken chunk once the message
+    /// indexes after it have been counted in.
+    fn settle_bad_chunk(&mut self) -> Result<(), ReadError> {
+        let Some((mut bad, channels, indexed)) = self.pending_bad.take() else {
+            return Ok(());
+        };
+        bad.messages = bad.messages.max(indexed);
+        for id in channels {
+            let topic = self.topic_name(id);
+            if !bad.topics.contains(&topic) {
+                bad.topics.push(topic);
+            }
+        }
+        if self.on_error == OnError::Fail {
+            return Err(ReadError::BadChunk(bad));
+        }
+        self.report.bad_chunks.push(bad);
+        Ok(())
+    }
+}
+
+/// One field of a record's layout, as far as lengths go.
+#[derive(Clone, Copy)]
+enum Field {
+    Fixed(usize),
+    /// u32 length + bytes (strings and schema data).
+    Bytes32,
+    /// u64 length + bytes (chunk records, attachment data).
+    Bytes64,
+    /// u32 byte length + entries of two u32-length strings.
+    StringMap,
+    /// Everything to the end (message data).
+    Rest,
+}
+
+/// The fields of each record kind (MCAP specification), for [`check_lengths`].
+fn layout(opcode: u8) -> &'static [Field] {
+    use Field::*;
+    match opcode {
+        op::HEADER => &[Bytes32, Bytes32],
+        op::SCHEMA => &[Fixed(2), Bytes32, Bytes32, Bytes32],
+        op::CHANNEL => &[Fixed(4), Bytes32, Bytes32, StringMap],
+        op::MESSAGE => &[Fixed(22), Rest],
+        op::CHUNK => &[Fixed(28), Bytes32, Bytes64],
+        op::MESSAGE_INDEX => &[Fixed(2), Bytes32],
+        op::CHUNK_INDEX => &[Fixed(32), Bytes32, Fixed(8), Bytes32, Fixed(16)],
+        op::ATTACHMENT => &[Fixed(16), Bytes32, Bytes32, Bytes64, Fixed(4)],
+        op::ATTACHMENT_INDEX => &[Fixed(40), Bytes32, Bytes32],
+        op::STATISTICS => &[Fixed(42), Bytes32],
+        op::METADATA => &[Bytes32, StringMap],
+        op::METADATA_INDEX => &[Fixed(16), Bytes32],
+        _ => &[Rest],
+    }
+}
+
+/// Checks every length field of a record against the record's own size before the
+/// mcap crate parses it: its parser allocates what a length field says first, so a
+/// flipped bit in one would ask for gigabytes.
+fn check_lengths(opcode: u8, data: &[u8]) -> Result<(), String> {
+    let mut at = 0usize;
+    let take = |at: &mut usize, n: u64, what: &str| -> Result<(), String> {
+        let left = (data.len() - *at) as u64;
+        if n > left {
+            return Err(format!(
+                "{what} of {n} bytes at byte {} of the record, only {left} left",
+                *at
+            ));
+        }
+        *at += n as usize;
+        Ok(())
+    };
+    let read_len = |at: &mut usize, width: usize| -> Result<u64, String> {
+        let bytes = data
+            .get(*at..*at + width)
+            .ok_or_else(|| format!("record cut short at byte {}", *at))?;
+        *at += width;
+        let mut buf = [0u8; 8];
+        buf[..width].copy_from_slice(bytes);
+        Ok(u64::from_le_bytes(buf))
+    };
+    for field in layout(opcode) {
+        match *field {
+            Field::Fixed(n) => take(&mut at, n as u64, "fixed fields")?,
+            Field::Bytes32 => {
+                let n = read_len(&mut at, 4)?;
+                take(&mut at, n, "a field")?;
+            }
+            Field::Bytes64 => {
+                let n = read_len(&mut at, 8)?;
+                take(&mut at, n, "a field")?;
+            }
+            Field::StringMap => {
+                let n = read_len(&mut at, 4)?;
+                let end = at;
+                take(&mut at, n, "a map")?;
+                let mut inner = end;
+                while inner < at {
+                    for _ in 0..2 {
+                        let len = data
+                            .get(inner..inner + 4)
+                            .map(|b| u32::from_le_bytes([b[0], b[1], b[2], b[3]]) as usize)
+                            .ok_or("map entry cut short")?;
+                        inner = inner
+                            .checked_add(4 + len)
+                            .filter(|&e| e <= at)
+                            .ok_or_else(|| format!("map entry of {len} bytes overruns its map"))?;
                     }
                 }
             }
-        } else {
-            let rec = mcap::parse_record(opcode, data).map_err(ReadError::Record)?;
-            note_channel(&mut topics, &rec);
-            visit(&rec)?;
-        }
-        progress(report.bytes_read);
-    }
-    settle_bad_chunk(&mut pending_bad, &topics, on_error, &mut report)?;
-    Ok(report)
-}
-
-/// Reports (or, with [`OnError::Fail`], raises) a broken chunk once the message
-/// indexes after it have been counted in.
-fn settle_bad_chunk(
-    pending: &mut Option<(BadChunk, BTreeSet<u16>, u64)>,
-    topics: &HashMap<u16, String>,
-    on_error: OnError,
-    report: &mut ReadReport,
-) -> Result<(), ReadError> {
-    let Some((mut bad, channels, indexed)) = pending.take() else {
-        return Ok(());
-    };
-    bad.messages = bad.messages.max(indexed);
-    for id in channels {
-        let topic = topics
-            .get(&id)
-            .cloned()
-            .unwrap_or_else(|| format!("channel {id}"));
-        if !bad.topics.contains(&topic) {
-            bad.topics.push(topic);
+            Field::Rest => return Ok(()),
         }
     }
-    if on_error == OnError::Fail {
-        return Err(ReadError::BadChunk(bad));
-    }
-    report.bad_chunks.push(bad);
     Ok(())
 }
 
-fn note_channel(topics: &mut HashMap<u16, String>, rec: &Record<'_>) {
-    if let Record::Channel(c) = rec {
-        topics.insert(c.id, c.topic.clone());
+/// `mcap::parse_record` after [`check_lengths`].
+fn parse_record(opcode: u8, data: &[u8]) -> Result<Record<'_>, String> {
+    check_lengths(opcode, data)?;
+    mcap::parse_record(opcode, data).map_err(|e| e.to_string())
+}
+
+/// The kind of record with `opcode`, for messages.
+fn record_kind(opcode: u8) -> String {
+    let name = match opcode {
+        op::HEADER => "header",
+        op::FOOTER => "footer",
+        op::SCHEMA => "schema",
+        op::CHANNEL => "channel",
+        op::MESSAGE => "message",
+        op::CHUNK => "chunk",
+        op::MESSAGE_INDEX => "message index",
+        op::CHUNK_INDEX => "chunk index",
+        op::ATTACHMENT => "attachment",
+        op::ATTACHMENT_INDEX => "attachment index",
+        op::STATISTICS => "statistics",
+        op::METADATA => "metadata",
+        op::METADATA_INDEX => "metadata index",
+        op::SUMMARY_OFFSET => "summary offset",
+        op::DATA_END => "data end",
+        _ => "unknown record",
+    };
+    format!("{name} (opcode {opcode:#04x})")
+}
+
+/// The kind and declared length of the record at `offset`, read without trusting it.
+fn peek_record_kind<R: Read + Seek>(src: &mut R, offset: u64) -> String {
+    let mut head = [0u8; 9];
+    let read = src
+        .seek(SeekFrom::Start(offset))
+        .and_then(|_| src.read_exact(&mut head));
+    match read {
+        Ok(()) => format!(
+            "{} declaring {} bytes",
+            record_kind(head[0]),
+            u64::from_le_bytes(head[1..9].try_into().unwrap_or_default())
+        ),
+        Err(_) => "record".into(),
     }
 }
 
-/// Decompresses a chunk and checks its CRC; returns its records' bytes.
-fn open_chunk(header: &mcap::records::ChunkHeader, data: &[u8]) -> Result<Vec<u8>, String> {
-    let size =
-        usize::try_from(header.uncompressed_size).map_err(|_| "chunk too large".to_string())?;
-    let records = match header.compression.as_str() {
-        "" => data.to_vec(),
-        "zstd" => zstd::bulk::decompress(data, size).map_err(|e| format!("zstd: {e}"))?,
-        "lz4" => {
-            let mut out = Vec::with_capacity(size);
-            lz4::Decoder::new(data)
-                .and_then(|mut d| d.read_to_end(&mut out))
-                .map_err(|e| format!("lz4: {e}"))?;
-            out
+/// The summary section of a file whose footer and summary are intact: its schemas and
+/// channels, and where each chunk starts.
+#[derive(Debug, Default)]
+pub struct Summary {
+    /// File offset of the summary section.
+    pub start: u64,
+    pub schemas: HashMap<u16, (mcap::records::SchemaHeader, Vec<u8>)>,
+    pub channels: HashMap<u16, mcap::records::Channel>,
+    pub chunks: Vec<mcap::records::ChunkIndex>,
+    /// Chunk start offsets, ascending.
+    pub chunk_offsets: Vec<u64>,
+}
+
+/// Footer record (opcode, length, summary start, summary offset start, CRC) + end magic.
+const FOOTER_AND_MAGIC: u64 = 1 + 8 + 20 + 8;
+
+/// Largest summary section read into memory.
+const MAX_SUMMARY_BYTES: u64 = 256 << 20;
+
+impl Summary {
+    /// Reads and checks the footer and summary section of a `file_len`-byte file.
+    pub fn read<R: Read + Seek>(src: &mut R, file_len: u64) -> Result<Summary, String> {
+        if file_len < 8 + FOOTER_AND_MAGIC {
+            return Err("too short for a footer".into());
         }
+        let footer_at = file_len - FOOTER_AND_MAGIC;
+        let mut tail = [0u8; FOOTER_AND_MAGIC as usize];
+        src.seek(SeekFrom::Start(footer_at))
+            .and_then(|_| src.read_exact(&mut tail))
+            .map_err(|e| e.to_string())?;
+        if tail[0] != op::FOOTER || tail[29..] != mcap::MAGIC[..] {
+            return Err("no footer".into());
+        }
+        let u64_at = |k: usize| u64::from_le_bytes(tail[k..k + 8].try_into().unwrap_or_default());
+        let (start, crc) = (
+            u64_at(9),
+            u32::from_le_bytes(tail[25..29].try_into().unwrap_or_default()),
+        );
+        if start < 8 || start >= footer_at || footer_at - start > MAX_SUMMARY_BYTES {
+            return Err(format!("footer gives an impossible summary start {start}"));
+        }
+        let mut bytes = vec![0u8; (footer_at - start) as usize];
+        src.seek(SeekFrom::Start(start))
+            .and_then(|_| src.read_exact(&mut bytes))
+            .map_err(|e| e.to_string())?;
+        if crc != 0 {
+            let mut hasher = crc32fast::Hasher::new();
+            hasher.update(&bytes);
+            hasher.update(&tail[..25]);
+            if hasher.finalize() != crc {
+                return Err("summary CRC mismatch".into());
+            }
+        }
+        let mut summary = Summary {
+            start,
+            ..Default::default()
+        };
+        for_each_record(&bytes, |rec| {
+            summary.add(rec);
+            Ok(())
+        })
+        .map_err(|_| "unreadable summary record".to_string())?;
+        summary.chunk_offsets = summary
+            .chunks
+            .iter()
+            .map(|c| c.chunk_start_offset)
+            .collect();
+        summary.chunk_offsets.sort_unstable();
+        summary.chunk_offsets.retain(|&o| o >= 8 && o < start);
+        Ok(summary)
+    }
+
+    fn add(&mut self, rec: &Record<'_>) {
+        match rec {
+            Record::Schema { header, data } => {
+                self.schemas
+                    .insert(header.id, (header.clone(), data.to_vec()));
+            }
+            Record::Channel(c) => {
+                self.channels.insert(c.id, c.clone());
+            }
+            Record::ChunkIndex(c) => self.chunks.push(c.clone()),
+            _ => {}
+        }
+    }
+
+    fn topic(&self, id: u16) -> Option<String> {
+        self.channels.get(&id).map(|c| c.topic.clone())
+    }
+}
+
+/// Decompresses a chunk into at most its declared size, which is checked against
+/// [`MAX_RECORD_BYTES`] first: memory follows the bytes actually produced, never a
+/// size read from the file.
+fn decompress(header: &mcap::records::ChunkHeader, data: &[u8]) -> Result<Vec<u8>, String> {
+    let size = header.uncompressed_size;
+    if size > MAX_RECORD_BYTES {
+        return Err(format!(
+            "declared uncompressed size {size} bytes is over the {MAX_RECORD_BYTES}-byte limit"
+        ));
+    }
+    // Start small: a lying size must not reserve memory; the vector grows as data comes.
+    let mut out = Vec::with_capacity((size as usize).min(data.len().saturating_mul(4) + 4096));
+    let limit = size + 1; // one byte more reveals a chunk longer than declared
+    let read = match header.compression.as_str() {
+        "" => data.take(limit).read_to_end(&mut out),
+        "zstd" => zstd::stream::read::Decoder::with_buffer(data)
+            .and_then(|d| d.take(limit).read_to_end(&mut out)),
+        "lz4" => lz4::Decoder::new(data).and_then(|d| d.take(limit).read_to_end(&mut out)),
         other => return Err(format!("unsupported chunk compression '{other}'")),
     };
-    if records.len() != size {
+    read.map_err(|e| format!("{}: {e}", header.compression))?;
+    Ok(out)
+}
+
+/// Decompresses a chunk and checks its size and CRC; returns its records' bytes.
+fn open_chunk(header: &mcap::records::ChunkHeader, data: &[u8]) -> Result<Vec<u8>, String> {
+    let records = decompress(header, data)?;
+    if records.len() as u64 != header.uncompressed_size {
         return Err(format!(
-            "chunk holds {} bytes, header says {size}",
-            records.len()
+            "chunk holds {}{} bytes, header says {}",
+            records.len(),
+            if records.len() as u64 > header.uncompressed_size {
+                " or more"
+            } else {
+                ""
+            },
+            header.uncompressed_size
         ));
     }
     if header.uncompressed_crc != 0 {
@@ -249,31 +791,50 @@ fn open_chunk(header: &mcap::records::ChunkHeader, data: &[u8]) -> Result<Vec<u8
 }
 
 enum ChunkWalk {
-    Record(mcap::McapError),
+    /// The record at byte `at` of the buffer is cut short or unparsable.
+    Record {
+        at: usize,
+        error: String,
+    },
     Visitor(anyhow::Error),
 }
 
 /// Walks the records packed in a chunk: opcode (1), length (8), body.
 fn for_each_record(
-    mut buf: &[u8],
+    buf: &[u8],
     mut f: impl FnMut(&Record<'_>) -> anyhow::Result<()>,
 ) -> Result<(), ChunkWalk> {
-    while !buf.is_empty() {
-        if buf.len() < 9 {
-            return Err(ChunkWalk::Record(mcap::McapError::UnexpectedEoc));
+    let mut at = 0usize;
+    while at < buf.len() {
+        let rest = &buf[at..];
+        if rest.len() < 9 {
+            return Err(ChunkWalk::Record {
+                at,
+                error: "record header cut short".into(),
+            });
         }
-        let opcode = buf[0];
-        let len = u64::from_le_bytes(buf[1..9].try_into().unwrap_or_default());
+        let opcode = rest[0];
+        let len = u64::from_le_bytes(rest[1..9].try_into().unwrap_or_default());
         let end = usize::try_from(len)
             .ok()
             .and_then(|l| l.checked_add(9))
-            .filter(|&e| e <= buf.len());
+            .filter(|&e| e <= rest.len());
         let Some(end) = end else {
-            return Err(ChunkWalk::Record(mcap::McapError::UnexpectedEoc));
+            return Err(ChunkWalk::Record {
+                at,
+                error: format!(
+                    "{} declares {len} bytes, {} are left",
+                    record_kind(opcode),
+                    rest.len() - 9
+                ),
+            });
         };
-        let rec = mcap::parse_record(opcode, &buf[9..end]).map_err(ChunkWalk::Record)?;
+        let rec = parse_record(opcode, &rest[9..end]).map_err(|e| ChunkWalk::Record {
+            at,
+            error: format!("{}: {e}", record_kind(opcode)),
+        })?;
         f(&rec).map_err(ChunkWalk::Visitor)?;
-        buf = &buf[end..];
+        at += end;
     }
     Ok(())
 }
@@ -290,19 +851,7 @@ fn describe_bad_chunk(
     let mut messages = 0u64;
     let mut own_topics = HashMap::new();
     // A CRC mismatch still decompresses: look inside. Broken compression yields nothing.
-    let records = match header.compression.as_str() {
-        "" => Some(data.to_vec()),
-        "zstd" => zstd::bulk::decompress(data, header.uncompressed_size as usize).ok(),
-        "lz4" => {
-            let mut out = Vec::new();
-            lz4::Decoder::new(data)
-                .and_then(|mut d| d.read_to_end(&mut out))
-                .ok()
-                .map(|_| out)
-        }
-        _ => None,
-    };
-    if let Some(records) = records {
+    if let Ok(records) = decompress(header, data) {
         let _ = for_each_record(&records, |rec| {
             match rec {
                 Record::Message { header, .. } => {
@@ -333,5 +882,53 @@ fn describe_bad_chunk(
         start_nanos: header.message_start_time,
         end_nanos: header.message_end_time,
         messages,
+        offset: 0,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A channel record whose topic length claims 4 GB: refused by the length check,
+    /// so the mcap parser never allocates it.
+    #[test]
+    fn length_fields_beyond_the_record_are_refused() {
+        let mut channel = Vec::new();
+        channel.extend_from_slice(&1u16.to_le_bytes());
+        channel.extend_from_slice(&0u16.to_le_bytes());
+        channel.extend_from_slice(&u32::MAX.to_le_bytes());
+        channel.extend_from_slice(b"/points");
+        let err = parse_record(op::CHANNEL, &channel).unwrap_err();
+        assert!(err.contains("4294967295 bytes"), "{err}");
+        // The same record with true lengths parses.
+        let mut good = Vec::new();
+        good.extend_from_slice(&1u16.to_le_bytes());
+        good.extend_from_slice(&0u16.to_le_bytes());
+        for text in ["/points", "json"] {
+            good.extend_from_slice(&(text.len() as u32).to_le_bytes());
+            good.extend_from_slice(text.as_bytes());
+        }
+        good.extend_from_slice(&0u32.to_le_bytes());
+        assert!(
+            matches!(parse_record(op::CHANNEL, &good), Ok(Record::Channel(c)) if c.topic == "/points")
+        );
+    }
+
+    /// A chunk that inflates past its declared size is cut at the size plus one byte.
+    #[test]
+    fn decompression_stops_one_byte_past_the_declared_size() {
+        let data = zstd::bulk::compress(&[7u8; 100_000], 3).unwrap();
+        let header = mcap::records::ChunkHeader {
+            message_start_time: 0,
+            message_end_time: 0,
+            uncompressed_size: 10,
+            uncompressed_crc: 0,
+            compression: "zstd".into(),
+            compressed_size: data.len() as u64,
+        };
+        assert_eq!(decompress(&header, &data).unwrap().len(), 11);
+        let err = open_chunk(&header, &data).unwrap_err();
+        assert!(err.contains("11 or more bytes, header says 10"), "{err}");
     }
 }

@@ -56,7 +56,57 @@ pub struct McapOutput {
     own_schemas: HashMap<(Family, Kind), u16>,
     own_channels: HashMap<String, u16>,
     own_sequence: HashMap<u16, u32>,
+    /// Topics of input channels (copied or announced by the input's summary): our own
+    /// channels never take one of these names.
+    input_topics: HashSet<String>,
     pub copied: CopyCounts,
+    /// What was changed to keep the output readable (a channel's missing schema, a
+    /// renamed output topic), one sentence each, for the command's warnings.
+    pub notes: Vec<String>,
+}
+
+/// Refuses to write `out` when it is one of `inputs`: the same path, a symlink to it or
+/// a hard link of it (same device and inode). Inputs are never modified, `--force` or not.
+pub fn refuse_overwriting_inputs(out: &Path, inputs: &[&Path]) -> anyhow::Result<()> {
+    for input in inputs {
+        if same_file(out, input) {
+            bail!(
+                "{}: output is the input {}; write to another file (inputs are never modified)",
+                out.display(),
+                input.display()
+            );
+        }
+    }
+    Ok(())
+}
+
+/// Whether `a` and `b` name one file: equal paths, equal canonical paths, or (on Unix)
+/// the same device and inode.
+pub fn same_file(a: &Path, b: &Path) -> bool {
+    if a == b {
+        return true;
+    }
+    if let (Ok(x), Ok(y)) = (a.canonicalize(), b.canonicalize())
+        && x == y
+    {
+        return true;
+    }
+    #[cfg(unix)]
+    {
+        use std::os::unix::fs::MetadataExt;
+        if let (Ok(x), Ok(y)) = (std::fs::metadata(a), std::fs::metadata(b)) {
+            return x.dev() == y.dev() && x.ino() == y.ino();
+        }
+    }
+    false
+}
+
+/// A write error naming the output file and the operating system's reason.
+fn write_error(path: &Path, e: mcap::McapError) -> anyhow::Error {
+    match e {
+        mcap::McapError::Io(io) => anyhow::anyhow!("cannot write {}: {io}", path.display()),
+        other => anyhow::anyhow!("cannot write {}: {other}", path.display()),
+    }
 }
 
 impl McapOutput {
@@ -78,21 +128,25 @@ impl McapOutput {
         let name = path
             .file_name()
             .with_context(|| format!("{} is not a file path", path.display()))?;
-        let tmp_path = dir.join(format!(
-            ".{}.{}.tmp",
-            name.to_string_lossy(),
-            std::process::id()
-        ));
+        let name = name.to_string_lossy();
+        super::cleanup::remove_stale(dir, &name);
+        let tmp_path = dir.join(format!(".{name}.{}.tmp", std::process::id()));
         let file = File::create(&tmp_path)
             .with_context(|| format!("cannot create {}", tmp_path.display()))?;
+        super::cleanup::register(&tmp_path);
         let options = mcap::WriteOptions::new()
             .compression(settings.compression)
             .compression_level(3)
             .chunk_size(settings.chunk_size)
             .library(format!("rangegan-mcap {}", env!("CARGO_PKG_VERSION")));
-        let writer = options
-            .create(BufWriter::with_capacity(1 << 20, file))
-            .context("cannot start MCAP writer")?;
+        let writer = match options.create(BufWriter::with_capacity(1 << 20, file)) {
+            Ok(w) => w,
+            Err(e) => {
+                let _ = std::fs::remove_file(&tmp_path);
+                super::cleanup::release(&tmp_path);
+                return Err(write_error(path, e));
+            }
+        };
         Ok(McapOutput {
             writer: Some(writer),
             tmp_path,
@@ -104,12 +158,29 @@ impl McapOutput {
             own_schemas: HashMap::new(),
             own_channels: HashMap::new(),
             own_sequence: HashMap::new(),
+            input_topics: HashSet::new(),
             copied: CopyCounts::default(),
+            notes: Vec::new(),
         })
     }
 
-    fn writer(&mut self) -> anyhow::Result<&mut mcap::Writer<BufWriter<File>>> {
-        self.writer.as_mut().context("MCAP writer already finished")
+    /// Runs one write on the MCAP writer; an error names OUT and the OS error.
+    fn write<T>(
+        &mut self,
+        f: impl FnOnce(&mut mcap::Writer<BufWriter<File>>) -> mcap::McapResult<T>,
+    ) -> anyhow::Result<T> {
+        let writer = self
+            .writer
+            .as_mut()
+            .context("MCAP writer already finished")?;
+        f(writer).map_err(|e| write_error(&self.path, e))
+    }
+
+    /// Topics the input will bring (e.g. from its summary section): our own channels
+    /// keep clear of them even before their channel records are copied.
+    pub fn reserve_input_topics<'t>(&mut self, topics: impl IntoIterator<Item = &'t str>) {
+        self.input_topics
+            .extend(topics.into_iter().map(str::to_string));
     }
 
     /// The input id if still free, else the next free one (ids are per-file handles,
@@ -135,8 +206,7 @@ impl McapOutput {
                     return Ok(true); // repeated in the summary or another chunk
                 }
                 let id = Self::claim(&mut self.used_schema_ids, header.id)?;
-                self.writer()?
-                    .add_schema_with_id(id, &header.name, &header.encoding, data)?;
+                self.write(|w| w.add_schema_with_id(id, &header.name, &header.encoding, data))?;
                 self.schema_ids.insert(header.id, id);
                 self.copied.schemas += 1;
             }
@@ -146,19 +216,22 @@ impl McapOutput {
                 }
                 let schema_id = match c.schema_id {
                     0 => 0,
-                    s => *self
-                        .schema_ids
-                        .get(&s)
-                        .with_context(|| format!("channel {} names unknown schema {s}", c.topic))?,
+                    s => match self.schema_ids.get(&s) {
+                        Some(&id) => id,
+                        None => {
+                            self.notes.push(format!(
+                                "channel {} names schema {s}, which the input does not hold; its messages were copied on a channel without schema",
+                                c.topic
+                            ));
+                            0
+                        }
+                    },
                 };
                 let id = Self::claim(&mut self.used_channel_ids, c.id)?;
-                self.writer()?.add_channel_with_id(
-                    id,
-                    schema_id,
-                    &c.topic,
-                    &c.message_encoding,
-                    &c.metadata,
-                )?;
+                self.input_topics.insert(c.topic.clone());
+                self.write(|w| {
+                    w.add_channel_with_id(id, schema_id, &c.topic, &c.message_encoding, &c.metadata)
+                })?;
                 self.channel_ids.insert(c.id, id);
                 self.copied.channels += 1;
             }
@@ -167,13 +240,11 @@ impl McapOutput {
                     self.copied.orphan_messages += 1;
                     return Ok(false);
                 };
-                self.writer()?.write_to_known_channel(
-                    &MessageHeader {
-                        channel_id,
-                        ..*header
-                    },
-                    data,
-                )?;
+                let header = MessageHeader {
+                    channel_id,
+                    ..*header
+                };
+                self.write(|w| w.write_to_known_channel(&header, data))?;
                 self.copied.messages += 1;
             }
             Record::Attachment { header, data, .. } => {
@@ -184,11 +255,11 @@ impl McapOutput {
                     media_type: header.media_type.clone(),
                     data: std::borrow::Cow::Borrowed(data),
                 };
-                self.writer()?.attach(&attachment)?;
+                self.write(|w| w.attach(&attachment))?;
                 self.copied.attachments += 1;
             }
             Record::Metadata(m) => {
-                self.writer()?.write_metadata(m)?;
+                self.write(|w| w.write_metadata(m))?;
                 self.copied.metadata += 1;
             }
             _ => return Ok(false),
@@ -202,11 +273,14 @@ impl McapOutput {
     }
 
     /// Adds (once) an output channel `topic` carrying `kind` payloads in `family`.
-    /// Own ids count down from the top so they rarely meet input ids.
+    /// Own ids count down from the top so they rarely meet input ids. A topic an input
+    /// channel already has gets a `~N` suffix (said in [`notes`](Self::notes)), so no
+    /// output holds two channels of one name with different schemas.
     pub fn own_channel(&mut self, topic: &str, family: Family, kind: Kind) -> anyhow::Result<u16> {
         if let Some(&id) = self.own_channels.get(topic) {
             return Ok(id);
         }
+        let name = self.free_topic(topic);
         let schema_id = match self.own_schemas.get(&(family, kind)) {
             Some(&id) => id,
             None => {
@@ -216,8 +290,7 @@ impl McapOutput {
                     .find(|i| !self.used_schema_ids.contains(i))
                     .context("no schema id left")?;
                 self.used_schema_ids.insert(id);
-                self.writer()?
-                    .add_schema_with_id(id, &s.name, &s.encoding, &s.data)?;
+                self.write(|w| w.add_schema_with_id(id, &s.name, &s.encoding, &s.data))?;
                 self.own_schemas.insert((family, kind), id);
                 id
             }
@@ -228,10 +301,24 @@ impl McapOutput {
             .context("no channel id left")?;
         self.used_channel_ids.insert(id);
         let encoding = encoders::message_encoding(family);
-        self.writer()?
-            .add_channel_with_id(id, schema_id, topic, encoding, &BTreeMap::new())?;
+        self.write(|w| w.add_channel_with_id(id, schema_id, &name, encoding, &BTreeMap::new()))?;
         self.own_channels.insert(topic.to_string(), id);
         Ok(id)
+    }
+
+    /// `topic`, or `topic~2`, `topic~3`, ... when an input channel already has that name.
+    fn free_topic(&mut self, topic: &str) -> String {
+        if !self.input_topics.contains(topic) {
+            return topic.to_string();
+        }
+        let name = (2..)
+            .map(|k| format!("{topic}~{k}"))
+            .find(|n| !self.input_topics.contains(n) && !self.own_channels.contains_key(n))
+            .unwrap_or_default();
+        self.notes.push(format!(
+            "the input already has a channel {topic}; this output's is named {name}"
+        ));
+        name
     }
 
     /// Writes a message on one of our own channels.
@@ -250,8 +337,7 @@ impl McapOutput {
             log_time,
             publish_time,
         };
-        self.writer()?.write_to_known_channel(&header, data)?;
-        Ok(())
+        self.write(|w| w.write_to_known_channel(&header, data))
     }
 
     /// Writes a metadata record of our own.
@@ -260,33 +346,54 @@ impl McapOutput {
         name: &str,
         entries: BTreeMap<String, String>,
     ) -> anyhow::Result<()> {
-        self.writer()?.write_metadata(&mcap::records::Metadata {
+        let metadata = mcap::records::Metadata {
             name: name.into(),
             metadata: entries,
-        })?;
-        Ok(())
+        };
+        self.write(|w| w.write_metadata(&metadata))
     }
 
-    /// Completes the file (summary, footer), syncs it and renames it into place.
+    /// Completes the file (summary, footer), syncs it and renames it into place. On
+    /// any error the temporary file is removed and the target left as it was.
     pub fn finish(mut self) -> anyhow::Result<()> {
-        let mut writer = self.writer.take().context("MCAP writer already finished")?;
-        writer
-            .finish()
-            .with_context(|| format!("cannot finish {}", self.tmp_path.display()))?;
-        let file = writer
+        self.write(|w| w.finish())?;
+        let writer = self.writer.take().context("MCAP writer already finished")?;
+        let result = writer
             .into_inner()
             .into_inner()
-            .map_err(|e| e.into_error())?;
-        file.sync_all()?;
-        drop(file);
-        std::fs::rename(&self.tmp_path, &self.path).with_context(|| {
-            format!(
-                "cannot move {} to {}",
-                self.tmp_path.display(),
-                self.path.display()
-            )
-        })?;
-        Ok(())
+            .map_err(|e| e.into_error())
+            .and_then(|file| file.sync_all())
+            .map_err(|e| anyhow::anyhow!("cannot write {}: {e}", self.path.display()))
+            .and_then(|()| {
+                std::fs::rename(&self.tmp_path, &self.path).with_context(|| {
+                    format!(
+                        "cannot move {} to {}",
+                        self.tmp_path.display(),
+                        self.path.display()
+                    )
+                })
+            });
+        if result.is_err() {
+            let _ = std::fs::remove_file(&self.tmp_path);
+        }
+        super::cleanup::release(&self.tmp_path);
+        result
+    }
+
+    /// Abandons the output: the temporary file is removed and the target left as it was.
+    pub fn discard(self) {}
+
+    /// Abandons the output and removes what stood at its path before (which this run
+    /// was allowed to replace), so no earlier file passes for this run's output.
+    pub fn discard_and_clear_target(self) -> anyhow::Result<()> {
+        let path = self.path.clone();
+        drop(self);
+        match std::fs::remove_file(&path) {
+            Err(e) if e.kind() != std::io::ErrorKind::NotFound => {
+                Err(anyhow::anyhow!("cannot remove {}: {e}", path.display()))
+            }
+            _ => Ok(()),
+        }
     }
 }
 
@@ -295,6 +402,7 @@ impl Drop for McapOutput {
         // Not finished: drop the partial temporary file, never the target.
         if self.writer.take().is_some() {
             let _ = std::fs::remove_file(&self.tmp_path);
+            super::cleanup::release(&self.tmp_path);
         }
     }
 }

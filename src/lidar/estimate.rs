@@ -12,6 +12,7 @@ use std::collections::BTreeMap;
 use std::f32::consts::TAU;
 use std::fmt;
 
+use super::profile::{MAX_BEAMS, MAX_COLUMNS};
 use super::projection::{azimuth, elevation, ring_order_ids, row_spread};
 use super::{Scan, SensorProfile};
 
@@ -85,6 +86,10 @@ pub enum EstimateError {
     NoReturns,
     #[error("found {found} beam(s), too few for a range image; pick a profile with --sensor")]
     TooFewBeams { found: usize },
+    #[error(
+        "found {found} distinct ring values, more than the {max} beams a sensor profile may have; pick a profile with --sensor and --projection spherical"
+    )]
+    TooManyBeams { found: usize, max: usize },
     #[error("the {field} field has {len} values for {points} points")]
     FieldLength {
         field: &'static str,
@@ -185,12 +190,19 @@ pub fn estimate_profile(scans: &[Scan]) -> Result<SensorEstimate, EstimateError>
     if beams.len() < MIN_BEAMS {
         return Err(EstimateError::TooFewBeams { found: beams.len() });
     }
+    if beams.len() > MAX_BEAMS {
+        return Err(EstimateError::TooManyBeams {
+            found: beams.len(),
+            max: MAX_BEAMS,
+        });
+    }
 
     let azimuth_step = (!steps.is_empty()).then(|| median_in_place(&mut steps));
     let columns = match azimuth_step {
         Some(step) if step > 0.0 => snap_columns((TAU / step).round() as usize),
         _ => scans[0].width.max(1),
-    };
+    }
+    .min(MAX_COLUMNS);
     let (mut min_range_m, mut max_range_m) = (f32::INFINITY, 0.0f32);
     for scan in scans {
         for (i, p) in scan.xyz.iter().enumerate() {

@@ -67,6 +67,23 @@ fn uniform(top_deg: f32, bottom_deg: f32, beams: usize) -> Vec<f32> {
     (0..beams).map(|i| top_deg - step * i as f32).collect()
 }
 
+/// Most beams a profile may have (the largest sensors have 128).
+pub const MAX_BEAMS: usize = 512;
+
+/// Most columns per revolution (Velodyne at 0.1 deg: 3600; Ouster: 4096 at most).
+/// With [`MAX_BEAMS`] this bounds one range image to 8 M pixels.
+pub const MAX_COLUMNS: usize = 16_384;
+
+/// Checks a range-image width (`--columns`) before anything is sized by it.
+pub fn check_columns(columns: usize) -> Result<(), String> {
+    if columns == 0 || columns > MAX_COLUMNS {
+        return Err(format!(
+            "--columns {columns}: give 1 to {MAX_COLUMNS} columns per revolution"
+        ));
+    }
+    Ok(())
+}
+
 impl SensorProfile {
     /// Names accepted by [`SensorProfile::builtin`].
     pub const BUILTIN: [&'static str; 7] = [
@@ -189,14 +206,19 @@ impl SensorProfile {
         })
     }
 
-    /// Checks the invariants the projection relies on.
+    /// Checks the invariants the projection relies on, including the size limits
+    /// that keep a range image's memory bounded.
     pub fn validate(&self) -> Result<(), String> {
         if self.elevation_deg.is_empty() {
             return Err("no beams".into());
         }
-        if self.columns == 0 {
-            return Err("columns must be > 0".into());
+        if self.elevation_deg.len() > MAX_BEAMS {
+            return Err(format!(
+                "{} beams; at most {MAX_BEAMS} are supported",
+                self.elevation_deg.len()
+            ));
         }
+        check_columns(self.columns)?;
         if let Some(off) = &self.azimuth_offset_deg
             && off.len() != self.elevation_deg.len()
         {

@@ -94,24 +94,49 @@ pub(crate) fn azimuth(p: [f32; 3]) -> f32 {
     p[1].atan2(p[0])
 }
 
+/// Fewest returns a KITTI ring-order ring may have: a lone point whose azimuth reads
+/// exactly 0 (real KITTI drive_a at 4.2 s ends with one) is no new ring.
+const MIN_RING_RETURNS: usize = 8;
+
 /// Ring id of every point in KITTI raw ring order (see [`Strategy::RingOrder`]).
-/// Points without a return keep the current ring.
+/// Points without a return keep the current ring; a "ring" of fewer than
+/// [`MIN_RING_RETURNS`] returns belongs to the ring before it.
 pub fn ring_order_ids(scan: &Scan) -> Vec<u32> {
     let mut ring = 0u32;
     let mut prev_az: Option<f32> = None;
     let mut ids = Vec::with_capacity(scan.len());
+    let mut returns = vec![0usize];
     for i in 0..scan.len() {
         if scan.is_return(i) {
             let p = scan.xyz[i];
             let az = azimuth(p);
             if prev_az.is_some_and(|prev| prev < 0.0 && az >= 0.0 && p[0] > 0.0) {
                 ring += 1;
+                returns.push(0);
             }
             prev_az = Some(az);
+            returns[ring as usize] += 1;
         }
         ids.push(ring);
     }
-    ids
+    // Renumber with short rings folded into their predecessor (the first into the next).
+    let mut new_id = Vec::with_capacity(returns.len());
+    let mut next = 0u32;
+    for (r, &n) in returns.iter().enumerate() {
+        if r > 0 && n < MIN_RING_RETURNS {
+            new_id.push(next - 1);
+        } else {
+            new_id.push(next);
+            next += 1;
+        }
+    }
+    if returns.len() > 1 && returns[0] < MIN_RING_RETURNS {
+        new_id
+            .iter_mut()
+            .skip(1)
+            .for_each(|r| *r = r.saturating_sub(1));
+    }
+    ids.iter().map(|&r| new_id[r as usize]).collect()
 }
 
 /// Maps arbitrary group ids (rings, laser ids) to rows of `profile`, ordered by
@@ -167,6 +192,9 @@ fn rows_by_median_elevation(
 /// More medians than rows cannot be matched: the extra ones get `usize::MAX`.
 pub(crate) fn match_rows(medians: &[f32], table: &[f32]) -> Vec<usize> {
     let (n, m) = (medians.len(), table.len());
+    if n == 0 {
+        return Vec::new(); // no group has a return
+    }
     if n >= m {
         return (0..n).map(|k| if k < m { k } else { usize::MAX }).collect();
     }
@@ -414,6 +442,18 @@ mod tests {
         (Scan::from_xyz(xyz), profile)
     }
 
+    /// A lone trailing point whose azimuth reads exactly 0 (as in real KITTI) does not
+    /// open a ring of its own.
+    #[test]
+    fn a_lone_point_at_azimuth_zero_is_no_new_ring() {
+        let (mut scan, _) = ring_order_scan(4, 64, 10.0);
+        scan.xyz.push([13.0, -0.0, -6.0]);
+        scan.width = scan.xyz.len();
+        let ids = ring_order_ids(&scan);
+        assert_eq!(ids.iter().max(), Some(&3), "4 rings, not 5");
+        assert_eq!(ids.last(), Some(&3));
+    }
+
     #[test]
     fn ring_order_projection_keeps_every_point_and_round_trips() {
         let (scan, profile) = ring_order_scan(4, 64, 10.0);
@@ -538,6 +578,10 @@ mod tests {
             vec![0, 2, 4]
         );
         assert_eq!(match_rows(&[0.3, 0.1], &[0.3, 0.1]), vec![0, 1]);
+        assert!(
+            match_rows(&[], &[0.3, 0.1]).is_empty(),
+            "no returns, no rows"
+        );
     }
 
     #[test]

@@ -7,7 +7,7 @@ use burn::tensor::Device;
 use burn::tensor::activation::sigmoid;
 
 use super::AnyGenerator;
-use super::data::{MIN_DEPTH_M, RangeDataset};
+use super::data::{MAX_DEPTH_M, MIN_DEPTH_M, RangeDataset};
 use super::rng::{Rng, tensor_to_vec};
 use super::weights::Model;
 use crate::lidar::{AngleGrid, SensorProfile};
@@ -124,7 +124,7 @@ pub fn sample(model: &Model, opts: &SampleOptions, device: &Device) -> Result<Ve
             let xs = &x_d_net[i * n..(i + 1) * n];
             let x_d: Vec<f32> = xs
                 .iter()
-                .map(|v| ((v + 1.0) * 0.5).clamp(1e-4, 1.0))
+                .map(|v| ((v + 1.0) * 0.5).clamp(MIN_DEPTH_M / MAX_DEPTH_M, 1.0))
                 .collect();
             let mask_i = mask[i * n..(i + 1) * n].to_vec();
             let range_m = x_d

@@ -59,9 +59,26 @@ pub fn write_recording(
     scans: usize,
     chunk_size: Option<u64>,
 ) -> u64 {
+    write_recording_with(
+        path,
+        families,
+        scans,
+        chunk_size,
+        Some(mcap::Compression::Zstd),
+    )
+}
+
+/// [`write_recording`] with the chunk compression given.
+pub fn write_recording_with(
+    path: &Path,
+    families: &[Family],
+    scans: usize,
+    chunk_size: Option<u64>,
+    compression: Option<mcap::Compression>,
+) -> u64 {
     let file = std::io::BufWriter::new(std::fs::File::create(path).unwrap());
     let opts = mcap::WriteOptions::new()
-        .compression(Some(mcap::Compression::Zstd))
+        .compression(compression)
         .chunk_size(chunk_size);
     let mut w = opts.create(file).unwrap();
     let mut channels = Vec::new();
@@ -202,12 +219,32 @@ pub fn node_read(node: &Path, path: &Path) -> serde_json::Value {
     serde_json::from_slice(&out.stdout).expect("reader prints JSON")
 }
 
-/// The real LiDAR data beside the repository (`../shared/real_lidar`), or `None` with a
-/// message saying why the calling test skips.
+/// Top-level records of an MCAP file as (opcode, offset, body length), header to footer.
+pub fn top_level_records(bytes: &[u8]) -> Vec<(u8, usize, usize)> {
+    let mut pos = 8;
+    let mut records = Vec::new();
+    while pos + 9 <= bytes.len() {
+        let len = u64::from_le_bytes(bytes[pos + 1..pos + 9].try_into().unwrap()) as usize;
+        records.push((bytes[pos], pos, len));
+        if bytes[pos] == 0x02 {
+            break; // footer
+        }
+        pos += 9 + len;
+    }
+    records
+}
+
+/// The real LiDAR data beside the repository (`../shared/real_lidar`, or
+/// `/work/shared/real_lidar` from a worktree), or `None` with a message saying why the
+/// calling test skips.
 pub fn real_data(test: &str) -> Option<PathBuf> {
     const REAL: &str = "../shared/real_lidar";
-    let dir = Path::new(REAL);
-    if dir.is_dir() {
+    const FALLBACK: &str = "/work/shared/real_lidar";
+    if let Some(dir) = [REAL, FALLBACK]
+        .map(Path::new)
+        .into_iter()
+        .find(|d| d.is_dir())
+    {
         Some(dir.to_path_buf())
     } else {
         eprintln!(

@@ -1,0 +1,782 @@
+//! Hostile input end to end: each test makes a kind of damaged or adversarial input
+//! itself (valid MCAPs written with the `mcap` crate, then corrupted) and checks the
+//! commands neither crash nor run away with memory, recover what a careful reader can,
+//! name what was skipped, and never touch an input.
+
+mod common;
+
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+use std::process::Output;
+
+use common::{bin, stderr, top_level_records, write_recording, write_recording_with};
+use rangegan_mcap::io::decoders::{DecodedCloud, Family};
+use rangegan_mcap::io::encoders::{self, Kind};
+use rangegan_mcap::lidar::Scan;
+
+const CHUNK: u8 = 0x06;
+const CHANNEL: u8 = 0x04;
+const CHUNK_INDEX: u8 = 0x08;
+const DATA_END: u8 = 0x0f;
+
+/// Address space allowed to a command under test (KiB): far below what the damaged
+/// lengths and ring counts used to allocate (1e12 bytes, 21.8 GB).
+const ADDRESS_SPACE_KIB: u64 = 3 << 20;
+
+/// Runs the binary with `args` under an address-space limit, so an allocation sized by
+/// a damaged length fails the test instead of the machine.
+fn run_limited(args: &[&str]) -> Output {
+    let mut cmd = std::process::Command::new("sh");
+    cmd.arg("-c")
+        .arg(format!("ulimit -v {ADDRESS_SPACE_KIB}; exec \"$0\" \"$@\""))
+        .arg(env!("CARGO_BIN_EXE_rangegan-mcap"))
+        .args(args);
+    cmd.output().expect("binary runs")
+}
+
+/// `convert --quality off` (range images only) with extra flags.
+fn convert(input: &Path, output: &Path, flags: &[&str]) -> Output {
+    let mut args = vec![
+        "convert",
+        input.to_str().unwrap(),
+        output.to_str().unwrap(),
+        "--quality",
+        "off",
+        "--quiet",
+        "--force",
+    ];
+    args.extend_from_slice(flags);
+    run_limited(&args)
+}
+
+/// A temporary folder with the paths of an input and an output in it.
+fn in_out() -> (tempfile::TempDir, PathBuf, PathBuf) {
+    let dir = tempfile::tempdir().unwrap();
+    let (input, output) = (dir.path().join("in.mcap"), dir.path().join("out.mcap"));
+    (dir, input, output)
+}
+
+/// `o` exited with `code` and its stderr says `needle`.
+fn expect_exit(o: &Output, code: i32, needle: &str) {
+    assert_eq!(o.status.code(), Some(code), "{}", stderr(o));
+    assert!(stderr(o).contains(needle), "{}", stderr(o));
+}
+
+fn json(o: &Output) -> serde_json::Value {
+    serde_json::from_slice(&o.stdout)
+        .unwrap_or_else(|e| panic!("{e}: {}\n{}", String::from_utf8_lossy(&o.stdout), stderr(o)))
+}
+
+fn no_temporary_files(dir: &Path) {
+    let left: Vec<_> = std::fs::read_dir(dir)
+        .unwrap()
+        .filter_map(|e| e.ok())
+        .map(|e| e.file_name().to_string_lossy().into_owned())
+        .filter(|n| n.ends_with(".tmp"))
+        .collect();
+    assert!(left.is_empty(), "temporary files left behind: {left:?}");
+}
+
+fn copied_messages(report: &serde_json::Value) -> u64 {
+    report["report"]["copied"]["messages"].as_u64().unwrap()
+}
+
+fn lost_in_chunks(report: &serde_json::Value) -> u64 {
+    report["report"]["read"]["bad_chunks"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|c| c["messages"].as_u64().unwrap())
+        .sum()
+}
+
+fn chunks(bytes: &[u8]) -> Vec<(usize, usize)> {
+    top_level_records(bytes)
+        .into_iter()
+        .filter(|r| r.0 == CHUNK)
+        .map(|r| (r.1, r.2))
+        .collect()
+}
+
+/// Writes a recording (ROS 2 clouds + a JSON note per scan) and returns its bytes.
+fn recording(path: &Path, scans: usize, compression: Option<mcap::Compression>) -> (Vec<u8>, u64) {
+    let total = write_recording_with(path, &[Family::Ros2], scans, Some(16 * 1024), compression);
+    (std::fs::read(path).unwrap(), total)
+}
+
+/// Topics of a file's channels, as the `mcap` crate's reader lists them.
+fn output_topics(path: &Path) -> Vec<String> {
+    let bytes = std::fs::read(path).unwrap();
+    let summary = mcap::Summary::read(&bytes).unwrap().expect("a summary");
+    let mut topics: Vec<String> = summary.channels.values().map(|c| c.topic.clone()).collect();
+    topics.sort();
+    topics
+}
+
+/// A chunk declaring an uncompressed size near 2^50 (one flipped bit) or 2^31 + size,
+/// zstd and lz4: a named bad chunk under a 3 GiB address-space limit, skipped with
+/// `--on-error skip`, for `convert` and `info`; no temporary file is left.
+#[test]
+fn huge_declared_chunk_sizes_are_refused_before_allocating() {
+    let (dir, input, output) = in_out();
+    for compression in [mcap::Compression::Zstd, mcap::Compression::Lz4] {
+        for (byte, bit) in [(6, 0x04), (3, 0x80)] {
+            let (mut bytes, total) = recording(&input, 4, Some(compression));
+            let (offset, _) = chunks(&bytes)[1];
+            // Chunk body: start time, end time, then the uncompressed size (u64).
+            bytes[offset + 9 + 16 + byte] ^= bit;
+            std::fs::write(&input, &bytes).unwrap();
+
+            let o = convert(&input, &output, &[]);
+            assert_eq!(o.status.code(), Some(1), "{compression:?}: {}", stderr(&o));
+            let err = stderr(&o);
+            assert!(
+                err.contains(&format!("offset {offset}")) && err.contains("--on-error skip"),
+                "{err}"
+            );
+            assert!(!output.exists());
+            no_temporary_files(dir.path());
+
+            let o = convert(&input, &output, &["--on-error", "skip", "--json"]);
+            assert!(o.status.success(), "{compression:?}: {}", stderr(&o));
+            let s = json(&o);
+            assert_eq!(copied_messages(&s) + lost_in_chunks(&s), total);
+
+            let o = run_limited(&["info", input.to_str().unwrap()]);
+            assert!(o.status.success(), "{}", stderr(&o));
+            std::fs::remove_file(&output).unwrap();
+        }
+    }
+}
+
+/// A 65 536-point cloud whose uint16 ring field holds 65 536 distinct values: the
+/// message is copied and reported (no profile has that many beams) in bounded memory,
+/// with and without a fixed sensor; absurd `--columns` is a clear error.
+#[test]
+fn distinct_ring_values_beyond_any_sensor_are_bounded_and_reported() {
+    let dir = tempfile::tempdir().unwrap();
+    let (input, output) = (dir.path().join("rings.mcap"), dir.path().join("out.mcap"));
+    let n = 65_536usize;
+    let mut scan = Scan::from_xyz(
+        (0..n)
+            .map(|i| {
+                let (az, el) = (i as f32 * 0.0001, (i as f32 / n as f32 - 0.5) * 0.5);
+                [
+                    10.0 * el.cos() * az.cos(),
+                    10.0 * el.cos() * az.sin(),
+                    10.0 * el.sin(),
+                ]
+            })
+            .collect(),
+    );
+    scan.ring = Some((0..n).map(|i| i as u16).collect());
+    let mut w = mcap::Writer::new(std::io::BufWriter::new(
+        std::fs::File::create(&input).unwrap(),
+    ))
+    .unwrap();
+    let s = encoders::schema(Family::Ros2, Kind::Cloud);
+    let schema = w.add_schema(&s.name, &s.encoding, &s.data).unwrap();
+    let channel = w
+        .add_channel(schema, "/points", "cdr", &BTreeMap::new())
+        .unwrap();
+    let cloud = DecodedCloud {
+        scan,
+        stamp_nanos: 5,
+        frame_id: "lidar".into(),
+    };
+    let data = encoders::encode_scan(Family::Ros2, &cloud, &[]);
+    let header = mcap::records::MessageHeader {
+        channel_id: channel,
+        sequence: 0,
+        log_time: 5,
+        publish_time: 5,
+    };
+    w.write_to_known_channel(&header, &data).unwrap();
+    w.finish().unwrap();
+    drop(w);
+
+    for sensor in ["auto", "hdl64e"] {
+        let o = convert(&input, &output, &["--sensor", sensor, "--json"]);
+        assert!(o.status.success(), "{sensor}: {}", stderr(&o));
+        let s = json(&o);
+        assert_eq!(copied_messages(&s), 1);
+        assert_eq!(s["report"]["topics"]["/points"]["malformed"], 1, "{s}");
+        let warning = s["report"]["warnings"][0]["message"]
+            .as_str()
+            .unwrap()
+            .to_string();
+        assert!(
+            warning.contains("rings") || warning.contains("ring values"),
+            "{warning}"
+        );
+    }
+    let o = convert(&input, &output, &["--strict"]);
+    assert_eq!(o.status.code(), Some(3));
+    let o = convert(&input, &output, &["--columns", "4000000000"]);
+    expect_exit(&o, 1, "give 1 to 16384 columns");
+}
+
+/// SIGTERM and SIGINT in the middle of a conversion remove the temporary output
+/// (exit 143 / 130); a temporary file left by a killed process is removed by the next
+/// run writing the same output.
+#[test]
+fn interrupted_conversions_leave_no_temporary_file() {
+    let (dir, input, output) = in_out();
+    write_recording(&input, &[Family::Ros2], 40, Some(16 * 1024));
+    for (signal, code) in [("TERM", 143), ("INT", 130)] {
+        // Auto-decoding makes the run long enough to be interrupted.
+        let mut child = bin()
+            .args(["convert", "--quiet", "--threads", "1"])
+            .args([&input, &output])
+            .spawn()
+            .unwrap();
+        let started = std::time::Instant::now();
+        while !has_temporary_file(dir.path()) {
+            assert!(
+                started.elapsed().as_secs() < 60,
+                "no temporary file appeared"
+            );
+            std::thread::sleep(std::time::Duration::from_millis(20));
+        }
+        std::thread::sleep(std::time::Duration::from_millis(300));
+        let killed = std::process::Command::new("kill")
+            .args([format!("-{signal}"), child.id().to_string()])
+            .status()
+            .unwrap();
+        assert!(killed.success());
+        let status = child.wait().unwrap();
+        assert_eq!(status.code(), Some(code), "SIG{signal}");
+        assert!(!output.exists());
+        no_temporary_files(dir.path());
+    }
+    // A killed run's leftover (a pid above the kernel's pid_max limit: never alive).
+    let stale = dir.path().join(".out.mcap.4194305.tmp");
+    std::fs::write(&stale, b"partial").unwrap();
+    let o = convert(&input, &output, &[]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert!(!stale.exists(), "stale temporary file removed");
+}
+
+fn has_temporary_file(dir: &Path) -> bool {
+    std::fs::read_dir(dir)
+        .unwrap()
+        .filter_map(|e| e.ok())
+        .any(|e| e.file_name().to_string_lossy().ends_with(".tmp"))
+}
+
+/// `render`, `convert` and `import` refuse to write over any input, through the same
+/// path, a symlink or a hard link, with `--force`; the inputs stay byte for byte.
+#[test]
+fn no_command_writes_over_its_inputs() {
+    let dir = tempfile::tempdir().unwrap();
+    let p = |name: &str| dir.path().join(name);
+    let (sim, real) = (p("sim.mcap"), p("real.mcap"));
+    write_recording(&sim, &[Family::Ros2], 2, None);
+    write_recording(&real, &[Family::Ros2], 2, None);
+    let before = (std::fs::read(&sim).unwrap(), std::fs::read(&real).unwrap());
+    std::os::unix::fs::symlink(&sim, p("sim_link.mcap")).unwrap();
+    std::fs::hard_link(&sim, p("sim_hard.mcap")).unwrap();
+    let s = |path: &PathBuf| path.to_str().unwrap().to_string();
+    let attempts: Vec<Vec<String>> = vec![
+        vec![
+            "render".into(),
+            "--physics".into(),
+            "ideal".into(),
+            s(&sim),
+            s(&sim),
+        ],
+        vec![
+            "render".into(),
+            "--raydrop".into(),
+            "global".into(),
+            "--real".into(),
+            s(&real),
+            s(&sim),
+            s(&real),
+        ],
+        vec![
+            "render".into(),
+            "--physics".into(),
+            "ideal".into(),
+            s(&sim),
+            s(&p("sim_link.mcap")),
+        ],
+        vec![
+            "render".into(),
+            "--physics".into(),
+            "ideal".into(),
+            s(&sim),
+            s(&p("sim_hard.mcap")),
+        ],
+        vec!["convert".into(), s(&sim), s(&p("sim_hard.mcap"))],
+        vec!["convert".into(), s(&p("sim_link.mcap")), s(&sim)],
+    ];
+    for args in attempts {
+        let o = bin().args(&args).arg("--force").output().unwrap();
+        assert_eq!(o.status.code(), Some(1), "{args:?}");
+        assert!(
+            stderr(&o).contains("output is the input"),
+            "{args:?}: {}",
+            stderr(&o)
+        );
+    }
+    assert_eq!(
+        (std::fs::read(&sim).unwrap(), std::fs::read(&real).unwrap()),
+        before
+    );
+    let kitti = p("kitti");
+    std::fs::create_dir(&kitti).unwrap();
+    let scan: Vec<u8> = [1.0f32, 2.0, 0.5, 0.3]
+        .iter()
+        .flat_map(|f| f.to_le_bytes())
+        .collect();
+    std::fs::write(kitti.join("000000.bin"), &scan).unwrap();
+    let o = bin()
+        .args(["import", kitti.to_str().unwrap()])
+        .arg(kitti.join("000000.bin"))
+        .arg("--force")
+        .output()
+        .unwrap();
+    assert_eq!(o.status.code(), Some(1), "{}", stderr(&o));
+    assert_eq!(std::fs::read(kitti.join("000000.bin")).unwrap(), scan);
+}
+
+/// The first chunk (the only one holding the cloud channel's schema and channel
+/// records) is corrupt: with `--on-error skip`, the summary section's copies resolve
+/// the later chunks' messages; every message is copied or reported lost.
+#[test]
+fn schemas_lost_with_a_chunk_come_from_the_summary() {
+    let (_dir, input, output) = in_out();
+    let (mut bytes, total) = recording(&input, 6, Some(mcap::Compression::Zstd));
+    let (offset, len) = chunks(&bytes)[0];
+    bytes[offset + 9 + len - 10] ^= 0xff;
+    std::fs::write(&input, &bytes).unwrap();
+    let o = convert(&input, &output, &["--on-error", "skip", "--json"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let s = json(&o);
+    assert_eq!(s["report"]["copied"]["orphan_messages"], 0, "{s}");
+    assert_eq!(copied_messages(&s) + lost_in_chunks(&s), total);
+    assert!(
+        s["report"]["topics"]["/lidar_ros2"]["scans"]
+            .as_u64()
+            .unwrap()
+            >= 5,
+        "{s}"
+    );
+    assert!(
+        s["report"]["read"]["from_summary"]
+            .as_array()
+            .unwrap()
+            .len()
+            >= 2,
+        "{s}"
+    );
+    assert!(output_topics(&output).contains(&"/lidar_ros2".to_string()));
+}
+
+/// One damaged chunk-index record in the summary section: named with its offset,
+/// every message still copied (the data section is enough); `--strict` exits 3 and
+/// leaves no output.
+#[test]
+fn a_damaged_summary_record_is_named_and_loses_nothing() {
+    let (_dir, input, output) = in_out();
+    let (mut bytes, total) = recording(&input, 4, Some(mcap::Compression::Zstd));
+    let records = top_level_records(&bytes);
+    let data_end = records.iter().position(|r| r.0 == DATA_END).unwrap();
+    let (_, offset, _) = *records[data_end..]
+        .iter()
+        .find(|r| r.0 == CHUNK_INDEX)
+        .unwrap();
+    // Chunk index body: 4 u64s, then the byte length of the message index offsets.
+    bytes[offset + 9 + 32..offset + 9 + 36].copy_from_slice(&u32::MAX.to_le_bytes());
+    std::fs::write(&input, &bytes).unwrap();
+    let o = convert(&input, &output, &["--json"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let s = json(&o);
+    assert_eq!(copied_messages(&s), total);
+    let bad = &s["report"]["read"]["bad_records"][0];
+    assert_eq!(bad["offset"], offset as u64, "{s}");
+    assert!(
+        bad["record"].as_str().unwrap().contains("chunk index"),
+        "{s}"
+    );
+    let o = convert(&input, &output, &["--strict"]);
+    expect_exit(&o, 3, &format!("offset {offset}"));
+    assert!(
+        !output.exists(),
+        "--strict keeps no output when it exits non-zero"
+    );
+}
+
+/// A chunk header whose compression-name length or records length is damaged: that
+/// chunk is named (offset, error) and, with `--on-error skip`, skipped alone.
+#[test]
+fn a_damaged_chunk_header_costs_only_that_chunk() {
+    let (_dir, input, output) = in_out();
+    // Chunk body: 3 u64s, CRC u32, compression (u32 length + "zstd"), records length u64.
+    for (field, value) in [(28usize, 0xffff_ff00u64), (36, 1 << 40)] {
+        let (mut bytes, total) = recording(&input, 6, Some(mcap::Compression::Zstd));
+        let (offset, _) = chunks(&bytes)[2];
+        let at = offset + 9 + field;
+        let width = if field == 28 { 4 } else { 8 };
+        bytes[at..at + width].copy_from_slice(&value.to_le_bytes()[..width]);
+        std::fs::write(&input, &bytes).unwrap();
+        let o = convert(&input, &output, &[]);
+        expect_exit(&o, 1, &format!("offset {offset}"));
+        let o = convert(&input, &output, &["--on-error", "skip", "--json"]);
+        assert!(o.status.success(), "{}", stderr(&o));
+        let s = json(&o);
+        assert_eq!(
+            s["report"]["read"]["bad_chunks"].as_array().unwrap().len(),
+            1
+        );
+        assert_eq!(copied_messages(&s) + lost_in_chunks(&s), total, "{s}");
+    }
+}
+
+/// A chunk in the middle of a 20-chunk file claims 2^62 bytes: reading resumes at the
+/// next chunk of the summary's chunk index, 19 scans come out, the damage is named;
+/// `--strict` exits 3 without output, and without `--on-error skip` the run fails.
+#[test]
+fn an_impossible_record_length_resyncs_from_the_chunk_index() {
+    let (_dir, input, output) = in_out();
+    let (mut bytes, total) = recording(&input, 20, Some(mcap::Compression::Zstd));
+    let all = chunks(&bytes);
+    assert!(all.len() >= 20, "{} chunks", all.len());
+    let (offset, _) = all[all.len() / 2];
+    bytes[offset + 1..offset + 9].copy_from_slice(&(1u64 << 62).to_le_bytes());
+    std::fs::write(&input, &bytes).unwrap();
+
+    let o = convert(&input, &output, &["--on-error", "skip", "--json"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let s = json(&o);
+    assert_eq!(s["report"]["topics"]["/lidar_ros2"]["scans"], 19, "{s}");
+    assert!(copied_messages(&s) >= total - 2, "{s}");
+    assert_eq!(
+        s["report"]["read"]["bad_records"][0]["offset"],
+        offset as u64
+    );
+    assert!(s["report"]["read"]["stopped"].is_null(), "{s}");
+
+    let o = convert(&input, &output, &["--on-error", "skip", "--strict"]);
+    assert_eq!(o.status.code(), Some(3));
+    assert!(!output.exists());
+    let o = convert(&input, &output, &[]);
+    expect_exit(&o, 1, &format!("offset {offset}"));
+}
+
+/// A channel naming a schema that is nowhere in the file: its messages are copied on a
+/// channel without schema, with a warning naming the topic.
+#[test]
+fn a_channel_with_a_missing_schema_is_copied_with_a_warning() {
+    let (_dir, input, output) = in_out();
+    let mut w = mcap::WriteOptions::new()
+        .use_chunks(false)
+        .create(std::io::BufWriter::new(
+            std::fs::File::create(&input).unwrap(),
+        ))
+        .unwrap();
+    let schema = w.add_schema("custom/Thing", "jsonschema", b"{}").unwrap();
+    let channel = w
+        .add_channel(schema, "/things", "json", &BTreeMap::new())
+        .unwrap();
+    for t in 0..3u64 {
+        let header = mcap::records::MessageHeader {
+            channel_id: channel,
+            sequence: t as u32,
+            log_time: t,
+            publish_time: t,
+        };
+        w.write_to_known_channel(&header, b"{}").unwrap();
+    }
+    w.finish().unwrap();
+    drop(w);
+    let mut bytes = std::fs::read(&input).unwrap();
+    let records = top_level_records(&bytes);
+    // The schema record (in the data section and the summary) is lost: opcode 0xff is
+    // an unknown record, which readers skip; the channel keeps naming schema `schema`.
+    for (op, offset, _) in &records {
+        if *op == 0x03 {
+            bytes[*offset] = 0xff;
+        }
+    }
+    assert!(records.iter().any(|r| r.0 == CHANNEL));
+    std::fs::write(&input, &bytes).unwrap();
+    let o = convert(&input, &output, &["--json"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let s = json(&o);
+    assert_eq!(copied_messages(&s), 3, "{s}");
+    let warnings = s["report"]["warnings"].to_string();
+    assert!(
+        warnings.contains("/things") && warnings.contains(&format!("schema {schema}")),
+        "{warnings}"
+    );
+    assert!(output_topics(&output).contains(&"/things".to_string()));
+}
+
+/// An input that already has a point-cloud topic named like one of ours: the output
+/// gets no two channels of one name, and a warning says which name was chosen.
+#[test]
+fn an_input_topic_named_like_ours_is_not_duplicated() {
+    let (_dir, input, output) = in_out();
+    let mut w = mcap::Writer::new(std::io::BufWriter::new(
+        std::fs::File::create(&input).unwrap(),
+    ))
+    .unwrap();
+    let s = encoders::schema(Family::Ros2, Kind::Cloud);
+    let schema = w.add_schema(&s.name, &s.encoding, &s.data).unwrap();
+    for (k, topic) in ["/points", "/points/rangegan/range"].iter().enumerate() {
+        let channel = w
+            .add_channel(schema, topic, "cdr", &BTreeMap::new())
+            .unwrap();
+        let cloud = DecodedCloud {
+            scan: common::synthetic_scan(6.0, k as u32),
+            stamp_nanos: 9,
+            frame_id: "lidar".into(),
+        };
+        let header = mcap::records::MessageHeader {
+            channel_id: channel,
+            sequence: 0,
+            log_time: 9,
+            publish_time: 9,
+        };
+        w.write_to_known_channel(&header, &encoders::encode_scan(Family::Ros2, &cloud, &[]))
+            .unwrap();
+    }
+    w.finish().unwrap();
+    drop(w);
+    let o = convert(&input, &output, &["--json"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let topics = output_topics(&output);
+    let mut unique = topics.clone();
+    unique.dedup();
+    assert_eq!(topics, unique, "two channels of one name");
+    assert!(
+        topics.contains(&"/points/rangegan/range~2".to_string()),
+        "{topics:?}"
+    );
+    let warnings = json(&o)["report"]["warnings"].to_string();
+    assert!(warnings.contains("/points/rangegan/range~2"), "{warnings}");
+}
+
+/// Disk full while writing: the error names OUT and the OS error, and no temporary
+/// file is left. Needs a small tmpfs (mounting needs root): skipped otherwise.
+#[test]
+fn a_full_disk_names_the_output_and_the_os_error() {
+    let dir = tempfile::tempdir().unwrap();
+    let input = dir.path().join("in.mcap");
+    write_recording(&input, &[Family::Ros2], 20, None);
+    let full = dir.path().join("small");
+    std::fs::create_dir(&full).unwrap();
+    let mounted = std::process::Command::new("mount")
+        .args(["-t", "tmpfs", "-o", "size=64k", "tmpfs"])
+        .arg(&full)
+        .output()
+        .is_ok_and(|o| o.status.success());
+    if !mounted {
+        eprintln!(
+            "a_full_disk_names_the_output_and_the_os_error: skipped, cannot mount a small tmpfs (needs root)"
+        );
+        return;
+    }
+    struct Unmount<'a>(&'a Path);
+    impl Drop for Unmount<'_> {
+        fn drop(&mut self) {
+            let _ = std::process::Command::new("umount").arg(self.0).status();
+        }
+    }
+    let _unmount = Unmount(&full);
+    let output = full.join("out.mcap");
+    let o = convert(&input, &output, &[]);
+    assert_eq!(o.status.code(), Some(1));
+    let err = stderr(&o);
+    assert!(
+        err.contains(output.to_str().unwrap()) && err.contains("No space left on device"),
+        "{err}"
+    );
+    assert!(!err.contains(&format!("{}:", input.display())), "{err}");
+    no_temporary_files(&full);
+    assert!(!output.exists());
+}
+
+/// A file cut inside its first chunk: a warning says nothing could be read, exit 0;
+/// `--strict` exits 3 and leaves no file at OUT. The same for a file cut later; a file
+/// cut before its first record is no MCAP (exit 1).
+#[test]
+fn unreadable_and_truncated_inputs_under_strict_leave_no_output() {
+    let (dir, input, output) = in_out();
+    let (bytes, _) = recording(&input, 6, Some(mcap::Compression::Zstd));
+    let (first, _) = chunks(&bytes)[0];
+    std::fs::write(&input, &bytes[..first + 200]).unwrap();
+    let o = convert(&input, &output, &[]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert!(
+        stderr(&o).contains("no message could be read"),
+        "{}",
+        stderr(&o)
+    );
+    std::fs::remove_file(&output).unwrap();
+    for cut in [0, 5, 12] {
+        std::fs::write(&input, &bytes[..cut]).unwrap();
+        expect_exit(&convert(&input, &output, &[]), 1, "not an MCAP file");
+    }
+    for cut in [first + 200, bytes.len() * 2 / 3] {
+        std::fs::write(&input, &bytes[..cut]).unwrap();
+        let o = convert(&input, &output, &["--strict"]);
+        assert_eq!(o.status.code(), Some(3), "{}", stderr(&o));
+        assert!(
+            !output.exists(),
+            "--strict keeps no output when it exits non-zero"
+        );
+        no_temporary_files(dir.path());
+    }
+}
+
+/// `import` reads SemanticKITTI `.label` files beside the `.bin` files, warns about a
+/// label file that matches no scan and about a scan without returns.
+#[test]
+fn import_reads_labels_beside_scans_and_reports_what_it_leaves_out() {
+    let dir = tempfile::tempdir().unwrap();
+    let data = dir.path().join("seq");
+    std::fs::create_dir(&data).unwrap();
+    let points: Vec<[f32; 4]> = (0..64)
+        .map(|k| {
+            let az = 0.01 + k as f32 * 0.09;
+            [10.0 * az.cos(), 10.0 * az.sin(), -1.0, 0.5]
+        })
+        .collect();
+    let scan_bytes: Vec<u8> = points
+        .iter()
+        .flatten()
+        .flat_map(|f| f.to_le_bytes())
+        .collect();
+    let labels: Vec<u8> = (0..64u32)
+        .flat_map(|l| (40 + l % 3).to_le_bytes())
+        .collect();
+    std::fs::write(data.join("000000.bin"), &scan_bytes).unwrap();
+    std::fs::write(data.join("000000.label"), &labels).unwrap();
+    std::fs::write(data.join("000001.bin"), b"").unwrap();
+    std::fs::write(data.join("000009.label"), &labels).unwrap();
+    let output = dir.path().join("out.mcap");
+    let o = bin()
+        .args(["import", "--json"])
+        .args([&data, &output])
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", stderr(&o));
+    let s = json(&o);
+    assert_eq!(
+        (s["scans"].as_u64(), s["labelled"].as_u64()),
+        (Some(1), Some(1)),
+        "{s}"
+    );
+    let warnings = s["warnings"].to_string();
+    assert!(
+        warnings.contains("000009.label") && warnings.contains("000001.bin"),
+        "{warnings}"
+    );
+    let bytes = std::fs::read(&output).unwrap();
+    let message = mcap::MessageStream::new(&bytes)
+        .unwrap()
+        .next()
+        .unwrap()
+        .unwrap();
+    let cloud =
+        rangegan_mcap::io::decode_cloud(rangegan_mcap::io::CloudFormat::Ros2Cdr, &message.data)
+            .unwrap();
+    assert_eq!(cloud.scan.label.unwrap()[..3], [40, 41, 42]);
+}
+
+/// Real KITTI drive_a at 4.2 s ends with a lone point at azimuth exactly 0: `import`
+/// writes 64 rings for it, not 65.
+#[test]
+fn import_writes_64_rings_for_every_real_kitti_scan() {
+    let Some(real) = common::real_data("import_writes_64_rings_for_every_real_kitti_scan") else {
+        return;
+    };
+    let dir = tempfile::tempdir().unwrap();
+    let data = dir.path().join("drive");
+    std::fs::create_dir(&data).unwrap();
+    std::os::unix::fs::symlink(
+        std::fs::canonicalize(real.join("kitti_raw_drive_a/0000000042.bin")).unwrap(),
+        data.join("0000000042.bin"),
+    )
+    .unwrap();
+    let output = dir.path().join("out.mcap");
+    let o = bin()
+        .args(["import", "--quiet"])
+        .args([&data, &output])
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", stderr(&o));
+    let bytes = std::fs::read(&output).unwrap();
+    let message = mcap::MessageStream::new(&bytes)
+        .unwrap()
+        .next()
+        .unwrap()
+        .unwrap();
+    let cloud =
+        rangegan_mcap::io::decode_cloud(rangegan_mcap::io::CloudFormat::Ros2Cdr, &message.data)
+            .unwrap();
+    assert_eq!(cloud.scan.ring.unwrap().iter().max(), Some(&63));
+}
+
+/// `sample` keeps every depth in the model's 1.45-80 m, as `convert` does.
+#[test]
+fn sampled_depths_stay_within_the_model_range() {
+    let dir = tempfile::tempdir().unwrap();
+    let output = dir.path().join("samples.mcap");
+    let o = bin()
+        .args(["sample", "--quiet", "--n", "2", "--seed", "3"])
+        .arg(&output)
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", stderr(&o));
+    let bytes = std::fs::read(&output).unwrap();
+    let mut depths = 0;
+    for message in mcap::MessageStream::new(&bytes).unwrap() {
+        let message = message.unwrap();
+        if !message.channel.topic.ends_with("/depth") {
+            continue;
+        }
+        let mut r = rangegan_mcap::io::wire::WireReader::cdr(&message.data).unwrap();
+        r.header().unwrap();
+        let (_h, _w) = (r.u32("height").unwrap(), r.u32("width").unwrap());
+        r.string("encoding").unwrap();
+        r.u8("is_bigendian").unwrap();
+        r.u32("step").unwrap();
+        let data = r.bytes("data").unwrap();
+        for v in data.chunks_exact(4) {
+            let d = f32::from_le_bytes(v.try_into().unwrap());
+            assert!((1.45..=80.0 + 1e-3).contains(&d), "depth {d}");
+        }
+        depths += 1;
+    }
+    assert_eq!(depths, 2);
+}
+
+#[path = "common/fuzz.rs"]
+mod fuzz;
+
+/// Every input the fuzzer (`examples/fuzz_reader.rs`) ever crashed on reads without a
+/// panic now, through the reader, the decoders, estimation and projection.
+#[test]
+fn fuzz_regressions_read_without_panic() {
+    let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/fuzz_regressions");
+    let mut inputs: Vec<PathBuf> = std::fs::read_dir(&dir)
+        .unwrap()
+        .filter_map(|e| e.ok().map(|e| e.path()))
+        .filter(|p| p.extension().is_some_and(|e| e == "mcap"))
+        .collect();
+    inputs.sort();
+    assert!(
+        !inputs.is_empty(),
+        "the regression corpus is in {}",
+        dir.display()
+    );
+    for input in inputs {
+        let bytes = std::fs::read(&input).unwrap();
+        let result = std::panic::catch_unwind(|| fuzz::exercise(&bytes));
+        assert!(result.is_ok(), "{} panics", input.display());
+    }
+}
