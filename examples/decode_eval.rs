@@ -1,4 +1,4 @@
-//! The numbers of issue 5 on held-out real KITTI scans (none used in training): reconstruction
+//! The auto-decoding numbers on held-out real KITTI scans (none used in training): reconstruction
 //! error of `fast` and `paper`, upsampling (16 -> 64 beams, 512 -> 2048 columns), restoration
 //! (8 of 64 lines, 10 % of points) against nearest / bilinear interpolation, and ray-drop
 //! calibration. Prints a JSON report (and Markdown tables on stderr).
