@@ -1,4 +1,4 @@
-//! Range images on real LiDAR data : KITTI HDL-64E scans,
+//! Range images on real LiDAR data: KITTI HDL-64E scans,
 //! a nuScenes HDL-32E scan, a Velodyne VLP-16 cloud and the Ouster OS1-64 clouds of
 //! a real MCAP (decoded by `io`), read from
 //! `../shared/real_lidar` (relative to the crate root). Each test skips with a
