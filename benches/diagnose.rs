@@ -9,9 +9,9 @@
 
 use std::time::Instant;
 
+use rangegan_mcap::diagnose::features::{FeatureOptions, ScanFeatures};
+use rangegan_mcap::diagnose::{DiagnoseOptions, diagnose};
 use rangegan_mcap::lidar::SensorProfile;
-use rangegan_mcap::physics::diagnose::{DiagnoseOptions, diagnose};
-use rangegan_mcap::physics::diagnose_features::{FeatureOptions, ScanFeatures};
 use rangegan_mcap::physics::{Physics, Preset};
 use rangegan_mcap::sim::{SceneConfig, Simulator};
 use rayon::prelude::*;

@@ -5,7 +5,14 @@
 //!
 //!     cargo run --release --example decode_eval -- --data ../shared/real_lidar \
 //!         [--paper-scans 2] [--fast-scans 26] [--encoder DIR] [--model DIR] [--out eval.json]
-//!         [--png docs/img/raydrop_reliability.png] [--sparse-paper-scans 4]
+//!         [--png docs/img/raydrop_reliability.png] [--sparse-paper-scans 4] [--only-sparse]
+//!         [--tune N]
+//!
+//! The upsampling and restoration cases also measure the library's fills that `convert
+//! --upsample-method` offers (guided, edge-aware), with MAE near (<= 30 m) and far and the
+//! share of pixels more than 1 m off. `--tune N` measures a grid of surface rules on N
+//! KITTI TRAINING scans (never the held-out ones) and stops; `--only-sparse` runs only the
+//! upsampling and restoration cases.
 //!
 //! Held out: `semantickitti_mini/00`, `/07` (every 4th point, ~512 per ring) and the
 //! full-resolution `semantickitti_ssv3`, `patchworkpp` (~2010 per ring; ground truth for the
@@ -16,9 +23,10 @@ use std::time::Instant;
 
 use anyhow::{Context, Result, bail};
 use rangegan_mcap::decode::amortised::TrainedEncoder;
-use rangegan_mcap::decode::{DecodeOptions, Decoded, Decoder, Quality, Sparsify, model_grid};
+use rangegan_mcap::decode::{DecodeOptions, Decoded, Decoder, Fill, Quality, Sparsify, model_grid};
 use rangegan_mcap::lidar::{
-    self, AngleGrid, Interpolation, RangeImage, SensorProfile, Strategy, resample_image,
+    self, AngleGrid, Interpolation, RangeImage, SensorProfile, Strategy, SurfaceRule,
+    resample_image,
 };
 use rangegan_mcap::model::calibration::bernoulli_nll;
 use rangegan_mcap::model::data::{MAX_DEPTH_M, MIN_DEPTH_M, kitti_training_files};
@@ -41,6 +49,11 @@ struct Args {
     png: Option<PathBuf>,
     /// Also run the row upsampling / restoration cases with `paper` decodes on this many scans.
     sparse_paper_scans: usize,
+    /// Only the upsampling and restoration cases (skip reconstruction and calibration).
+    only_sparse: bool,
+    /// Tune the surface rule of the guided and edge-aware fills on this many TRAINING scans
+    /// (never the held-out ones) and stop.
+    tune: Option<usize>,
 }
 
 fn parse_args() -> Result<Args> {
@@ -55,6 +68,8 @@ fn parse_args() -> Result<Args> {
         only_reconstruction: false,
         png: None,
         sparse_paper_scans: 0,
+        only_sparse: false,
+        tune: None,
     };
     let mut it = std::env::args().skip(1);
     while let Some(flag) = it.next() {
@@ -69,6 +84,8 @@ fn parse_args() -> Result<Args> {
             "--png" => a.png = Some(PathBuf::from(value()?)),
             "--sparse-paper-scans" => a.sparse_paper_scans = value()?.parse()?,
             "--only-reconstruction" => a.only_reconstruction = true,
+            "--only-sparse" => a.only_sparse = true,
+            "--tune" => a.tune = Some(value()?.parse()?),
             "--fast-schedule" => {
                 let v = value()?;
                 let p: Vec<&str> = v.split(',').collect();
@@ -108,29 +125,31 @@ fn valid_range(img: &mut RangeImage) {
     }
 }
 
-fn load_scans(data: &Path) -> Result<Vec<Scan>> {
+/// Projects `path` onto 64 x 512 and, with `full`, 64 x 2048 (kept only when the scan is
+/// full resolution: more than twice the 512-column returns).
+fn load_scan(data: &Path, path: &Path, full: bool) -> Result<Scan> {
     let p512 = SensorProfile::kitti_hdl64e().with_columns(512);
     let p2048 = SensorProfile::kitti_hdl64e().with_columns(2048);
-    let mut out = Vec::new();
-    let mut add = |path: PathBuf, full: bool| -> Result<()> {
-        let scan = lidar::kitti::read_bin(&path)?;
-        let mut image = lidar::project(&scan, &p512, Strategy::Auto)?;
-        valid_range(&mut image);
-        let full = if full {
-            let mut f = lidar::project(&scan, &p2048, Strategy::Auto)?;
-            valid_range(&mut f);
-            Some(f)
-        } else {
-            None
-        };
-        let name = path
-            .strip_prefix(data)
-            .unwrap_or(&path)
-            .display()
-            .to_string();
-        out.push(Scan { name, image, full });
-        Ok(())
+    let scan = lidar::kitti::read_bin(path)?;
+    let mut image = lidar::project(&scan, &p512, Strategy::Auto)?;
+    valid_range(&mut image);
+    let full = if full {
+        let mut f = lidar::project(&scan, &p2048, Strategy::Auto)?;
+        valid_range(&mut f);
+        (f.valid_count() > 2 * image.valid_count()).then_some(f)
+    } else {
+        None
     };
+    let name = path
+        .strip_prefix(data)
+        .unwrap_or(path)
+        .display()
+        .to_string();
+    Ok(Scan { name, image, full })
+}
+
+fn load_scans(data: &Path) -> Result<Vec<Scan>> {
+    let mut out = Vec::new();
     for dir in ["semantickitti_ssv3", "patchworkpp"] {
         let mut files: Vec<PathBuf> = std::fs::read_dir(data.join(dir))
             .with_context(|| format!("failed to list {dir}"))?
@@ -139,17 +158,29 @@ fn load_scans(data: &Path) -> Result<Vec<Scan>> {
             .collect();
         files.sort();
         for f in files {
-            add(f, true)?;
+            out.push(load_scan(data, &f, true)?);
         }
     }
     for f in rangegan_mcap::model::data::kitti_heldout_files(data)? {
-        add(f, false)?;
+        out.push(load_scan(data, &f, false)?);
     }
     Ok(out)
 }
 
-/// The methods compared on the upsampling and row-restoration tasks, in `mae`'s order.
-const GRID_METHODS: [&str; 5] = [
+/// `n` training scans spread evenly over the training files (for tuning only).
+fn load_training_scans(data: &Path, n: usize) -> Result<Vec<Scan>> {
+    let files = kitti_training_files(data)?;
+    let step = (files.len() / n.max(1)).max(1);
+    files
+        .iter()
+        .step_by(step)
+        .take(n)
+        .map(|f| load_scan(data, f, true))
+        .collect()
+}
+
+/// The interpolation baselines of the upsampling and row-restoration tasks, in order.
+const GRID_BASELINES: [&str; 5] = [
     "gan_fast",
     "nearest",
     "bilinear",
@@ -157,21 +188,88 @@ const GRID_METHODS: [&str; 5] = [
     "anchored_mul",
 ];
 
-/// Mean absolute error in meters over pixels where `truth` is measured, `mask` allows and
-/// every prediction has a value.
-fn mae(truth: &[f32], preds: &[&[f32]], mask: &dyn Fn(usize) -> bool) -> (Vec<f64>, usize) {
-    let mut sums = vec![0.0f64; preds.len()];
-    let mut n = 0;
+/// A library fill measured beside the baselines: `convert --upsample-method NAME` with `rule`.
+struct Variant {
+    name: String,
+    fill: Fill,
+    rule: SurfaceRule,
+}
+
+/// The library fills measured by default: the ones `convert` offers, with the shipped rule.
+fn default_variants() -> Vec<Variant> {
+    [Fill::Guided, Fill::EdgeAware]
+        .into_iter()
+        .map(|fill| Variant {
+            name: fill.name().replace('-', "_"),
+            fill,
+            rule: SurfaceRule::default(),
+        })
+        .chain(std::iter::once(Variant {
+            // Where the gain comes from: plain bilinear (IDW), but in inverse depth.
+            name: "bilinear_inverse_depth".into(),
+            fill: Fill::EdgeAware,
+            rule: SurfaceRule {
+                inverse_depth: true,
+                ..SurfaceRule::ANY
+            },
+        }))
+        .collect()
+}
+
+/// Truth at or below this is "near".
+const NEAR_M: f32 = 30.0;
+
+/// Error sums of one method on one scan.
+#[derive(Debug, Clone, Copy, Default)]
+struct ErrorSums {
+    near: f64,
+    near_n: usize,
+    far: f64,
+    far_n: usize,
+    /// Pixels more than 1 m off the true surface.
+    off_1m: usize,
+}
+
+impl ErrorSums {
+    fn add(&mut self, o: &ErrorSums) {
+        self.near += o.near;
+        self.near_n += o.near_n;
+        self.far += o.far;
+        self.far_n += o.far_n;
+        self.off_1m += o.off_1m;
+    }
+
+    fn n(&self) -> usize {
+        self.near_n + self.far_n
+    }
+
+    fn mae(&self) -> f64 {
+        (self.near + self.far) / self.n().max(1) as f64
+    }
+}
+
+/// Absolute errors in meters over pixels where `truth` is measured, `mask` allows and every
+/// prediction has a value, split near (truth <= 30 m) / far.
+fn errors(truth: &[f32], preds: &[&[f32]], mask: &dyn Fn(usize) -> bool) -> Vec<ErrorSums> {
+    let mut sums = vec![ErrorSums::default(); preds.len()];
     for k in 0..truth.len() {
         if truth[k] <= 0.0 || !mask(k) || preds.iter().any(|p| p[k] <= 0.0) {
             continue;
         }
+        let near = truth[k] <= NEAR_M;
         for (s, p) in sums.iter_mut().zip(preds) {
-            *s += f64::from((p[k] - truth[k]).abs());
+            let e = f64::from((p[k] - truth[k]).abs());
+            if near {
+                s.near += e;
+                s.near_n += 1;
+            } else {
+                s.far += e;
+                s.far_n += 1;
+            }
+            s.off_1m += usize::from(e > 1.0);
         }
-        n += 1;
     }
-    (sums.iter().map(|s| s / n.max(1) as f64).collect(), n)
+    sums
 }
 
 /// The kept rows of `img` as their own image (with their angles), for row interpolation.
@@ -323,6 +421,18 @@ fn main() -> Result<()> {
         DecodeOptions::new(Quality::Fast),
         &args.fast_schedule,
     )?;
+    if let Some(n) = args.tune {
+        return tune(&args, &fast, n);
+    }
+    let header = json!({
+        "model": model_source,
+        "encoder": args.encoder.as_ref().map_or("shipped".to_string(), |p| p.display().to_string()),
+        "scans": scans.iter().map(|s| s.name.clone()).collect::<Vec<_>>(),
+    });
+    if args.only_sparse {
+        let sparse = sparse_cases(&args, &fast, &scans[..fast_n], &default_variants())?;
+        return write_report(&args, header, json!({"upsampling_and_restoration": sparse}));
+    }
     let paper = decoder(
         &args.model,
         &None,
@@ -499,127 +609,34 @@ fn main() -> Result<()> {
     }
 
     // ---- Upsampling and restoration (fast decoding from sparse observations) -------------
-    let grid512 = model_grid();
-    let lines_case = |n_lines: usize, quality: Quality, n: usize| -> Result<serde_json::Value> {
-        let mut opts = DecodeOptions::new(quality);
-        opts.restore = Some(Sparsify::Lines(n_lines));
-        let d = decoder(&args.model, &args.encoder, opts, &args.fast_schedule)?;
-        let kept = Sparsify::kept_rows(n_lines, 64);
-        let per: Vec<(Vec<f64>, usize)> = scans[..n]
-            .par_iter()
-            .enumerate()
-            .map(|(i, s)| -> Result<(Vec<f64>, usize)> {
-                let dec = d.decode(&s.image, i as u64)?;
-                let sparse = rows_image(&s.image, &kept);
-                let near = resample_image(&sparse, &grid512, Interpolation::Nearest).range_m;
-                let bil = resample_image(&sparse, &grid512, Interpolation::Bilinear).range_m;
-                let gan_sparse = rows_image(&with_validity_of(&s.image, &dec.model.depth_m), &kept);
-                let bil_gan =
-                    resample_image(&gan_sparse, &grid512, Interpolation::Bilinear).range_m;
-                let (add, mul) = anchored(&dec.model.depth_m, &bil, &bil_gan);
-                let held = |k: usize| !kept.contains(&(k / 512));
-                Ok(mae(
-                    &s.image.range_m,
-                    &[&dec.model.depth_m, &near, &bil, &add, &mul],
-                    &held,
-                ))
-            })
-            .collect::<Result<_>>()?;
-        Ok(summarize(&per, &GRID_METHODS))
-    };
-    let rows16 = lines_case(16, Quality::Fast, fast_n)?;
-    eprintln!("upsample rows 16->64: {rows16}");
-    let rows8 = lines_case(8, Quality::Fast, fast_n)?;
-    eprintln!("restore 8 of 64 lines: {rows8}");
+    let variants = default_variants();
+    let sparse = sparse_cases(&args, &fast, &scans[..fast_n], &variants)?;
     // The same from `paper` decodes (minutes per scan): does a longer inversion close the gap?
     let paper_rows = if args.sparse_paper_scans > 0 {
         let n = args.sparse_paper_scans.min(scans.len());
-        let r16 = lines_case(16, Quality::Paper, n)?;
-        let r8 = lines_case(8, Quality::Paper, n)?;
+        let r16 = lines_case(&args, &scans[..n], 16, Quality::Paper, &variants)?;
+        let r8 = lines_case(&args, &scans[..n], 8, Quality::Paper, &variants)?;
         eprintln!("paper: upsample rows 16->64: {r16}; restore 8 of 64 lines: {r8}");
         json!({"upsample_rows_16_to_64_mae_m": r16, "restore_8_of_64_lines_mae_m": r8})
     } else {
         serde_json::Value::Null
     };
 
-    let fraction = {
-        let mut opts = DecodeOptions::new(Quality::Fast);
-        opts.restore = Some(Sparsify::Fraction(0.1));
-        let d = decoder(&args.model, &args.encoder, opts, &args.fast_schedule)?;
-        let per: Vec<(Vec<f64>, usize)> = scans[..fast_n]
-            .par_iter()
-            .enumerate()
-            .map(|(i, s)| -> Result<(Vec<f64>, usize)> {
-                let dec = d.decode(&s.image, i as u64)?;
-                let (near, idw) = scattered_baselines(&dec.observed_m, 64, 512);
-                let gan_obs: Vec<f32> = dec
-                    .observed_m
-                    .iter()
-                    .zip(&dec.model.depth_m)
-                    .map(|(o, g)| if *o > 0.0 { *g } else { 0.0 })
-                    .collect();
-                let (_, idw_gan) = scattered_baselines(&gan_obs, 64, 512);
-                let (add, mul) = anchored(&dec.model.depth_m, &idw, &idw_gan);
-                let held = |k: usize| dec.held_out_m[k] > 0.0;
-                Ok(mae(
-                    &s.image.range_m,
-                    &[&dec.model.depth_m, &near, &idw, &add, &mul],
-                    &held,
-                ))
-            })
-            .collect::<Result<_>>()?;
-        summarize(
-            &per,
-            &["gan_fast", "nearest", "idw", "anchored_add", "anchored_mul"],
-        )
-    };
-    eprintln!("restore 10 % of points: {fraction}");
-
-    let columns = {
-        let grid2048 = SensorProfile::kitti_hdl64e()
-            .with_columns(2048)
-            .angle_grid();
-        let full: Vec<&Scan> = scans.iter().filter(|s| s.full.is_some()).collect();
-        let prepared = fast.prepare(&grid2048);
-        let per: Vec<(Vec<f64>, usize)> = full
-            .par_iter()
-            .enumerate()
-            .map(|(i, s)| -> Result<(Vec<f64>, usize)> {
-                let truth = s
-                    .full
-                    .as_ref()
-                    .map(|f| f.range_m.clone())
-                    .unwrap_or_default();
-                let dec = fast.decode(&s.image, 1000 + i as u64)?;
-                let dense = dec.render_prepared(&prepared);
-                let near = resample_image(&s.image, &grid2048, Interpolation::Nearest).range_m;
-                let bil = resample_image(&s.image, &grid2048, Interpolation::Bilinear).range_m;
-                let gan512 = with_validity_of(&s.image, &dec.model.depth_m);
-                let bil_gan = resample_image(&gan512, &grid2048, Interpolation::Bilinear).range_m;
-                let (add, mul) = anchored(&dense.depth_m, &bil, &bil_gan);
-                Ok(mae(
-                    &truth,
-                    &[&dense.depth_m, &near, &bil, &add, &mul],
-                    &|_| true,
-                ))
-            })
-            .collect::<Result<_>>()?;
-        summarize(&per, &GRID_METHODS)
-    };
-    eprintln!("upsample columns 512->2048: {columns}");
-
-    let report = json!({
-        "model": model_source,
-        "encoder": args.encoder.as_ref().map_or("shipped".to_string(), |p| p.display().to_string()),
-        "scans": scans.iter().map(|s| s.name.clone()).collect::<Vec<_>>(),
+    let results = json!({
         "reconstruction": reconstruction,
         "calibration": calibration,
-        "upsample_rows_16_to_64_mae_m": rows16,
-        "upsample_columns_512_to_2048_mae_m": columns,
-        "restore_8_of_64_lines_mae_m": rows8,
-        "restore_10_percent_points_mae_m": fraction,
+        "upsampling_and_restoration": sparse,
         "paper_decodes_of_sparse_rows": paper_rows,
     });
+    write_report(&args, header, results)
+}
+
+/// Prints `header` merged with `results` as JSON (and writes it to `--out`).
+fn write_report(args: &Args, header: serde_json::Value, results: serde_json::Value) -> Result<()> {
+    let mut report = header;
+    if let (Some(r), Some(add)) = (report.as_object_mut(), results.as_object()) {
+        r.extend(add.clone());
+    }
     let text = serde_json::to_string_pretty(&report)?;
     if let Some(out) = &args.out {
         std::fs::write(out, &text).with_context(|| format!("failed to write {}", out.display()))?;
@@ -701,15 +718,249 @@ fn reliability_chart(path: &Path, calibrated: &Reliability, raw: &Reliability) -
         .with_context(|| format!("failed to write {}", path.display()))
 }
 
-/// Pixel-weighted mean MAE per method over scans.
-fn summarize(per: &[(Vec<f64>, usize)], names: &[&str]) -> serde_json::Value {
-    let total: usize = per.iter().map(|p| p.1).sum();
+/// Per method over all scans: MAE, MAE near (<= 30 m) and far, and the share of pixels more
+/// than 1 m off.
+fn summarize(per: &[Vec<ErrorSums>], names: &[String]) -> serde_json::Value {
     let mut m = serde_json::Map::new();
+    let mut total = ErrorSums::default();
     for (i, name) in names.iter().enumerate() {
-        let v = per.iter().map(|(e, n)| e[i] * *n as f64).sum::<f64>() / total.max(1) as f64;
-        m.insert((*name).into(), json!(v));
+        let mut t = ErrorSums::default();
+        for p in per {
+            t.add(&p[i]);
+        }
+        m.insert(
+            name.clone(),
+            json!({
+                "mae": t.mae(),
+                "mae_near": t.near / t.near_n.max(1) as f64,
+                "mae_far": t.far / t.far_n.max(1) as f64,
+                "off_1m": t.off_1m as f64 / t.n().max(1) as f64,
+            }),
+        );
+        total = t;
     }
-    m.insert("pixels".into(), json!(total));
+    m.insert("pixels".into(), json!(total.n()));
+    m.insert("near_pixels".into(), json!(total.near_n));
+    m.insert("far_pixels".into(), json!(total.far_n));
     m.insert("scans".into(), json!(per.len()));
     serde_json::Value::Object(m)
+}
+
+/// The method names of a case: `baselines` then the variants.
+fn names(baselines: &[&str], variants: &[Variant]) -> Vec<String> {
+    baselines
+        .iter()
+        .map(|b| b.to_string())
+        .chain(variants.iter().map(|v| v.name.clone()))
+        .collect()
+}
+
+/// Upsampling 16 -> 64 beams / restoration from `n_lines` of 64 rows: decode from the kept
+/// rows, fill the others.
+fn lines_case(
+    args: &Args,
+    scans: &[Scan],
+    n_lines: usize,
+    quality: Quality,
+    variants: &[Variant],
+) -> Result<serde_json::Value> {
+    let grid512 = model_grid();
+    let mut opts = DecodeOptions::new(quality);
+    opts.restore = Some(Sparsify::Lines(n_lines));
+    let d = decoder(&args.model, &args.encoder, opts, &args.fast_schedule)?;
+    let kept = Sparsify::kept_rows(n_lines, 64);
+    let per: Vec<Vec<ErrorSums>> = scans
+        .par_iter()
+        .enumerate()
+        .map(|(i, s)| -> Result<Vec<ErrorSums>> {
+            let dec = d.decode(&s.image, i as u64)?;
+            let sparse = rows_image(&s.image, &kept);
+            let near = resample_image(&sparse, &grid512, Interpolation::Nearest).range_m;
+            let bil = resample_image(&sparse, &grid512, Interpolation::Bilinear).range_m;
+            let gan_sparse = rows_image(&with_validity_of(&s.image, &dec.model.depth_m), &kept);
+            let bil_gan = resample_image(&gan_sparse, &grid512, Interpolation::Bilinear).range_m;
+            let (add, mul) = anchored(&dec.model.depth_m, &bil, &bil_gan);
+            let filled: Vec<Vec<f32>> = variants
+                .iter()
+                .map(|v| dec.interpolate_restored(v.fill, &v.rule))
+                .collect();
+            let mut preds: Vec<&[f32]> = vec![&dec.model.depth_m, &near, &bil, &add, &mul];
+            preds.extend(filled.iter().map(|f| f.as_slice()));
+            let held = |k: usize| !kept.contains(&(k / 512));
+            Ok(errors(&s.image.range_m, &preds, &held))
+        })
+        .collect::<Result<_>>()?;
+    Ok(summarize(&per, &names(&GRID_BASELINES, variants)))
+}
+
+/// Restoration from a random 10 % of the measured pixels.
+fn fraction_case(args: &Args, scans: &[Scan], variants: &[Variant]) -> Result<serde_json::Value> {
+    let mut opts = DecodeOptions::new(Quality::Fast);
+    opts.restore = Some(Sparsify::Fraction(0.1));
+    let d = decoder(&args.model, &args.encoder, opts, &args.fast_schedule)?;
+    let per: Vec<Vec<ErrorSums>> = scans
+        .par_iter()
+        .enumerate()
+        .map(|(i, s)| -> Result<Vec<ErrorSums>> {
+            let dec = d.decode(&s.image, i as u64)?;
+            let (near, idw) = scattered_baselines(&dec.observed_m, 64, 512);
+            let gan_obs: Vec<f32> = dec
+                .observed_m
+                .iter()
+                .zip(&dec.model.depth_m)
+                .map(|(o, g)| if *o > 0.0 { *g } else { 0.0 })
+                .collect();
+            let (_, idw_gan) = scattered_baselines(&gan_obs, 64, 512);
+            let (add, mul) = anchored(&dec.model.depth_m, &idw, &idw_gan);
+            let filled: Vec<Vec<f32>> = variants
+                .iter()
+                .map(|v| dec.interpolate_restored(v.fill, &v.rule))
+                .collect();
+            let mut preds: Vec<&[f32]> = vec![&dec.model.depth_m, &near, &idw, &add, &mul];
+            preds.extend(filled.iter().map(|f| f.as_slice()));
+            let held = |k: usize| dec.held_out_m[k] > 0.0;
+            Ok(errors(&s.image.range_m, &preds, &held))
+        })
+        .collect::<Result<_>>()?;
+    Ok(summarize(
+        &per,
+        &names(
+            &["gan_fast", "nearest", "idw", "anchored_add", "anchored_mul"],
+            variants,
+        ),
+    ))
+}
+
+/// Upsampling 512 -> 2048 columns on the full-resolution scans (truth: their 64 x 2048
+/// projection).
+fn columns_case(fast: &Decoder, scans: &[Scan], variants: &[Variant]) -> Result<serde_json::Value> {
+    let grid2048 = SensorProfile::kitti_hdl64e()
+        .with_columns(2048)
+        .angle_grid();
+    let full: Vec<&Scan> = scans.iter().filter(|s| s.full.is_some()).collect();
+    let prepared = fast.prepare(&grid2048);
+    let per: Vec<Vec<ErrorSums>> = full
+        .par_iter()
+        .enumerate()
+        .map(|(i, s)| -> Result<Vec<ErrorSums>> {
+            let truth = s
+                .full
+                .as_ref()
+                .map(|f| f.range_m.clone())
+                .unwrap_or_default();
+            let dec = fast.decode(&s.image, 1000 + i as u64)?;
+            let dense = dec.render_prepared(&prepared);
+            let near = resample_image(&s.image, &grid2048, Interpolation::Nearest).range_m;
+            let bil = resample_image(&s.image, &grid2048, Interpolation::Bilinear).range_m;
+            let gan512 = with_validity_of(&s.image, &dec.model.depth_m);
+            let bil_gan = resample_image(&gan512, &grid2048, Interpolation::Bilinear).range_m;
+            let (add, mul) = anchored(&dense.depth_m, &bil, &bil_gan);
+            let filled: Vec<Vec<f32>> = variants
+                .iter()
+                .map(|v| dec.interpolate_on(&dense, v.fill, &v.rule))
+                .collect();
+            let mut preds: Vec<&[f32]> = vec![&dense.depth_m, &near, &bil, &add, &mul];
+            preds.extend(filled.iter().map(|f| f.as_slice()));
+            Ok(errors(&truth, &preds, &|_| true))
+        })
+        .collect::<Result<_>>()?;
+    Ok(summarize(&per, &names(&GRID_BASELINES, variants)))
+}
+
+/// The four upsampling / restoration cases.
+fn sparse_cases(
+    args: &Args,
+    fast: &Decoder,
+    scans: &[Scan],
+    variants: &[Variant],
+) -> Result<serde_json::Value> {
+    let rows16 = lines_case(args, scans, 16, Quality::Fast, variants)?;
+    eprintln!("upsample rows 16->64: {rows16}");
+    let rows8 = lines_case(args, scans, 8, Quality::Fast, variants)?;
+    eprintln!("restore 8 of 64 lines: {rows8}");
+    let fraction = fraction_case(args, scans, variants)?;
+    eprintln!("restore 10 % of points: {fraction}");
+    let columns = columns_case(fast, scans, variants)?;
+    eprintln!("upsample columns 512->2048: {columns}");
+    Ok(json!({
+        "upsample_rows_16_to_64_mae_m": rows16,
+        "upsample_columns_512_to_2048_mae_m": columns,
+        "restore_8_of_64_lines_mae_m": rows8,
+        "restore_10_percent_points_mae_m": fraction,
+    }))
+}
+
+/// Every rule of a small grid, for the guided and the edge-aware fill, on training scans;
+/// prints each variant's MAE per case relative to the case's bilinear (IDW) baseline.
+fn tune(args: &Args, fast: &Decoder, n: usize) -> Result<()> {
+    let scans = load_training_scans(&args.data, n)?;
+    eprintln!(
+        "tuning on {} training scans ({} full resolution)",
+        scans.len(),
+        scans.iter().filter(|s| s.full.is_some()).count()
+    );
+    let mut variants = Vec::new();
+    for inverse_depth in [false, true] {
+        let inv = if inverse_depth { " 1/d" } else { "" };
+        for jump_per_deg in [0.2f32, 0.3, 0.5] {
+            for trust_below_deg in [0.0f32, 1.0, 1.5] {
+                let jump = jump_per_deg;
+                let t = trust_below_deg;
+                variants.push(Variant {
+                    name: format!("edge_aware j={jump} t={t}{inv}"),
+                    fill: Fill::EdgeAware,
+                    rule: SurfaceRule {
+                        jump_per_deg,
+                        trust_below_deg,
+                        inverse_depth,
+                        ..SurfaceRule::default()
+                    },
+                });
+                for guide_jump in [0.1f32, 0.2, 0.3] {
+                    variants.push(Variant {
+                        name: format!("guided j={jump} t={t} g={guide_jump}{inv}"),
+                        fill: Fill::Guided,
+                        rule: SurfaceRule {
+                            jump_per_deg,
+                            guide_jump,
+                            trust_below_deg,
+                            inverse_depth,
+                        },
+                    });
+                }
+            }
+        }
+    }
+    let cases = sparse_cases(args, fast, &scans, &variants)?;
+    let keys = [
+        ("upsample_rows_16_to_64_mae_m", "bilinear"),
+        ("upsample_columns_512_to_2048_mae_m", "bilinear"),
+        ("restore_8_of_64_lines_mae_m", "bilinear"),
+        ("restore_10_percent_points_mae_m", "idw"),
+    ];
+    println!("| variant | 16->64 | 512->2048 | 8 lines | 10 % | mean ratio to bilinear/IDW |");
+    println!("|---|---|---|---|---|---|");
+    for v in &variants {
+        let mut cells = Vec::new();
+        let mut ratios = Vec::new();
+        for (case, base) in keys {
+            let mae = cases[case][&v.name]["mae"].as_f64().unwrap_or(f64::NAN);
+            let b = cases[case][base]["mae"].as_f64().unwrap_or(f64::NAN);
+            // Cases without ground truth on the training scans (no full-resolution ones
+            // for 512 -> 2048) are left out of the mean.
+            if b > 0.0 {
+                ratios.push(mae / b);
+            }
+            cells.push(format!("{mae:.3}"));
+        }
+        let ratio = ratios.iter().sum::<f64>() / ratios.len().max(1) as f64;
+        println!("| {} | {} | {ratio:.3} |", v.name, cells.join(" | "));
+    }
+    for (case, base) in keys {
+        println!(
+            "{case}: {base} {:.3}",
+            cases[case][base]["mae"].as_f64().unwrap_or(f64::NAN)
+        );
+    }
+    Ok(())
 }

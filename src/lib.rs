@@ -13,6 +13,7 @@
 pub mod cli;
 pub mod dataset;
 pub mod decode;
+pub mod diagnose;
 pub mod error;
 pub mod io;
 pub mod lidar;

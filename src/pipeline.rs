@@ -12,7 +12,7 @@ use std::sync::{Arc, Mutex};
 use mcap::records::Record;
 use rayon::prelude::*;
 
-use crate::decode::{Decoder, PreparedGrid, Rendered, scan_seed};
+use crate::decode::{Decoder, Fill, PreparedGrid, Rendered, scan_seed};
 use crate::error::Location;
 use crate::io::encoders::{Kind, encode_f32_image, encode_mask, encode_points};
 use crate::io::{
@@ -117,6 +117,7 @@ pub struct DecodeStage<'d> {
     mask_samples: usize,
     /// `(suffix, grid)`: written as `depth_<suffix>` and `points_<suffix>`.
     extra_grids: Vec<(String, PreparedGrid)>,
+    fill: Fill,
 }
 
 /// What [`DecodeStage`] adds beyond the model-grid channels.
@@ -128,6 +129,8 @@ pub struct DecodeOutputs {
     pub upsample: Vec<usize>,
     /// Other sensors to render for (their own grids).
     pub target_sensors: Vec<SensorProfile>,
+    /// What the extra grids and a restored model grid hold.
+    pub fill: Fill,
 }
 
 impl<'d> DecodeStage<'d> {
@@ -163,6 +166,7 @@ impl<'d> DecodeStage<'d> {
             decoder,
             mask_samples: outputs.mask_samples,
             extra_grids,
+            fill: outputs.fill,
         })
     }
 
@@ -209,7 +213,8 @@ impl<'d> DecodeStage<'d> {
                 ),
             }
         };
-        let m = &decoded.model;
+        let model = decoded.model_output(self.fill);
+        let m = &model;
         let mut out = vec![
             image("depth".into(), m, &m.depth_m),
             image("raydrop_prob".into(), m, &m.drop_prob),
@@ -227,7 +232,7 @@ impl<'d> DecodeStage<'d> {
         }
         out.push(points("points".into(), m));
         for (suffix, grid) in &self.extra_grids {
-            let r = decoded.render_prepared(grid);
+            let r = decoded.render_output(grid, self.fill);
             out.push(image(format!("depth_{suffix}"), &r, &r.depth_m));
             out.push(points(format!("points_{suffix}"), &r));
         }

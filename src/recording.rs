@@ -12,7 +12,7 @@ use mcap::records::Record;
 use crate::error::Location;
 use crate::io::{ChannelTable, CloudFormat, DecodedCloud, OnError, decode_cloud, read_records};
 use crate::lidar::projection::choose_strategy;
-use crate::lidar::{RangeImage, SensorProfile, estimate_profile, project};
+use crate::lidar::{RangeImage, SensorProfile, Strategy, estimate_profile, project};
 
 /// How to pick the projection grid.
 #[derive(Debug, Clone, PartialEq)]
@@ -81,8 +81,19 @@ struct Raw {
     cloud: DecodedCloud,
 }
 
-/// Reads `topic` (or the only / first point-cloud topic) of `path`.
+/// Reads `topic` (or the only / first point-cloud topic) of `path`, each point's
+/// row found by the strategy chosen from the first scan.
 pub fn read(path: &Path, topic: Option<&str>, grid: &Grid) -> anyhow::Result<Recording> {
+    read_with(path, topic, grid, Strategy::Auto)
+}
+
+/// As [`read`] with a given projection strategy (`Auto`: chosen from the first scan).
+pub fn read_with(
+    path: &Path,
+    topic: Option<&str>,
+    grid: &Grid,
+    strategy: Strategy,
+) -> anyhow::Result<Recording> {
     let file =
         std::fs::File::open(path).with_context(|| format!("cannot open {}", path.display()))?;
     let len = file.metadata().ok().map(|m| m.len());
@@ -184,7 +195,10 @@ pub fn read(path: &Path, topic: Option<&str>, grid: &Grid) -> anyhow::Result<Rec
             }
         }
     };
-    let strategy = choose_strategy(&raws[0].cloud.scan, &profile);
+    let strategy = match strategy {
+        Strategy::Auto => choose_strategy(&raws[0].cloud.scan, &profile),
+        given => given,
+    };
     let organized = raws[0].cloud.scan.is_organized();
     let mut images = Vec::new();
     let mut log_times = Vec::new();

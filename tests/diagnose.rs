@@ -1,9 +1,14 @@
-//! End-to-end `diagnose` and `render` through the built binary (issue 6): a
+//! End-to-end `diagnose` and `render` through the built binary: a
 //! concealed range-dropout case on simulated recordings (real side unorganized,
-//! sim side organized), the report files, rendering the fit and the baselines,
-//! and clear errors for bad input.
+//! sim side organized), the report files (opened in headless Chromium where
+//! installed), rendering the fit and the baselines, and clear errors for bad
+//! input; a few concealed pairs of the independent generator.
 
+#[path = "common/browser.rs"]
+mod browser;
 mod common;
+#[path = "common/testgen.rs"]
+mod testgen;
 
 use std::path::Path;
 
@@ -108,6 +113,29 @@ fn diagnose_names_a_concealed_range_dropout_and_render_applies_it() {
     }
     let html = std::fs::read_to_string(report.join("report.html")).unwrap();
     assert!(html.contains("range_dropout") && html.contains("drop_vs_range.png"));
+    // As a reader sees it: every image loads, no script error.
+    if let Some(page) = browser::render(&report.join("report.html"), d) {
+        assert_eq!(page.title, "rangegan-mcap diagnose");
+        assert!(page.images >= 8, "{page:?}");
+        assert!(page.broken.is_empty(), "images that did not load: {page:?}");
+        assert!(page.min_width >= 400, "{page:?}");
+        assert!(page.script_errors.is_empty(), "{page:?}");
+        // The check sees a missing image.
+        let broken = d.join("report_broken");
+        std::fs::create_dir(&broken).unwrap();
+        for entry in std::fs::read_dir(&report).unwrap() {
+            let path = entry.unwrap().path();
+            if path.file_name().unwrap() != "drop_vs_row.png" {
+                std::fs::copy(&path, broken.join(path.file_name().unwrap())).unwrap();
+            }
+        }
+        let page = browser::render(&broken.join("report.html"), d).unwrap();
+        assert_eq!(page.broken, vec!["drop_vs_row.png".to_string()], "{page:?}");
+    }
+    // The report folder is not overwritten without --force.
+    let again = diagnose(&sim, &real, &report, &["--completion", "neighbour"]);
+    assert!(!again.status.success());
+    assert!(stderr(&again).contains("--force"), "{}", stderr(&again));
 
     // The fitted physics renders onto the ideal recording and drops rays there.
     let rendered = d.join("rendered.mcap");
@@ -166,7 +194,7 @@ fn diagnose_names_a_concealed_range_dropout_and_render_applies_it() {
     let out = diagnose(
         &sim,
         &real,
-        &report_gan,
+        &d.join("report_args"),
         &["--completion", "neighbour", "--model", "x"],
     );
     assert!(!out.status.success());
@@ -287,4 +315,39 @@ fn diagnose_errors_name_the_file_and_topic() {
         !d.join("r").join("report.json").exists(),
         "no report after a failure"
     );
+}
+
+/// Concealed pairs of the independent generator (its own scenes, ray caster and
+/// sensors; seeds apart from the evaluation's): the hard cases of a 32-beam
+/// organized cloud with grazing-incidence drops, mixed pixels on 64 beams,
+/// motion distortion on a 32-beam organized cloud, range with beam dropout
+/// together, and a null pair. The full evaluation is `examples/diagnose_eval.rs`.
+#[test]
+fn independent_generator_pairs_are_named() {
+    let cases: [(u64, &[&str], usize, Option<bool>); 5] = [
+        (91_001, &["incidence_dropout"], 32, Some(true)),
+        (91_002, &["mixed_pixels"], 64, None),
+        (91_003, &["motion_distortion"], 32, Some(true)),
+        (91_004, &["range_dropout", "beam_dropout"], 64, None),
+        (91_005, &[], 32, None),
+    ];
+    for (seed, effects, beams, organized) in cases {
+        let p = testgen::pair_with(seed, effects, beams, organized);
+        let d = testgen::diagnose_pair(&p);
+        let named: Vec<&str> = d.report.effects.iter().map(|e| e.id.as_str()).collect();
+        let context = format!(
+            "pair {seed} ({}, {}): truth {:?}, named {named:?}, candidates {:?}",
+            p.kind.name(),
+            p.sensor.describe(),
+            p.truth_params,
+            d.report.candidates
+        );
+        if effects.is_empty() {
+            assert!(named.is_empty(), "{context}");
+            continue;
+        }
+        assert!(effects.contains(&named[0]), "{context}");
+        assert!(effects.iter().all(|e| named.contains(e)), "{context}");
+        assert!(d.report.fit.after < d.report.fit.before, "{context}");
+    }
 }

@@ -15,7 +15,7 @@ use super::convert_dataset::{self, DatasetArgs};
 use super::{GlobalArgs, Outcome};
 use crate::dataset::manifest::{self, Entry, Status};
 use crate::decode::amortised::TrainedEncoder;
-use crate::decode::{DecodeOptions, Decoder, Quality, Sparsify};
+use crate::decode::{DecodeOptions, Decoder, Fill, Quality, Sparsify};
 use crate::io::{McapOutput, OnError, WriterSettings};
 use crate::lidar::{SensorProfile, Strategy};
 use crate::model::weights::Model;
@@ -109,6 +109,14 @@ pub struct ConvertArgs {
     /// Decode from a random fraction (0..1) of the measured points (restoration).
     #[arg(long)]
     pub restore_fraction: Option<f32>,
+    /// What the `--upsample` and `--target-sensor` grids and a `--restore-*` depth hold:
+    /// `edge-aware` (measured returns kept, new pixels interpolated only from neighbouring
+    /// returns on their own surface), `guided` (the same, the decoded scene picking the
+    /// surface where it clearly can), `bilinear` (inverse-distance weighting for scattered
+    /// points), `nearest`, or `gan` (the decoded scene's rendering). Where no observed return
+    /// reaches, the rendering fills in.
+    #[arg(long, value_enum, default_value_t = Fill::DEFAULT)]
+    pub upsample_method: Fill,
 }
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
@@ -184,6 +192,7 @@ pub(crate) fn resolve_decoding(
             mask_samples: args.mask_samples,
             upsample: args.upsample.clone(),
             target_sensors,
+            fill: args.upsample_method,
         },
     )))
 }

@@ -1,8 +1,10 @@
-//! `rangegan-mcap diagnose --sim SIM.mcap --real REAL.mcap [--topic T] --report DIR`:
+//! `rangegan-mcap diagnose --sim SIM.mcap --real REAL.mcap [--topic T] --report DIR`
+//! `[--force] [--sensor S] [--projection P] [--strict]`:
 //! locates where a simulated and a real recording drop rays (or place returns)
 //! differently, names the left-out physics, fits it on real scans and shows the
 //! held-out fit improve. Writes DIR/report.json, report.html, fitted_physics.json
-//! and PNG plots.
+//! and PNG plots. Exit code 0 when the report was written (3 under `--strict` if
+//! scans were skipped).
 
 use std::path::PathBuf;
 
@@ -11,12 +13,12 @@ use anyhow::Context;
 use super::{GlobalArgs, Outcome};
 use crate::decode::amortised::TrainedEncoder;
 use crate::decode::{DecodeOptions, Decoder, Quality, scan_seed};
+use crate::diagnose::completion::{Completion, gan_features, neighbour_features};
+use crate::diagnose::features::{FeatureOptions, ScanFeatures};
+use crate::diagnose::report::{DiagnoseOptions, diagnose};
 use crate::error::Location;
-use crate::lidar::SensorProfile;
+use crate::lidar::{SensorProfile, Strategy};
 use crate::model::weights::Model;
-use crate::physics::diagnose::{DiagnoseOptions, diagnose};
-use crate::physics::diagnose_completion::{Completion, gan_features, neighbour_features};
-use crate::physics::diagnose_features::{FeatureOptions, ScanFeatures};
 use crate::recording::{self, Grid, Recording};
 use crate::report;
 
@@ -31,16 +33,29 @@ pub struct DiagnoseArgs {
     /// Point-cloud topic in both recordings (default: the first point-cloud topic of each).
     #[arg(long)]
     pub topic: Option<String>,
-    /// Output folder for report.json, report.html, fitted_physics.json and the plots.
+    /// Output folder for report.json, report.html, fitted_physics.json and the
+    /// plots (refused if it exists, unless --force).
     #[arg(long)]
     pub report: PathBuf,
-    /// Sensor profile both are projected onto (default: the sim's `simulate`
-    /// metadata, else estimated from its first scan).
+    /// Replace the files of an existing report folder.
     #[arg(long)]
-    pub sensor: Option<String>,
+    pub force: bool,
+    /// Sensor profile both are projected onto: `auto` (the sim's `simulate`
+    /// metadata, else estimated from its first scan), a built-in name (hdl64e,
+    /// hdl32e, vlp16, vlp32c, os1-32, os1-64, os1-128), or a profile / Ouster
+    /// metadata JSON file.
+    #[arg(long, default_value = "auto")]
+    pub sensor: String,
     /// Range-image columns.
     #[arg(long, default_value_t = 512)]
     pub columns: usize,
+    /// How a point's row is found (default: chosen from each recording's data).
+    #[arg(long, value_enum, default_value = "auto")]
+    pub projection: Strategy,
+    /// Exit non-zero (3) when any scan was skipped (unreadable or not
+    /// projectable); without it the exit code is 0 whenever the report was written.
+    #[arg(long)]
+    pub strict: bool,
     /// Most drop effects to add.
     #[arg(long, default_value_t = 3)]
     pub max_effects: usize,
@@ -135,22 +150,31 @@ fn features(
 
 pub fn run(global: &GlobalArgs, args: DiagnoseArgs) -> anyhow::Result<Outcome> {
     crate::lidar::profile::check_columns(args.columns).map_err(anyhow::Error::msg)?;
-    let grid = match &args.sensor {
-        Some(s) => Grid::Fixed(
+    let occupied = args.report.exists()
+        && std::fs::read_dir(&args.report).map_or(true, |mut d| d.next().is_some());
+    if occupied && !args.force {
+        anyhow::bail!(
+            "{} exists; choose another --report folder or add --force to replace its files",
+            args.report.display()
+        );
+    }
+    let grid = match args.sensor.as_str() {
+        "auto" => Grid::FromRecording {
+            columns: Some(args.columns),
+        },
+        s => Grid::Fixed(
             SensorProfile::resolve(s)
                 .with_context(|| format!("--sensor {s}"))?
                 .with_columns(args.columns),
         ),
-        None => Grid::FromRecording {
-            columns: Some(args.columns),
-        },
     };
-    let sim = recording::read(&args.sim, args.topic.as_deref(), &grid)
+    let sim = recording::read_with(&args.sim, args.topic.as_deref(), &grid, args.projection)
         .with_context(|| format!("reading --sim {}", args.sim.display()))?;
-    let real = recording::read(
+    let real = recording::read_with(
         &args.real,
         args.topic.as_deref(),
         &Grid::Fixed(sim.profile.clone()),
+        args.projection,
     )
     .with_context(|| format!("reading --real {}", args.real.display()))?;
     anyhow::ensure!(
@@ -180,7 +204,7 @@ pub fn run(global: &GlobalArgs, args: DiagnoseArgs) -> anyhow::Result<Outcome> {
     let completion_s = started.elapsed().as_secs_f64();
     let options = DiagnoseOptions {
         max_effects: args.max_effects,
-        residual: crate::physics::diagnose_residual::ResidualContext {
+        residual: crate::diagnose::residual::ResidualContext {
             speed_mps: args.real_speed_mps.or(real.speed_mps()),
             period_s: 0.1,
         },
@@ -218,7 +242,9 @@ pub fn run(global: &GlobalArgs, args: DiagnoseArgs) -> anyhow::Result<Outcome> {
     let skipped = sim.skipped.len() + real.skipped.len();
     for s in sim.skipped.iter().chain(&real.skipped) {
         if !global.quiet {
-            eprintln!("warning: {s}; scan skipped");
+            eprintln!(
+                "warning: {s}; scan skipped (--sensor, --columns or --projection choose another grid)"
+            );
         }
     }
     let r = &diagnosis.report;
@@ -245,7 +271,7 @@ pub fn run(global: &GlobalArgs, args: DiagnoseArgs) -> anyhow::Result<Outcome> {
             r.fit.after
         );
     }
-    Ok(if skipped > 0 {
+    Ok(if skipped > 0 && args.strict {
         Outcome::DataSkipped
     } else {
         Outcome::Success

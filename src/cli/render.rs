@@ -18,12 +18,12 @@ use mcap::records::Record;
 
 use super::{GlobalArgs, Outcome};
 use crate::decode::{sample_masks, scan_seed};
+use crate::diagnose::completion::par_gan_render;
+use crate::diagnose::features::{FeatureOptions, ScanFeatures};
 use crate::io::encoders::encode_scan;
 use crate::io::{ChannelTable, DecodedCloud, McapOutput, OnError, decode_cloud, read_records};
 use crate::lidar::projection::choose_strategy;
 use crate::lidar::{RangeImage, SensorProfile, project};
-use crate::physics::diagnose_completion::par_gan_render;
-use crate::physics::diagnose_features::{FeatureOptions, ScanFeatures};
 use crate::physics::{Effect, Physics, PhysicsConfig, RayFeatures};
 use crate::recording::{self, Grid};
 use crate::sim::geometry::v3;

@@ -9,6 +9,8 @@
 //!   [`invert::invert`] (w steps, then pivotal tuning on a private copy of the weights).
 //! - [`Decoded`] holds the result: completed depth x_d and drop probability x_n on the model grid,
 //!   the reconstruction error, Bernoulli ray-drop masks, and [`Decoded::render`] for other grids.
+//! - [`fill`] decides what the upsampled, other-sensor and restored grids hold ([`Fill`]: the
+//!   rendering, or the observation interpolated with the decoded scene as a guide).
 //!
 //! Every random draw comes from the caller's seed (derive it with [`scan_seed`] from topic and
 //! log time) and each decode runs its tensor work on one thread, so results are bit-identical
@@ -17,6 +19,7 @@
 pub mod amortised;
 pub mod calibrate;
 pub mod encoder_train;
+pub mod fill;
 pub mod fit;
 pub mod invert;
 pub mod loss;
@@ -35,6 +38,7 @@ use crate::model::generator::{Generator, GridCache};
 use crate::model::rng::{Rng, tensor_from, tensor_to_vec};
 use crate::model::weights::Model;
 use amortised::TrainedEncoder;
+pub use fill::Fill;
 pub use invert::Schedule;
 use loss::{network_to_depth, relative_depth_error};
 
@@ -247,6 +251,8 @@ pub struct Decoded {
     pub error: Option<f32>,
     /// The same on the held-out pixels (`None` without [`Sparsify`]).
     pub held_out_error: Option<f32>,
+    /// How the observation was made sparse before decoding.
+    pub restore: Option<Sparsify>,
     /// Loss after each optimisation step.
     pub losses: Vec<f32>,
     pub seed: u64,
@@ -475,6 +481,7 @@ impl Decoder {
             held_out_m,
             error: None,
             held_out_error: None,
+            restore: self.opts.restore,
             losses: inv.losses,
             seed,
         };

@@ -1,4 +1,5 @@
 use super::*;
+use crate::lidar::SurfaceRule;
 use crate::model::sample::{SampleOptions, sample};
 
 #[test]
@@ -148,6 +149,42 @@ fn restoration_reports_the_error_on_held_out_pixels() {
     let held = r.held_out_m.iter().filter(|v| **v > 0.0).count();
     let seen = r.observed_m.iter().filter(|v| **v > 0.0).count();
     assert!(held > 5 * seen, "held {held} seen {seen}");
+}
+
+#[test]
+fn fills_keep_measured_returns_and_complete_with_the_rendering() {
+    let model = Model::shipped(&Device::flex()).expect("shipped model");
+    let scan = generated_scan(&model, 5);
+    for restore in [Sparsify::Lines(8), Sparsify::Fraction(0.1)] {
+        let d = decoder(0, 1, Some(restore));
+        let r = d.decode(&scan, 3).expect("decode");
+        assert_eq!(r.model_output(Fill::Gan), r.model);
+        let out = r.model_output(Fill::Guided);
+        assert_eq!(out.drop_prob, r.model.drop_prob);
+        let interpolated = r.interpolate_restored(Fill::Guided, &SurfaceRule::default());
+        let mut filled = 0;
+        for (k, (d, i)) in out.depth_m.iter().zip(&interpolated).enumerate() {
+            if r.observed_m[k] > 0.0 {
+                assert_eq!(d.to_bits(), r.observed_m[k].to_bits(), "{k}");
+            } else if *i > 0.0 {
+                assert_eq!(d, i);
+                filled += 1;
+            } else {
+                assert_eq!(*d, r.model.depth_m[k], "completed by x_d");
+            }
+        }
+        assert!(filled > 10_000, "{restore:?}: {filled} pixels interpolated");
+        // A 2x grid: interpolated from the restored observation, x_d where it does not reach.
+        let grid = d.prepare(&d.model_grid().resized(128, 1024));
+        let gan = r.render_output(&grid, Fill::Gan);
+        assert_eq!(gan, r.render_prepared(&grid));
+        let guided = r.render_output(&grid, Fill::Guided);
+        let changed = (0..gan.depth_m.len())
+            .filter(|&k| guided.depth_m[k] != gan.depth_m[k])
+            .count();
+        assert!(changed > 128 * 1024 / 2, "{changed}");
+        assert!(guided.depth_m.iter().all(|v| *v > 0.0));
+    }
 }
 
 #[test]

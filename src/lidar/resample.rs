@@ -10,6 +10,7 @@
 //! the azimuth seam at +-pi needs no special case, and columns wrap around.
 
 use super::range_image::NO_POINT;
+use super::surface::{Guide, Neighbour, SurfaceRule, blend_depth, keep_surface};
 use super::{AngleGrid, RangeImage, SensorProfile};
 
 /// How [`resample_image`] reads the source image.
@@ -234,6 +235,39 @@ impl Locator {
 /// the heaviest valid corner and `point_index` is [`NO_POINT`] (no single source
 /// point stands for the pixel).
 pub fn resample_image(image: &RangeImage, target: &AngleGrid, method: Interpolation) -> RangeImage {
+    match method {
+        Interpolation::Nearest => resample_with(image, target, Read::Nearest),
+        Interpolation::Bilinear => resample_with(image, target, Read::Bilinear),
+    }
+}
+
+/// `image` resampled onto `target` like [`Interpolation::Bilinear`] (same pixels valid),
+/// but a new pixel blends only the corners on its own surface ([`SurfaceRule`]): the
+/// nearest corner's, or with a `guide` (e.g. the decoded scene's completed depth on both
+/// grids) the one the guide puts the new pixel on. No range is averaged across a depth
+/// edge, and a target pixel on a source pixel's direction keeps that measured return
+/// exactly (xyz, intensity, label and point index included).
+pub fn resample_by_surface(
+    image: &RangeImage,
+    target: &AngleGrid,
+    rule: &SurfaceRule,
+    guide: Option<Guide<'_>>,
+) -> RangeImage {
+    resample_with(image, target, Read::Surface(rule, guide))
+}
+
+/// How [`resample_with`] reads the source around a target pixel.
+enum Read<'a> {
+    Nearest,
+    Bilinear,
+    Surface(&'a SurfaceRule, Option<Guide<'a>>),
+}
+
+/// Direction of a target pixel closer than this (in source pixels, on each axis) to a source
+/// pixel's direction keeps that pixel's return as is.
+const ON_SOURCE_PIXEL: f32 = 1e-3;
+
+fn resample_with(image: &RangeImage, target: &AngleGrid, read: Read<'_>) -> RangeImage {
     let mut out = RangeImage::empty(target.clone());
     let (h, w) = (image.height, image.width);
     let n = h * w;
@@ -255,6 +289,7 @@ pub fn resample_image(image: &RangeImage, target: &AngleGrid, method: Interpolat
         return out;
     }
     let locate = Locator::new(&image.angles);
+    let mut corners: Vec<Neighbour> = Vec::with_capacity(4);
     for k in 0..target.len() {
         let Some(u) = locate.row(target.elevation_rad[k]) else {
             continue;
@@ -265,54 +300,90 @@ pub fn resample_image(image: &RangeImage, target: &AngleGrid, method: Interpolat
         if !image.is_valid(nearest) {
             continue;
         }
-        match method {
-            Interpolation::Nearest => {
-                out.range_m[k] = image.range_m[nearest];
-                out.xyz[k] = image.xyz[nearest];
-                out.intensity[k] = image.intensity[nearest];
-                out.label[k] = image.label[nearest];
-                out.point_index[k] = image.point_index[nearest];
-            }
-            Interpolation::Bilinear => {
-                let r0 = (u.floor() as usize).min(h - 1);
-                let r1 = (r0 + 1).min(h - 1);
-                let c0 = (v.floor() as usize) % w;
-                let c1 = (c0 + 1) % w;
-                let (t, s) = (u - r0 as f32, v - v.floor());
-                let corners = [
-                    (r0 * w + c0, (1.0 - t) * (1.0 - s)),
-                    (r0 * w + c1, (1.0 - t) * s),
-                    (r1 * w + c0, t * (1.0 - s)),
-                    (r1 * w + c1, t * s),
-                ];
-                let (mut wsum, mut range, mut intensity) = (0.0f32, 0.0f32, 0.0f32);
-                let (mut best_w, mut label) = (-1.0f32, 0u32);
-                for (idx, wt) in corners {
-                    if image.is_valid(idx) && wt > 0.0 {
-                        wsum += wt;
-                        range += wt * image.range_m[idx];
-                        intensity += wt * image.intensity[idx];
-                        if wt > best_w {
-                            best_w = wt;
-                            label = image.label[idx];
-                        }
-                    }
-                }
-                // The nearest corner is valid and weighs >= 1/4, so wsum > 0.
-                if wsum <= 0.0 {
-                    continue;
-                }
-                let d = range / wsum;
-                let [x, y, z] = target.direction(k);
-                out.range_m[k] = d;
-                out.xyz[k] = [d * x, d * y, d * z];
-                out.intensity[k] = intensity / wsum;
-                out.label[k] = label;
-                out.point_index[k] = NO_POINT;
-            }
+        let on_source =
+            (u - u.round()).abs() < ON_SOURCE_PIXEL && (v - v.round()).abs() < ON_SOURCE_PIXEL;
+        let blend = match &read {
+            Read::Nearest => false,
+            Read::Bilinear => true,
+            Read::Surface(..) => !on_source,
+        };
+        if !blend {
+            copy_pixel(image, nearest, &mut out, k);
+            continue;
         }
+        valid_corners(image, u, v, &mut corners);
+        let mut inverse = false;
+        if let Read::Surface(rule, guide) = &read {
+            for c in corners.iter_mut() {
+                c.guide = guide.map_or(0.0, |g| g.source(c.index));
+            }
+            let one = keep_surface(&mut corners, guide.map_or(0.0, |g| g.target(k)), rule, None);
+            inverse = rule.inverse_depth && one;
+        }
+        // The nearest corner is valid and weighs >= 1/4, so something is left.
+        if corners.is_empty() {
+            continue;
+        }
+        let d = blend_depth(&corners, inverse);
+        let [x, y, z] = target.direction(k);
+        out.range_m[k] = d;
+        out.xyz[k] = [d * x, d * y, d * z];
+        out.intensity[k] = corners
+            .iter()
+            .map(|c| c.weight * image.intensity[c.index])
+            .sum();
+        out.label[k] = corners
+            .iter()
+            .max_by(|a, b| a.weight.total_cmp(&b.weight))
+            .map_or(0, |c| image.label[c.index]);
+        out.point_index[k] = NO_POINT;
     }
     out
+}
+
+/// Copies source pixel `from` (the measured return as is) to target pixel `to`.
+fn copy_pixel(image: &RangeImage, from: usize, out: &mut RangeImage, to: usize) {
+    out.range_m[to] = image.range_m[from];
+    out.xyz[to] = image.xyz[from];
+    out.intensity[to] = image.intensity[from];
+    out.label[to] = image.label[from];
+    out.point_index[to] = image.point_index[from];
+}
+
+const MIN_CORNER_WEIGHT: f32 = 1e-4;
+
+/// The valid ones of the four source pixels around `(u, v)` with their bilinear weights,
+/// renormalised to sum 1 (columns circular, rows clamped).
+fn valid_corners(image: &RangeImage, u: f32, v: f32, corners: &mut Vec<Neighbour>) {
+    let (h, w) = (image.height, image.width);
+    let r0 = (u.floor() as usize).min(h - 1);
+    let r1 = (r0 + 1).min(h - 1);
+    let c0 = (v.floor() as usize) % w;
+    let c1 = (c0 + 1) % w;
+    let (t, s) = (u - r0 as f32, v - v.floor());
+    corners.clear();
+    for (index, weight) in [
+        (r0 * w + c0, (1.0 - t) * (1.0 - s)),
+        (r0 * w + c1, (1.0 - t) * s),
+        (r1 * w + c0, t * (1.0 - s)),
+        (r1 * w + c1, t * s),
+    ] {
+        // Weights of float noise (a target row on a source row) would add a corner of
+        // another beam, so a corner needs a real share.
+        if image.is_valid(index) && weight > MIN_CORNER_WEIGHT {
+            corners.push(Neighbour {
+                index,
+                depth: image.range_m[index],
+                weight,
+                direction: image.angles.direction(index),
+                guide: 0.0,
+            });
+        }
+    }
+    let total: f32 = corners.iter().map(|c| c.weight).sum();
+    for c in corners.iter_mut() {
+        c.weight /= total;
+    }
 }
 
 /// `image` resampled onto `profile`'s grid (another sensor, or the same sensor at
@@ -551,6 +622,90 @@ mod tests {
                 "row {i} at {} deg",
                 wide.elevation_deg[i]
             );
+        }
+    }
+
+    /// 8 x 512: rows 0-3 a wall at 10 m, rows 4-7 the road at 40 m (slightly varying).
+    fn edge_image(p: &SensorProfile) -> RangeImage {
+        let mut img = smooth_image(p);
+        for k in 0..img.len() {
+            let d = if k / 512 < 4 {
+                10.0
+            } else {
+                40.0 + 0.001 * (k % 512) as f32
+            };
+            img.range_m[k] = d;
+            let [x, y, z] = img.angles.direction(k);
+            img.xyz[k] = [d * x, d * y, d * z];
+        }
+        img
+    }
+
+    #[test]
+    fn surface_resampling_never_averages_across_a_depth_edge() {
+        let p = uniform_profile(8, 512, 7.0, -7.0);
+        let img = edge_image(&p);
+        let fine = p.angle_grid().resized(16, 512);
+        let on_a_surface = |d: f32| (d - 10.0).abs() < 1e-4 || (40.0..=40.52).contains(&d);
+        let bilinear = resample_image(&img, &fine, Interpolation::Bilinear);
+        assert!(bilinear.range_m.iter().any(|d| !on_a_surface(*d)));
+        // Without a guide, with the edge between rows (2 deg apart) trusted, the nearest row
+        // decides: new rows 7 (source row 3.25) and 8 (3.75) go to the wall and to the road.
+        let trusting = SurfaceRule {
+            trust_below_deg: 3.0,
+            ..SurfaceRule::default()
+        };
+        let edge = resample_by_surface(&img, &fine, &trusting, None);
+        assert_eq!(edge.valid_count(), bilinear.valid_count());
+        for (k, d) in edge.range_m.iter().enumerate() {
+            assert!(on_a_surface(*d), "pixel {k}: {d}");
+        }
+        assert!(on_a_surface(edge.range_m[7 * 512 + 5]) && edge.range_m[7 * 512 + 5] < 11.0);
+        assert!(edge.range_m[8 * 512 + 5] >= 40.0);
+        // A guide that puts new row 7 on the road wins over the nearer wall row.
+        let guide_target: Vec<f32> = (0..fine.len())
+            .map(|k| if k / 512 < 7 { 11.0 } else { 38.0 })
+            .collect();
+        let guide_source: Vec<f32> = (0..img.len())
+            .map(|k| if k / 512 < 4 { 11.0 } else { 38.0 })
+            .collect();
+        let guide = Some(Guide {
+            target_m: &guide_target,
+            source_m: &guide_source,
+        });
+        // With the shipped margin the guide overrides the blend only where it clearly
+        // disagrees with it: new row 7 (a quarter road) goes to the road, new row 8 (three
+        // quarters road) is blended, as bilinear would.
+        let margin = resample_by_surface(&img, &fine, &SurfaceRule::default(), guide);
+        assert!(margin.range_m[7 * 512 + 5] >= 40.0);
+        assert!((margin.range_m[8 * 512 + 5] - bilinear.range_m[8 * 512 + 5]).abs() < 1e-3);
+        // A guide that sees the edge exactly, trusted without a margin: never averaged.
+        let exact = SurfaceRule {
+            guide_jump: 0.0,
+            ..SurfaceRule::default()
+        };
+        let guided = resample_by_surface(&img, &fine, &exact, guide);
+        for (k, d) in guided.range_m.iter().enumerate() {
+            assert!(on_a_surface(*d), "pixel {k}: {d}");
+        }
+        assert!(guided.range_m[7 * 512 + 5] >= 40.0);
+        assert!((guided.range_m[6 * 512 + 5] - 10.0).abs() < 1e-4);
+    }
+
+    #[test]
+    fn surface_resampling_keeps_measured_returns_exactly() {
+        let p = uniform_profile(8, 512, 7.0, -7.0);
+        let mut img = edge_image(&p);
+        img.range_m[3 * 512 + 9] = 0.0;
+        let out = resample_by_surface(&img, &p.angle_grid(), &SurfaceRule::default(), None);
+        for k in 0..img.len() {
+            assert_eq!(out.range_m[k].to_bits(), img.range_m[k].to_bits(), "{k}");
+            if img.is_valid(k) {
+                assert_eq!(out.xyz[k], img.xyz[k]);
+                assert_eq!(out.point_index[k], img.point_index[k]);
+            } else {
+                assert_eq!(out.point_index[k], NO_POINT);
+            }
         }
     }
 }

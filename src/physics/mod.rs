@@ -13,18 +13,10 @@
 //!
 //! Every random draw is keyed by (scene seed, scan index, pixel, effect id), so a
 //! result never depends on threads or on which other effects are enabled.
-//! (Issue 6's diagnosis lives beside this in `diagnose*.rs`.)
+//! The Sim2Real diagnosis ([`crate::diagnose`]) fits these effects; this module
+//! does not depend on it.
 
 pub mod config;
-pub mod diagnose;
-pub mod diagnose_completion;
-pub mod diagnose_drop;
-pub mod diagnose_features;
-pub mod diagnose_fit;
-pub mod diagnose_residual;
-pub mod diagnose_stats;
-#[cfg(test)]
-mod diagnose_tests;
 pub mod dropout;
 pub mod perturb;
 pub mod pretraining;

@@ -11,7 +11,7 @@ use std::path::{Path, PathBuf};
 
 use anyhow::Context;
 
-use crate::physics::diagnose::{Curve, Diagnosis};
+use crate::diagnose::report::{Curve, Diagnosis};
 use plot::{FITTED, LineChart, REAL, SIM, Series, line_chart, viridis, write_atomic};
 
 /// Where the inputs came from, for the HTML header.
@@ -74,37 +74,55 @@ fn curve_figure(dir: &Path, curve: &Curve) -> anyhow::Result<Figure> {
     })
 }
 
-/// Writes a false-colour image (`plot::image`) as `dir/file`.
-fn image_file(
+/// Writes a map chart (`plot::map_chart`: title, azimuth and row axes, colour
+/// bar where `colour_bar` is given) as `dir/file`.
+fn map_file(
     dir: &Path,
     file: &str,
+    title: &str,
     (h, w): (usize, usize),
-    colour: impl Fn(usize) -> plot::Rgb,
+    colour: &dyn Fn(usize) -> plot::Rgb,
+    colour_bar: Option<(f32, &str)>,
 ) -> anyhow::Result<()> {
-    let row_scale = (256 / h.max(1)).clamp(1, 4);
-    let png = plot::image(h, w, row_scale, colour)
-        .with_context(|| format!("cannot draw {}", dir.join(file).display()))?;
+    let png = plot::map_chart(&plot::MapChart {
+        title,
+        height: h,
+        width: w,
+        colour,
+        colour_bar,
+    })
+    .with_context(|| format!("cannot draw {}", dir.join(file).display()))?;
     write_atomic(&dir.join(file), &png)
         .with_context(|| format!("cannot write {}", dir.join(file).display()))
 }
 
+#[allow(clippy::too_many_arguments)]
 fn map_figure(
     dir: &Path,
     file: &str,
+    title: &str,
     h: usize,
     w: usize,
     values: &[f32],
     max: f32,
     caption: String,
 ) -> anyhow::Result<Figure> {
-    image_file(dir, file, (h, w), |k| {
+    let colour = |k: usize| {
         let v = values.get(k).copied().unwrap_or(f32::NAN);
         if v.is_finite() {
             viridis(v / max.max(1e-6))
         } else {
             [255, 255, 255]
         }
-    })?;
+    };
+    map_file(
+        dir,
+        file,
+        title,
+        (h, w),
+        &colour,
+        Some((max, "drop probability")),
+    )?;
     Ok(Figure {
         file: file.into(),
         caption,
@@ -136,11 +154,12 @@ pub fn write(dir: &Path, d: &Diagnosis, provenance: &Provenance) -> anyhow::Resu
     }
     let m = &d.maps;
     let (h, w) = (m.height, m.width);
-    figures.push(map_figure(dir, "drop_map_real.png", h, w, &m.real_drop, 1.0,
+    figures.push(map_figure(dir, "drop_map_real.png", "Real: drop frequency per pixel (held-out scans)", h, w, &m.real_drop, 1.0,
         "Real drop frequency per pixel over the held-out scans (rows top to bottom, azimuth +180 deg at the left to -180 deg at the right; dark 0, yellow 1; white = left out).".into())?);
     figures.push(map_figure(
         dir,
         "drop_map_sim.png",
+        "Sim: drop frequency per pixel",
         h,
         w,
         &m.sim_drop,
@@ -154,12 +173,12 @@ pub fn write(dir: &Path, d: &Diagnosis, provenance: &Provenance) -> anyhow::Resu
         .filter(|v| v.is_finite())
         .fold(0.0f32, f32::max)
         .max(0.05);
-    figures.push(map_figure(dir, "fitted_extra_drop.png", h, w, &m.fitted_extra_drop, extra_max,
+    figures.push(map_figure(dir, "fitted_extra_drop.png", "Where the fitted effects act: extra drop probability", h, w, &m.fitted_extra_drop, extra_max,
         format!("Where the fitted effects act: extra drop probability per pixel, mean over held-out scans (dark 0, yellow {extra_max:.2})."))?);
     // One held-out real scan: grey by range, black where dropped, red where the
     // fitted effects add drop probability (the located mismatch).
     let max_range = m.example_range_m.iter().copied().fold(1.0f32, f32::max);
-    image_file(dir, "example_scan.png", (h, w), |k| {
+    let example = |k: usize| {
         let r = m.example_range_m.get(k).copied().unwrap_or(0.0);
         let hl = m
             .example_highlight
@@ -179,7 +198,15 @@ pub fn write(dir: &Path, d: &Diagnosis, provenance: &Provenance) -> anyhow::Resu
         } else {
             [grey, grey, grey]
         }
-    })?;
+    };
+    map_file(
+        dir,
+        "example_scan.png",
+        "One held-out real scan: range (grey), dropped (black), located mismatch (red)",
+        (h, w),
+        &example,
+        None,
+    )?;
     figures.push(Figure {
         file: "example_scan.png".into(),
         caption: "One held-out real scan: grey by range (light near, dark far), black where dropped, red where the fitted effects located the mismatch (extra drop probability; the scan seam for motion distortion).".into(),
@@ -209,6 +236,9 @@ pub fn write(dir: &Path, d: &Diagnosis, provenance: &Provenance) -> anyhow::Resu
         100.0 * r.inputs.drop_rate_real,
         r.inputs.reach_m
     );
+    for why in &r.inputs.left_out {
+        let _ = write!(html, "<p>Left out: {}.</p>", escape(why));
+    }
     let _ = write!(
         html,
         "<h2>Fit on held-out real scans</h2><p>{}: before {:.5}, after {:.5} (lower is better).</p><h2>Effects found</h2>",
@@ -268,8 +298,8 @@ pub fn write(dir: &Path, d: &Diagnosis, provenance: &Provenance) -> anyhow::Resu
     for f in &figures {
         let _ = write!(
             html,
-            "<figure><img src='{}'><figcaption>{}</figcaption></figure>",
-            f.file, f.caption
+            "<figure><img src='{}' alt='{}'><figcaption>{}</figcaption></figure>",
+            f.file, f.file, f.caption
         );
         files.push(dir.join(&f.file));
     }

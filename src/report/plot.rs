@@ -131,6 +131,86 @@ pub fn line_chart(chart: &LineChart) -> anyhow::Result<Vec<u8>> {
     encode_png(w, h, &buf)
 }
 
+/// A range-image map with axes (azimuth along x, beam row down y), a title and,
+/// for a scalar map, a viridis colour bar from 0 to `colour_bar.0`.
+pub struct MapChart<'a> {
+    pub title: &'a str,
+    pub height: usize,
+    pub width: usize,
+    /// Colour of pixel `k` (row-major).
+    pub colour: &'a dyn Fn(usize) -> Rgb,
+    /// (value at the top of the bar, its label); None: no bar (a legend in the
+    /// caption says what the colours mean).
+    pub colour_bar: Option<(f32, &'a str)>,
+}
+
+/// Size of a map chart in pixels.
+pub const MAP_SIZE: (u32, u32) = (1000, 420);
+
+/// Draws `map` (`MAP_SIZE`) and returns it as PNG bytes.
+pub fn map_chart(map: &MapChart) -> anyhow::Result<Vec<u8>> {
+    register_font();
+    let (w, h) = MAP_SIZE;
+    let (rows, cols) = (map.height.max(1), map.width.max(1));
+    let mut buf = vec![255u8; (w * h * 3) as usize];
+    {
+        let root = BitMapBackend::with_buffer(&mut buf, (w, h)).into_drawing_area();
+        root.fill(&WHITE)?;
+        let root = root.titled(map.title, ("sans-serif", 20))?;
+        let (left, right) = root.split_horizontally(w - 110);
+        let mut c = ChartBuilder::on(&left)
+            .margin(10)
+            .x_label_area_size(44)
+            .y_label_area_size(56)
+            .build_cartesian_2d(0f64..cols as f64, rows as f64..0f64)?;
+        // Columns run from azimuth +180 deg (left) to -180 deg (right).
+        let azimuth = |j: &f64| format!("{:.0}", 180.0 - j * 360.0 / cols as f64);
+        c.configure_mesh()
+            .disable_mesh()
+            .x_desc("azimuth (deg; 0 = straight ahead)")
+            .y_desc("beam row (0 = top)")
+            .x_labels(9)
+            .x_label_formatter(&azimuth)
+            .y_label_formatter(&|r: &f64| format!("{r:.0}"))
+            .label_style(("sans-serif", 13))
+            .axis_desc_style(("sans-serif", 14))
+            .draw()?;
+        c.draw_series((0..rows * cols).map(|k| {
+            let (i, j) = ((k / cols) as f64, (k % cols) as f64);
+            let [r, g, b] = (map.colour)(k);
+            Rectangle::new([(j, i), (j + 1.0, i + 1.0)], RGBColor(r, g, b).filled())
+        }))?;
+        if let Some((top, label)) = map.colour_bar {
+            let top = f64::from(top.max(1e-6));
+            let mut bar = ChartBuilder::on(&right)
+                .margin_top(10)
+                .margin_bottom(54)
+                .margin_right(10)
+                .y_label_area_size(62)
+                .build_cartesian_2d(0f64..1f64, 0f64..top)?;
+            bar.configure_mesh()
+                .disable_mesh()
+                .disable_x_axis()
+                .y_desc(label)
+                .y_labels(6)
+                .label_style(("sans-serif", 12))
+                .axis_desc_style(("sans-serif", 13))
+                .draw()?;
+            let steps = 100;
+            bar.draw_series((0..steps).map(|s| {
+                let (a, b) = (s as f64 / steps as f64, (s + 1) as f64 / steps as f64);
+                let [r, g, bl] = viridis(((a + b) / 2.0) as f32);
+                Rectangle::new(
+                    [(0.0, a * top), (1.0, b * top)],
+                    RGBColor(r, g, bl).filled(),
+                )
+            }))?;
+        }
+        root.present()?;
+    }
+    encode_png(w, h, &buf)
+}
+
 /// Viridis (dark purple 0, yellow 1) for `v` clamped to [0, 1]; NaN is white.
 pub fn viridis(v: f32) -> Rgb {
     if v.is_nan() {

@@ -1,4 +1,4 @@
-//! Range-residual effects of the diagnosis (issue 6): effects that move returns
+//! Range-residual effects of the diagnosis: effects that move returns
 //! instead of dropping them. Unpaired scenes have no per-pixel truth, so each
 //! family looks at a local statistic whose distribution the scene hardly changes,
 //! takes the simulated recording's empirical distribution of it as the
@@ -13,8 +13,8 @@
 
 use serde_json::{Map, json};
 
-use super::diagnose_features::ScanFeatures;
-use super::diagnose_stats::erfc;
+use super::features::ScanFeatures;
+use super::stats::erfc;
 
 /// Observations of one statistic: (value, covariate), pooled over scans.
 pub type Obs = Vec<(f32, f32)>;
@@ -292,16 +292,49 @@ impl ResidualFamily for RangeNoiseFamily {
     }
 }
 
-/// Smallest range gap between a pixel's row neighbours that makes it a depth edge.
-const MIXED_MIN_GAP_M: f32 = 1.0;
+/// Smallest range gap between a pixel's neighbours that makes it a depth edge.
+const MIXED_MIN_GAP_M: f32 = 1.5;
 /// Share of a mixed pixel's uniform range that lies strictly between its
 /// neighbours (margins of 10 % of the gap on both sides).
 const MIXED_INSIDE: f64 = 0.8;
 /// Smallest fitted share of mixed edge pixels that is claimed.
 const MIN_MIXED_SHARE: f64 = 0.1;
+/// A step edge's two sides must each be flat to this share of the gap.
+const MIXED_FLAT_SHARE: f32 = 0.15;
 
 /// `mixed_pixels`: returns between the two surfaces of a depth edge.
 pub struct MixedPixelsFamily;
+
+impl MixedPixelsFamily {
+    /// Step edges through pixel `k` along one image axis (`step` pixels apart,
+    /// 1 = along the row, `width` = down the column): five kept pixels `a b k c
+    /// d` with `a ≈ b` and `c ≈ d` (each side one flat surface) and `b`, `c` more
+    /// than the gap apart. Is `k` strictly between the two surfaces? On a
+    /// slanted surface (ground, a wall seen obliquely) the steps are even, so it
+    /// is no step edge: the statistic does not depend on how much of the scene
+    /// is slanted.
+    fn step_edge(f: &ScanFeatures, k: usize, step: usize) -> Option<(bool, f32)> {
+        let idx = [
+            k.checked_sub(2 * step)?,
+            k - step,
+            k,
+            k + step,
+            k + 2 * step,
+        ];
+        if idx[4] >= f.len() || idx.iter().any(|&i| !f.kept[i]) {
+            return None;
+        }
+        let [a, b, r, c, d] = idx.map(|i| f.range_m[i]);
+        let (near, far) = (b.min(c), b.max(c));
+        let gap = far - near;
+        let flat = MIXED_FLAT_SHARE * gap;
+        if gap <= MIXED_MIN_GAP_M || (a - b).abs() > flat || (c - d).abs() > flat {
+            return None;
+        }
+        let margin = 0.1 * gap;
+        Some((r > near + margin && r < far - margin, gap))
+    }
+}
 
 impl ResidualFamily for MixedPixelsFamily {
     fn id(&self) -> &'static str {
@@ -309,17 +342,18 @@ impl ResidualFamily for MixedPixelsFamily {
     }
     fn observations(&self, scans: &[ScanFeatures]) -> Obs {
         let mut obs = Vec::new();
-        for_each_row_triplet(scans, |f, k| {
-            let (a, b) = (f.range_m[k - 1], f.range_m[k + 1]);
-            let (near, far) = (a.min(b), a.max(b));
-            let gap = far - near;
-            if gap > MIXED_MIN_GAP_M {
-                let r = f.range_m[k];
-                let margin = 0.1 * gap;
-                let between = r > near + margin && r < far - margin;
-                obs.push((f32::from(u8::from(between)), gap));
+        for f in scans {
+            let w = f.width;
+            for k in 0..f.len() {
+                let j = k % w;
+                let along_row = (j >= 2 && j + 2 < w)
+                    .then(|| Self::step_edge(f, k, 1))
+                    .flatten();
+                for (between, gap) in along_row.into_iter().chain(Self::step_edge(f, k, w)) {
+                    obs.push((f32::from(u8::from(between)), gap));
+                }
             }
-        });
+        }
         obs
     }
     fn fit(&self, sim: &Obs, train: &Obs, test: &Obs, _: &ResidualContext) -> Option<ResidualFit> {
@@ -357,7 +391,7 @@ impl ResidualFamily for MixedPixelsFamily {
             params,
             physics,
             location: format!(
-                "depth edges (> {MIXED_MIN_GAP_M} m): {:.0} % of edge pixels lie between the two surfaces (sim {:.0} %)",
+                "step edges (> {MIXED_MIN_GAP_M} m between two flat surfaces, along rows and columns): {:.0} % of edge pixels lie between the two surfaces (sim {:.0} %)",
                 100.0 * p_after,
                 100.0 * b
             ),

@@ -1,4 +1,4 @@
-//! Concealed-effect tests of the whole diagnosis (issue 6): for each catalogue
+//! Concealed-effect tests of the whole diagnosis: for each catalogue
 //! effect, a real-side recording with the effect and a sim-side recording of
 //! another scene without it, the sim's uniform dropout raised until the global
 //! drop rates match. Effect parameters are drawn from a seeded RNG across the
@@ -9,19 +9,19 @@ use std::collections::BTreeMap;
 
 use serde_json::Map;
 
-use super::Effect;
-use super::diagnose::{DiagnoseOptions, Diagnosis, diagnose};
-use super::diagnose_completion::{Completion, gan_features};
-use super::diagnose_features::{
+use super::completion::{Completion, gan_features};
+use super::features::{
     FeatureOptions, ScanFeatures, simulated_images_with, simulated_recording_with,
 };
-use super::dropout::{
+use super::report::{DiagnoseOptions, Diagnosis, diagnose};
+use crate::decode::scan_seed;
+use crate::lidar::{RangeImage, SensorProfile};
+use crate::physics::Effect;
+use crate::physics::dropout::{
     BeamDropout, IncidenceDropout, MaterialDropout, OcclusionSector, RangeDropout, SelfOcclusion,
     UniformDropout,
 };
-use super::perturb::{MixedPixels, MotionDistortion, RangeNoise};
-use crate::decode::scan_seed;
-use crate::lidar::{RangeImage, SensorProfile};
+use crate::physics::perturb::{MixedPixels, MotionDistortion, RangeNoise};
 use crate::sim::Material;
 use crate::sim::rng::uniform;
 
@@ -98,7 +98,7 @@ fn gan_completed(images: &[RangeImage], topic: &str) -> Vec<ScanFeatures> {
         .collect();
     // The encoder's prediction alone (no tuning steps): cheap enough for a unit test;
     // with 20 tuning steps it names the effect in both cases too (docs/diagnose.md).
-    let decoder = super::diagnose_completion::test_decoder(0);
+    let decoder = super::completion::test_decoder(0);
     let done = gan_features(decoder, images, &seeds, &FeatureOptions::default());
     assert!(done.fallbacks.is_empty(), "{:?}", done.fallbacks);
     done.features
@@ -384,7 +384,7 @@ fn same_physics_other_scenes_claims_nothing() {
 /// else may.
 #[test]
 fn same_realistic_physics_other_scenes_claims_nothing_but_the_class_confound() {
-    let realistic = || super::Preset::Realistic.config().effects().effects;
+    let realistic = || crate::physics::Preset::Realistic.config().effects().effects;
     let sim = simulated_recording_with(&hdl64(), 31, SCANS, realistic());
     let real = simulated_recording_with(&hdl64(), 32, SCANS, realistic());
     let d = run(&sim, &real);

@@ -1,18 +1,18 @@
-//! Sim2Real diagnosis (issue 6), end to end on projected scans: features of both
-//! recordings, where the drop rates diverge (`diagnose_stats`), which left-out
-//! effects explain the divergence (`diagnose_fit` with the drop candidates of
-//! `diagnose_drop`, and `diagnose_residual` for effects that move returns), and
+//! Sim2Real diagnosis, end to end on projected scans: features of both
+//! recordings, where the drop rates diverge (`stats`), which left-out
+//! effects explain the divergence (`fit` with the drop candidates of
+//! `drop`, and `residual` for effects that move returns), and
 //! the numbers the report and its plots show. No I/O: the CLI reads the
 //! recordings and writes the report (`crate::report`).
 
 use serde::Serialize;
 use serde_json::{Map, Value};
 
-use super::diagnose_drop;
-use super::diagnose_features::ScanFeatures;
-use super::diagnose_fit::{self, Baseline, DropFamily, DropSelection, FitError, Pixels};
-use super::diagnose_residual::{self, ResidualContext, ResidualFit};
-use super::diagnose_stats::{BinOptions, DropCounts, Feature, TestOptions, compare};
+use super::drop;
+use super::features::ScanFeatures;
+use super::fit::{self, Baseline, DropFamily, DropSelection, FitError, Pixels};
+use super::residual::{self, ResidualContext, ResidualFit};
+use super::stats::{BinOptions, DropCounts, Feature, TestOptions, compare};
 
 /// Settings of a diagnosis.
 #[derive(Debug, Clone, PartialEq)]
@@ -96,6 +96,8 @@ pub struct InputsReport {
     pub completion_model: Option<String>,
     /// Scans the GAN could not decode, completed by the neighbour fill instead.
     pub completion_fallback_scans: usize,
+    /// Tests and candidates left out because one side lacks their feature, why.
+    pub left_out: Vec<String>,
 }
 
 /// The report (`report.json`): `effects` and `fit` are the contract other
@@ -219,7 +221,7 @@ pub fn diagnose(
     }
     let train: Vec<ScanFeatures> = real.iter().step_by(2).cloned().collect();
     let test: Vec<ScanFeatures> = real.iter().skip(1).step_by(2).cloned().collect();
-    let reach_m = diagnose_fit::reach_m(sim, real);
+    let reach_m = fit::reach_m(sim);
 
     // Where: conditional drop rates, BH-corrected.
     let bins = BinOptions {
@@ -229,6 +231,23 @@ pub fn diagnose(
     let (mut c_sim, mut c_real) = (DropCounts::default(), DropCounts::default());
     sim.iter().for_each(|f| c_sim.add(f, &bins));
     real.iter().for_each(|f| c_real.add(f, &bins));
+    // A side without labels makes every pixel "class 0": comparing classes
+    // would report that artefact, so the class test and candidate are left out.
+    let mut left_out = Vec::new();
+    let unlabelled: Vec<&str> = [("sim", sim), ("real", real)]
+        .iter()
+        .filter(|(_, scans)| !labelled(scans))
+        .map(|(side, _)| *side)
+        .collect();
+    if !unlabelled.is_empty() {
+        for c in [&mut c_sim, &mut c_real] {
+            c.bins.retain(|(feature, _), _| *feature != Feature::Class);
+        }
+        left_out.push(format!(
+            "material_dropout and the drop rate by class: the {} recording has no semantic labels",
+            unlabelled.join(" and ")
+        ));
+    }
     let comparison = compare(&c_sim, &c_real, &bins, &options.tests);
 
     // What: drop candidates by forward selection.
@@ -236,9 +255,13 @@ pub fn diagnose(
     let px_train = Pixels::collect(&train, reach_m);
     let px_test = Pixels::collect(&test, reach_m);
     let baseline = Baseline::from_sim(&px_sim, reach_m);
-    let boxed = diagnose_drop::families();
-    let families: Vec<&dyn DropFamily> = boxed.iter().map(|b| b.as_ref()).collect();
-    let selection = diagnose_fit::select(
+    let boxed = drop::families();
+    let families: Vec<&dyn DropFamily> = boxed
+        .iter()
+        .map(|b| b.as_ref())
+        .filter(|f| unlabelled.is_empty() || f.id() != "material_dropout")
+        .collect();
+    let selection = fit::select(
         &families,
         &baseline,
         &px_train,
@@ -247,7 +270,7 @@ pub fn diagnose(
     )?;
 
     // What else: range-residual candidates.
-    let residual_fits: Vec<ResidualFit> = diagnose_residual::families()
+    let residual_fits: Vec<ResidualFit> = residual::families()
         .iter()
         .filter_map(|family| {
             family.fit(
@@ -362,9 +385,10 @@ pub fn diagnose(
         completion: completion.into(),
         completion_model: None,
         completion_fallback_scans: 0,
+        left_out,
     };
 
-    let keep_after = diagnose_fit::keep_under(&families, &selection, &baseline, &px_test);
+    let keep_after = fit::keep_under(&families, &selection, &baseline, &px_test);
     // "Before" for the maps: the sim with the fitted keep scale but no effect, so
     // the maps show where the effects act rather than the overall rate.
     let keep_before: Vec<f64> = baseline
@@ -398,6 +422,21 @@ pub fn diagnose(
         curves,
         maps,
     })
+}
+
+/// Whether a recording carries semantic labels: at least 5 % of its returns
+/// have a class.
+fn labelled(scans: &[ScanFeatures]) -> bool {
+    let (mut kept, mut classed) = (0usize, 0usize);
+    for f in scans {
+        for k in 0..f.len() {
+            if f.kept[k] {
+                kept += 1;
+                classed += usize::from(f.class[k] != 0);
+            }
+        }
+    }
+    classed as f64 >= 0.05 * kept.max(1) as f64
 }
 
 /// Folds the fitted keep scale `c` into the physics' uniform dropout:
@@ -515,7 +554,7 @@ fn maps(
     let fitted_extra_drop = grid(test, &|i| (keep_before[i] - keep_after[i]).max(0.0));
     // The example scan: every pixel (not only those within reach).
     let px = Pixels::collect(std::slice::from_ref(example), f32::INFINITY);
-    let after = diagnose_fit::keep_under(families, selection, baseline, &px);
+    let after = fit::keep_under(families, selection, baseline, &px);
     let before: Vec<f64> = baseline
         .keep_of(&px)
         .iter()

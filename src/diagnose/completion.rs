@@ -1,13 +1,13 @@
-//! Completion of dropped pixels for the Sim2Real diagnosis (issue 6): real dropped
+//! Completion of dropped pixels for the Sim2Real diagnosis: real dropped
 //! rays have no geometry, so before incidence and edges can be computed they are
-//! completed, either by the cheap neighbour fill of `diagnose_features` or by the
+//! completed, either by the cheap neighbour fill of `features` or by the
 //! range-image GAN: each scan is auto-decoded (`crate::decode`, `fast` quality,
 //! seeded from its topic and log time), the decoded scene rendered on the scan's
 //! own grid, and its completed depth x_d used for the dropped pixels.
 
 use rayon::prelude::*;
 
-use super::diagnose_features::{FeatureOptions, ScanFeatures};
+use super::features::{FeatureOptions, ScanFeatures};
 use crate::decode::{Decoder, PreparedGrid, Rendered};
 use crate::lidar::RangeImage;
 
@@ -148,7 +148,7 @@ pub(crate) fn test_decoder(tune_steps: usize) -> &'static Decoder {
 mod tests {
     use super::*;
     use crate::decode::scan_seed;
-    use crate::physics::diagnose_features::simulated_images_with;
+    use crate::diagnose::features::simulated_images_with;
     use crate::physics::dropout::UniformDropout;
 
     /// Two simulated HDL-64E scans with 20 % of the rays dropped.

@@ -1,5 +1,5 @@
 //! Conditional drop-rate comparisons between a simulated and a real recording
-//! (issue 6): where, in feature space, do the two drop rays at different rates?
+//!: where, in feature space, do the two drop rays at different rates?
 //!
 //! This module owns the binning of [`ScanFeatures`] by one feature at a time (row,
 //! azimuth, range, incidence, depth-edge proximity, class), the per-bin counts,
@@ -14,7 +14,7 @@
 use std::collections::BTreeMap;
 use std::f64::consts::{PI, SQRT_2};
 
-use super::diagnose_features::ScanFeatures;
+use super::features::ScanFeatures;
 
 /// A feature a drop rate can be conditioned on.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash)]
@@ -64,7 +64,7 @@ pub struct BinOptions {
     pub incidence_step_deg: f32,
     /// Pixels completed to beyond this range are left out: near the sensor's
     /// reach "no surface" and "dropped" look alike and their share is a scene
-    /// property (see [`super::diagnose_fit::reach_m`]). Infinity keeps all.
+    /// property (see [`super::fit::reach_m`]). Infinity keeps all.
     pub reach_m: f32,
 }
 
@@ -516,7 +516,7 @@ mod tests {
         );
     }
 
-    use crate::physics::diagnose_features::simulated_recording;
+    use crate::diagnose::features::simulated_recording;
 
     fn all_counts(scans: &[ScanFeatures]) -> DropCounts {
         let mut c = DropCounts::default();
@@ -561,7 +561,7 @@ mod tests {
 
     #[test]
     fn simulated_same_physics_different_scenes_gives_no_significant_bin() {
-        use crate::physics::diagnose_fit::reach_m;
+        use crate::diagnose::fit::reach_m;
         use crate::physics::dropout::UniformDropout;
         let uniform = || -> Vec<Box<dyn crate::physics::Effect>> {
             vec![Box::new(UniformDropout {
@@ -574,7 +574,7 @@ mod tests {
             simulated_recording(8, 6, uniform()),
         );
         let bins = BinOptions {
-            reach_m: reach_m(&sim, &real),
+            reach_m: reach_m(&sim),
             ..BinOptions::default()
         };
         let count = |scans: &[ScanFeatures]| {

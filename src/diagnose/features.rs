@@ -1,12 +1,12 @@
-//! Per-pixel features for Sim2Real diagnosis (issue 6), computed the same way on a
+//! Per-pixel features for Sim2Real diagnosis, computed the same way on a
 //! real or a simulated scan projected onto a [`RangeImage`].
 //!
 //! This module owns the cheap geometry that the drop-rate comparisons condition
 //! on: a completion of dropped pixels (a cheap neighbour fill, or a completed depth
-//! given by the caller: the GAN's x_d, see `diagnose_completion`), incidence angles from the normals of the completed
+//! given by the caller: the GAN's x_d, see `completion`), incidence angles from the normals of the completed
 //! depth, depth-edge proximity, and classes (labels where present, else the most
 //! common label among valid neighbours). It does no statistics (see
-//! `diagnose_stats`) and no I/O.
+//! `stats`) and no I/O.
 
 use crate::lidar::RangeImage;
 

@@ -1,4 +1,4 @@
-//! Maximum-likelihood selection of the drop models a simulator left out (issue 6).
+//! Maximum-likelihood selection of the drop models a simulator left out.
 //!
 //! Every pixel of a real scan is kept with probability
 //! `keep = c · B(x) · Π_e (1 − p_e(x))`:
@@ -22,7 +22,7 @@
 //! [`QTable`] by (candidate bin, level of the rest-of-model keep probability `q`),
 //! and the likelihood of any per-bin drop curve is a sum over its cells.
 
-use super::diagnose_features::ScanFeatures;
+use super::features::ScanFeatures;
 
 /// Smallest held-out gain (nats per pixel) an effect must show: pixels of a scan
 /// are correlated, so the BIC term alone (which assumes independence) is too lax.
@@ -30,8 +30,8 @@ pub const MIN_GAIN_NATS: f64 = 3e-3;
 
 /// Pixels completed to near the sensor's reach are ambiguous: "no surface within
 /// reach" (scene) or "dropped" (physics); their share depends on the scene, so
-/// the fit leaves out completed ranges above `REACH_FRACTION` times the
-/// `REACH_QUANTILE` quantile of kept ranges (the smaller of the two sides).
+/// the fit leaves out completed ranges above `REACH_FRACTION` times the sim's
+/// `REACH_QUANTILE` quantile of kept ranges.
 pub const REACH_QUANTILE: f64 = 0.995;
 pub const REACH_FRACTION: f32 = 0.85;
 
@@ -46,10 +46,11 @@ const Q_FLOOR: f64 = 1e-5;
 const KEEP_MAX: f64 = 1.0 - 1e-7;
 
 /// The range beyond which completed pixels are left out: [`REACH_FRACTION`] of
-/// the smaller of the two sides' [`REACH_QUANTILE`] kept-range quantiles.
-pub fn reach_m(sim: &[ScanFeatures], real: &[ScanFeatures]) -> f32 {
-    REACH_FRACTION
-        * kept_range_quantile(sim, REACH_QUANTILE).min(kept_range_quantile(real, REACH_QUANTILE))
+/// the sim's [`REACH_QUANTILE`] kept-range quantile. The sim's alone: a real
+/// sensor that loses far returns shows range physics to be found, not a reach
+/// to cut away.
+pub fn reach_m(sim: &[ScanFeatures]) -> f32 {
+    REACH_FRACTION * kept_range_quantile(sim, REACH_QUANTILE)
 }
 
 /// The `q` quantile of kept ranges over scans (infinity when none is kept).
@@ -66,9 +67,65 @@ pub fn kept_range_quantile(scans: &[ScanFeatures], q: f64) -> f32 {
     *ranges.select_nth_unstable_by(i, f32::total_cmp).1
 }
 
+/// Largest enclosure distance [`Pixels::enclosure_px`] tells apart.
+pub const ENCLOSURE_CAP_PX: u8 = 16;
+
+/// [`Pixels::enclosure_px`] of every pixel of one scan.
+fn enclosure_px(f: &ScanFeatures) -> Vec<u8> {
+    let (h, w) = (f.height, f.width.max(1));
+    let cap = usize::from(ENCLOSURE_CAP_PX);
+    // Distance to the nearest return from `k` in steps of `step`, at most `limit` steps.
+    let reach = |k: usize, step: isize, limit: usize| -> usize {
+        (1..=cap.min(limit))
+            .find(|&d| f.kept[(k as isize + step * d as isize) as usize])
+            .unwrap_or(cap)
+    };
+    (0..f.len())
+        .map(|k| {
+            if f.kept[k] {
+                return 0;
+            }
+            let (i, j) = (k / w, k % w);
+            let row = reach(k, -1, j).max(reach(k, 1, w - 1 - j));
+            let column = reach(k, -(w as isize), i).max(reach(k, w as isize, h - 1 - i));
+            row.min(column) as u8
+        })
+        .collect()
+}
+
+/// Elevation above which a pixel without geometry may be open space rather than
+/// a dropped ray: where a level ground `h` below the sensor lies beyond
+/// `GROUND_REACH_FRACTION` of the reach, `h` the median height of the bottom
+/// row's returns below the sensor. Whether a scene has sky or open space there
+/// is not physics, whatever the sensor's field of view; below it the ground is
+/// within reach, so a pixel without a return there lost its ray. Without a
+/// usable ground estimate: the horizon (elevation 0).
+pub fn open_elevation_rad(scans: &[ScanFeatures], reach_m: f32) -> f32 {
+    const GROUND_REACH_FRACTION: f32 = 0.8;
+    let mut heights: Vec<f32> = scans
+        .iter()
+        .flat_map(|f| {
+            let bottom = f.len().saturating_sub(f.width);
+            (bottom..f.len())
+                .filter(|&k| f.kept[k] && f.elevation_rad[k] < 0.0)
+                .map(|k| -f.range_m[k] * f.elevation_rad[k].sin())
+        })
+        .filter(|h| h.is_finite() && *h > 0.2)
+        .collect();
+    if heights.len() < 20 || !reach_m.is_finite() {
+        return 0.0;
+    }
+    let mid = heights.len() / 2;
+    let h = *heights.select_nth_unstable_by(mid, f32::total_cmp).1;
+    -(h / (GROUND_REACH_FRACTION * reach_m))
+        .clamp(0.0, 1.0)
+        .asin()
+}
+
 /// The pixels a fit uses, pooled over scans (struct of arrays). Left out: pixels
-/// completed beyond the reach, and pixels without geometry in the upper half of
-/// the image (sky: whether a scene has sky there is not physics).
+/// completed beyond the reach, and pixels without geometry where open space is
+/// possible ([`open_elevation_rad`]: whether a scene has sky there is not
+/// physics).
 #[derive(Debug, Clone, Default, PartialEq)]
 pub struct Pixels {
     pub height: usize,
@@ -81,6 +138,12 @@ pub struct Pixels {
     pub cos_incidence: Vec<f32>,
     pub class: Vec<u16>,
     pub kept: Vec<bool>,
+    /// 0 for a kept pixel; for a dropped one, the smallest `d` such that it has
+    /// returns on both sides within `d` pixels along its row or along its column
+    /// (capped at [`ENCLOSURE_CAP_PX`]). A small value means its completion
+    /// interpolates one surface rather than extrapolating from an object's
+    /// outline into open space.
+    pub enclosure_px: Vec<u8>,
     /// Elevation of each row, radians (from the first scan).
     pub row_elevation_rad: Vec<f32>,
     /// Azimuth of each column, radians.
@@ -100,22 +163,24 @@ impl Pixels {
                 .map(|j| f.azimuth_rad.get(j).copied().unwrap_or(0.0))
                 .collect();
         }
+        let open_above = open_elevation_rad(scans, reach_m);
         for f in scans {
             if f.height != px.height || f.width != px.width {
                 continue;
             }
-            for k in 0..f.len() {
+            for (k, enclosure) in enclosure_px(f).into_iter().enumerate() {
                 let r = f.range_m[k];
-                let row = f.row[k] as usize;
-                if r > reach_m || (r.is_nan() && row < f.height / 2) {
+                if r > reach_m || (r.is_nan() && f.elevation_rad[k] > open_above) {
                     continue;
                 }
+                let row = f.row[k] as usize;
                 px.row.push(row as u16);
                 px.column.push((k % f.width.max(1)) as u16);
                 px.range_m.push(r);
                 px.cos_incidence.push(f.incidence_rad[k].cos());
                 px.class.push((f.class[k] & 0xffff) as u16);
                 px.kept.push(f.kept[k]);
+                px.enclosure_px.push(enclosure);
             }
         }
         px
@@ -267,6 +332,12 @@ pub trait DropFamily: Sync {
     fn bin(&self, px: &Pixels, i: usize) -> Option<usize>;
     /// Maximum-likelihood fit given the pooled table (None: nothing to fit).
     fn fit(&self, table: &QTable, px: &Pixels) -> Option<DropFit>;
+    /// Whether the effect acts the same in every direction (sensor physics
+    /// does; scenes do not): then it must improve the held-out fit both ahead
+    /// and behind the sensor to be claimed.
+    fn azimuth_invariant(&self) -> bool {
+        true
+    }
 }
 
 /// Pixels pooled by (bin, level of `1 − q`), `q` the keep probability of the rest
@@ -381,18 +452,36 @@ fn model_keep(
         .collect()
 }
 
+/// NLL of one pixel's kept/dropped state under keep probability `k`.
+fn pixel_nll(kept: bool, k: f64) -> f64 {
+    let k = k.clamp(1e-12, KEEP_MAX);
+    if kept { -k.ln() } else { -(1.0 - k).ln() }
+}
+
 /// Mean per-pixel NLL of the kept/dropped masks under per-pixel keep probabilities.
 pub fn mask_nll(px: &Pixels, keep: &[f64]) -> f64 {
     let total: f64 = px
         .kept
         .iter()
         .zip(keep)
-        .map(|(&kept, &k)| {
-            let k = k.clamp(1e-12, KEEP_MAX);
-            if kept { -k.ln() } else { -(1.0 - k).ln() }
-        })
+        .map(|(&kept, &k)| pixel_nll(kept, k))
         .sum();
     total / px.len().max(1) as f64
+}
+
+/// Held-out NLL (nats, summed) of the pixels ahead of the sensor (|azimuth| <
+/// 90 deg) and behind it.
+fn mask_nll_ahead_behind(px: &Pixels, keep: &[f64]) -> [f64; 2] {
+    let mut total = [0.0; 2];
+    for (i, (&kept, &k)) in px.kept.iter().zip(keep).enumerate() {
+        let a = px
+            .column_azimuth_rad
+            .get(px.column[i] as usize)
+            .copied()
+            .unwrap_or(0.0);
+        total[usize::from(a.abs() > std::f32::consts::FRAC_PI_2)] += pixel_nll(kept, k);
+    }
+    total
 }
 
 /// The keep scale `c` minimising the NLL of `keep = c · rest` (pooled by level).
@@ -489,8 +578,76 @@ pub fn keep_under(
     model_keep(px, &base, selection.keep_scale, &effects)
 }
 
-/// Greedy forward selection of `families` (at most `max_effects`).
+/// Greedy forward selection of `families` (at most `max_effects`), then
+/// backward elimination: an effect that no longer beats its penalty once the
+/// others are refitted without it (a proxy chosen early, e.g. range for grazing
+/// incidence on far ground) is removed and the selection rerun without it.
 pub fn select(
+    families: &[&dyn DropFamily],
+    baseline: &Baseline,
+    train: &Pixels,
+    test: &Pixels,
+    max_effects: usize,
+) -> Result<DropSelection, FitError> {
+    let mut allowed: Vec<&dyn DropFamily> = families.to_vec();
+    let mut first_tried = None;
+    loop {
+        let mut selection = forward(&allowed, baseline, train, test, max_effects)?;
+        let tried = first_tried.get_or_insert_with(|| selection.tried.clone());
+        let redundant = redundant_effect(&allowed, &selection, baseline, train, test);
+        match redundant {
+            Some(id) => allowed.retain(|f| f.id() != id),
+            None => {
+                selection.tried = tried.clone();
+                return Ok(selection);
+            }
+        }
+    }
+}
+
+/// The selected effect whose removal (the others refitted in their order)
+/// costs the least held-out NLL below its penalty, if any.
+fn redundant_effect(
+    families: &[&dyn DropFamily],
+    selection: &DropSelection,
+    baseline: &Baseline,
+    train: &Pixels,
+    test: &Pixels,
+) -> Option<&'static str> {
+    if selection.selected.len() < 2 {
+        return None;
+    }
+    let base_train = baseline.keep_of(train);
+    let base_test = baseline.keep_of(test);
+    let family = |id: &str| families.iter().copied().find(|f| f.id() == id);
+    // The keep scale is refitted only where the null was adopted (as in `forward`).
+    let fit_scale = selection.null_nll != selection.before_nll;
+    selection
+        .selected
+        .iter()
+        .filter_map(|drop| {
+            let mut c = selection.keep_scale;
+            let mut fits: Vec<(&dyn DropFamily, DropFit)> = Vec::new();
+            for s in selection.selected.iter().filter(|s| s.id != drop.id) {
+                let f = family(s.id)?;
+                let given: Vec<(&dyn DropFamily, &DropFit)> =
+                    fits.iter().map(|(f, d)| (*f, d)).collect();
+                let (fit, c_fit) = fit_given(f, train, &base_train, c, fit_scale, &given)?;
+                c = c_fit;
+                fits.push((f, fit));
+            }
+            let given: Vec<(&dyn DropFamily, &DropFit)> =
+                fits.iter().map(|(f, d)| (*f, d)).collect();
+            let without = mask_nll(test, &model_keep(test, &base_test, c, &given));
+            let loss = without - selection.after_nll;
+            (loss < drop.penalty).then_some((drop.id, loss - drop.penalty))
+        })
+        .min_by(|a, b| a.1.total_cmp(&b.1))
+        .map(|(id, _)| id)
+}
+
+/// Greedy forward selection of `families` (at most `max_effects`).
+fn forward(
     families: &[&dyn DropFamily],
     baseline: &Baseline,
     train: &Pixels,
@@ -518,11 +675,12 @@ pub fn select(
     let n = train.len() as f64;
     let mut chosen: Vec<(usize, DropFit, Selected)> = Vec::new();
     let mut current_nll = null_nll;
+    let mut current_halves = mask_nll_ahead_behind(test, &model_keep(test, &base_test, c, &[]));
     let mut tried = Vec::new();
     for round in 0..max_effects {
         let effects: Vec<(&dyn DropFamily, &DropFit)> =
             chosen.iter().map(|(i, f, _)| (families[*i], f)).collect();
-        let mut best: Option<(usize, DropFit, f64, f64, f64)> = None;
+        let mut best: Option<(usize, DropFit, f64, f64, f64, [f64; 2])> = None;
         for (fi, family) in families.iter().enumerate() {
             if chosen.iter().any(|(i, ..)| *i == fi) {
                 continue;
@@ -533,9 +691,19 @@ pub fn select(
             };
             let mut with = effects.clone();
             with.push((*family, &fit));
-            let nll = mask_nll(test, &model_keep(test, &base_test, c_fit, &with));
+            let keep = model_keep(test, &base_test, c_fit, &with);
+            let nll = mask_nll(test, &keep);
+            let halves = mask_nll_ahead_behind(test, &keep);
             let penalty = (fit.n_params as f64 * n.ln() / (2.0 * n)).max(MIN_GAIN_NATS);
-            let gain = current_nll - nll;
+            // A direction-invariant effect that helps only on one side of the
+            // sensor is the scenes' difference, not physics: no gain.
+            let one_sided =
+                family.azimuth_invariant() && (0..2).any(|h| halves[h] >= current_halves[h]);
+            let gain = if one_sided {
+                (current_nll - nll).min(0.0)
+            } else {
+                current_nll - nll
+            };
             if round == 0 {
                 tried.push(Tried {
                     id: family.id(),
@@ -550,10 +718,10 @@ pub fn select(
                     .as_ref()
                     .is_none_or(|b| margin > current_nll - b.2 - b.3)
             {
-                best = Some((fi, fit, nll, penalty, c_fit));
+                best = Some((fi, fit, nll, penalty, c_fit, halves));
             }
         }
-        let Some((fi, fit, nll, penalty, c_fit)) = best else {
+        let Some((fi, fit, nll, penalty, c_fit, halves)) = best else {
             break;
         };
         chosen.push((
@@ -569,6 +737,7 @@ pub fn select(
             },
         ));
         current_nll = nll;
+        current_halves = halves;
         c = c_fit;
     }
     tried.sort_by(|a, b| (b.gain - b.penalty).total_cmp(&(a.gain - a.penalty)));

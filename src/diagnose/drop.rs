@@ -1,6 +1,6 @@
 //! The candidate drop models of the diagnosis, one [`DropFamily`] each: what
 //! feature bin a pixel falls in and how the per-bin drop probabilities are fitted
-//! by maximum likelihood (see `diagnose_fit` for the model and the selection).
+//! by maximum likelihood (see `fit` for the model and the selection).
 //!
 //! | family | feature | model |
 //! |---|---|---|
@@ -12,9 +12,9 @@
 
 use serde_json::{Map, Value, json};
 
-use super::diagnose_fit::{DropFamily, DropFit, Pixels, QTable, golden};
-use super::dropout::{IncidenceDropout, RangeDropout};
-use super::{Effect, RayFeatures};
+use super::fit::{DropFamily, DropFit, Pixels, QTable, golden};
+use crate::physics::dropout::{IncidenceDropout, RangeDropout};
+use crate::physics::{Effect, RayFeatures};
 use crate::sim::Material;
 use crate::sim::material::label;
 
@@ -195,6 +195,12 @@ fn strongest(items: &[(String, f64)], n: usize) -> String {
 }
 
 /// `beam_dropout`: one free drop rate per row (laser).
+/// A dropped pixel counts for a laser's rate when returns enclose it within
+/// this many pixels (`Pixels::enclosure_px`).
+const BEAM_ENCLOSURE_PX: u8 = 3;
+/// ... and for a class's rate within this many.
+const CLASS_ENCLOSURE_PX: u8 = 8;
+
 pub struct BeamFamily;
 
 impl DropFamily for BeamFamily {
@@ -204,8 +210,11 @@ impl DropFamily for BeamFamily {
     fn bins(&self, px: &Pixels) -> usize {
         px.height
     }
+    /// Pixels with a surface only: a laser's sensitivity shows on what it can
+    /// hit; how much open space a row sees is the scene's.
     fn bin(&self, px: &Pixels, i: usize) -> Option<usize> {
-        Some(px.row[i] as usize)
+        (px.enclosure_px[i] <= BEAM_ENCLOSURE_PX && px.range_m[i].is_finite())
+            .then_some(px.row[i] as usize)
     }
     fn fit(&self, table: &QTable, _: &Pixels) -> Option<DropFit> {
         if table.bins == 0 {
@@ -255,15 +264,25 @@ const MIN_CLASS_PIXELS: f64 = 200.0;
 const MIN_CLASS_PROB: f64 = 0.08;
 
 impl DropFamily for ClassFamily {
+    /// A class is a proxy for materials whose mix differs object by object
+    /// (paint colours, window shares), so its rate need not be the same ahead
+    /// and behind.
+    fn azimuth_invariant(&self) -> bool {
+        false
+    }
     fn id(&self) -> &'static str {
         "material_dropout"
     }
     fn bins(&self, _: &Pixels) -> usize {
         CLASSES
     }
+    /// Enclosed pixels only: a dropped pixel at an object's outline takes the
+    /// object's class from its neighbours, and how much outline borders open
+    /// space is the scene's. Wider than the beam's: a window dropped at high
+    /// rates leaves big holes that are still the object's.
     fn bin(&self, px: &Pixels, i: usize) -> Option<usize> {
         let c = px.class[i] as usize;
-        (c != 0 && c < CLASSES).then_some(c)
+        (px.enclosure_px[i] <= CLASS_ENCLOSURE_PX && c != 0 && c < CLASSES).then_some(c)
     }
     fn fit(&self, table: &QTable, _: &Pixels) -> Option<DropFit> {
         let mut drop_prob = vec![0.0; table.bins];
@@ -326,6 +345,9 @@ impl SelfOcclusionFamily {
 }
 
 impl DropFamily for SelfOcclusionFamily {
+    fn azimuth_invariant(&self) -> bool {
+        false
+    }
     fn id(&self) -> &'static str {
         "self_occlusion"
     }

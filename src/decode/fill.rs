@@ -1,0 +1,190 @@
+//! What the upsampled, other-sensor and restored grids hold ([`Fill`]): the decoded scene's
+//! own rendering, or the observation interpolated onto the grid (nearest, bilinear,
+//! edge-aware, or guided by the decoded scene), completed by the rendering where no
+//! observed return reaches. Chosen by measurement on held-out KITTI (BENCHMARKS.md,
+//! "Guided upsampling and restoration").
+
+use super::{Decoded, PreparedGrid, Rendered, Sparsify};
+use crate::lidar::{
+    Guide, Interpolation, RangeImage, ScatterFill, SurfaceRule, fill_scattered,
+    resample_by_surface, resample_image,
+};
+
+/// How a grid other than the observed one is filled.
+#[derive(
+    Debug, Clone, Copy, PartialEq, Eq, Hash, serde::Serialize, serde::Deserialize, clap::ValueEnum,
+)]
+#[serde(rename_all = "kebab-case")]
+pub enum Fill {
+    /// Measured returns kept; a new pixel interpolated only from the neighbouring returns on
+    /// its own surface ([`SurfaceRule`]): across a trusted depth edge (adjacent pixels) the
+    /// nearest return's surface, else the blend; inverse depth within a surface.
+    EdgeAware,
+    /// The same, but the decoded scene may pick the surface where its depth clearly agrees
+    /// with one surface rather than with the blend.
+    Guided,
+    /// Bilinear between rows and columns; inverse-distance weighting for scattered points.
+    Bilinear,
+    /// The nearest observed return.
+    Nearest,
+    /// The decoded scene's completed depth x_d everywhere.
+    Gan,
+}
+
+impl Fill {
+    /// The best measured (BENCHMARKS.md).
+    pub const DEFAULT: Fill = Fill::EdgeAware;
+
+    pub fn name(self) -> &'static str {
+        match self {
+            Fill::Guided => "guided",
+            Fill::EdgeAware => "edge-aware",
+            Fill::Bilinear => "bilinear",
+            Fill::Nearest => "nearest",
+            Fill::Gan => "gan",
+        }
+    }
+}
+
+impl Default for Fill {
+    fn default() -> Self {
+        Fill::DEFAULT
+    }
+}
+
+/// Rows `rows` of a model-grid depth as their own range image (with their angles).
+fn rows_image(grid: &crate::lidar::AngleGrid, depth: &[f32], rows: &[usize]) -> RangeImage {
+    let w = grid.width;
+    let pick = |field: &[f32]| -> Vec<f32> {
+        rows.iter()
+            .flat_map(|r| field[r * w..(r + 1) * w].iter().copied())
+            .collect()
+    };
+    let angles = crate::lidar::AngleGrid {
+        height: rows.len(),
+        width: w,
+        elevation_rad: pick(&grid.elevation_rad),
+        azimuth_rad: pick(&grid.azimuth_rad),
+    };
+    let mut image = RangeImage::empty(angles);
+    image.range_m = pick(depth);
+    image
+}
+
+/// `source` resampled onto `target.grid` by `fill`, guided by `guide_source` (on the source
+/// grid) and `target.depth_m`; 0 where no observed return reaches.
+fn resample(
+    source: &RangeImage,
+    guide_source: &[f32],
+    target: &Rendered,
+    fill: Fill,
+    rule: &SurfaceRule,
+) -> Vec<f32> {
+    let grid = &target.grid;
+    let out = match fill {
+        Fill::Gan => return target.depth_m.clone(),
+        Fill::Nearest => resample_image(source, grid, Interpolation::Nearest),
+        Fill::Bilinear => resample_image(source, grid, Interpolation::Bilinear),
+        Fill::EdgeAware => resample_by_surface(source, grid, rule, None),
+        Fill::Guided => resample_by_surface(
+            source,
+            grid,
+            rule,
+            Some(Guide {
+                target_m: &target.depth_m,
+                source_m: guide_source,
+            }),
+        ),
+    };
+    out.range_m
+}
+
+/// The rendering `r` with `values` wherever they are set (> 0).
+fn complete(mut r: Rendered, values: &[f32]) -> Rendered {
+    for (d, v) in r.depth_m.iter_mut().zip(values) {
+        if *v > 0.0 {
+            *d = *v;
+        }
+    }
+    r
+}
+
+impl Decoded {
+    /// The model-grid depth restored from the observation the decode saw (after
+    /// `--restore-*`; observed pixels keep their depth exactly) by `fill`, 0 where no observed
+    /// return reaches; the full observation when decoding was not sparse. [`Fill::Gan`]
+    /// gives the rendering x_d.
+    pub fn interpolate_restored(&self, fill: Fill, rule: &SurfaceRule) -> Vec<f32> {
+        let grid = &self.model.grid;
+        match (fill, self.restore) {
+            (Fill::Gan, _) => self.model.depth_m.clone(),
+            (_, None) => self.observed_m.clone(),
+            (_, Some(Sparsify::Lines(n))) => {
+                let kept = Sparsify::kept_rows(n, grid.height);
+                let source = rows_image(grid, &self.observed_m, &kept);
+                let guide_source = rows_image(grid, &self.model.depth_m, &kept).range_m;
+                resample(&source, &guide_source, &self.model, fill, rule)
+            }
+            (_, Some(Sparsify::Fraction(_))) => {
+                // Inverse depth measured worse for scattered points (training scans).
+                let scattered = SurfaceRule {
+                    inverse_depth: false,
+                    ..*rule
+                };
+                let how = match fill {
+                    Fill::Nearest => ScatterFill::Nearest,
+                    Fill::Bilinear => ScatterFill::Idw {
+                        rule: SurfaceRule::ANY,
+                        guide: None,
+                    },
+                    Fill::EdgeAware => ScatterFill::Idw {
+                        rule: scattered,
+                        guide: None,
+                    },
+                    Fill::Guided | Fill::Gan => ScatterFill::Idw {
+                        rule: scattered,
+                        guide: Some(&self.model.depth_m),
+                    },
+                };
+                fill_scattered(&self.observed_m, grid, how)
+            }
+        }
+    }
+
+    /// The observation (restored first by [`Decoded::interpolate_restored`] when decoding
+    /// was sparse) interpolated onto `rendered`'s grid by `fill`, guided by this scene's
+    /// rendering there; 0 where no observed return reaches. [`Fill::Gan`] gives
+    /// `rendered.depth_m`.
+    pub fn interpolate_on(&self, rendered: &Rendered, fill: Fill, rule: &SurfaceRule) -> Vec<f32> {
+        if fill == Fill::Gan {
+            return rendered.depth_m.clone();
+        }
+        let mut source = RangeImage::empty(self.model.grid.clone());
+        source.range_m = self.interpolate_restored(fill, rule);
+        resample(&source, &self.model.depth_m, rendered, fill, rule)
+    }
+
+    /// What `convert` writes on the model grid: the rendering x_d, or after `--restore-*`
+    /// the restoration by `fill` completed by x_d where no observed return reaches.
+    pub fn model_output(&self, fill: Fill) -> Rendered {
+        match self.restore {
+            Some(_) if fill != Fill::Gan => complete(
+                self.model.clone(),
+                &self.interpolate_restored(fill, &SurfaceRule::default()),
+            ),
+            _ => self.model.clone(),
+        }
+    }
+
+    /// What `convert` writes on an extra grid (upsampled, another sensor's): the observation
+    /// interpolated by `fill`, completed by the rendering where no observed return reaches
+    /// (x_n is the rendering's everywhere).
+    pub fn render_output(&self, grid: &PreparedGrid, fill: Fill) -> Rendered {
+        let rendered = self.render_prepared(grid);
+        if fill == Fill::Gan {
+            return rendered;
+        }
+        let values = self.interpolate_on(&rendered, fill, &SurfaceRule::default());
+        complete(rendered, &values)
+    }
+}
