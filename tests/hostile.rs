@@ -264,8 +264,9 @@ fn has_temporary_file(dir: &Path) -> bool {
         .any(|e| e.file_name().to_string_lossy().ends_with(".tmp"))
 }
 
-/// `render`, `convert` and `import` refuse to write over any input, through the same
-/// path, a symlink or a hard link, with `--force`; the inputs stay byte for byte.
+/// `render`, `convert` (one file and dataset form) and `import` refuse to write over any
+/// input, through the same path, a symlink or a hard link, with `--force`; the inputs
+/// stay byte for byte.
 #[test]
 fn no_command_writes_over_its_inputs() {
     let dir = tempfile::tempdir().unwrap();
@@ -324,6 +325,20 @@ fn no_command_writes_over_its_inputs() {
         (std::fs::read(&sim).unwrap(), std::fs::read(&real).unwrap()),
         before
     );
+    // Dataset form: an output file that is a hard link of its input.
+    let (inputs, outputs) = (p("inputs"), p("outputs"));
+    std::fs::create_dir_all(&inputs).unwrap();
+    std::fs::create_dir_all(&outputs).unwrap();
+    std::fs::copy(&sim, inputs.join("a.mcap")).unwrap();
+    std::fs::hard_link(inputs.join("a.mcap"), outputs.join("a.mcap")).unwrap();
+    let o = bin()
+        .args(["convert", "--quality", "off", "--force"])
+        .args([&inputs, &outputs])
+        .output()
+        .unwrap();
+    assert_ne!(o.status.code(), Some(0));
+    assert!(stderr(&o).contains("output is the input"), "{}", stderr(&o));
+    assert_eq!(std::fs::read(inputs.join("a.mcap")).unwrap(), before.0);
     let kitti = p("kitti");
     std::fs::create_dir(&kitti).unwrap();
     let scan: Vec<u8> = [1.0f32, 2.0, 0.5, 0.3]

@@ -334,6 +334,8 @@ fn convert_one(
             .parent()
             .map_or(Ok(()), std::fs::create_dir_all)
             .map_err(anyhow::Error::from)
+            // An output that is its input through a link is refused, as in one-file form.
+            .and_then(|_| crate::io::writer::refuse_overwriting_inputs(&output, &[&p.file.path]))
             .and_then(|_| converter.convert(&p.file.path, &p.file.rel, &output, true, counters)),
     };
     match &result {
