@@ -145,7 +145,7 @@ pub fn read_with(
         },
         |_| {},
     )
-    .map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))?;
+    .map_err(|e| e.for_strict_reader(path))?;
     let Some((topic_name, format)) = chosen else {
         anyhow::bail!(
             "{}: {}",

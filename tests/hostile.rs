@@ -795,3 +795,44 @@ fn fuzz_regressions_read_without_panic() {
         assert!(result.is_ok(), "{} panics", input.display());
     }
 }
+
+/// `render` and `diagnose` stop at a damaged chunk (they have no `--on-error`): the error
+/// names the file and gives a repair command, and that command's output is read.
+#[test]
+fn strict_readers_give_a_repair_command_that_works() {
+    let (dir, input, output) = in_out();
+    let (mut bytes, _) = recording(&input, 4, Some(mcap::Compression::Zstd));
+    let (offset, _) = chunks(&bytes)[1];
+    bytes[offset + 9 + 16 + 6] ^= 0x04; // an absurd declared uncompressed size
+    std::fs::write(&input, &bytes).unwrap();
+    let render = |sim: &Path| {
+        run_limited(&[
+            "render",
+            "--physics",
+            "realistic",
+            sim.to_str().unwrap(),
+            output.to_str().unwrap(),
+        ])
+    };
+    let o = render(&input);
+    assert_eq!(o.status.code(), Some(1), "{}", stderr(&o));
+    let err = stderr(&o);
+    let repair = "convert --on-error skip --channels range";
+    assert!(
+        err.contains(&input.display().to_string()) && err.contains(repair),
+        "{err}"
+    );
+    assert!(!err.contains("use --on-error skip"), "{err}");
+    assert!(!output.exists());
+
+    let repaired = dir.path().join("repaired.mcap");
+    let o = convert(
+        &input,
+        &repaired,
+        &["--on-error", "skip", "--channels", "range"],
+    );
+    assert!(o.status.success(), "{}", stderr(&o));
+    let o = render(&repaired);
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert!(output.exists());
+}

@@ -388,7 +388,7 @@ pub fn run(global: &GlobalArgs, args: RenderArgs) -> anyhow::Result<Outcome> {
         },
         |_| {},
     )
-    .map_err(|e| anyhow::anyhow!("{}: {e}", args.input.display()))?;
+    .map_err(|e| e.for_strict_reader(&args.input))?;
     out.finish()?;
     for s in &skipped {
         if !global.quiet {

@@ -104,6 +104,25 @@ pub enum ReadError {
     Visitor(#[from] anyhow::Error),
 }
 
+impl ReadError {
+    /// The error as a command that stops at damage (it has no `--on-error`) reports it: the
+    /// file named, and for a damaged chunk or record the advice that works there.
+    pub fn for_strict_reader(self, path: &std::path::Path) -> anyhow::Error {
+        let advice = |what: &dyn std::fmt::Display| {
+            anyhow::anyhow!(
+                "{}: {what}; this command stops at damage: `rangegan-mcap convert --on-error skip --channels range {} REPAIRED.mcap` copies every readable record first",
+                path.display(),
+                path.display()
+            )
+        };
+        match self {
+            ReadError::BadChunk(bad) => advice(&bad),
+            ReadError::BadRecord(bad) => advice(&bad),
+            other => anyhow::anyhow!("{}: {other}", path.display()),
+        }
+    }
+}
+
 /// How the read ended, for the summary.
 #[derive(Debug, Clone, Default, PartialEq, serde::Serialize)]
 pub struct ReadReport {
