@@ -3,7 +3,8 @@
 //! `cargo bench --bench model_backends` (add `-- --quick` for fewer repetitions). Measures, in
 //! one run: flex vs ndarray on generator forward+backward at 64x512 batch 8 (reference size and
 //! the CPU size), forward and forward+backward at batch 1 and 8, one inversion step (w only,
-//! batch 1) at the reference size, and candidate CPU sizes for training (G and D fwd+bwd).
+//! batch 1) at the reference size, candidate CPU sizes for training (G and D fwd+bwd), and the
+//! discriminator's full-resolution pieces (`-- --discriminator` for that section alone).
 
 use std::time::Instant;
 
@@ -97,10 +98,69 @@ fn main() {
     );
 
     let flex = Device::flex();
+    // `--discriminator` runs only the section on the discriminator's pieces.
+    if std::env::args().any(|a| a == "--discriminator") {
+        discriminator_pieces(&flex.clone().autodiff(), reps);
+        return;
+    }
     if !only_candidates {
         backend_and_speed_sections(&reference, &cpu, reps);
     }
     candidate_section(&flex, reps);
+    discriminator_pieces(&flex.clone().autodiff(), reps);
+}
+
+/// Forward + backward of `f` on a fixed random `[batch, ch, H, W]` input.
+fn op_step(
+    device: &Device,
+    dims: [usize; 4],
+    reps: usize,
+    f: impl Fn(Tensor<4>) -> Tensor<4>,
+) -> f64 {
+    let x0 = Rng::new(3).normal_tensor(dims, device);
+    median_secs(reps, || {
+        let x = x0.clone().detach().require_grad();
+        let grads = f(x.clone()).sum().backward();
+        sync(x.grad(&grads).expect("grad").sum());
+    })
+}
+
+/// Where the discriminator's time goes at the shipped CPU size (it is ~3/4 of a training
+/// step): its full-resolution pieces, forward + backward, batch 8.
+fn discriminator_pieces(device: &Device, reps: usize) {
+    use burn::tensor::module::conv2d;
+    use burn::tensor::ops::ConvOptions;
+    use rangegan_mcap::model::discriminator::{downsample2x, pad_circular};
+    let big = [8, 8, 64, 512];
+    let weight = Rng::new(6).normal_tensor([8, 8, 3, 3], device);
+    let conv = |x: Tensor<4>| {
+        conv2d(
+            x,
+            weight.clone(),
+            None,
+            ConvOptions::new([1, 1], [0, 0], [1, 1], 1),
+        )
+    };
+    println!("\n## discriminator pieces (flex, fwd+bwd, batch 8, 64x512), median s");
+    println!("| piece | s |");
+    println!("|---|---|");
+    let d = DiscriminatorConfig::cpu();
+    println!(
+        "| whole D, CPU size | {:.3} |",
+        disc_step(&d, device, 8, reps)
+    );
+    println!(
+        "| 3x3 conv 8->8 channels | {:.3} |",
+        op_step(device, [8, 8, 66, 514], reps, conv)
+    );
+    println!(
+        "| blur-downsampling {big:?} | {:.3} |",
+        op_step(device, big, reps, downsample2x)
+    );
+    println!(
+        "| circular padding {big:?} | {:.3} |",
+        op_step(device, big, reps, |x| pad_circular(x, 1))
+    );
 }
 
 fn backend_and_speed_sections(reference: &GeneratorConfig, cpu: &GeneratorConfig, reps: usize) {
