@@ -690,16 +690,19 @@ fn import_reads_labels_beside_scans_and_reports_what_it_leaves_out() {
         warnings.contains("000009.label") && warnings.contains("000001.bin"),
         "{warnings}"
     );
-    let bytes = std::fs::read(&output).unwrap();
+    let cloud = first_cloud(&output);
+    assert_eq!(cloud.scan.label.unwrap()[..3], [40, 41, 42]);
+}
+
+/// The first message of a recording, decoded as a ROS 2 point cloud.
+fn first_cloud(path: &Path) -> rangegan_mcap::io::DecodedCloud {
+    let bytes = std::fs::read(path).unwrap();
     let message = mcap::MessageStream::new(&bytes)
         .unwrap()
         .next()
         .unwrap()
         .unwrap();
-    let cloud =
-        rangegan_mcap::io::decode_cloud(rangegan_mcap::io::CloudFormat::Ros2Cdr, &message.data)
-            .unwrap();
-    assert_eq!(cloud.scan.label.unwrap()[..3], [40, 41, 42]);
+    rangegan_mcap::io::decode_cloud(rangegan_mcap::io::CloudFormat::Ros2Cdr, &message.data).unwrap()
 }
 
 /// Real KITTI drive_a at 4.2 s ends with a lone point at azimuth exactly 0: `import`
@@ -724,15 +727,7 @@ fn import_writes_64_rings_for_every_real_kitti_scan() {
         .output()
         .unwrap();
     assert!(o.status.success(), "{}", stderr(&o));
-    let bytes = std::fs::read(&output).unwrap();
-    let message = mcap::MessageStream::new(&bytes)
-        .unwrap()
-        .next()
-        .unwrap()
-        .unwrap();
-    let cloud =
-        rangegan_mcap::io::decode_cloud(rangegan_mcap::io::CloudFormat::Ros2Cdr, &message.data)
-            .unwrap();
+    let cloud = first_cloud(&output);
     assert_eq!(cloud.scan.ring.unwrap().iter().max(), Some(&63));
 }
 
