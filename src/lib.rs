@@ -22,4 +22,5 @@ pub mod physics;
 pub mod pipeline;
 pub mod recording;
 pub mod report;
+pub mod segment;
 pub mod sim;

@@ -10,6 +10,7 @@ mod import;
 mod info;
 mod render;
 mod sample;
+mod segment;
 mod simulate;
 mod train;
 mod train_encoder;
@@ -64,6 +65,8 @@ pub enum Command {
     TrainEncoder(train_encoder::TrainEncoderArgs),
     /// Draw scans from the trained GAN: depth, drop probability, mask, range, points.
     Sample(sample::SampleArgs),
+    /// Sim2Real segmentation: train a range-image segmentation network on labelled recordings, score it on real ones.
+    Segment(segment::SegmentArgs),
 }
 
 /// Where a recording that a command writes from scratch goes (`import`, `simulate`).
@@ -163,6 +166,7 @@ pub fn run(args: Args) -> anyhow::Result<Outcome> {
         Command::Train(a) => train::run_train(&args.global, a),
         Command::TrainEncoder(a) => train_encoder::run_train_encoder(&args.global, a),
         Command::Sample(a) => sample::run(&args.global, a),
+        Command::Segment(a) => segment::run_segment(&args.global, a),
     }
 }
 

@@ -1,0 +1,219 @@
+//! `rangegan-mcap segment train|eval|picture`: the Sim2Real segmentation benchmark. Train a
+//! range-image segmentation network on labelled recordings (simulated, rendered or real),
+//! score it on labelled real scans, and draw its predictions beside the ground truth.
+
+use std::path::PathBuf;
+use std::time::Duration;
+
+use anyhow::Context;
+
+use super::{GlobalArgs, Outcome};
+use crate::segment::SegModel;
+use crate::segment::data::{SegDataset, benchmark_profile, recordings_in};
+use crate::segment::eval::{EvalReport, evaluate, picture};
+use crate::segment::train::{SegTrainConfig, SegTrainOptions, run};
+
+#[derive(Debug, clap::Args)]
+pub struct SegmentArgs {
+    #[command(subcommand)]
+    pub command: SegmentCommand,
+}
+
+#[derive(Debug, clap::Subcommand)]
+pub enum SegmentCommand {
+    /// Train (or resume) a segmentation network on labelled recordings.
+    Train(TrainArgs),
+    /// Precision, recall and IoU per class and mean IoU on labelled recordings.
+    Eval(EvalArgs),
+    /// A PNG of one scan: range, ground truth and each model's prediction.
+    Picture(PictureArgs),
+}
+
+#[derive(Debug, clap::Args)]
+pub struct TrainArgs {
+    /// Run directory (created; an existing one resumes from its checkpoint). The trained
+    /// model is exported to RUN_DIR/model.
+    pub run_dir: PathBuf,
+    /// Training recordings (files or folders of .mcap) whose clouds carry a `label` field.
+    #[arg(required = true)]
+    pub recordings: Vec<PathBuf>,
+    /// Point-cloud topic (default: each recording's first).
+    #[arg(long)]
+    pub topic: Option<String>,
+    /// Optimiser steps of the whole run (saved with a new run).
+    #[arg(long, default_value_t = 2000)]
+    pub steps: u64,
+    /// Random seed of the initial weights and the batches (saved with a new run).
+    #[arg(long, default_value_t = 0)]
+    pub seed: u64,
+    /// Scans per step (saved with a new run).
+    #[arg(long, default_value_t = 8)]
+    pub batch_size: usize,
+    /// Stop after this many minutes with a checkpoint; run again to resume.
+    #[arg(long)]
+    pub minutes: Option<f64>,
+}
+
+#[derive(Debug, clap::Args)]
+pub struct EvalArgs {
+    /// Model folder (`segment.json` + `net.bpk`; a training run's `model/`).
+    #[arg(long)]
+    pub model: PathBuf,
+    /// Labelled recordings (files or folders of .mcap), e.g. from `import` of a
+    /// SemanticKITTI sequence.
+    #[arg(required = true)]
+    pub recordings: Vec<PathBuf>,
+    /// Point-cloud topic (default: each recording's first).
+    #[arg(long)]
+    pub topic: Option<String>,
+}
+
+#[derive(Debug, clap::Args)]
+pub struct PictureArgs {
+    /// Model folders, one prediction row each (captioned with the folder's parent name when
+    /// the folder is a run's `model/`, else its own name).
+    #[arg(long = "model", required = true)]
+    pub models: Vec<PathBuf>,
+    /// Labelled recording.
+    pub recording: PathBuf,
+    /// Output PNG.
+    pub output: PathBuf,
+    /// Scan index within the recording.
+    #[arg(long, default_value_t = 0)]
+    pub scan: usize,
+    /// Point-cloud topic (default: the recording's first).
+    #[arg(long)]
+    pub topic: Option<String>,
+}
+
+pub fn run_segment(global: &GlobalArgs, args: SegmentArgs) -> anyhow::Result<Outcome> {
+    match args.command {
+        SegmentCommand::Train(a) => train(global, a),
+        SegmentCommand::Eval(a) => eval(global, a),
+        SegmentCommand::Picture(a) => draw(a),
+    }
+}
+
+fn expand(paths: &[PathBuf]) -> anyhow::Result<Vec<PathBuf>> {
+    let mut out = Vec::new();
+    for p in paths {
+        let found = recordings_in(p)?;
+        anyhow::ensure!(!found.is_empty(), "{}: no .mcap recordings", p.display());
+        out.extend(found);
+    }
+    Ok(out)
+}
+
+fn train(global: &GlobalArgs, a: TrainArgs) -> anyhow::Result<Outcome> {
+    let max_duration = match a.minutes {
+        Some(m) if m.is_finite() && m > 0.0 => Some(Duration::from_secs_f64(m * 60.0)),
+        Some(m) => anyhow::bail!("--minutes must be > 0 (got {m})"),
+        None => None,
+    };
+    let opts = SegTrainOptions {
+        run_dir: a.run_dir,
+        recordings: expand(&a.recordings)?,
+        topic: a.topic,
+        config: SegTrainConfig::new()
+            .with_total_steps(a.steps)
+            .with_seed(a.seed)
+            .with_batch_size(a.batch_size.max(1)),
+        max_duration,
+        progress: !global.quiet,
+    };
+    let summary = run(&opts)?;
+    if global.json {
+        println!("{}", serde_json::to_string(&summary)?);
+    } else if !global.quiet {
+        eprintln!(
+            "{} of {} steps on {} scans in {:.0} s; model in {}{}",
+            summary.steps,
+            summary.total_steps,
+            summary.scans,
+            summary.seconds,
+            summary.model_dir.display(),
+            if summary.finished {
+                ""
+            } else {
+                " (run again to resume)"
+            }
+        );
+    }
+    Ok(Outcome::Success)
+}
+
+/// A model's name for tables and pictures: its folder, or the run's for RUN/model.
+fn model_name(dir: &std::path::Path) -> String {
+    let dir = dir.canonicalize().unwrap_or_else(|_| dir.to_path_buf());
+    let own = dir.file_name().map(|n| n.to_string_lossy().into_owned());
+    match own.as_deref() {
+        Some("model") => dir
+            .parent()
+            .and_then(|p| p.file_name())
+            .map(|n| n.to_string_lossy().into_owned())
+            .unwrap_or_default(),
+        Some(name) => name.to_string(),
+        None => dir.display().to_string(),
+    }
+}
+
+fn eval(global: &GlobalArgs, a: EvalArgs) -> anyhow::Result<Outcome> {
+    let device = burn::tensor::Device::flex();
+    let model = SegModel::load(&a.model, &device)?;
+    let data = SegDataset::from_recordings(
+        &expand(&a.recordings)?,
+        a.topic.as_deref(),
+        &model.info.profile,
+    )?;
+    let report = evaluate(&model, &model_name(&a.model), &data, &device)?;
+    if global.json {
+        println!("{}", serde_json::to_string_pretty(&report)?);
+    } else {
+        print_report(&report);
+    }
+    Ok(Outcome::Success)
+}
+
+fn print_report(r: &EvalReport) {
+    let pct = |v: Option<f64>| v.map_or("-".to_string(), |v| format!("{:.1}", 100.0 * v));
+    println!(
+        "model {}: {} scans, {} labelled returns",
+        r.model, r.scans, r.points
+    );
+    println!(
+        "{:<11} {:>9} {:>9} {:>7} {:>7}",
+        "class", "points", "precision", "recall", "IoU"
+    );
+    for c in &r.classes {
+        println!(
+            "{:<11} {:>9} {:>9} {:>7} {:>7}",
+            c.class,
+            c.points,
+            pct(c.precision),
+            pct(c.recall),
+            pct(c.iou)
+        );
+    }
+    println!("mIoU (named classes) {}", pct(r.miou));
+    println!("mIoU (car, person)   {}", pct(r.miou_car_person));
+}
+
+fn draw(a: PictureArgs) -> anyhow::Result<Outcome> {
+    let device = burn::tensor::Device::flex();
+    let models = a
+        .models
+        .iter()
+        .map(|dir| Ok((model_name(dir), SegModel::load(dir, &device)?)))
+        .collect::<anyhow::Result<Vec<_>>>()?;
+    let profile = models
+        .first()
+        .map_or_else(benchmark_profile, |m| m.1.info.profile.clone());
+    let data = SegDataset::from_recordings(
+        std::slice::from_ref(&a.recording),
+        a.topic.as_deref(),
+        &profile,
+    )?;
+    picture(&models, &data, a.scan, &a.output)
+        .with_context(|| format!("cannot draw {}", a.output.display()))?;
+    Ok(Outcome::Success)
+}

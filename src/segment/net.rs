@@ -1,0 +1,204 @@
+//! The segmentation network: a light U-Net on range images. Every 3x3 convolution pads
+//! circularly along azimuth when the input is a whole revolution (a scan has no left or right
+//! edge) and with zeros otherwise (training crops) and along elevation; batch norm and ReLU
+//! after each; 2x2 max pooling down, nearest-neighbour upsampling and skip connections up;
+//! a 1x1 head gives one logit per class and pixel.
+
+use burn::config::Config;
+use burn::module::Module;
+use burn::nn::conv::{Conv2d, Conv2dConfig};
+use burn::nn::pool::{MaxPool2d, MaxPool2dConfig};
+use burn::nn::{BatchNorm, BatchNormConfig, PaddingConfig2d};
+use burn::tensor::activation::relu;
+use burn::tensor::{Device, Tensor};
+
+use super::classes::NUM_CLASSES;
+use super::data::CHANNELS;
+
+#[derive(Config, Debug)]
+pub struct SegNetConfig {
+    /// Channels of the encoder levels; each level halves both image axes.
+    #[config(default = "vec![16, 32, 48, 64]")]
+    pub widths: Vec<usize>,
+    #[config(default = "CHANNELS")]
+    pub d_input: usize,
+    #[config(default = "NUM_CLASSES")]
+    pub classes: usize,
+}
+
+impl SegNetConfig {
+    /// Both image axes must divide by this.
+    pub fn multiple(&self) -> usize {
+        1 << self.widths.len().saturating_sub(1)
+    }
+
+    pub fn init(&self, device: &Device) -> SegNet {
+        let w = &self.widths;
+        let mut encoder = Vec::new();
+        let mut d_in = self.d_input;
+        for &d in w {
+            encoder.push(Block::new(d_in, d, device));
+            d_in = d;
+        }
+        // Level i of the decoder takes the upsampled level below and the encoder's skip.
+        let mut decoder = Vec::new();
+        for i in (0..w.len() - 1).rev() {
+            let d_out = w[i.saturating_sub(1)];
+            decoder.push(Block::new(d_in + w[i], d_out, device));
+            d_in = d_out;
+        }
+        SegNet {
+            encoder,
+            decoder,
+            pool: MaxPool2dConfig::new([2, 2]).init(),
+            head: Conv2dConfig::new([d_in, self.classes], [1, 1]).init(device),
+        }
+    }
+}
+
+/// 3x3 convolution, batch norm, ReLU.
+#[derive(Module, Debug)]
+pub struct ConvBn {
+    conv: Conv2d,
+    norm: BatchNorm,
+}
+
+impl ConvBn {
+    fn new(d_in: usize, d_out: usize, device: &Device) -> Self {
+        ConvBn {
+            conv: Conv2dConfig::new([d_in, d_out], [3, 3])
+                .with_padding(PaddingConfig2d::Valid)
+                .with_bias(false)
+                .init(device),
+            norm: BatchNormConfig::new(d_out).init(device),
+        }
+    }
+
+    fn forward(&self, x: Tensor<4>, circular: bool) -> Tensor<4> {
+        relu(self.norm.forward(self.conv.forward(pad1(x, circular))))
+    }
+}
+
+/// Two [`ConvBn`].
+#[derive(Module, Debug)]
+pub struct Block {
+    a: ConvBn,
+    b: ConvBn,
+}
+
+impl Block {
+    fn new(d_in: usize, d_out: usize, device: &Device) -> Self {
+        Block {
+            a: ConvBn::new(d_in, d_out, device),
+            b: ConvBn::new(d_out, d_out, device),
+        }
+    }
+
+    fn forward(&self, x: Tensor<4>, circular: bool) -> Tensor<4> {
+        self.b.forward(self.a.forward(x, circular), circular)
+    }
+}
+
+#[derive(Module, Debug)]
+pub struct SegNet {
+    encoder: Vec<Block>,
+    decoder: Vec<Block>,
+    pool: MaxPool2d,
+    head: Conv2d,
+}
+
+impl SegNet {
+    /// Class logits.
+    ///
+    /// # Shapes
+    /// - x: `[batch, CHANNELS, H, W]` -> `[batch, classes, H, W]`; H and W divisible by
+    ///   [`SegNetConfig::multiple`].
+    pub fn forward(&self, x: Tensor<4>, circular: bool) -> Tensor<4> {
+        let mut skips = Vec::with_capacity(self.encoder.len());
+        let mut h = x;
+        for (i, block) in self.encoder.iter().enumerate() {
+            if i > 0 {
+                h = self.pool.forward(h);
+            }
+            h = block.forward(h, circular);
+            skips.push(h.clone());
+        }
+        skips.pop();
+        for block in &self.decoder {
+            let skip = skips.pop().expect("one skip per decoder level");
+            h = block.forward(Tensor::cat(vec![upsample2(h), skip], 1), circular);
+        }
+        self.head.forward(h)
+    }
+}
+
+/// Pad one pixel on every side: circular or zero along W, zero along H.
+fn pad1(x: Tensor<4>, circular: bool) -> Tensor<4> {
+    let [b, c, h, w] = x.dims();
+    let device = x.device();
+    let (left, right) = if circular {
+        (x.clone().narrow(3, w - 1, 1), x.clone().narrow(3, 0, 1))
+    } else {
+        let z = Tensor::zeros([b, c, h, 1], &device);
+        (z.clone(), z)
+    };
+    let x = Tensor::cat(vec![left, x, right], 3);
+    let z = Tensor::zeros([b, c, 1, w + 2], &device);
+    Tensor::cat(vec![z.clone(), x, z], 2)
+}
+
+/// Nearest-neighbour 2x upsampling.
+fn upsample2(x: Tensor<4>) -> Tensor<4> {
+    let [b, c, h, w] = x.dims();
+    x.reshape([b, c, h, 1, w, 1])
+        .repeat_dim(3, 2)
+        .repeat_dim(5, 2)
+        .reshape([b, c, 2 * h, 2 * w])
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::model::rng::{Rng, tensor_to_vec};
+
+    #[test]
+    fn logits_have_the_input_grid_and_whole_scans_are_shift_equivariant() {
+        let device = Device::flex();
+        let net = SegNetConfig::new().init(&device);
+        let mut rng = Rng::new(1);
+        let (h, w) = (8, 32);
+        let x = rng.normal_tensor([1, CHANNELS, h, w], &device);
+        let y = net.forward(x.clone(), true);
+        assert_eq!(y.dims(), [1, NUM_CLASSES, h, w]);
+        // Rolling a whole revolution by the pooling stride rolls the logits with it.
+        let s = 8;
+        let roll = |t: Tensor<4>| {
+            let w = t.dims()[3];
+            Tensor::cat(
+                vec![t.clone().narrow(3, w - s, s), t.narrow(3, 0, w - s)],
+                3,
+            )
+        };
+        let a = tensor_to_vec(roll(y));
+        let b = tensor_to_vec(net.forward(roll(x), true));
+        let err = a
+            .iter()
+            .zip(&b)
+            .map(|(a, b)| (a - b).abs())
+            .fold(0.0, f32::max);
+        assert!(err < 1e-4, "max difference {err}");
+    }
+
+    #[test]
+    fn upsample_repeats_each_pixel() {
+        let device = Device::flex();
+        let x = crate::model::rng::tensor_from(vec![1.0, 2.0, 3.0, 4.0], [1, 1, 2, 2], &device);
+        let y = tensor_to_vec(upsample2(x));
+        assert_eq!(
+            y,
+            vec![
+                1.0, 1.0, 2.0, 2.0, 1.0, 1.0, 2.0, 2.0, 3.0, 3.0, 4.0, 4.0, 3.0, 3.0, 4.0, 4.0
+            ]
+        );
+    }
+}
