@@ -1,0 +1,108 @@
+#!/usr/bin/env bash
+# The Sim2Real segmentation experiment (the seed paper's Table 4 with our simulator):
+# simulate labelled HDL-64E scans with ideal physics, render ray drop onto them in six ways,
+# train one segmentation network per training set and seed with the same budget, train the
+# real oracle on labelled real scans, and score every network on held-out real scans.
+#
+#   experiments/sim2real_segmentation/run.sh [OUT]      (default OUT: target/sim2real)
+#
+# Settings (environment): SCENES (15), SCANS_PER_SCENE (40), STEPS (600), SEEDS ("0 1 2"),
+# JOBS (2 trainings at once, one thread each), RANGEGAN_BIN (target/release/rangegan-mcap),
+# REAL_LIDAR (../shared/real_lidar). Every step is skipped when its output exists, so a
+# killed run resumes where it stopped (a training resumes from its checkpoint).
+set -euo pipefail
+
+OUT=${1:-target/sim2real}
+BIN=${RANGEGAN_BIN:-target/release/rangegan-mcap}
+REAL=${REAL_LIDAR:-../shared/real_lidar}
+SCENES=${SCENES:-15}
+SCANS=${SCANS_PER_SCENE:-40}
+STEPS=${STEPS:-600}
+SEEDS=${SEEDS:-"0 1 2"}
+JOBS=${JOBS:-2}
+HERE=$(cd "$(dirname "$0")" && pwd)
+
+[ -x "$BIN" ] || { echo "no binary at $BIN: run cargo build --release first" >&2; exit 2; }
+[ -d "$REAL/semantickitti_mini" ] || { echo "no labelled real scans under $REAL/semantickitti_mini" >&2; exit 2; }
+export BIN=$(cd "$(dirname "$BIN")" && pwd)/$(basename "$BIN")
+REAL=$(cd "$REAL" && pwd)
+mkdir -p "$OUT" && cd "$OUT"
+started=$(date +%s)
+log() { echo "[$(( $(date +%s) - started )) s] $*" >&2; }
+rg() { "$BIN" --quiet "$@"; }
+
+# 1. Labelled real scans: the training sequences in one recording (the oracle's data and the
+#    real side of B, C and F), and the held-out sequences, never trained or tuned on.
+mkdir -p real
+if [ ! -f real/train.mcap ]; then
+  rm -rf real/train_bins && mkdir -p real/train_bins/velodyne real/train_bins/labels
+  for s in 01 02 03 04 05 06 09 10; do
+    for f in "$REAL"/semantickitti_mini/$s/velodyne/*.bin; do
+      b=$(basename "$f" .bin)
+      ln -s "$f" real/train_bins/velodyne/${s}_$b.bin
+      ln -s "$REAL/semantickitti_mini/$s/labels/$b.label" real/train_bins/labels/${s}_$b.label
+    done
+  done
+  rg import real/train_bins real/train.mcap
+fi
+for s in 00 07; do
+  [ -f real/heldout_mini$s.mcap ] || rg import "$REAL/semantickitti_mini/$s" real/heldout_mini$s.mcap
+done
+[ -f real/heldout_ssv3.mcap ] || rg import "$REAL/semantickitti_ssv3" real/heldout_ssv3.mcap
+log "real recordings ready"
+
+# 2. Config A: ideal simulated scans (no ray drop), many scenes.
+mkdir -p sim/A
+for s in $(seq 1 "$SCENES"); do
+  [ -f sim/A/scene$s.mcap ] || rg simulate --scene "$s" --scans "$SCANS" --columns 512 --physics ideal sim/A/scene$s.mcap
+done
+log "simulated $SCENES scenes x $SCANS scans"
+
+# 3. What diagnose finds between the simulator and the real training scans (config F).
+[ -f diagnosis/fitted_physics.json ] || rg diagnose --sim sim/A/scene1.mcap --real real/train.mcap --report diagnosis --force
+# G keeps F's perturbations (range noise, mixed pixels, ...) and takes its ray drop from the GAN.
+python3 "$HERE/physics_without_drops.py" diagnosis/fitted_physics.json > diagnosis/perturbations_only.json
+
+# 4. The rendered training sets, one recording per scene; draws seeded per scene.
+render_set() { # CONFIG ARGS...
+  local c=$1; shift; mkdir -p sim/$c
+  for s in $(seq 1 "$SCENES"); do
+    [ -f sim/$c/scene$s.mcap ] || echo "$s"
+  done | xargs -r -P "$JOBS" -I{} "$BIN" --quiet --threads 1 render "$@" --seed {} sim/A/scene{}.mcap sim/$c/scene{}.mcap
+}
+render_set B --raydrop global --real real/train.mcap
+render_set C --raydrop pixel --real real/train.mcap
+render_set F --physics diagnosis/fitted_physics.json
+render_set E --raydrop gan
+mkdir -p sim/Fp
+for s in $(seq 1 "$SCENES"); do
+  [ -f sim/Fp/scene$s.mcap ] || rg render --physics diagnosis/perturbations_only.json --seed "$s" sim/A/scene$s.mcap sim/Fp/scene$s.mcap
+done
+mkdir -p sim/G
+for s in $(seq 1 "$SCENES"); do
+  [ -f sim/G/scene$s.mcap ] || echo "$s"
+done | xargs -r -P "$JOBS" -I{} "$BIN" --quiet --threads 1 render --raydrop gan --seed {} sim/Fp/scene{}.mcap sim/G/scene{}.mcap
+log "rendered training sets B C E F G"
+
+# 5. One network per training set and seed, the same budget each.
+mkdir -p runs
+for c in A B C E F G real; do
+  for seed in $SEEDS; do echo "$c $seed"; done
+done | xargs -r -P "$JOBS" -L1 bash -c '
+  c=$0; seed=$1
+  if [ "$c" = real ]; then data=real/train.mcap; else data=sim/$c; fi
+  "$BIN" --quiet --threads 1 segment train runs/$c-s$seed "$data" --steps '"$STEPS"' --seed "$seed"
+' 2>&1 | tee -a train_errors.log
+log "trained $(ls runs | wc -l) networks"
+
+# 6. Every network on the held-out real scans.
+mkdir -p eval
+for run in runs/*; do
+  name=$(basename "$run")
+  rg --json segment eval --model "$run/model" real/heldout_mini00.mcap real/heldout_mini07.mcap real/heldout_ssv3.mcap > eval/$name.json
+done
+python3 "$HERE/table.py" eval > table.md
+rg segment picture --model runs/A-s0/model --model runs/C-s0/model --model runs/E-s0/model \
+  --model runs/F-s0/model --model runs/G-s0/model --model runs/real-s0/model \
+  real/heldout_mini07.mcap figure.png --scan 5
+log "done: $OUT/table.md, $OUT/figure.png"
