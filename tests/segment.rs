@@ -1,0 +1,236 @@
+//! End-to-end `segment train | eval | picture` through the built binary: a network trained on
+//! a simulated recording learns (road found on held-out simulated scans), a run stopped by
+//! its time limit resumes from its checkpoint, scores on real labelled SemanticKITTI scans
+//! (skipped without the real data), the comparison picture, and clear errors for recordings
+//! without labels.
+
+mod common;
+
+use std::path::Path;
+
+use common::{real_data, run, stderr};
+
+fn simulate(path: &Path, scene: &str, scans: &str) {
+    let out = run(&[
+        "--quiet",
+        "simulate",
+        "--scene",
+        scene,
+        "--scans",
+        scans,
+        "--columns",
+        "512",
+        path.to_str().unwrap(),
+    ]);
+    assert!(out.status.success(), "{}", stderr(&out));
+}
+
+fn json(args: &[&str]) -> serde_json::Value {
+    let out = run(args);
+    assert!(out.status.success(), "{args:?}: {}", stderr(&out));
+    serde_json::from_slice(&out.stdout).expect("JSON on stdout")
+}
+
+fn iou(report: &serde_json::Value, class: &str) -> f64 {
+    report["classes"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .find(|c| c["class"] == class)
+        .and_then(|c| c["iou"].as_f64())
+        .unwrap_or(0.0)
+}
+
+#[test]
+fn trains_resumes_scores_and_draws() {
+    let dir = tempfile::tempdir().unwrap();
+    let train = dir.path().join("train.mcap");
+    let heldout = dir.path().join("heldout.mcap");
+    simulate(&train, "11", "8");
+    simulate(&heldout, "12", "3");
+    let run_dir = dir.path().join("run");
+    let r = run_dir.to_str().unwrap();
+    let t = train.to_str().unwrap();
+
+    // A time limit stops after the first step with a checkpoint; the next call resumes.
+    let first = json(&[
+        "--json",
+        "segment",
+        "train",
+        r,
+        t,
+        "--steps",
+        "60",
+        "--minutes",
+        "0.0001",
+    ]);
+    assert_eq!(first["finished"], false);
+    let stopped_at = first["steps"].as_u64().unwrap();
+    assert!((1..60).contains(&stopped_at), "{first}");
+    let second = json(&["--json", "segment", "train", r, t, "--steps", "60"]);
+    assert_eq!(
+        (second["steps"].as_u64(), second["finished"].as_bool()),
+        (Some(60), Some(true))
+    );
+    let log = std::fs::read_to_string(run_dir.join("log.jsonl")).unwrap();
+    let steps: Vec<u64> = log
+        .lines()
+        .map(|l| {
+            serde_json::from_str::<serde_json::Value>(l).unwrap()["step"]
+                .as_u64()
+                .unwrap()
+        })
+        .collect();
+    assert_eq!(
+        steps,
+        vec![20, 40, 60],
+        "the resumed run continues the step count"
+    );
+
+    // It learned: road on scans of another scene.
+    let model = run_dir.join("model");
+    let m = model.to_str().unwrap();
+    let report = json(&[
+        "--json",
+        "segment",
+        "eval",
+        "--model",
+        m,
+        heldout.to_str().unwrap(),
+    ]);
+    assert_eq!(report["scans"], 3);
+    assert!(report["points"].as_u64().unwrap() > 10_000, "{report}");
+    assert!(
+        iou(&report, "road") > 0.5,
+        "road IoU after 60 steps: {report}"
+    );
+
+    let png = dir.path().join("figure.png");
+    let out = run(&[
+        "segment",
+        "picture",
+        "--model",
+        m,
+        "--model",
+        m,
+        heldout.to_str().unwrap(),
+        png.to_str().unwrap(),
+        "--scan",
+        "2",
+    ]);
+    assert!(out.status.success(), "{}", stderr(&out));
+    let bytes = std::fs::read(&png).unwrap();
+    assert_eq!(&bytes[..8], b"\x89PNG\r\n\x1a\n");
+    let out = run(&[
+        "segment",
+        "picture",
+        "--model",
+        m,
+        heldout.to_str().unwrap(),
+        png.to_str().unwrap(),
+        "--scan",
+        "3",
+    ]);
+    assert!(
+        !out.status.success() && stderr(&out).contains("scan 3 does not exist"),
+        "{}",
+        stderr(&out)
+    );
+
+    // Real labelled scans, never seen: every class is scored and the numbers are rates.
+    let Some(real) = real_data("trains_resumes_scores_and_draws (real part)") else {
+        return;
+    };
+    let real_mcap = dir.path().join("mini00.mcap");
+    let out = run(&[
+        "--quiet",
+        "import",
+        real.join("semantickitti_mini/00").to_str().unwrap(),
+        real_mcap.to_str().unwrap(),
+    ]);
+    assert!(out.status.success(), "{}", stderr(&out));
+    let report = json(&[
+        "--json",
+        "segment",
+        "eval",
+        "--model",
+        m,
+        real_mcap.to_str().unwrap(),
+    ]);
+    assert_eq!(report["scans"], 10);
+    let classes = report["classes"].as_array().unwrap();
+    assert_eq!(classes.len(), 8);
+    for c in classes {
+        assert!(c["points"].as_u64().unwrap() > 0, "{c}");
+        for key in ["precision", "recall", "iou"] {
+            assert!(
+                c[key].is_null() || (0.0..=1.0).contains(&c[key].as_f64().unwrap()),
+                "{c}"
+            );
+        }
+    }
+    let miou = report["miou"].as_f64().unwrap();
+    assert!((0.0..=1.0).contains(&miou));
+}
+
+#[test]
+fn recordings_without_labels_are_refused_by_name() {
+    let dir = tempfile::tempdir().unwrap();
+    let unlabelled = dir.path().join("unlabelled.mcap");
+    let out = run(&[
+        "--quiet",
+        "simulate",
+        "--scans",
+        "2",
+        "--columns",
+        "512",
+        unlabelled.to_str().unwrap(),
+    ]);
+    assert!(out.status.success(), "{}", stderr(&out));
+    // A KITTI folder without labels/ imports fine but cannot train or score a network.
+    let bins = dir.path().join("bins");
+    std::fs::create_dir_all(&bins).unwrap();
+    let points: Vec<u8> = (0..2000)
+        .flat_map(|i| {
+            let a = i as f32 * 0.01;
+            [10.0 * a.cos(), 10.0 * a.sin(), -1.0 + 0.001 * i as f32, 0.5]
+        })
+        .flat_map(f32::to_le_bytes)
+        .collect();
+    std::fs::write(bins.join("000000.bin"), points).unwrap();
+    let no_labels = dir.path().join("no_labels.mcap");
+    let out = run(&[
+        "--quiet",
+        "import",
+        bins.to_str().unwrap(),
+        no_labels.to_str().unwrap(),
+    ]);
+    assert!(out.status.success(), "{}", stderr(&out));
+    let run_dir = dir.path().join("run");
+    let out = run(&[
+        "segment",
+        "train",
+        run_dir.to_str().unwrap(),
+        no_labels.to_str().unwrap(),
+        "--steps",
+        "2",
+    ]);
+    let err = stderr(&out);
+    assert!(!out.status.success());
+    assert!(
+        err.contains("no_labels.mcap") && err.contains("label"),
+        "{err}"
+    );
+    let out = run(&[
+        "segment",
+        "eval",
+        "--model",
+        dir.path().to_str().unwrap(),
+        unlabelled.to_str().unwrap(),
+    ]);
+    assert!(
+        !out.status.success() && stderr(&out).contains("not a segmentation model folder"),
+        "{}",
+        stderr(&out)
+    );
+}
