@@ -9,6 +9,10 @@
 //! 3. later stages (the GAN model, auto-decoding, physics) work on range images;
 //! 4. [`io`] encodes the results as new channels and writes them beside every
 //!    copied input record, atomically.
+//!
+//! Beside that path, [`diagnose`] compares a simulated with a real recording and fits the
+//! physics the simulator left out, and [`segment`] measures what rendered ray drop is worth
+//! downstream: a segmentation network trained on simulated scans, scored on real ones.
 
 pub mod cli;
 pub mod dataset;

@@ -102,7 +102,7 @@ for run in runs/*; do
   rg --json segment eval --model "$run/model" real/heldout_mini00.mcap real/heldout_mini07.mcap real/heldout_ssv3.mcap > eval/$name.json
 done
 python3 "$HERE/table.py" eval > table.md
-rg segment picture --model runs/A-s0/model --model runs/C-s0/model --model runs/E-s0/model \
+rg segment picture --model runs/A-s0/model --model runs/B-s0/model --model runs/C-s0/model --model runs/E-s0/model \
   --model runs/F-s0/model --model runs/G-s0/model --model runs/real-s0/model \
   real/heldout_mini07.mcap figure.png --scan 5
 log "done: $OUT/table.md, $OUT/figure.png"
