@@ -9,7 +9,7 @@ use anyhow::Context;
 
 use super::{GlobalArgs, Outcome};
 use crate::segment::SegModel;
-use crate::segment::data::{SegDataset, benchmark_profile, recordings_in};
+use crate::segment::data::{SegDataset, benchmark_profile};
 use crate::segment::eval::{EvalReport, evaluate, picture};
 use crate::segment::train::{SegTrainConfig, SegTrainOptions, run};
 
@@ -97,9 +97,10 @@ pub fn run_segment(global: &GlobalArgs, args: SegmentArgs) -> anyhow::Result<Out
 fn expand(paths: &[PathBuf]) -> anyhow::Result<Vec<PathBuf>> {
     let mut out = Vec::new();
     for p in paths {
-        let found = recordings_in(p)?;
+        // One input at a time: two folders may both hold a scene1.mcap.
+        let found = crate::dataset::list(std::slice::from_ref(p), &[])?;
         anyhow::ensure!(!found.is_empty(), "{}: no .mcap recordings", p.display());
-        out.extend(found);
+        out.extend(found.into_iter().map(|f| f.path));
     }
     Ok(out)
 }

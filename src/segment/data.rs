@@ -3,9 +3,9 @@
 //! reproduce), per-pixel class targets, whole recordings as datasets, and training batches
 //! with the augmentations that keep a range image a range image (azimuth roll, mirror).
 
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 
-use anyhow::{Context, Result, bail};
+use anyhow::{Result, bail};
 
 use super::classes::{IGNORE, NUM_CLASSES, class_of};
 use crate::lidar::{RangeImage, SensorProfile};
@@ -185,26 +185,6 @@ pub fn batch(
         }
     }
     (input, target)
-}
-
-/// The recordings under `path`: the file itself, or every `.mcap` below a folder (sorted).
-pub fn recordings_in(path: &Path) -> Result<Vec<PathBuf>> {
-    if !path.is_dir() {
-        return Ok(vec![path.to_path_buf()]);
-    }
-    let mut files = Vec::new();
-    for entry in
-        std::fs::read_dir(path).with_context(|| format!("cannot read {}", path.display()))?
-    {
-        let p = entry?.path();
-        if p.is_dir() {
-            files.extend(recordings_in(&p)?);
-        } else if p.extension().is_some_and(|e| e == "mcap") {
-            files.push(p);
-        }
-    }
-    files.sort();
-    Ok(files)
 }
 
 #[cfg(test)]
