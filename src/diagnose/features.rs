@@ -23,6 +23,9 @@ pub struct FeatureOptions {
     pub max_edge_px: u8,
     /// Whether the columns wrap around (a full-turn scan).
     pub wrap_azimuth: bool,
+    /// Longest run of dropped pixels along a row or column that [`bridge_fill`]
+    /// spans between two returns of one surface.
+    pub bridge_gap_px: usize,
 }
 
 impl Default for FeatureOptions {
@@ -32,6 +35,7 @@ impl Default for FeatureOptions {
             edge_relative_jump: 0.1,
             max_edge_px: 8,
             wrap_azimuth: true,
+            bridge_gap_px: 16,
         }
     }
 }
@@ -108,6 +112,16 @@ impl ScanFeatures {
             wrap: options.wrap_azimuth,
         };
         let (mut range_m, class) = neighbour_fill(&grid, image, &kept, options.fill_passes);
+        // Holes spanned by one surface get its geometry back, so their normals
+        // (the incidence features) are not the flat patches a fill makes.
+        for (k, r) in bridge_fill(&grid, image, &kept, options.bridge_gap_px)
+            .into_iter()
+            .enumerate()
+        {
+            if r.is_finite() {
+                range_m[k] = r;
+            }
+        }
         if let Some(depth) = completed.filter(|d| d.len() == n) {
             for k in 0..n {
                 let d = depth[k];
@@ -245,6 +259,76 @@ fn neighbour_fill(
         }
     }
     (range, class)
+}
+
+/// Largest disagreement, as a fraction of the inverse range, between a bridge and
+/// the line through each end and its outer neighbour: beyond it the two ends lie
+/// on different surfaces (or a curved one) and the hole is left to the fill.
+const BRIDGE_TOLERANCE: f32 = 0.05;
+
+/// Completes runs of dropped pixels that lie between two returns of one surface
+/// along their row or column (at most `max_gap` pixels): the inverse range is
+/// interpolated linearly in azimuth (rows) or elevation (columns), which follows
+/// a plane closely across small angles. Where both directions bridge a pixel the
+/// shorter gap wins. NaN where nothing bridges.
+fn bridge_fill(grid: &Grid, image: &RangeImage, kept: &[bool], max_gap: usize) -> Vec<f32> {
+    let n = kept.len();
+    let mut range = vec![f32::NAN; n];
+    let mut gap = vec![usize::MAX; n];
+    if max_gap == 0 || n == 0 {
+        return range;
+    }
+    let inverse = |k: usize| 1.0 / image.range_m[k];
+    let mut line = |pixels: &[usize], x: &dyn Fn(usize) -> f32| {
+        let mut last: Option<usize> = None;
+        for (p, &k) in pixels.iter().enumerate() {
+            if !kept[k] {
+                continue;
+            }
+            if let Some(a) = last.filter(|&a| p - a > 1 && p - a - 1 <= max_gap) {
+                let (ka, kb) = (pixels[a], k);
+                let (xa, xb) = (x(a), x(p));
+                let (ua, ub) = (inverse(ka), inverse(kb));
+                let slope = (ub - ua) / (xb - xa);
+                let outer = [
+                    (a > 0 && kept[pixels[a - 1]])
+                        .then(|| (ua - inverse(pixels[a - 1])) / (xa - x(a - 1))),
+                    (p + 1 < pixels.len() && kept[pixels[p + 1]])
+                        .then(|| (inverse(pixels[p + 1]) - ub) / (x(p + 1) - xb)),
+                ];
+                let allowed = BRIDGE_TOLERANCE * ua.max(ub);
+                let one_surface = if outer.iter().all(Option::is_none) {
+                    (ua - ub).abs() <= allowed
+                } else {
+                    outer
+                        .iter()
+                        .flatten()
+                        .all(|s| ((s - slope) * (xb - xa)).abs() <= allowed)
+                };
+                if one_surface && slope.is_finite() {
+                    for q in a + 1..p {
+                        let m = pixels[q];
+                        let len = p - a - 1;
+                        if len < gap[m] {
+                            gap[m] = len;
+                            range[m] = 1.0 / (ua + slope * (x(q) - xa));
+                        }
+                    }
+                }
+            }
+            last = Some(p);
+        }
+    };
+    let laps = if grid.wrap { 2 } else { 1 };
+    for i in 0..grid.h {
+        let pixels: Vec<usize> = (0..laps * grid.w).map(|j| i * grid.w + j % grid.w).collect();
+        line(&pixels, &|p| p as f32);
+    }
+    for j in 0..grid.w {
+        let pixels: Vec<usize> = (0..grid.h).map(|i| i * grid.w + j).collect();
+        line(&pixels, &|p| image.angles.elevation_rad[pixels[p]]);
+    }
+    range
 }
 
 /// The most frequent value (smallest on ties), or None for an empty slice.
