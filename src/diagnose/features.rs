@@ -267,10 +267,11 @@ fn neighbour_fill(
 const BRIDGE_TOLERANCE: f32 = 0.05;
 
 /// Completes runs of dropped pixels that lie between two returns of one surface
-/// along their row or column (at most `max_gap` pixels): the inverse range is
-/// interpolated linearly in azimuth (rows) or elevation (columns), which follows
-/// a plane closely across small angles. Where both directions bridge a pixel the
-/// shorter gap wins. NaN where nothing bridges.
+/// along their row or column (at most `max_gap` pixels). Along a column the
+/// inverse range of any plane is `a cos(elevation) + b sin(elevation)`, which the
+/// two ends fix; along a row it is interpolated linearly in azimuth (exact on the
+/// ground's rings, close on walls across small angles). Where both directions
+/// bridge a pixel the shorter gap wins. NaN where nothing bridges.
 fn bridge_fill(grid: &Grid, image: &RangeImage, kept: &[bool], max_gap: usize) -> Vec<f32> {
     let n = kept.len();
     let mut range = vec![f32::NAN; n];
@@ -279,7 +280,8 @@ fn bridge_fill(grid: &Grid, image: &RangeImage, kept: &[bool], max_gap: usize) -
         return range;
     }
     let inverse = |k: usize| 1.0 / image.range_m[k];
-    let mut line = |pixels: &[usize], x: &dyn Fn(usize) -> f32| {
+    type Interpolate = dyn Fn(f32, f32, f32, f32, f32) -> f32;
+    let mut line = |pixels: &[usize], x: &dyn Fn(usize) -> f32, between: &Interpolate| {
         let mut last: Option<usize> = None;
         for (p, &k) in pixels.iter().enumerate() {
             if !kept[k] {
@@ -311,7 +313,7 @@ fn bridge_fill(grid: &Grid, image: &RangeImage, kept: &[bool], max_gap: usize) -
                         let len = p - a - 1;
                         if len < gap[m] {
                             gap[m] = len;
-                            range[m] = 1.0 / (ua + slope * (x(q) - xa));
+                            range[m] = 1.0 / between(xa, ua, xb, ub, x(q));
                         }
                     }
                 }
@@ -321,12 +323,20 @@ fn bridge_fill(grid: &Grid, image: &RangeImage, kept: &[bool], max_gap: usize) -
     };
     let laps = if grid.wrap { 2 } else { 1 };
     for i in 0..grid.h {
-        let pixels: Vec<usize> = (0..laps * grid.w).map(|j| i * grid.w + j % grid.w).collect();
-        line(&pixels, &|p| p as f32);
+        let pixels: Vec<usize> = (0..laps * grid.w)
+            .map(|j| i * grid.w + j % grid.w)
+            .collect();
+        line(&pixels, &|p| p as f32, &|xa, ua, xb, ub, x| {
+            ua + (ub - ua) * (x - xa) / (xb - xa)
+        });
     }
     for j in 0..grid.w {
         let pixels: Vec<usize> = (0..grid.h).map(|i| i * grid.w + j).collect();
-        line(&pixels, &|p| image.angles.elevation_rad[pixels[p]]);
+        line(
+            &pixels,
+            &|p| image.angles.elevation_rad[pixels[p]],
+            &|xa, ua, xb, ub, x| (ua * (xb - x).sin() + ub * (x - xa).sin()) / (xb - xa).sin(),
+        );
     }
     range
 }
@@ -561,6 +571,60 @@ mod tests {
         assert_eq!(f.kept.iter().filter(|k| !**k).count(), holes.len());
         assert!((f.drop_rate() - 3.0 / 512.0).abs() < 1e-9);
         assert_eq!(f.row[5 * 64 + 63], 5);
+    }
+
+    #[test]
+    fn holes_on_one_plane_get_its_geometry_back() {
+        let mut img = ground_image(24, 64, 1.7);
+        let truth = img.clone();
+        // A 10 x 10 block: most of it beyond the neighbour fill's reach.
+        let hole: Vec<usize> = (8..18)
+            .flat_map(|i| (20..30).map(move |j| i * 64 + j))
+            .collect();
+        for &k in &hole {
+            img.range_m[k] = 0.0;
+        }
+        let f = ScanFeatures::from_image(&img, &FeatureOptions::default());
+        for &k in &hole {
+            let rel = (f.range_m[k] - truth.range_m[k]).abs() / truth.range_m[k];
+            assert!(
+                rel < 1e-4,
+                "k={k}: {} vs {}",
+                f.range_m[k],
+                truth.range_m[k]
+            );
+            let expected = std::f32::consts::FRAC_PI_2 + img.angles.elevation_rad[k];
+            assert!((f.incidence_rad[k] - expected).abs() < 0.02, "k={k}");
+        }
+    }
+
+    #[test]
+    fn holes_between_two_surfaces_are_not_bridged() {
+        // A wall at 20 m behind an object at 8 m: the 6 dropped columns between them
+        // in each row must not be interpolated from both.
+        let angles = AngleGrid::regular_columns(4, 64, |i| 0.02 * i as f32);
+        let mut img = RangeImage::empty(angles);
+        for k in 0..img.len() {
+            let j = k % 64;
+            img.range_m[k] = match j {
+                0..20 => 8.0,
+                20..26 => 0.0,
+                _ => 20.0,
+            };
+        }
+        let bridged = bridge_fill(
+            &Grid {
+                h: 4,
+                w: 64,
+                wrap: false,
+            },
+            &img,
+            &(0..img.len())
+                .map(|k| img.range_m[k] > 0.0)
+                .collect::<Vec<_>>(),
+            16,
+        );
+        assert!((0..4).all(|i| (20..26).all(|j| bridged[i * 64 + j].is_nan())));
     }
 
     #[test]
