@@ -246,7 +246,6 @@ fn concealed_incidence_dropout() {
 }
 
 #[test]
-#[ignore = "known limit (docs/diagnose.md): with neighbour-fill completion, grazing drops on far road rows are explained by range_dropout or the road class as well; case 1 names only range_dropout (the GAN completion names incidence_dropout in both: concealed_incidence_dropout)"]
 fn concealed_incidence_dropout_neighbour_fill() {
     for case in 0..2u64 {
         let (_, _, effect) = incidence(case);
