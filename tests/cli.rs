@@ -127,6 +127,32 @@ fn import_of_an_empty_folder_is_a_clear_error() {
     assert!(!dir.path().join("o.mcap").exists());
 }
 
+/// A GPU backend this build lacks stops `train` and `train-encoder` before
+/// anything is read or written, naming the cargo feature to build with.
+#[cfg(not(feature = "cuda"))]
+#[test]
+fn training_on_a_backend_missing_from_the_build_is_a_clear_error() {
+    let dir = tempfile::tempdir().unwrap();
+    for command in ["train", "train-encoder"] {
+        let run_dir = dir.path().join(command);
+        let o = run(&[
+            command,
+            run_dir.to_str().unwrap(),
+            "--data",
+            dir.path().to_str().unwrap(),
+            "--backend",
+            "cuda",
+        ]);
+        assert_eq!(o.status.code(), Some(1), "{command}");
+        assert!(
+            stderr(&o).contains("--features cuda"),
+            "{command}: {}",
+            stderr(&o)
+        );
+        assert!(!run_dir.exists(), "{command} wrote its run directory");
+    }
+}
+
 /// Real SemanticKITTI through import and convert: the sensor is estimated from the
 /// data (64 beams by ring, columns from the azimuth step of these every-4th-point
 /// files) and nearly every point keeps a pixel.

@@ -26,8 +26,25 @@ pub enum ArchArg {
 
 #[derive(Debug, Clone, Copy, clap::ValueEnum)]
 pub enum BackendArg {
+    /// burn-flex on the CPU cores (the default; fastest on CPU here).
     Flex,
+    /// burn-ndarray on the CPU cores.
     Ndarray,
+    /// An NVIDIA GPU through CUDA (a build with `--features cuda`).
+    Cuda,
+    /// A GPU through wgpu: Vulkan, Metal or DirectX (a build with `--features wgpu`).
+    Wgpu,
+}
+
+impl From<BackendArg> for Backend {
+    fn from(arg: BackendArg) -> Self {
+        match arg {
+            BackendArg::Flex => Backend::Flex,
+            BackendArg::Ndarray => Backend::Ndarray,
+            BackendArg::Cuda => Backend::Cuda,
+            BackendArg::Wgpu => Backend::Wgpu,
+        }
+    }
 }
 
 /// What every resumable training run takes: where it lives, its data, when to stop, its seed.
@@ -35,7 +52,8 @@ pub enum BackendArg {
 pub struct RunArgs {
     /// Run directory (config.json, checkpoint/, log.jsonl, ...). Resumes if it exists.
     pub run_dir: PathBuf,
-    /// Folder holding kitti_raw_drive_a/ and semantickitti_mini/ (sequences 00, 07 held out).
+    /// Folder of the real scans: every kitti_raw_* drive and semantickitti_mini/
+    /// (sequences 00 and 07 held out).
     #[arg(long, default_value = "../shared/real_lidar")]
     pub data: PathBuf,
     /// Projected-dataset cache (default: RUN_DIR/dataset.bin).
@@ -47,6 +65,9 @@ pub struct RunArgs {
     /// Seed of a new run.
     #[arg(long)]
     pub seed: Option<u64>,
+    /// Backend to compute on; a run may resume on another one.
+    #[arg(long, value_enum, default_value = "flex")]
+    pub backend: BackendArg,
 }
 
 impl RunArgs {
@@ -68,9 +89,6 @@ pub struct TrainArgs {
     /// Architecture of a new run.
     #[arg(long, value_enum, default_value = "dusty2")]
     pub arch: ArchArg,
-    /// CPU backend.
-    #[arg(long, value_enum, default_value = "flex")]
-    pub backend: BackendArg,
     /// Batch size of a new run.
     #[arg(long)]
     pub batch: Option<usize>,
@@ -92,6 +110,8 @@ pub struct TrainArgs {
 }
 
 pub fn run_train(global: &GlobalArgs, args: TrainArgs) -> anyhow::Result<Outcome> {
+    // Before any data is read or written: a backend this build lacks is a usage error.
+    Backend::from(args.run.backend).device()?;
     let mut config = match &args.init_from {
         // A fine-tuning run keeps the pretrained network's shapes and recipe; it is past the
         // early pixel-dropout phase, and its image budget is its own.
@@ -129,10 +149,7 @@ pub fn run_train(global: &GlobalArgs, args: TrainArgs) -> anyhow::Result<Outcome
         scans,
         run_dir: args.run.run_dir,
         config,
-        backend: match args.backend {
-            BackendArg::Flex => Backend::Flex,
-            BackendArg::Ndarray => Backend::Ndarray,
-        },
+        backend: args.run.backend.into(),
         total_images: args.total_images,
         progress: !global.quiet,
         init_from: args.init_from,

@@ -21,6 +21,7 @@ pub struct TrainEncoderArgs {
 }
 
 pub fn run_train_encoder(_global: &GlobalArgs, args: TrainEncoderArgs) -> anyhow::Result<Outcome> {
+    crate::model::train::Backend::from(args.run.backend).device()?;
     let mut config = EncoderTrainConfig::new();
     if let Some(s) = args.run.seed {
         config = config.with_seed(s);
@@ -33,6 +34,7 @@ pub fn run_train_encoder(_global: &GlobalArgs, args: TrainEncoderArgs) -> anyhow
         model: args.model,
         config,
         total_steps: args.total_steps,
+        backend: args.run.backend.into(),
     };
     run(&opts)?;
     Ok(Outcome::Success)

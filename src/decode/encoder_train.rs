@@ -30,6 +30,7 @@ use crate::model::data::RangeDataset;
 use crate::model::generator::Generator;
 use crate::model::measurement::MeasurementConfig;
 use crate::model::rng::{Rng, tensor_from, tensor_to_vec};
+use crate::model::train::Backend;
 use crate::model::weights::Model;
 
 /// Everything that defines an encoder run; saved as `config.json` before training starts.
@@ -77,6 +78,8 @@ pub struct EncoderTrainOptions {
     pub config: EncoderTrainConfig,
     pub total_steps: Option<u64>,
     pub max_duration: Option<Duration>,
+    /// Where the encoder trains (the generator is loaded onto the same device).
+    pub backend: Backend,
 }
 
 #[derive(Debug, Clone, Serialize, Deserialize)]
@@ -120,7 +123,7 @@ pub fn run(opts: &EncoderTrainOptions) -> Result<()> {
             config.encoder.width
         );
     }
-    let inner = Device::flex();
+    let inner = opts.backend.device()?;
     let model = Model::load(opts.model.as_deref(), &inner)?;
     let measurement = model.config.measurement.clone();
     let AnyGenerator::Implicit(generator) = model.generator else {
@@ -134,7 +137,7 @@ pub fn run(opts: &EncoderTrainOptions) -> Result<()> {
             config.encoder.d_w
         );
     }
-    let mut t = Trainer::new(config, generator, measurement, &opts.run_dir, &data)?;
+    let mut t = Trainer::new(config, generator, measurement, inner, &opts.run_dir, &data)?;
     t.train(opts, &data)
 }
 
@@ -158,10 +161,10 @@ impl Trainer {
         config: EncoderTrainConfig,
         generator: Generator,
         measurement: MeasurementConfig,
+        inner: Device,
         run_dir: &Path,
         data: &RangeDataset,
     ) -> Result<Self> {
-        let inner = Device::flex();
         let ad = inner.clone().autodiff();
         let frozen_ad = generator.clone().fork(&ad).no_grad();
         let cache = generator.prepare(&data.angles, &inner);

@@ -28,20 +28,44 @@ use super::measurement::MeasurementConfig;
 use super::rng::{Rng, tensor_from, tensor_to_vec};
 use super::{AnyGenerator, Arch, Generated};
 
-/// CPU backend used for training and inference.
+/// The burn backend a training run computes on. The CPU ones are always built;
+/// the GPU ones need the cargo feature of the same name (`--features cuda` or
+/// `--features wgpu`), so the default build needs no GPU toolkit.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase")]
 pub enum Backend {
     Flex,
     Ndarray,
+    Cuda,
+    Wgpu,
 }
 
 impl Backend {
-    pub fn device(self) -> Device {
+    /// The device to compute on, or why this build has none for this backend.
+    pub fn device(self) -> Result<Device> {
         match self {
-            Backend::Flex => Device::flex(),
+            Backend::Flex => Ok(Device::flex()),
             #[allow(deprecated)]
-            Backend::Ndarray => Device::ndarray(),
+            Backend::Ndarray => Ok(Device::ndarray()),
+            #[cfg(feature = "cuda")]
+            Backend::Cuda => Ok(Device::cuda(0)),
+            #[cfg(feature = "wgpu")]
+            Backend::Wgpu => Ok(Device::wgpu(burn::tensor::DeviceKind::DefaultDevice)),
+            #[allow(unreachable_patterns)]
+            gpu => bail!(
+                "this rangegan-mcap was built without the `{0}` feature; \
+                 rebuild with `cargo build --release --features {0}` to train on {0}",
+                gpu.name()
+            ),
+        }
+    }
+
+    pub fn name(self) -> &'static str {
+        match self {
+            Backend::Flex => "flex",
+            Backend::Ndarray => "ndarray",
+            Backend::Cuda => "cuda",
+            Backend::Wgpu => "wgpu",
         }
     }
 }
@@ -52,7 +76,11 @@ impl std::str::FromStr for Backend {
         match s {
             "flex" => Ok(Backend::Flex),
             "ndarray" => Ok(Backend::Ndarray),
-            other => Err(format!("unknown backend {other:?}: use flex or ndarray")),
+            "cuda" => Ok(Backend::Cuda),
+            "wgpu" => Ok(Backend::Wgpu),
+            other => Err(format!(
+                "unknown backend {other:?}: use flex, ndarray, cuda or wgpu"
+            )),
         }
     }
 }
@@ -268,7 +296,7 @@ struct Trainer {
 
 impl Trainer {
     fn new(config: &TrainConfig, opts: &TrainOptions, data: &RangeDataset) -> Result<Self> {
-        let inner = opts.backend.device();
+        let inner = opts.backend.device()?;
         let device = inner.clone().autodiff();
         let adam = AdamConfig::new()
             .with_beta_1(config.beta1)
@@ -854,6 +882,33 @@ pub fn ema_update<M: Module>(ema: M, g: &M, beta: f32) -> M {
 mod tests {
     use super::*;
     use crate::lidar::SensorProfile;
+
+    #[test]
+    fn backends_parse_by_name_and_the_cpu_ones_always_exist() {
+        for b in [
+            Backend::Flex,
+            Backend::Ndarray,
+            Backend::Cuda,
+            Backend::Wgpu,
+        ] {
+            assert_eq!(b.name().parse::<Backend>(), Ok(b));
+            let json = serde_json::to_string(&b).expect("json");
+            assert_eq!(json, format!("\"{}\"", b.name()));
+        }
+        assert!(Backend::Flex.device().is_ok());
+        assert!(Backend::Ndarray.device().is_ok());
+        assert!("tpu".parse::<Backend>().is_err());
+    }
+
+    #[cfg(not(feature = "cuda"))]
+    #[test]
+    fn a_gpu_backend_missing_from_the_build_says_which_feature_to_build() {
+        let err = Backend::Cuda
+            .device()
+            .expect_err("no cuda in this build")
+            .to_string();
+        assert!(err.contains("--features cuda"), "{err}");
+    }
 
     #[test]
     fn old_configs_load_with_new_fields_defaulted() {
