@@ -308,9 +308,8 @@ fn bridge_fill(grid: &Grid, image: &RangeImage, kept: &[bool], max_gap: usize) -
                         .all(|s| ((s - slope) * (xb - xa)).abs() <= allowed)
                 };
                 if one_surface && slope.is_finite() {
-                    for q in a + 1..p {
-                        let m = pixels[q];
-                        let len = p - a - 1;
+                    let len = p - a - 1;
+                    for (q, &m) in pixels.iter().enumerate().take(p).skip(a + 1) {
                         if len < gap[m] {
                             gap[m] = len;
                             range[m] = 1.0 / between(xa, ua, xb, ub, x(q));
