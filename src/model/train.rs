@@ -41,6 +41,13 @@ pub enum Backend {
 }
 
 impl Backend {
+    pub const ALL: [Backend; 4] = [
+        Backend::Flex,
+        Backend::Ndarray,
+        Backend::Cuda,
+        Backend::Wgpu,
+    ];
+
     /// The device to compute on, or why this build has none for this backend.
     pub fn device(self) -> Result<Device> {
         match self {
@@ -73,15 +80,10 @@ impl Backend {
 impl std::str::FromStr for Backend {
     type Err = String;
     fn from_str(s: &str) -> Result<Self, String> {
-        match s {
-            "flex" => Ok(Backend::Flex),
-            "ndarray" => Ok(Backend::Ndarray),
-            "cuda" => Ok(Backend::Cuda),
-            "wgpu" => Ok(Backend::Wgpu),
-            other => Err(format!(
-                "unknown backend {other:?}: use flex, ndarray, cuda or wgpu"
-            )),
-        }
+        Backend::ALL
+            .into_iter()
+            .find(|b| b.name() == s)
+            .ok_or_else(|| format!("unknown backend {s:?}: use flex, ndarray, cuda or wgpu"))
     }
 }
 
@@ -885,12 +887,7 @@ mod tests {
 
     #[test]
     fn backends_parse_by_name_and_the_cpu_ones_always_exist() {
-        for b in [
-            Backend::Flex,
-            Backend::Ndarray,
-            Backend::Cuda,
-            Backend::Wgpu,
-        ] {
+        for b in Backend::ALL {
             assert_eq!(b.name().parse::<Backend>(), Ok(b));
             let json = serde_json::to_string(&b).expect("json");
             assert_eq!(json, format!("\"{}\"", b.name()));
