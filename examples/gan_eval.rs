@@ -10,6 +10,10 @@
 //! cargo run --release --example gan_eval -- --data ../shared/real_lidar \
 //!     --cache RUN/dataset.bin --png docs/img/gan_samples.png [--seeds 3] LABEL=MODEL_DIR ...
 //! ```
+//! `--validation-drive kitti_raw_drive_d` (repeatable) adds that drive's scans to the held-out
+//! set and leaves them out of the floor's training set: for models trained with the same
+//! `--validation-drive` (and the cache built without it).
+//!
 //! A MODEL_DIR is a model directory (config.json + g_ema.bpk) or a training run directory;
 //! `shipped` is the compiled-in model. Prints one JSON object.
 
@@ -17,7 +21,7 @@ use std::path::PathBuf;
 
 use anyhow::{Context, Result, bail};
 use burn::tensor::Device;
-use rangegan_mcap::model::data::{RangeDataset, kitti_heldout_files, kitti_training_files};
+use rangegan_mcap::model::data::{RangeDataset, kitti_heldout_files, kitti_validation_split};
 use rangegan_mcap::model::metrics::{
     SwdConfig, SwdReport, one_nna, point_sets, swd_between, swd_of_model,
 };
@@ -31,6 +35,7 @@ struct Args {
     png: Option<PathBuf>,
     /// SWD repeated with this many projection/patch seeds (mean and spread reported).
     seeds: u64,
+    validation_drives: Vec<String>,
     models: Vec<(String, Option<PathBuf>)>,
 }
 
@@ -41,6 +46,7 @@ fn parse_args() -> Result<Args> {
         cache: None,
         png: None,
         seeds: 3,
+        validation_drives: Vec::new(),
         models: Vec::new(),
     };
     while let Some(a) = it.next() {
@@ -48,6 +54,9 @@ fn parse_args() -> Result<Args> {
             "--data" => args.data = it.next().context("--data needs a value")?.into(),
             "--cache" => args.cache = Some(it.next().context("--cache needs a value")?.into()),
             "--png" => args.png = Some(it.next().context("--png needs a value")?.into()),
+            "--validation-drive" => args
+                .validation_drives
+                .push(it.next().context("--validation-drive needs a value")?),
             "--seeds" => args.seeds = it.next().context("--seeds needs a value")?.parse()?,
             m => {
                 let (label, dir) = m.split_once('=').unwrap_or((m, m));
@@ -85,8 +94,10 @@ fn keep_rate(images: &[f32]) -> f64 {
 fn main() -> Result<()> {
     let args = parse_args()?;
     let device = Device::flex();
-    let heldout = RangeDataset::from_kitti_files(&kitti_heldout_files(&args.data)?, 512)?;
-    let train_files = kitti_training_files(&args.data)?;
+    let (train_files, validation) = kitti_validation_split(&args.data, &args.validation_drives)?;
+    let mut heldout_files = kitti_heldout_files(&args.data)?;
+    heldout_files.extend(validation);
+    let heldout = RangeDataset::from_kitti_files(&heldout_files, 512)?;
     let train = match &args.cache {
         Some(c) => RangeDataset::load_or_build(c, &train_files, 512)?,
         None => RangeDataset::from_kitti_files(&train_files, 512)?,
@@ -178,7 +189,7 @@ fn main() -> Result<()> {
     println!(
         "{}",
         serde_json::to_string_pretty(&serde_json::json!({
-            "heldout_images": heldout.len(), "swd_config": format!("{:?}", configs[0]), "swd_seeds": configs.len(), "results": rows,
+            "heldout_images": heldout.len(), "validation_drives": args.validation_drives, "swd_config": format!("{:?}", configs[0]), "swd_seeds": configs.len(), "results": rows,
         }))?
     );
     Ok(())

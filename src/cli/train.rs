@@ -8,7 +8,7 @@ use std::time::Duration;
 
 use super::{GlobalArgs, Outcome};
 use crate::model::Arch;
-use crate::model::data::kitti_training_files;
+use crate::model::data::kitti_validation_split;
 use crate::model::discriminator::DiscriminatorConfig;
 use crate::model::generator::GeneratorConfig;
 use crate::model::train::{Backend, TrainConfig, TrainOptions, load_config, run};
@@ -65,6 +65,11 @@ pub struct RunArgs {
     /// Seed of a new run.
     #[arg(long)]
     pub seed: Option<u64>,
+    /// Set this KITTI raw drive (a folder name such as `kitti_raw_drive_d`) aside for
+    /// validation: it is left out of the training scans when the dataset cache is built.
+    /// Repeatable.
+    #[arg(long, value_name = "DRIVE")]
+    pub validation_drive: Vec<String>,
     /// Backend to compute on; a run may resume on another one.
     #[arg(long, value_enum, default_value = "flex")]
     pub backend: BackendArg,
@@ -75,6 +80,11 @@ impl RunArgs {
         self.cache
             .clone()
             .unwrap_or_else(|| self.run_dir.join("dataset.bin"))
+    }
+
+    /// The real scans to train on: every training folder but the validation drives.
+    pub(crate) fn training_files(&self) -> anyhow::Result<Vec<PathBuf>> {
+        Ok(kitti_validation_split(&self.data, &self.validation_drive)?.0)
     }
 
     pub(crate) fn max_duration(&self) -> Option<Duration> {
@@ -141,7 +151,7 @@ pub fn run_train(global: &GlobalArgs, args: TrainArgs) -> anyhow::Result<Outcome
     }
     let scans = match args.sim_scans {
         Some(_) => vec![],
-        None => kitti_training_files(&args.run.data)?,
+        None => args.run.training_files()?,
     };
     let opts = TrainOptions {
         dataset_cache,

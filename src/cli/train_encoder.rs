@@ -6,7 +6,6 @@ use std::path::PathBuf;
 
 use super::{GlobalArgs, Outcome};
 use crate::decode::encoder_train::{EncoderTrainConfig, EncoderTrainOptions, run};
-use crate::model::data::kitti_training_files;
 
 #[derive(Debug, clap::Args)]
 pub struct TrainEncoderArgs {
@@ -29,7 +28,7 @@ pub fn run_train_encoder(_global: &GlobalArgs, args: TrainEncoderArgs) -> anyhow
     let opts = EncoderTrainOptions {
         dataset_cache: args.run.cache_path(),
         max_duration: args.run.max_duration(),
-        scans: kitti_training_files(&args.run.data)?,
+        scans: args.run.training_files()?,
         run_dir: args.run.run_dir,
         model: args.model,
         config,

@@ -68,6 +68,40 @@ pub fn kitti_training_files(real_lidar: &Path) -> Result<Vec<PathBuf>> {
     Ok(files)
 }
 
+/// A validation split for choosing between trained models: the training scans without the
+/// named KITTI raw drives, and those drives' scans. A drive is a place, so its scans are
+/// unlike every other training scan, where held-out frames of a trained-on sequence are not.
+pub fn kitti_validation_split(
+    real_lidar: &Path,
+    drives: &[String],
+) -> Result<(Vec<PathBuf>, Vec<PathBuf>)> {
+    let mut validation = Vec::new();
+    for drive in drives {
+        if !drive.starts_with(KITTI_RAW_PREFIX) || drive.contains(['/', '\\']) {
+            bail!("validation drive '{drive}' is not a {KITTI_RAW_PREFIX}* folder name");
+        }
+        let scans = bins_in(&real_lidar.join(drive))?;
+        if scans.is_empty() {
+            bail!(
+                "validation drive '{drive}' in '{}' has no .bin scans",
+                real_lidar.display()
+            );
+        }
+        validation.extend(scans);
+    }
+    let training: Vec<PathBuf> = kitti_training_files(real_lidar)?
+        .into_iter()
+        .filter(|f| !validation.contains(f))
+        .collect();
+    if training.is_empty() {
+        bail!(
+            "no training scans left in '{}' after setting aside {drives:?}",
+            real_lidar.display()
+        );
+    }
+    Ok((training, validation))
+}
+
 /// Folders of KITTI raw drives (training data) start with this.
 pub const KITTI_RAW_PREFIX: &str = "kitti_raw_";
 
@@ -330,5 +364,65 @@ mod tests {
             }
         }
         assert!(held.iter().all(|f| !train.contains(f)));
+    }
+
+    /// Builds a `real_lidar`-shaped folder: drives `a` (3 scans) and `b` (2), and mini
+    /// sequences 00 (held out) and 01 (1 scan each).
+    fn fake_real_lidar(root: &Path) {
+        let scans = [
+            ("kitti_raw_a", 3),
+            ("kitti_raw_b", 2),
+            ("semantickitti_mini/00/velodyne", 1),
+            ("semantickitti_mini/01/velodyne", 1),
+        ];
+        for (dir, n) in scans {
+            std::fs::create_dir_all(root.join(dir)).expect("mkdir");
+            for i in 0..n {
+                std::fs::write(root.join(dir).join(format!("{i:06}.bin")), []).expect("write");
+            }
+        }
+    }
+
+    #[test]
+    fn validation_drives_leave_training_and_only_them() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        fake_real_lidar(dir.path());
+        let all = kitti_training_files(dir.path()).expect("list");
+        assert_eq!(all.len(), 6);
+        let (train, val) =
+            kitti_validation_split(dir.path(), &["kitti_raw_b".into()]).expect("split");
+        assert_eq!(val.len(), 2);
+        assert!(
+            val.iter()
+                .all(|f| f.starts_with(dir.path().join("kitti_raw_b")))
+        );
+        assert_eq!(train.len(), 4);
+        assert!(train.iter().all(|f| !val.contains(f)));
+        let (same, none) = kitti_validation_split(dir.path(), &[]).expect("split");
+        assert_eq!((same, none.len()), (all, 0));
+    }
+
+    #[test]
+    fn a_validation_drive_must_name_a_drive_folder() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        fake_real_lidar(dir.path());
+        for bad in [
+            "kitti_raw_zz",
+            "semantickitti_mini",
+            "kitti_raw_a/../kitti_raw_b",
+        ] {
+            let err = kitti_validation_split(dir.path(), &[bad.into()]).unwrap_err();
+            assert!(
+                format!("{err:#}").contains(bad.split('/').next().unwrap()),
+                "{err:#}"
+            );
+        }
+        std::fs::remove_dir_all(dir.path().join("semantickitti_mini/01")).expect("rm");
+        let err = kitti_validation_split(dir.path(), &["kitti_raw_a".into(), "kitti_raw_b".into()])
+            .unwrap_err();
+        assert!(
+            format!("{err:#}").contains("no training scans left"),
+            "{err:#}"
+        );
     }
 }
