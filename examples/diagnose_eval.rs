@@ -117,6 +117,9 @@ fn main() {
                         .map(|c| format!("{} {:.4}/{:.4}", c.id, c.gain, c.penalty))
                         .collect::<Vec<_>>()
                 );
+                for e in &d.report.effects {
+                    eprintln!("   {}: {}", e.id, e.location);
+                }
             }
             (*i, o)
         })

@@ -8,7 +8,7 @@
 //! | family | statistic | model |
 //! |---|---|---|
 //! | `range_noise` | second difference along a row, `r_k − (r_{k−1} + r_{k+1}) / 2`, off depth edges, by range | reference ⊛ N(0, 1.5 σ(d)²), `σ(d) = sigma0_m + k d` |
-//! | `mixed_pixels` | at a depth edge along a row (neighbours > 1 m apart): is the pixel strictly between them? | Bernoulli, `b_sim + (1 − b_sim) a`, `a` ≈ 0.8 × prob |
+//! | `mixed_pixels` | at a step edge along a row (two flat sides > 1.5 m apart): is the pixel strictly between them? | Bernoulli per gap class, `b_sim + (1 − b_sim) a`, `a` ≈ 0.8 × prob |
 //! | `motion_distortion` | range step across the scan seam (first vs last measured column, straight ahead) | reference (column steps near the seam) shifted by `−m`, `m = scale · v · 0.1 s` |
 
 use serde_json::{Map, json};
@@ -306,21 +306,20 @@ const MIXED_FLAT_SHARE: f32 = 0.15;
 pub struct MixedPixelsFamily;
 
 impl MixedPixelsFamily {
-    /// Step edges through pixel `k` along one image axis (`step` pixels apart,
-    /// 1 = along the row, `width` = down the column): five kept pixels `a b k c
-    /// d` with `a ≈ b` and `c ≈ d` (each side one flat surface) and `b`, `c` more
+    /// The step edge through pixel `k` along its row: five kept pixels `a b k c d`
+    /// with `a ≈ b` and `c ≈ d` (each side one flat surface) and `b`, `c` more
     /// than the gap apart. Is `k` strictly between the two surfaces? On a
     /// slanted surface (ground, a wall seen obliquely) the steps are even, so it
     /// is no step edge: the statistic does not depend on how much of the scene
-    /// is slanted.
-    fn step_edge(f: &ScanFeatures, k: usize, step: usize) -> Option<(bool, f32)> {
-        let idx = [
-            k.checked_sub(2 * step)?,
-            k - step,
-            k,
-            k + step,
-            k + 2 * step,
-        ];
+    /// is slanted. Columns are left out: beams are far sparser than columns, so
+    /// down a column real surfaces (kerbs, car roofs, barriers) lie between the
+    /// two sides of an edge as often as mixed pixels do, by scene.
+    fn step_edge(f: &ScanFeatures, k: usize) -> Option<(bool, f32)> {
+        let j = k % f.width;
+        if j < 2 || j + 2 >= f.width {
+            return None;
+        }
+        let idx = [k - 2, k - 1, k, k + 1, k + 2];
         if idx[4] >= f.len() || idx.iter().any(|&i| !f.kept[i]) {
             return None;
         }
@@ -343,13 +342,8 @@ impl ResidualFamily for MixedPixelsFamily {
     fn observations(&self, scans: &[ScanFeatures]) -> Obs {
         let mut obs = Vec::new();
         for f in scans {
-            let w = f.width;
             for k in 0..f.len() {
-                let j = k % w;
-                let along_row = (j >= 2 && j + 2 < w)
-                    .then(|| Self::step_edge(f, k, 1))
-                    .flatten();
-                for (between, gap) in along_row.into_iter().chain(Self::step_edge(f, k, w)) {
+                if let Some((between, gap)) = Self::step_edge(f, k) {
                     obs.push((f32::from(u8::from(between)), gap));
                 }
             }
@@ -361,17 +355,12 @@ impl ResidualFamily for MixedPixelsFamily {
             return None;
         }
         let rate = |o: &Obs| o.iter().map(|x| f64::from(x.0)).sum::<f64>() / o.len() as f64;
-        let b = rate(sim).clamp(1e-4, 0.999);
-        let nll = |o: &Obs, p: f64| {
-            let p = p.clamp(1e-6, 1.0 - 1e-6);
-            let between = o.iter().filter(|x| x.0 > 0.5).count() as f64;
-            -(between * p.ln() + (o.len() as f64 - between) * (1.0 - p).ln()) / o.len() as f64
-        };
-        // ML on train: p = max(b, train rate) gives a in [0, 1].
-        let a = ((rate(train) - b) / (1.0 - b)).clamp(0.0, 1.0);
-        // Scenes differ in slanted surfaces between edges: a share below
+        let reference = EdgeReference::new(sim);
+        let a = reference.fit_share(train);
+        // Scenes differ in thin objects between edges: a share below
         // MIN_MIXED_SHARE is not attributed to mixed pixels.
         let a = if a < MIN_MIXED_SHARE { 0.0 } else { a };
+        let b = rate(sim);
         let p_after = b + (1.0 - b) * a;
         let prob = (a / MIXED_INSIDE).min(1.0);
         let mut params = Map::new();
@@ -384,18 +373,80 @@ impl ResidualFamily for MixedPixelsFamily {
         );
         Some(ResidualFit {
             id: self.id(),
-            before_nll: nll(test, b),
-            after_nll: nll(test, p_after),
+            before_nll: reference.nll(test, 0.0),
+            after_nll: reference.nll(test, a),
             penalty: penalty(1, train.len()),
             test_obs: test.len(),
             params,
             physics,
             location: format!(
-                "step edges (> {MIXED_MIN_GAP_M} m between two flat surfaces, along rows and columns): {:.0} % of edge pixels lie between the two surfaces (sim {:.0} %)",
+                "step edges (> {MIXED_MIN_GAP_M} m between two flat surfaces, along rows): {:.0} % of edge pixels lie between the two surfaces (sim {:.0} %)",
                 100.0 * p_after,
                 100.0 * b
             ),
         })
+    }
+}
+
+/// Upper ends of the gap classes of step edges, meters (the last class is open). Wide gaps
+/// leave room for thin objects between the two surfaces, so the share of edge pixels that lie
+/// between them grows with the gap in any scene; the reference is taken per gap class, so a
+/// scene with other gaps than the simulated one is no mixed-pixel evidence.
+const MIXED_GAP_CLASSES_M: [f32; 4] = [3.0, 6.0, 12.0, 24.0];
+
+/// The simulated recording's share of between pixels per gap class (Laplace-smoothed).
+struct EdgeReference {
+    share: Vec<f64>,
+}
+
+impl EdgeReference {
+    fn class(gap: f32) -> usize {
+        MIXED_GAP_CLASSES_M
+            .iter()
+            .position(|&g| gap < g)
+            .unwrap_or(MIXED_GAP_CLASSES_M.len())
+    }
+
+    /// (between, all) counts per gap class.
+    fn counts(obs: &Obs) -> Vec<(f64, f64)> {
+        let mut c = vec![(0.0, 0.0); MIXED_GAP_CLASSES_M.len() + 1];
+        for &(between, gap) in obs {
+            let k = &mut c[Self::class(gap)];
+            k.0 += f64::from(between);
+            k.1 += 1.0;
+        }
+        c
+    }
+
+    fn new(sim: &Obs) -> Self {
+        let share = Self::counts(sim)
+            .into_iter()
+            .map(|(k, n)| (k + 0.5) / (n + 1.0))
+            .collect();
+        Self { share }
+    }
+
+    /// NLL per observation when a share `a` of the edge pixels that the reference keeps on
+    /// a surface are mixed.
+    fn nll(&self, obs: &Obs, a: f64) -> f64 {
+        let total: f64 = Self::counts(obs)
+            .iter()
+            .zip(&self.share)
+            .map(|(&(k, n), &b)| {
+                let p = (b + (1.0 - b) * a).clamp(1e-6, 1.0 - 1e-6);
+                -(k * p.ln() + (n - k) * (1.0 - p).ln())
+            })
+            .sum();
+        total / obs.len().max(1) as f64
+    }
+
+    /// Maximum-likelihood share on `obs`, to 0.005.
+    fn fit_share(&self, obs: &Obs) -> f64 {
+        (0..=200)
+            .map(|i| f64::from(i) / 200.0)
+            .map(|a| (a, self.nll(obs, a)))
+            .min_by(|x, y| x.1.total_cmp(&y.1))
+            .map_or(0.0, |(a, _)| a)
     }
 }
 
@@ -505,5 +556,52 @@ impl ResidualFamily for MotionFamily {
                 }
             ),
         })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// `n` edge observations at `gap` meters, the first `between` of them between the sides.
+    fn edges(n: usize, between: usize, gap: f32) -> Obs {
+        (0..n)
+            .map(|i| (f32::from(u8::from(i < between)), gap))
+            .collect()
+    }
+
+    #[test]
+    fn a_scene_with_wider_edges_is_no_mixed_pixel_evidence() {
+        // Wide gaps have more thin objects between their sides in both recordings.
+        let sim: Obs = [edges(1000, 50, 2.0), edges(1000, 400, 30.0)].concat();
+        let real: Obs = [edges(200, 10, 2.0), edges(1800, 720, 30.0)].concat();
+        let rate = |o: &Obs| o.iter().map(|x| f64::from(x.0)).sum::<f64>() / o.len() as f64;
+        let pooled = (rate(&real) - rate(&sim)) / (1.0 - rate(&sim));
+        assert!(
+            pooled > MIN_MIXED_SHARE,
+            "the pooled share {pooled} would be claimed"
+        );
+        let reference = EdgeReference::new(&sim);
+        assert!(reference.fit_share(&real) < 0.01);
+        let fit = MixedPixelsFamily
+            .fit(&sim, &real, &real, &ResidualContext::default())
+            .expect("enough edges");
+        assert!(!fit.significant(), "gain {} named", fit.gain());
+    }
+
+    #[test]
+    fn mixed_pixels_raise_the_between_share_in_every_gap_class() {
+        let sim: Obs = [edges(1000, 50, 2.0), edges(1000, 400, 30.0)].concat();
+        // Half of the pixels the reference keeps on a surface are mixed: 0.05 + 0.95 / 2
+        // and 0.4 + 0.6 / 2.
+        let real: Obs = [edges(600, 315, 2.0), edges(400, 280, 30.0)].concat();
+        let reference = EdgeReference::new(&sim);
+        assert!((reference.fit_share(&real) - 0.5).abs() < 0.02);
+        let fit = MixedPixelsFamily
+            .fit(&sim, &real, &real, &ResidualContext::default())
+            .expect("enough edges");
+        assert!(fit.significant());
+        let prob = fit.params["prob"].as_f64().expect("prob");
+        assert!((prob - 0.5 / MIXED_INSIDE).abs() < 0.03, "prob {prob}");
     }
 }
