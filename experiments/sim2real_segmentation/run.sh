@@ -7,7 +7,8 @@
 #   experiments/sim2real_segmentation/run.sh [OUT]      (default OUT: target/sim2real)
 #
 # Settings (environment): SCENES (15), SCANS_PER_SCENE (40), STEPS (600), SEEDS ("0 1 2"),
-# JOBS (2 trainings at once, one thread each), RANGEGAN_BIN (target/release/rangegan-mcap),
+# CONFIGS ("A B C E F G real": the training sets to train and score; after new generator
+# weights, "E F G" reruns the ones that use them), JOBS (2 trainings at once, one thread each), RANGEGAN_BIN (target/release/rangegan-mcap),
 # REAL_LIDAR (../shared/real_lidar). Every step is skipped when its output exists, so a
 # killed run resumes where it stopped (a training resumes from its checkpoint).
 set -euo pipefail
@@ -19,6 +20,7 @@ SCENES=${SCENES:-15}
 SCANS=${SCANS_PER_SCENE:-40}
 STEPS=${STEPS:-600}
 SEEDS=${SEEDS:-"0 1 2"}
+CONFIGS=${CONFIGS:-"A B C E F G real"}
 JOBS=${JOBS:-2}
 HERE=$(cd "$(dirname "$0")" && pwd)
 
@@ -86,7 +88,7 @@ log "rendered training sets B C E F G"
 
 # 5. One network per training set and seed, the same budget each.
 mkdir -p runs
-for c in A B C E F G real; do
+for c in $CONFIGS; do
   for seed in $SEEDS; do echo "$c $seed"; done
 done | xargs -r -P "$JOBS" -L1 bash -c '
   c=$0; seed=$1
@@ -97,12 +99,17 @@ log "trained $(ls runs | wc -l) networks"
 
 # 6. Every network on the held-out real scans.
 mkdir -p eval
-for run in runs/*; do
-  name=$(basename "$run")
+for c in $CONFIGS; do for seed in $SEEDS; do
+  run=runs/$c-s$seed name=$c-s$seed
   rg --json segment eval --model "$run/model" real/heldout_mini00.mcap real/heldout_mini07.mcap real/heldout_ssv3.mcap > eval/$name.json
-done
+done; done
 python3 "$HERE/table.py" eval > table.md
-rg segment picture --model runs/A-s0/model --model runs/B-s0/model --model runs/C-s0/model --model runs/E-s0/model \
-  --model runs/F-s0/model --model runs/G-s0/model --model runs/real-s0/model \
-  real/heldout_mini07.mcap figure.png --scan 5
+# The picture needs every configuration's first network.
+models=()
+for c in A B C E F G real; do
+  [ -d runs/$c-s0/model ] && models+=(--model runs/$c-s0/model)
+done
+if [ ${#models[@]} -eq 14 ]; then
+  rg segment picture "${models[@]}" real/heldout_mini07.mcap figure.png --scan 5
+fi
 log "done: $OUT/table.md, $OUT/figure.png"
