@@ -234,6 +234,11 @@ fn for_each_row_triplet(scans: &[ScanFeatures], mut visit: impl FnMut(&ScanFeatu
     }
 }
 
+/// Smallest range noise that is claimed, as sigma at 50 m: below a centimetre it is under
+/// real sensors' range quantisation (~1.2 cm) and under what two scenes' surface roughness
+/// moves the statistic by.
+const MIN_NOISE_AT_50M: f64 = 0.01;
+
 /// `range_noise`: Gaussian range noise growing with range.
 pub struct RangeNoiseFamily;
 
@@ -263,6 +268,9 @@ impl ResidualFamily for RangeNoiseFamily {
         let mut best = (0.0, 0.0, binned.nll(&h_train, model(0.0, 0.0), 0.0));
         for s0 in [0.0, 0.005, 0.01, 0.015, 0.02, 0.03, 0.04, 0.06, 0.08, 0.1] {
             for k in [0.0, 1e-4, 2e-4, 5e-4, 1e-3, 2e-3] {
+                if s0 + 50.0 * k < MIN_NOISE_AT_50M {
+                    continue;
+                }
                 let nll = binned.nll(&h_train, model(s0, k), 0.0);
                 if nll < best.2 {
                     best = (s0, k, nll);
@@ -568,6 +576,38 @@ mod tests {
         (0..n)
             .map(|i| (f32::from(u8::from(i < between)), gap))
             .collect()
+    }
+
+    /// Second differences of `n` returns at 5-60 m with range noise `sigma(d)` on top of a
+    /// scene roughness of 2 mm.
+    fn second_differences(n: usize, seed: u64, sigma: impl Fn(f32) -> f32) -> Obs {
+        let mut rng = crate::model::rng::Rng::new(seed);
+        (0..n)
+            .map(|_| {
+                let d = 5.0 + 55.0 * rng.uniform();
+                let s = (0.002f32.powi(2) + 1.5 * sigma(d).powi(2)).sqrt();
+                (s * rng.normal(), d)
+            })
+            .collect()
+    }
+
+    #[test]
+    fn range_noise_below_a_centimetre_is_not_claimed_and_real_noise_is() {
+        let fit = |sigma: fn(f32) -> f32| {
+            let sim = second_differences(20_000, 1, |_| 0.0);
+            let train = second_differences(20_000, 2, sigma);
+            let test = second_differences(20_000, 3, sigma);
+            RangeNoiseFamily
+                .fit(&sim, &train, &test, &ResidualContext::default())
+                .expect("enough returns")
+        };
+        // Rougher surfaces in one scene look like a few millimetres of noise (0.5 cm at
+        // 50 m): no claim.
+        let rough = fit(|d| 1e-4 * d);
+        assert!(!rough.significant(), "gain {} claimed", rough.gain());
+        let noisy = fit(|d| 0.02 + 2e-4 * d);
+        assert!(noisy.significant());
+        assert!((noisy.params["sigma0_m"].as_f64().unwrap() - 0.02).abs() < 0.011);
     }
 
     #[test]
