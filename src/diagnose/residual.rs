@@ -328,7 +328,7 @@ impl MixedPixelsFamily {
             return None;
         }
         let idx = [k - 2, k - 1, k, k + 1, k + 2];
-        if idx[4] >= f.len() || idx.iter().any(|&i| !f.kept[i]) {
+        if idx.iter().any(|&i| !f.kept[i]) {
             return None;
         }
         let [a, b, r, c, d] = idx.map(|i| f.range_m[i]);
@@ -437,7 +437,11 @@ impl EdgeReference {
     /// NLL per observation when a share `a` of the edge pixels that the reference keeps on
     /// a surface are mixed.
     fn nll(&self, obs: &Obs, a: f64) -> f64 {
-        let total: f64 = Self::counts(obs)
+        self.nll_of_counts(&Self::counts(obs), a)
+    }
+
+    fn nll_of_counts(&self, counts: &[(f64, f64)], a: f64) -> f64 {
+        let total: f64 = counts
             .iter()
             .zip(&self.share)
             .map(|(&(k, n), &b)| {
@@ -445,14 +449,16 @@ impl EdgeReference {
                 -(k * p.ln() + (n - k) * (1.0 - p).ln())
             })
             .sum();
-        total / obs.len().max(1) as f64
+        let n: f64 = counts.iter().map(|c| c.1).sum();
+        total / n.max(1.0)
     }
 
     /// Maximum-likelihood share on `obs`, to 0.005.
     fn fit_share(&self, obs: &Obs) -> f64 {
+        let counts = Self::counts(obs);
         (0..=200)
             .map(|i| f64::from(i) / 200.0)
-            .map(|a| (a, self.nll(obs, a)))
+            .map(|a| (a, self.nll_of_counts(&counts, a)))
             .min_by(|x, y| x.1.total_cmp(&y.1))
             .map_or(0.0, |(a, _)| a)
     }
