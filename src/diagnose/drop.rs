@@ -4,7 +4,7 @@
 //!
 //! | family | feature | model |
 //! |---|---|---|
-//! | `range_dropout` | completed range, 1 m bins | the physics module's log-logistic curve (range_50_m, softness) |
+//! | `range_dropout` | completed range (drops only where returns enclose them), 1 m bins | the physics module's log-logistic curve (range_50_m, softness) |
 //! | `incidence_dropout` | cos(incidence) of the completed normal, 0.02 bins | log-logistic in cos (cos_50, softness) |
 //! | `beam_dropout` | row | one free rate per row |
 //! | `material_dropout` | semantic class (labels, else neighbours' labels) | one free rate per class |
@@ -75,6 +75,9 @@ fn round3(x: f64) -> f64 {
 pub struct RangeFamily;
 const RANGE_BIN_M: f32 = 1.0;
 const RANGE_BINS: usize = 150;
+/// A dropped pixel counts for the range curve when returns enclose it within
+/// this many pixels (`Pixels::enclosure_px`).
+const RANGE_ENCLOSURE_PX: u8 = 8;
 
 impl DropFamily for RangeFamily {
     fn id(&self) -> &'static str {
@@ -83,9 +86,12 @@ impl DropFamily for RangeFamily {
     fn bins(&self, _: &Pixels) -> usize {
         RANGE_BINS
     }
+    /// Dropped pixels count only when returns enclose them closely: the range an
+    /// open-space pixel takes from an object's outline is the scene's, not the
+    /// sensor's.
     fn bin(&self, px: &Pixels, i: usize) -> Option<usize> {
         let r = px.range_m[i];
-        r.is_finite()
+        (r.is_finite() && px.enclosure_px[i] <= RANGE_ENCLOSURE_PX)
             .then(|| ((r.max(0.0) / RANGE_BIN_M) as usize).min(RANGE_BINS - 1))
     }
     fn fit(&self, table: &QTable, _: &Pixels) -> Option<DropFit> {
@@ -467,5 +473,24 @@ impl DropFamily for SelfOcclusionFamily {
             n_params: 2 * blocked,
             location: format!("fixed region in the bottom rows: {}", words.join("; ")),
         })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn range_curve_leaves_out_drops_in_open_space() {
+        // A kept pixel, a dropped one enclosed by returns 2 pixels away, and a
+        // dropped one completed from an outline with nothing beyond it.
+        let px = Pixels {
+            range_m: vec![70.0, 70.0, 70.0],
+            kept: vec![true, false, false],
+            enclosure_px: vec![0, 2, 16],
+            ..Default::default()
+        };
+        let bins: Vec<Option<usize>> = (0..3).map(|i| RangeFamily.bin(&px, i)).collect();
+        assert_eq!(bins, [Some(70), Some(70), None]);
     }
 }
