@@ -117,6 +117,11 @@ pub struct TrainArgs {
     /// pixel dropout is off.
     #[arg(long, value_name = "DIR")]
     pub init_from: Option<PathBuf>,
+    /// A new run's discriminator folds each 2 x 2 block of pixels into channels and leaves
+    /// out the full-resolution block (the CPU widths from 16 channels): about half the
+    /// time per training image.
+    #[arg(long, conflicts_with = "reference_size")]
+    pub half_resolution_discriminator: bool,
 }
 
 pub fn run_train(global: &GlobalArgs, args: TrainArgs) -> anyhow::Result<Outcome> {
@@ -138,6 +143,9 @@ pub fn run_train(global: &GlobalArgs, args: TrainArgs) -> anyhow::Result<Outcome
         config = config
             .with_generator(GeneratorConfig::new())
             .with_discriminator(DiscriminatorConfig::new());
+    }
+    if args.half_resolution_discriminator {
+        config = config.with_discriminator(DiscriminatorConfig::cpu_half_resolution());
     }
     if let Some(b) = args.batch {
         config = config.with_batch_size(b);

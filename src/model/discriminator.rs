@@ -150,6 +150,11 @@ pub struct DiscriminatorConfig {
     /// Channels after the input layer and after each residual block.
     #[config(default = "vec![32, 64, 128, 256, 512]")]
     pub channels: Vec<usize>,
+    /// Pixels per side folded into channels before the input layer: 1 starts at full
+    /// resolution; 2 folds each 2 x 2 block into 4x the channels (lossless), so every
+    /// convolution runs at half resolution or below.
+    #[config(default = 1)]
+    pub stem: usize,
     /// Minibatch-stddev group size.
     #[config(default = 4)]
     pub mbstd_group: usize,
@@ -166,6 +171,8 @@ pub struct Discriminator {
     pub out: EqualLinear,
     #[module(skip)]
     pub mbstd_group: usize,
+    #[module(skip)]
+    pub stem: usize,
 }
 
 impl DiscriminatorConfig {
@@ -174,18 +181,28 @@ impl DiscriminatorConfig {
         Self::new().with_channels(vec![8, 16, 32, 64, 128])
     }
 
+    /// [`Self::cpu`] without its full-resolution block: a 2 x 2 stem, then the same
+    /// widths from 16 channels at half resolution, and the same head.
+    pub fn cpu_half_resolution() -> Self {
+        Self::new()
+            .with_stem(2)
+            .with_channels(vec![16, 32, 64, 128])
+    }
+
     pub fn init(&self, device: &Device) -> Discriminator {
         let mut rng = Rng::new(self.seed);
         let c = &self.channels;
         let n_down = c.len() - 1;
+        let stem = self.stem.max(1);
+        let fold = stem << n_down;
         assert!(
-            self.height.is_multiple_of(1 << n_down) && self.width.is_multiple_of(1 << n_down),
-            "discriminator input must divide by 2^{n_down}"
+            self.height.is_multiple_of(fold) && self.width.is_multiple_of(fold),
+            "discriminator input must divide by {fold}"
         );
         let last = c[c.len() - 1];
-        let (h, w) = (self.height >> n_down, self.width >> n_down);
+        let (h, w) = (self.height / fold, self.width / fold);
         Discriminator {
-            from_input: EqualConvConfig::new(2, c[0])
+            from_input: EqualConvConfig::new(2 * stem * stem, c[0])
                 .with_kernel(1)
                 .init(&mut rng, device),
             blocks: (0..n_down)
@@ -197,6 +214,7 @@ impl DiscriminatorConfig {
                 .init(&mut rng, device),
             out: EqualLinearConfig::new(last, 1).init(&mut rng, device),
             mbstd_group: self.mbstd_group,
+            stem,
         }
     }
 }
@@ -212,7 +230,8 @@ impl Discriminator {
             + shift_replicate(x.clone(), -1, 2)
             + x.mul_scalar(2.0))
         .div_scalar(4.0); // [batch, 1, H, W]
-        let mut y = self.from_input.forward(Tensor::cat(vec![vert, horiz], 1)); // [batch, c0, H, W]
+        let x = space_to_depth(Tensor::cat(vec![vert, horiz], 1), self.stem); // [batch, 2*s*s, H/s, W/s]
+        let mut y = self.from_input.forward(x); // [batch, c0, H/s, W/s]
         for block in &self.blocks {
             y = block.forward(y); // [batch, c, h, w]
         }
@@ -221,6 +240,21 @@ impl Discriminator {
         let y = y.reshape([b as i64, -1]); // [batch, c*h*w]
         self.out.forward(self.fc.forward(y)) // [batch, 1]
     }
+}
+
+/// Folds each `s x s` block of pixels into channels (channel-major, then row and column
+/// within the block); `s = 1` is the identity.
+///
+/// # Shapes
+/// - x: `[batch, ch, H, W]` -> `[batch, ch*s*s, H/s, W/s]`
+pub fn space_to_depth(x: Tensor<4>, s: usize) -> Tensor<4> {
+    if s <= 1 {
+        return x;
+    }
+    let [b, c, h, w] = x.dims();
+    x.reshape([b, c, h / s, s, w / s, s]) // [batch, ch, H/s, s, W/s, s]
+        .permute([0, 1, 3, 5, 2, 4]) // [batch, ch, s, s, H/s, W/s]
+        .reshape([b, c * s * s, h / s, w / s])
 }
 
 /// Append the mean (over channels and pixels) of the per-group standard deviation as a channel.
@@ -288,6 +322,32 @@ mod tests {
                 }
             }
         }
+    }
+
+    #[test]
+    fn space_to_depth_folds_each_block_into_channels() {
+        let v: Vec<f32> = (0..16).map(|i| i as f32).collect();
+        let x = super::super::rng::tensor_from(v, [1, 1, 2, 8], &Device::flex());
+        let y = space_to_depth(x, 2);
+        assert_eq!(y.dims(), [1, 4, 1, 4]);
+        // Channel (r, c) of the block holds pixel (r, 2j + c) of column block j.
+        assert_eq!(
+            tensor_to_vec(y),
+            [
+                0., 2., 4., 6., 1., 3., 5., 7., 8., 10., 12., 14., 9., 11., 13., 15.
+            ]
+        );
+    }
+
+    #[test]
+    fn half_resolution_discriminator_gives_one_logit_per_image() {
+        let dev = Device::flex();
+        let d = DiscriminatorConfig::cpu_half_resolution().init(&dev);
+        let full = DiscriminatorConfig::cpu().init(&dev);
+        let x = Rng::new(4).normal_tensor([4, 1, 64, 512], &dev);
+        assert_eq!(d.forward(x.clone()).dims(), [4, 1]);
+        // The same head: the last feature map is 4 x 32 in both.
+        assert_eq!(d.fc.weight.val().dims(), full.fc.weight.val().dims());
     }
 
     #[test]

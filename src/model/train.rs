@@ -345,7 +345,12 @@ impl Trainer {
             let text = std::fs::read_to_string(ck.join("state.json"))?;
             state = serde_json::from_str(&text).context("bad checkpoint/state.json")?;
         } else if let Some(src) = &opts.init_from {
-            (g, g_ema, d) = init_from(src, g, g_ema, d)?;
+            // A discriminator of another shape than the source's starts fresh.
+            let same_d = load_config(&src.join("config.json")).is_ok_and(|c| {
+                serde_json::to_value(&c.discriminator).ok()
+                    == serde_json::to_value(&config.discriminator).ok()
+            });
+            (g, g_ema, d) = init_from(src, g, g_ema, d, same_d)?;
             std::fs::write(
                 opts.run_dir.join("init_from.json"),
                 serde_json::to_string_pretty(&serde_json::json!({
@@ -688,12 +693,14 @@ impl Trainer {
 }
 
 /// The weights of a fine-tuning run's start: from a training run's checkpoint (G, EMA G,
-/// D), or from a model directory (`g_ema.bpk`: G and EMA G; D keeps its fresh weights).
+/// and D where `load_d`), or from a model directory (`g_ema.bpk`: G and EMA G). A D not
+/// loaded keeps its fresh weights.
 fn init_from(
     src: &Path,
     g: AnyGenerator,
     g_ema: AnyGenerator,
     d: Discriminator,
+    load_d: bool,
 ) -> Result<(AnyGenerator, AnyGenerator, Discriminator)> {
     let err = |what: &str, e: burn::store::RecordError| {
         anyhow::anyhow!("failed to load {what} from '{}': {e}", src.display())
@@ -704,7 +711,11 @@ fn init_from(
         let g_ema = g_ema
             .try_load_file(ck.join("g_ema.bpk"))
             .map_err(|e| err("g_ema", e))?;
-        let d = d.try_load_file(ck.join("d.bpk")).map_err(|e| err("d", e))?;
+        let d = if load_d {
+            d.try_load_file(ck.join("d.bpk")).map_err(|e| err("d", e))?
+        } else {
+            d
+        };
         Ok((g, g_ema, d))
     } else {
         let file = src.join("g_ema.bpk");
@@ -1142,6 +1153,18 @@ mod tests {
             "the fine-tuning run starts from the source's EMA generator"
         );
         assert!(ft.run_dir.join("init_from.json").exists());
+        // A discriminator of another shape starts fresh instead of failing to load.
+        let other = TrainOptions {
+            run_dir: dir.path().join("fine-tune-half-resolution-d"),
+            ..ft.clone()
+        };
+        std::fs::create_dir_all(&other.run_dir).expect("mkdir");
+        let half_d = ft.config.clone().with_discriminator(
+            DiscriminatorConfig::new()
+                .with_stem(2)
+                .with_channels(vec![4, 8]),
+        );
+        Trainer::new(&half_d, &other, &data).expect("init from run with another discriminator");
         // Sampling from the run, on the training grid and on a 2x denser one.
         let mut sopts = super::super::sample::SampleOptions {
             n: 3,
