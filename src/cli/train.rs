@@ -118,8 +118,8 @@ pub struct TrainArgs {
     #[arg(long, value_name = "DIR")]
     pub init_from: Option<PathBuf>,
     /// A new run's discriminator folds each 2 x 2 block of pixels into channels and leaves
-    /// out the full-resolution block (the CPU widths from 16 channels): about half the
-    /// time per training image.
+    /// out the full-resolution block (the CPU widths from 16 channels): about two thirds
+    /// of the time per training image.
     #[arg(long, conflicts_with = "reference_size")]
     pub half_resolution_discriminator: bool,
 }
