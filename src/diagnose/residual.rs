@@ -9,7 +9,7 @@
 //! |---|---|---|
 //! | `range_noise` | second difference along a row, `r_k − (r_{k−1} + r_{k+1}) / 2`, off depth edges, by range | reference ⊛ N(0, 1.5 σ(d)²), `σ(d) = sigma0_m + k d` |
 //! | `mixed_pixels` | at a step edge along a row (two flat sides > 1.5 m apart): is the pixel strictly between them? | Bernoulli per gap class, `b_sim + (1 − b_sim) a`, `a` ≈ 0.8 × prob |
-//! | `motion_distortion` | range step across the scan seam (first vs last measured column, straight ahead) | reference (column steps near the seam) shifted by `−m`, `m = scale · v · 0.1 s` |
+//! | `motion_distortion` | range step across the scan seam (first vs last measured column, straight ahead) | the recording's own column steps near the seam, a share of them shifted by `−m`, `m = scale · v · 0.1 s` |
 
 use serde_json::{Map, json};
 
@@ -121,6 +121,12 @@ impl Hist {
     /// Total NLL of the observations `obs` (same binning) under this reference
     /// convolved with N(shift, sigma²): probability per bin, outliers uniform.
     fn nll_of(&self, obs: &Hist, sigma: f64, shift: f64) -> f64 {
+        self.nll_of_mixture(obs, &[(1.0, &self.probs(sigma, shift))])
+    }
+
+    /// Probability of each bin, and of falling outside them, under this reference
+    /// convolved with N(shift, sigma²).
+    fn probs(&self, sigma: f64, shift: f64) -> BinProbs {
         let n = self.counts.len();
         let total = self.total().max(1.0);
         // Bin-to-bin transfer G[d] for d = j - i in [-(n-1), n-1].
@@ -134,22 +140,41 @@ impl Hist {
             .collect();
         let p_out = (self.outside / total).clamp(1e-3, 0.5);
         let eps = 0.01;
-        let mut nll = 0.0;
-        for (j, &c) in obs.counts.iter().enumerate() {
-            if c == 0.0 {
-                continue;
-            }
-            let mut m = 0.0;
-            for (i, &r) in self.counts.iter().enumerate() {
-                if r > 0.0 {
-                    m += r * g[j + n - 1 - i];
-                }
-            }
-            let p = (1.0 - p_out) * ((1.0 - eps) * m / total + eps / n as f64);
-            nll -= c * p.max(1e-300).ln();
+        let bins = (0..n)
+            .map(|j| {
+                let m: f64 = (self.counts.iter().enumerate())
+                    .filter(|(_, r)| **r > 0.0)
+                    .map(|(i, r)| r * g[j + n - 1 - i])
+                    .sum();
+                (1.0 - p_out) * ((1.0 - eps) * m / total + eps / n as f64)
+            })
+            .collect();
+        BinProbs {
+            bins,
+            outside: p_out,
         }
-        nll - obs.outside * p_out.ln()
     }
+
+    /// Total NLL of `obs` under a mixture of binned distributions `(weight, probs)`.
+    fn nll_of_mixture(&self, obs: &Hist, parts: &[(f64, &BinProbs)]) -> f64 {
+        let p_at = |j: Option<usize>| -> f64 {
+            parts
+                .iter()
+                .map(|(w, p)| w * j.map_or(p.outside, |j| p.bins[j]))
+                .sum()
+        };
+        let inside: f64 = (obs.counts.iter().enumerate())
+            .filter(|(_, c)| **c > 0.0)
+            .map(|(j, c)| -c * p_at(Some(j)).max(1e-300).ln())
+            .sum();
+        inside - obs.outside * p_at(None).ln()
+    }
+}
+
+/// A binned distribution: the probability of each bin and of falling outside them.
+struct BinProbs {
+    bins: Vec<f64>,
+    outside: f64,
 }
 
 /// Reference and observation histograms per covariate bin.
@@ -467,6 +492,64 @@ impl EdgeReference {
 /// Columns either side of the seam whose steps form the motion reference.
 const SEAM_CONTROL_COLUMNS: usize = 6;
 
+/// Seam shifts tried, meters (last-measured returns nearer than the first).
+const SEAM_SHIFTS: [f64; 71] = {
+    let mut s = [0.0; 71];
+    let mut i = 0;
+    while i < 71 {
+        s[i] = 0.05 * (i as f64 - 10.0);
+        i += 1;
+    }
+    s
+};
+
+/// Seam steps as a mixture: a share of the seam's returns moved by a shift, the rest
+/// distributed as the steps beside the seam. Where rows come from elevation (clouds
+/// without beam numbers) a moved ground return lands on the ground of another row, so
+/// only surfaces facing the sensor show the step.
+struct SeamModel {
+    reference: Hist,
+    still: BinProbs,
+    moved: Vec<BinProbs>,
+}
+
+impl SeamModel {
+    fn hist(steps: &Obs) -> Hist {
+        let mut h = Hist::new(-5.0, 0.05, 200);
+        steps.iter().for_each(|&(v, _)| h.add(f64::from(v)));
+        h
+    }
+    fn new(reference: &Obs) -> Self {
+        let reference = Self::hist(reference);
+        SeamModel {
+            still: reference.probs(0.0, 0.0),
+            moved: SEAM_SHIFTS
+                .iter()
+                .map(|&m| reference.probs(0.0, -m))
+                .collect(),
+            reference,
+        }
+    }
+    /// NLL per seam step with `share` of them shifted by `SEAM_SHIFTS[i]`.
+    fn nll(&self, h: &Hist, share: f64, i: usize) -> f64 {
+        let parts = [(1.0 - share, &self.still), (share, &self.moved[i])];
+        self.reference.nll_of_mixture(h, &parts) / h.total().max(1.0)
+    }
+    /// Maximum-likelihood (share, shift index) among `shares`.
+    fn fit(&self, h: &Hist, shares: &[f64]) -> (f64, usize) {
+        let mut best = (1.0, 0, f64::INFINITY);
+        for &share in shares {
+            for i in 0..SEAM_SHIFTS.len() {
+                let v = self.nll(h, share, i);
+                if v < best.2 {
+                    best = (share, i, v);
+                }
+            }
+        }
+        (best.0, best.1)
+    }
+}
+
 /// `motion_distortion`: no de-skew, a range step at the scan seam.
 pub struct MotionFamily;
 
@@ -515,33 +598,31 @@ impl ResidualFamily for MotionFamily {
         test: &Obs,
         ctx: &ResidualContext,
     ) -> Option<ResidualFit> {
-        // Reference: the sim's column steps beside the seam; the sim's own seam
-        // shift `m_sim` (its physics as given) is the "before", the real one
-        // fitted on training scans the "after".
+        // Each recording's seam steps are judged against its own steps beside the seam,
+        // which share its scene, noise and mixed pixels: only motion sets the seam apart.
+        // The sim's seam shift (its physics as given) is the "before", the real one fitted
+        // on training scans the "after".
         let pick = |o: &Obs, seam: bool| -> Obs {
             o.iter()
                 .filter(|x| (x.1 > 0.5) == seam)
                 .map(|x| (x.0, 0.0))
                 .collect()
         };
-        let reference = pick(sim, false);
+        let (sim_ref, real_ref) = (pick(sim, false), pick(train, false));
         let (sim_seam, train, test) = (pick(sim, true), pick(train, true), pick(test, true));
-        if reference.len() < 100 || sim_seam.len() < 20 || train.len() < 20 || test.len() < 20 {
+        if sim_ref.len() < 100 || real_ref.len() < 100 || sim_seam.len() < 20 {
             return None;
         }
-        let binned = Binned::new(&reference, vec![0.0], -5.0, 0.05, 200);
-        let nll = |h: &[Hist], m: f64| binned.nll(h, |_| 0.0, -m);
-        let shifts: Vec<f64> = (-10..=60).map(|i| 0.05 * i as f64).collect();
-        let fit_shift = |h: &[Hist]| {
-            shifts
-                .iter()
-                .map(|&m| (m, nll(h, m)))
-                .fold((0.0, f64::INFINITY), |b, x| if x.1 < b.1 { x } else { b })
-                .0
-        };
-        let m_sim = fit_shift(&binned.observe(&sim_seam));
-        let (h_train, h_test) = (binned.observe(&train), binned.observe(&test));
-        let m = fit_shift(&h_train);
+        if train.len() < 20 || test.len() < 20 {
+            return None;
+        }
+        let (sim_model, real_model) = (SeamModel::new(&sim_ref), SeamModel::new(&real_ref));
+        let (_, i_sim) = sim_model.fit(&SeamModel::hist(&sim_seam), &[1.0]);
+        let shares: Vec<f64> = (1..=10).map(|i| 0.1 * f64::from(i)).collect();
+        let (h_train, h_test) = (SeamModel::hist(&train), SeamModel::hist(&test));
+        let (share, i) = real_model.fit(&h_train, &shares);
+        let (m_sim, m) = (SEAM_SHIFTS[i_sim], SEAM_SHIFTS[i]);
+        let nll = |share: f64, i: usize| real_model.nll(&h_test, share, i);
         let speed = ctx.speed_mps.unwrap_or(10.0).max(0.1);
         let period = if ctx.period_s > 0.0 {
             ctx.period_s
@@ -551,19 +632,21 @@ impl ResidualFamily for MotionFamily {
         let scale = m / (speed * period);
         let mut params = Map::new();
         params.insert("seam_shift_m".into(), json!(round4(m)));
+        params.insert("moved_share".into(), json!(round4(share)));
         params.insert("scale".into(), json!(round4(scale)));
         let mut physics = Map::new();
         physics.insert("motion_distortion".into(), json!({ "scale": scale }));
         Some(ResidualFit {
             id: self.id(),
-            before_nll: nll(&h_test, m_sim),
-            after_nll: nll(&h_test, m),
-            penalty: penalty(1, train.len()),
+            before_nll: nll(1.0, i_sim),
+            after_nll: nll(share, i),
+            penalty: penalty(2, train.len()),
             test_obs: test.len(),
             params,
             physics,
             location: format!(
-                "the scan seam straight ahead (azimuth 0): last-measured returns {m:.2} m nearer than the first (sim {m_sim:.2} m; {})",
+                "the scan seam straight ahead (azimuth 0): last-measured returns {m:.2} m nearer than the first on {:.0} % of the surfaces there (sim {m_sim:.2} m; {})",
+                100.0 * share,
                 match ctx.speed_mps {
                     Some(v) => format!("scale from the recording's speed {v:.1} m/s"),
                     None => "scale assumes 10 m/s: the real speed is unknown".into(),
@@ -595,6 +678,45 @@ mod tests {
                 (s * rng.normal(), d)
             })
             .collect()
+    }
+
+    /// Motion observations of `scans` scans: per scan 40 seam steps (the first `moved` of
+    /// them `shift` m nearer) and 480 control steps, every step Gaussian with `sigma` m.
+    fn seam_steps(scans: usize, seed: u64, sigma: f32, moved: usize, shift: f32) -> Obs {
+        let mut rng = crate::model::rng::Rng::new(seed);
+        let mut obs = Vec::new();
+        for _ in 0..scans {
+            for k in 0..40 {
+                let v = if k < moved { -shift } else { 0.0 };
+                obs.push((v + sigma * rng.normal(), 1.0));
+            }
+            obs.extend((0..480).map(|_| (sigma * rng.normal(), 0.0)));
+        }
+        obs
+    }
+
+    #[test]
+    fn motion_on_a_share_of_the_seam_is_found_and_noise_alone_is_not() {
+        let sim = seam_steps(15, 1, 0.05, 0, 0.0);
+        let fit = |sigma: f32, moved: usize| {
+            let train = seam_steps(8, 2, sigma, moved, 0.8);
+            let test = seam_steps(7, 3, sigma, moved, 0.8);
+            MotionFamily
+                .fit(&sim, &train, &test, &ResidualContext::default())
+                .expect("enough steps")
+        };
+        // 12 of 40 seam returns on surfaces facing the sensor moved by 0.8 m.
+        let moving = fit(0.05, 12);
+        assert!(moving.significant(), "gain {}", moving.gain());
+        assert!((moving.params["seam_shift_m"].as_f64().unwrap() - 0.8).abs() < 0.11);
+        assert!((moving.params["moved_share"].as_f64().unwrap() - 0.3).abs() < 0.11);
+        // Range noise widens the seam's steps and the control steps alike: no motion.
+        let noisy = fit(0.3, 0);
+        assert!(
+            !noisy.significant(),
+            "noise named motion: gain {}",
+            noisy.gain()
+        );
     }
 
     #[test]
