@@ -54,6 +54,9 @@ struct Args {
     /// Tune the surface rule of the guided and edge-aware fills on this many TRAINING scans
     /// (never the held-out ones) and stop.
     tune: Option<usize>,
+    /// Measure on every third scan of this folder of `--data` instead of the held-out scans:
+    /// a drive left out of training, for choosing settings without the held-out scans.
+    validation: Option<String>,
 }
 
 fn parse_args() -> Result<Args> {
@@ -69,6 +72,7 @@ fn parse_args() -> Result<Args> {
         png: None,
         sparse_paper_scans: 0,
         only_sparse: false,
+        validation: None,
         tune: None,
     };
     let mut it = std::env::args().skip(1);
@@ -85,6 +89,7 @@ fn parse_args() -> Result<Args> {
             "--sparse-paper-scans" => a.sparse_paper_scans = value()?.parse()?,
             "--only-reconstruction" => a.only_reconstruction = true,
             "--only-sparse" => a.only_sparse = true,
+            "--validation" => a.validation = Some(value()?),
             "--tune" => a.tune = Some(value()?.parse()?),
             "--fast-schedule" => {
                 let v = value()?;
@@ -148,7 +153,16 @@ fn load_scan(data: &Path, path: &Path, full: bool) -> Result<Scan> {
     Ok(Scan { name, image, full })
 }
 
-fn load_scans(data: &Path) -> Result<Vec<Scan>> {
+fn load_scans(data: &Path, validation: Option<&str>) -> Result<Vec<Scan>> {
+    if let Some(dir) = validation {
+        let (_, files) =
+            rangegan_mcap::model::data::kitti_validation_split(data, &[dir.to_string()])?;
+        return files
+            .iter()
+            .step_by(3)
+            .map(|f| load_scan(data, f, true))
+            .collect();
+    }
     let mut out = Vec::new();
     for dir in ["semantickitti_ssv3", "patchworkpp"] {
         let mut files: Vec<PathBuf> = std::fs::read_dir(data.join(dir))
@@ -405,7 +419,7 @@ fn main() -> Result<()> {
         eprintln!("skipped: {} not found", args.data.display());
         return Ok(());
     }
-    let scans = load_scans(&args.data)?;
+    let scans = load_scans(&args.data, args.validation.as_deref())?;
     let fast_n = args.fast_scans.min(scans.len());
     let paper_n = args.paper_scans.min(scans.len());
     eprintln!(

@@ -69,7 +69,7 @@ pub struct ConvertArgs {
     pub compression: CompressionArg,
     #[command(flatten)]
     pub dataset: DatasetArgs,
-    /// Auto-decoding with the range-image GAN: `fast` (amortised encoder + 14 pivotal-tuning
+    /// Auto-decoding with the range-image GAN: `fast` (amortised encoder + 33 pivotal-tuning
     /// steps), `paper` (the paper's 1000-step pivotal tuning inversion, minutes per scan) or
     /// `off` (range images only).
     #[arg(long, value_enum, default_value = "fast")]
@@ -85,7 +85,7 @@ pub struct ConvertArgs {
     /// Override the optimisation steps on w (fast: 0, paper: 500).
     #[arg(long)]
     pub w_steps: Option<usize>,
-    /// Override the pivotal-tuning steps on the generator weights (fast: 14, paper: 500).
+    /// Override the pivotal-tuning steps on the generator weights (fast: 33, paper: 500).
     #[arg(long)]
     pub tune_steps: Option<usize>,
     /// Write the generator's own x_n, without the per-beam calibration shipped with the model

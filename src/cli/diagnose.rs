@@ -90,7 +90,7 @@ pub struct GanArgs {
     pub encoder: Option<PathBuf>,
     /// Pivotal-tuning steps per scan (`diagnose` default 0: the encoder's
     /// prediction alone, which keeps two 100-scan recordings under a minute;
-    /// `render` default 20, `convert --quality fast`'s, ~0.5 s per scan per core).
+    /// `render` default 33, `convert --quality fast`'s, ~0.8 s per scan per core).
     #[arg(long)]
     pub tune_steps: Option<usize>,
 }
