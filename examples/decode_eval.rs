@@ -6,13 +6,15 @@
 //!     cargo run --release --example decode_eval -- --data ../shared/real_lidar \
 //!         [--paper-scans 2] [--fast-scans 26] [--encoder DIR] [--model DIR] [--out eval.json]
 //!         [--png docs/img/raydrop_reliability.png] [--sparse-paper-scans 4] [--only-sparse]
-//!         [--tune N]
+//!         [--tune N] [--validation kitti_raw_drive_d] [--fast-schedule ...] [--only-reconstruction]
 //!
 //! The upsampling and restoration cases also measure the library's fills that `convert
 //! --upsample-method` offers (guided, edge-aware), with MAE near (<= 30 m) and far and the
 //! share of pixels more than 1 m off. `--tune N` measures a grid of surface rules on N
 //! KITTI TRAINING scans (never the held-out ones) and stops; `--only-sparse` runs only the
-//! upsampling and restoration cases.
+//! upsampling and restoration cases. `--validation DRIVE` measures on every third scan of a
+//! KITTI drive set aside from training instead, for choosing settings without the held-out
+//! scans.
 //!
 //! Held out: `semantickitti_mini/00`, `/07` (every 4th point, ~512 per ring) and the
 //! full-resolution `semantickitti_ssv3`, `patchworkpp` (~2010 per ring; ground truth for the
