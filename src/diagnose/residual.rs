@@ -492,16 +492,13 @@ impl EdgeReference {
 /// Columns either side of the seam whose steps form the motion reference.
 const SEAM_CONTROL_COLUMNS: usize = 6;
 
-/// Seam shifts tried, meters (last-measured returns nearer than the first).
-const SEAM_SHIFTS: [f64; 71] = {
-    let mut s = [0.0; 71];
-    let mut i = 0;
-    while i < 71 {
-        s[i] = 0.05 * (i as f64 - 10.0);
-        i += 1;
-    }
-    s
-};
+/// Number of seam shifts tried: -0.5 to 3.0 m in 5 cm steps.
+const SEAM_SHIFTS: usize = 71;
+
+/// The `i`-th seam shift tried, meters (last-measured returns nearer than the first).
+fn seam_shift(i: usize) -> f64 {
+    0.05 * (i as f64 - 10.0)
+}
 
 /// Seam steps as a mixture: a share of the seam's returns moved by a shift, the rest
 /// distributed as the steps beside the seam. Where rows come from elevation (clouds
@@ -523,14 +520,13 @@ impl SeamModel {
         let reference = Self::hist(reference);
         SeamModel {
             still: reference.probs(0.0, 0.0),
-            moved: SEAM_SHIFTS
-                .iter()
-                .map(|&m| reference.probs(0.0, -m))
+            moved: (0..SEAM_SHIFTS)
+                .map(|i| reference.probs(0.0, -seam_shift(i)))
                 .collect(),
             reference,
         }
     }
-    /// NLL per seam step with `share` of them shifted by `SEAM_SHIFTS[i]`.
+    /// NLL per seam step with `share` of them shifted by `seam_shift(i)`.
     fn nll(&self, h: &Hist, share: f64, i: usize) -> f64 {
         let parts = [(1.0 - share, &self.still), (share, &self.moved[i])];
         self.reference.nll_of_mixture(h, &parts) / h.total().max(1.0)
@@ -539,7 +535,7 @@ impl SeamModel {
     fn fit(&self, h: &Hist, shares: &[f64]) -> (f64, usize) {
         let mut best = (1.0, 0, f64::INFINITY);
         for &share in shares {
-            for i in 0..SEAM_SHIFTS.len() {
+            for i in 0..SEAM_SHIFTS {
                 let v = self.nll(h, share, i);
                 if v < best.2 {
                     best = (share, i, v);
@@ -610,10 +606,9 @@ impl ResidualFamily for MotionFamily {
         };
         let (sim_ref, real_ref) = (pick(sim, false), pick(train, false));
         let (sim_seam, train, test) = (pick(sim, true), pick(train, true), pick(test, true));
-        if sim_ref.len() < 100 || real_ref.len() < 100 || sim_seam.len() < 20 {
-            return None;
-        }
-        if train.len() < 20 || test.len() < 20 {
+        let enough_steps = sim_ref.len().min(real_ref.len()) >= 100
+            && sim_seam.len().min(train.len()).min(test.len()) >= 20;
+        if !enough_steps {
             return None;
         }
         let (sim_model, real_model) = (SeamModel::new(&sim_ref), SeamModel::new(&real_ref));
@@ -621,7 +616,7 @@ impl ResidualFamily for MotionFamily {
         let shares: Vec<f64> = (1..=10).map(|i| 0.1 * f64::from(i)).collect();
         let (h_train, h_test) = (SeamModel::hist(&train), SeamModel::hist(&test));
         let (share, i) = real_model.fit(&h_train, &shares);
-        let (m_sim, m) = (SEAM_SHIFTS[i_sim], SEAM_SHIFTS[i]);
+        let (m_sim, m) = (seam_shift(i_sim), seam_shift(i));
         let nll = |share: f64, i: usize| real_model.nll(&h_test, share, i);
         let speed = ctx.speed_mps.unwrap_or(10.0).max(0.1);
         let period = if ctx.period_s > 0.0 {
