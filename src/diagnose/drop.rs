@@ -9,6 +9,7 @@
 //! | `beam_dropout` | row | one free rate per row |
 //! | `material_dropout` | semantic class (labels, else neighbours' labels) | one free rate per class |
 //! | `self_occlusion` | (row, azimuth sector) in the lower half | per sector a "skyline" of blocked bottom rows and a probability |
+//! | `motion_distortion` (rows) | outward elevation shift of the top and bottom rows' returns, in half row spacings | logistic curve (shift_50, width); only where the seam step found motion |
 
 use serde_json::{Map, Value, json};
 
@@ -476,9 +477,180 @@ impl DropFamily for SelfOcclusionFamily {
     }
 }
 
+/// `motion_distortion` as the drop mask sees it. Where rows come from elevation
+/// (clouds without beam numbers), a sensor that moves during the sweep shifts each
+/// return's elevation by `Δe = −sin(e) · Δρ / r`, with `Δρ = −m · t(φ)/T · cos φ`
+/// its horizontal range change. Inner rows are refilled by their neighbours; the
+/// bottom rows (returns lifted up) and the top rows (returns pushed down) have no
+/// neighbour beyond them and empty once the shift passes half a row (the second
+/// row from the edge at one and a half rows, and so on). Built only
+/// when the seam's range step found motion: `seam_shift_m` (`m`) comes from there,
+/// and a two-parameter curve in the outward shift fits how much is lost. The sweep
+/// starts straight ahead; its direction is not in the data and is chosen by fit.
+pub struct MotionRowsFamily {
+    pub seam_shift_m: f32,
+    /// Whether the sweep turns towards positive azimuth.
+    pub counter_clockwise: bool,
+}
+/// Rows from each edge that motion can empty.
+const EDGE_ROWS: usize = 8;
+/// Outward shift bins: 1/8 of half a row spacing each, the last open-ended.
+const SHIFT_BIN: f32 = 0.125;
+const SHIFT_BINS: usize = 32;
+
+impl MotionRowsFamily {
+    /// How far pixel `i`'s row is emptied: its outward elevation shift in half row
+    /// spacings, less two for each row between it and the edge (row `j` from the edge
+    /// empties once the shift passes `j + 1/2` rows). None away from the edges or
+    /// without geometry.
+    pub fn outward_shift(&self, px: &Pixels, i: usize) -> Option<f32> {
+        let (h, row) = (px.height, px.row[i] as usize);
+        let r = px.range_m[i];
+        if h < 2 || !(r.is_finite() && r > 0.1) {
+            return None;
+        }
+        let e = |k: usize| px.row_elevation_rad.get(k).copied();
+        let top = row < h / 2;
+        let from_edge = if top { row } else { h - 1 - row };
+        if from_edge >= EDGE_ROWS {
+            return None;
+        }
+        let (edge, inner) = if top { (0, 1) } else { (h - 1, h - 2) };
+        let half_spacing = 0.5 * (e(inner)? - e(edge)?).abs();
+        if half_spacing <= 1e-5 {
+            return None;
+        }
+        let phi = *px.column_azimuth_rad.get(px.column[i] as usize)?;
+        let turned = if self.counter_clockwise { phi } else { -phi };
+        let t = turned.rem_euclid(std::f32::consts::TAU) / std::f32::consts::TAU;
+        let d_rho = -self.seam_shift_m * t * phi.cos();
+        let d_e = -e(row)?.sin() * d_rho / r;
+        // Outward: up for the bottom rows, down for the top rows.
+        let outward = if top { -d_e } else { d_e };
+        Some(outward / half_spacing - 2.0 * from_edge as f32)
+    }
+}
+
+impl DropFamily for MotionRowsFamily {
+    fn azimuth_invariant(&self) -> bool {
+        false
+    }
+    fn established(&self) -> bool {
+        true
+    }
+    fn id(&self) -> &'static str {
+        "motion_distortion"
+    }
+    fn bins(&self, _: &Pixels) -> usize {
+        SHIFT_BINS
+    }
+    fn bin(&self, px: &Pixels, i: usize) -> Option<usize> {
+        self.outward_shift(px, i)
+            .map(|x| ((x.max(0.0) / SHIFT_BIN) as usize).min(SHIFT_BINS - 1))
+    }
+    fn fit(&self, table: &QTable, _: &Pixels) -> Option<DropFit> {
+        let grid_a: Vec<f32> = (0..=30).map(|i| 0.25 + 0.1 * i as f32).collect();
+        let grid_b = [0.05, 0.1, 0.2, 0.3, 0.5, 0.8];
+        let probs = |a: f32, b: f32| {
+            (0..SHIFT_BINS)
+                .map(|bin| {
+                    let x = (bin as f32 + 0.5) * SHIFT_BIN;
+                    1.0 / (1.0 + f64::from((a - x) / b).exp())
+                })
+                .collect()
+        };
+        let (a, b, drop_prob) = fit_curve(table, &grid_a, &grid_b, probs)?;
+        let mut params = Map::new();
+        params.insert("shift_50_half_rows".into(), json!(round3(a.into())));
+        params.insert("width_half_rows".into(), json!(round3(b.into())));
+        Some(DropFit {
+            drop_prob,
+            params,
+            physics: Map::new(),
+            n_params: 2,
+            location: format!(
+                "the edge rows empty where the sweep ({}) shifts their returns outward by more than {a:.1} half rows (rows come from elevation)",
+                if self.counter_clockwise {
+                    "counter-clockwise"
+                } else {
+                    "clockwise"
+                }
+            ),
+        })
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// Ground rows of a 4-row sensor (1 deg apart, -10 to -13 deg) 1.5 m up, 360
+    /// columns; pixels dropped where `dropped(shift)` says.
+    fn ground(dropped: impl Fn(f32) -> bool, motion: &MotionRowsFamily) -> Pixels {
+        let (h, w) = (4usize, 360usize);
+        let mut px = Pixels {
+            height: h,
+            width: w,
+            row_elevation_rad: (0..h).map(|i| (-10.0 - i as f32).to_radians()).collect(),
+            column_azimuth_rad: (0..w)
+                .map(|j| (180.0 - (j as f32 + 0.5)).to_radians())
+                .collect(),
+            ..Default::default()
+        };
+        for row in 0..h {
+            for j in 0..w {
+                px.row.push(row as u16);
+                px.column.push(j as u16);
+                px.range_m.push(1.5 / px.row_elevation_rad[row].abs().sin());
+                px.cos_incidence.push(0.5);
+                px.class.push(0);
+                px.enclosure_px.push(0);
+                px.kept.push(true);
+            }
+        }
+        for i in 0..px.len() {
+            let shift = motion.outward_shift(&px, i);
+            px.kept[i] = !shift.is_some_and(&dropped);
+        }
+        px
+    }
+
+    #[test]
+    fn motion_empties_the_edge_rows_and_the_fit_finds_where() {
+        let motion = MotionRowsFamily {
+            seam_shift_m: 0.8,
+            counter_clockwise: true,
+        };
+        let px = ground(|x| x > 1.0, &motion);
+        let shift = |row: u16, az: f32| {
+            let j = (180.0 - az) as u16;
+            let i = (0..px.len())
+                .find(|&i| px.row[i] == row && px.column[i] == j)
+                .unwrap();
+            motion.outward_shift(&px, i).unwrap()
+        };
+        // Straight behind, half a sweep in: returns 0.4 m farther, lifted by
+        // sin(13 deg) * 0.4 m / r, in half-rows of 0.5 deg (about 1.5).
+        let r = 1.5 / 13f32.to_radians().sin();
+        let expected = 13f32.to_radians().sin() * 0.4 / r / 0.5f32.to_radians();
+        assert!(
+            (shift(3, 179.5) - expected).abs() < 0.02,
+            "{}",
+            shift(3, 179.5)
+        );
+        // Ahead, returns come nearer: the bottom row's are pushed down, not out; the
+        // top row's too, and that row has nothing above to refill it.
+        assert!(shift(3, 30.5) < 0.0);
+        assert!(shift(0, 30.5) > 0.0);
+        // The row above empties only a full row later.
+        assert!(shift(2, 179.5) < shift(3, 179.5) - 1.0);
+        let table = QTable::build(&motion, &px, &vec![1.0; px.len()]);
+        let fit = motion.fit(&table, &px).unwrap();
+        let at = fit.params["shift_50_half_rows"].as_f64().unwrap();
+        assert!((0.8..=1.3).contains(&at), "shift_50 {at}");
+        let dropped = px.kept.iter().filter(|k| !**k).count();
+        assert!((20..200).contains(&dropped), "{dropped} dropped");
+    }
 
     #[test]
     fn range_curve_leaves_out_drops_in_open_space() {

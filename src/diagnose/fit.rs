@@ -338,6 +338,13 @@ pub trait DropFamily: Sync {
     fn azimuth_invariant(&self) -> bool {
         true
     }
+    /// Whether other evidence already established the effect (motion from the
+    /// seam's range step): then it is taken before the others wherever it beats
+    /// its penalty, the others must explain what it leaves, and it is not removed
+    /// as redundant with them.
+    fn established(&self) -> bool {
+        false
+    }
 }
 
 /// Pixels pooled by (bin, level of `1 − q`), `q` the keep probability of the rest
@@ -625,6 +632,7 @@ fn redundant_effect(
     selection
         .selected
         .iter()
+        .filter(|drop| family(drop.id).is_some_and(|f| !f.established()))
         .filter_map(|drop| {
             let mut c = selection.keep_scale;
             let mut fits: Vec<(&dyn DropFamily, DropFit)> = Vec::new();
@@ -713,11 +721,13 @@ fn forward(
                 });
             }
             let margin = gain - penalty;
-            if margin > 0.0
-                && best
-                    .as_ref()
-                    .is_none_or(|b| margin > current_nll - b.2 - b.3)
-            {
+            let best_established = best.as_ref().is_some_and(|b| families[b.0].established());
+            let better = match best.as_ref() {
+                None => true,
+                Some(_) if family.established() != best_established => family.established(),
+                Some(b) => margin > current_nll - b.2 - b.3,
+            };
+            if margin > 0.0 && better {
                 best = Some((fi, fit, nll, penalty, c_fit, halves));
             }
         }

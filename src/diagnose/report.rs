@@ -250,26 +250,7 @@ pub fn diagnose(
     }
     let comparison = compare(&c_sim, &c_real, &bins, &options.tests);
 
-    // What: drop candidates by forward selection.
-    let px_sim = Pixels::collect(sim, reach_m);
-    let px_train = Pixels::collect(&train, reach_m);
-    let px_test = Pixels::collect(&test, reach_m);
-    let baseline = Baseline::from_sim(&px_sim, reach_m);
-    let boxed = drop::families();
-    let families: Vec<&dyn DropFamily> = boxed
-        .iter()
-        .map(|b| b.as_ref())
-        .filter(|f| unlabelled.is_empty() || f.id() != "material_dropout")
-        .collect();
-    let selection = fit::select(
-        &families,
-        &baseline,
-        &px_train,
-        &px_test,
-        options.max_effects,
-    )?;
-
-    // What else: range-residual candidates.
+    // What moves returns: range-residual candidates.
     let residual_fits: Vec<ResidualFit> = residual::families()
         .iter()
         .filter_map(|family| {
@@ -282,10 +263,37 @@ pub fn diagnose(
         })
         .collect();
 
+    // What: drop candidates by forward selection.
+    let px_sim = Pixels::collect(sim, reach_m);
+    let px_train = Pixels::collect(&train, reach_m);
+    let px_test = Pixels::collect(&test, reach_m);
+    let baseline = Baseline::from_sim(&px_sim, reach_m);
+    let boxed = drop::families();
+    let motion_rows = motion_rows(&residual_fits, &baseline, &px_train);
+    let families: Vec<&dyn DropFamily> = boxed
+        .iter()
+        .map(|b| b.as_ref())
+        .filter(|f| unlabelled.is_empty() || f.id() != "material_dropout")
+        .chain(motion_rows.as_ref().map(|f| f as &dyn DropFamily))
+        .collect();
+    let selection = fit::select(
+        &families,
+        &baseline,
+        &px_train,
+        &px_test,
+        options.max_effects,
+    )?;
+
     let test_pixels = px_test.len().max(1) as f64;
     let mut effects = Vec::new();
     let mut fitted_physics = sim_physics.clone();
+    // The rows motion empties are part of the motion effect the seam found.
+    let mut motion_rows_part: Option<(f64, String)> = None;
     for s in &selection.selected {
+        if s.id == MOTION {
+            motion_rows_part = Some((s.gain(), s.fit.location.clone()));
+            continue;
+        }
         let mut location = s.fit.location.clone();
         if let Some(t) = stats_feature(s.id).and_then(|f| comparison.strongest_of(f)) {
             location.push_str(&format!(
@@ -317,17 +325,25 @@ pub fn diagnose(
         residual_before += r.before_nll * n;
         if r.significant() {
             residual_after += r.after_nll * n;
+            let mut location = r.location.clone();
+            let mut gain = r.gain() * n / test_pixels;
+            if let Some((rows_gain, rows_location)) =
+                motion_rows_part.take().filter(|_| r.id == MOTION)
+            {
+                location.push_str(&format!("; {rows_location}"));
+                gain += rows_gain;
+            }
             effects.push(EffectReport {
                 id: r.id.to_string(),
                 confidence: confidence(r.gain(), r.penalty),
-                location: r.location.clone(),
+                location,
                 params: r.params.clone(),
                 fit: FitMetric {
                     metric: format!("{}_nll_per_observation", r.id),
                     before: r.before_nll,
                     after: r.after_nll,
                 },
-                gain_nats_per_pixel: r.gain() * n / test_pixels,
+                gain_nats_per_pixel: gain,
             });
             fitted_physics.extend(r.physics.clone());
         } else {
@@ -339,6 +355,7 @@ pub fn diagnose(
     let mut candidates: Vec<CandidateReport> = selection
         .tried
         .iter()
+        .filter(|t| t.id != MOTION)
         .map(|t| CandidateReport {
             id: t.id.to_string(),
             gain: t.gain,
@@ -422,6 +439,39 @@ pub fn diagnose(
         curves,
         maps,
     })
+}
+
+const MOTION: &str = "motion_distortion";
+
+/// The drop side of motion distortion, where the seam step found motion beyond the
+/// sim's: the sweep direction that fits the training scans better.
+fn motion_rows(
+    residual_fits: &[ResidualFit],
+    baseline: &Baseline,
+    train: &Pixels,
+) -> Option<drop::MotionRowsFamily> {
+    let motion = residual_fits
+        .iter()
+        .find(|r| r.id == MOTION && r.significant())?;
+    let shift = |key: &str| motion.params.get(key).and_then(Value::as_f64);
+    let extra = shift("seam_shift_m")? - shift("sim_seam_shift_m").unwrap_or(0.0);
+    if extra <= 0.05 {
+        return None;
+    }
+    let base = baseline.keep_of(train);
+    [false, true]
+        .into_iter()
+        .map(|counter_clockwise| drop::MotionRowsFamily {
+            seam_shift_m: extra as f32,
+            counter_clockwise,
+        })
+        .filter_map(|family| {
+            let table = fit::QTable::build(&family, train, &base);
+            let nll = table.nll(&family.fit(&table, train)?.drop_prob);
+            Some((nll, family))
+        })
+        .min_by(|a, b| a.0.total_cmp(&b.0))
+        .map(|(_, family)| family)
 }
 
 /// Whether a recording carries semantic labels: at least 5 % of its returns

@@ -627,6 +627,7 @@ impl ResidualFamily for MotionFamily {
         let scale = m / (speed * period);
         let mut params = Map::new();
         params.insert("seam_shift_m".into(), json!(round4(m)));
+        params.insert("sim_seam_shift_m".into(), json!(round4(m_sim)));
         params.insert("moved_share".into(), json!(round4(share)));
         params.insert("scale".into(), json!(round4(scale)));
         let mut physics = Map::new();
