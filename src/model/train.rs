@@ -18,6 +18,7 @@ use burn::optim::{AdamConfig, GradientsParams, ModuleOptimizer};
 use burn::tensor::activation::softplus;
 use burn::tensor::{Device, Tensor};
 use indicatif::{ProgressBar, ProgressStyle};
+use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 use super::baseline::ConvGeneratorConfig;
@@ -482,39 +483,16 @@ impl Trainer {
         tensor_from(v, [b, 1, data.height, data.width], device)
     }
 
-    /// x_G of the generator output (measurement model unless vanilla).
     fn measure(&mut self, out: Generated) -> Tensor<4> {
-        match out.keep_logit {
-            Some(logit) => {
-                self.config
-                    .measurement
-                    .measure(out.x_d, logit, &mut self.state.rng)
-                    .x_measured
-            }
-            None => out.x_d,
-        }
+        measure(&self.config.measurement, out, &mut self.state.rng)
     }
 
-    /// What D sees: early pixel dropout then augmentation (same for real and fake).
     fn d_input(&mut self, x: Tensor<4>) -> Tensor<4> {
-        let p_drop = self.pixel_drop();
-        let x = if p_drop > 0.0 {
-            let keep = self
-                .state
-                .rng
-                .uniform_open_tensor(x.dims(), &x.device())
-                .greater_elem(p_drop)
-                .float();
-            (x.add_scalar(1.0) * keep).sub_scalar(1.0)
-        } else {
-            x
+        let view = DView {
+            pixel_drop: self.pixel_drop(),
+            ada_p: self.state.ada_p,
         };
-        let p = self.state.ada_p;
-        if p > 0.0 {
-            augment(x, p, &mut self.state.rng)
-        } else {
-            x
-        }
+        view.apply(x, &mut self.state.rng)
     }
 
     fn z(&mut self, device: &Device) -> Tensor<2> {
@@ -533,6 +511,11 @@ impl Trainer {
         let cfg = self.config.clone();
         let device = self.device.clone();
         let inner = device.clone().inner();
+        let parts = batch_parts(cfg.batch_size);
+        let part = |x: &Tensor<4>, k: usize| {
+            let n = x.dims()[0] / parts;
+            x.clone().narrow(0, k * n, n)
+        };
 
         // ---- D step: fakes come from the generator without autodiff (constants for D).
         let z = self.z(&inner);
@@ -543,36 +526,23 @@ impl Trainer {
         let fake = self.d_input(fake);
         let real = self.real_batch(data, &device);
         let real = self.d_input(real);
-        let logit_fake = self.d.forward(fake); // [batch, 1]
-        let logit_real = self.d.forward(real.clone()); // [batch, 1]
-        let d_real = tensor_to_vec(logit_real.clone().inner());
-        let loss_d = softplus(logit_fake.clone(), 1.0).mean()
-            + softplus(logit_real.clone().neg(), 1.0).mean();
         let lazy = cfg.r1_gamma > 0.0 && self.state.step.is_multiple_of(cfg.r1_interval as u64);
-        let (loss_d_total, r1) = if lazy {
-            // Finite-difference R1: with v ~ N(0, I), E[(grad D . v)^2] = |grad D|^2, and
-            // (D(x + h v) - D(x)) / h estimates grad D . v with first-order autodiff only.
-            let h = cfg.r1_fd_step;
-            let v = self.state.rng.normal_tensor(real.dims(), &device);
-            let real_c = real.detach();
-            let moved = self.d.forward(real_c + v.mul_scalar(h)); // [batch, 1]
-            let dd = (moved - logit_real).div_scalar(h); // [batch, 1]
-            let r1 = dd.powi_scalar(2).mean(); // |grad D|^2 estimate
-            let penalty = r1
-                .clone()
-                .mul_scalar(cfg.r1_gamma * 0.5 * cfg.r1_interval as f32);
-            (
-                loss_d.clone() + penalty,
-                Some(r1.inner().into_scalar::<f32>()),
-            )
-        } else {
-            (loss_d.clone(), None)
-        };
+        let v = lazy.then(|| self.state.rng.normal_tensor(real.dims(), &device));
+        let d_parts: Vec<DPart> = (0..parts)
+            .into_par_iter()
+            .map(|k| {
+                let v = v.as_ref().map(|v| part(v, k));
+                d_part(&self.d, &device, &cfg, part(&fake, k), part(&real, k), v)
+            })
+            .collect();
+        let mean = |f: &dyn Fn(&DPart) -> f32| d_parts.iter().map(f).sum::<f32>() / parts as f32;
+        let (loss_d, d_fake) = (mean(&|p| p.loss_d), mean(&|p| p.d_fake));
+        let r1 = lazy.then(|| mean(&|p| p.r1.unwrap_or(0.0)));
+        let d_real: Vec<f32> = d_parts.iter().flat_map(|p| p.d_real.clone()).collect();
         if r1.is_some() {
             self.last_r1 = r1;
         }
-        let grads = loss_d_total.backward();
-        let grads = GradientsParams::from_grads(grads, &self.d);
+        let grads = mean_grads(&self.d, d_parts.into_iter().map(|p| p.grads).collect());
         self.d = self.opt_d.step(cfg.lr, self.d.clone(), grads);
 
         // Adaptive augmentation: move p towards E[sign(D(real))] = target.
@@ -590,14 +560,33 @@ impl Trainer {
         // ---- G step: D without autodiff on its weights still passes gradients to its input.
         let z = self.z(&device);
         let shift = self.subgrid();
-        let (fake, w) = self.g.generate(z, self.grid.as_ref(), shift.as_deref());
-        let fake = self.measure(fake);
-        let fake = self.d_input(fake);
         let d_frozen = self.d.valid();
-        let logit = d_frozen.forward(fake);
-        let loss_g = softplus(logit.neg(), 1.0).mean();
-        let grads = loss_g.backward();
-        let grads = GradientsParams::from_grads(grads, &self.g);
+        let view = DView {
+            pixel_drop: self.pixel_drop(),
+            ada_p: self.state.ada_p,
+        };
+        let seeds: Vec<u64> = (0..parts).map(|_| self.state.rng.next_u64()).collect();
+        let n = cfg.batch_size / parts;
+        let g_parts: Vec<(GradientsParams, f32, Option<Tensor<2>>)> = (0..parts)
+            .into_par_iter()
+            .map(|k| {
+                let g = self.g.clone().fork(&device);
+                let z = z.clone().narrow(0, k * n, n);
+                let shift = shift.as_ref().map(|s| &s[k * n..(k + 1) * n]);
+                let (fake, w) = g.generate(z, self.grid.as_ref(), shift);
+                let mut rng = Rng::new(seeds[k]);
+                let fake = measure(&cfg.measurement, fake, &mut rng);
+                let logit = d_frozen.forward(view.apply(fake, &mut rng));
+                let loss_g = softplus(logit.neg(), 1.0).mean();
+                let loss = loss_g.clone().inner().into_scalar::<f32>();
+                let grads = GradientsParams::from_grads(loss_g.backward(), &g);
+                (grads, loss, w.map(|w| w.detach()))
+            })
+            .collect();
+        let loss_g = g_parts.iter().map(|p| p.1).sum::<f32>() / parts as f32;
+        let w: Option<Vec<Tensor<2>>> = g_parts.iter().map(|p| p.2.clone()).collect();
+        let w = w.map(|w| Tensor::cat(w, 0));
+        let grads = mean_grads(&self.g, g_parts.into_iter().map(|p| p.0).collect());
         let g = self.opt_g.step(cfg.lr, self.g.clone(), grads);
         self.g = match (g, w) {
             (AnyGenerator::Implicit(mut generator), Some(w)) => {
@@ -616,11 +605,11 @@ impl Trainer {
         self.g_ema = ema_update(self.g_ema.clone(), &self.g, beta);
 
         Ok(StepMetrics {
-            loss_d: loss_d.inner().into_scalar::<f32>(),
-            loss_g: loss_g.inner().into_scalar::<f32>(),
+            loss_d,
+            loss_g,
             r1,
             d_real: d_real.iter().sum::<f32>() / d_real.len() as f32,
-            d_fake: tensor_to_vec(logit_fake.inner()).iter().sum::<f32>() / cfg.batch_size as f32,
+            d_fake,
             pixel_drop: self.pixel_drop(),
         })
     }
@@ -738,6 +727,132 @@ struct StepMetrics {
     d_real: f32,
     d_fake: f32,
     pixel_drop: f32,
+}
+
+/// How many parts a batch is split into: each part runs forward and backward on its own
+/// autodiff graph (a fork of the module), in parallel where there are threads, since a
+/// step's small convolutions alone leave most of a second core idle. Always two for an
+/// even batch, so results do not depend on the thread count.
+fn batch_parts(batch: usize) -> usize {
+    if batch >= 2 && batch.is_multiple_of(2) {
+        2
+    } else {
+        1
+    }
+}
+
+/// x_G of the generator output (measurement model unless vanilla).
+fn measure(measurement: &MeasurementConfig, out: Generated, rng: &mut Rng) -> Tensor<4> {
+    match out.keep_logit {
+        Some(logit) => measurement.measure(out.x_d, logit, rng).x_measured,
+        None => out.x_d,
+    }
+}
+
+/// What D sees: early pixel dropout then augmentation (same for real and fake).
+#[derive(Debug, Clone, Copy)]
+struct DView {
+    pixel_drop: f32,
+    ada_p: f32,
+}
+
+impl DView {
+    fn apply(self, x: Tensor<4>, rng: &mut Rng) -> Tensor<4> {
+        let x = if self.pixel_drop > 0.0 {
+            let keep = rng
+                .uniform_open_tensor(x.dims(), &x.device())
+                .greater_elem(self.pixel_drop)
+                .float();
+            (x.add_scalar(1.0) * keep).sub_scalar(1.0)
+        } else {
+            x
+        };
+        if self.ada_p > 0.0 {
+            augment(x, self.ada_p, rng)
+        } else {
+            x
+        }
+    }
+}
+
+/// One part of a D step: its gradients and numbers.
+struct DPart {
+    grads: GradientsParams,
+    loss_d: f32,
+    r1: Option<f32>,
+    d_real: Vec<f32>,
+    d_fake: f32,
+}
+
+/// D's loss on one part of the batch (with the lazy finite-difference R1 where `v` is
+/// given) and its gradients, on a fork of `d`.
+fn d_part(
+    d: &Discriminator,
+    device: &Device,
+    cfg: &TrainConfig,
+    fake: Tensor<4>,
+    real: Tensor<4>,
+    v: Option<Tensor<4>>,
+) -> DPart {
+    let d = d.clone().fork(device);
+    let logit_fake = d.forward(fake); // [part, 1]
+    let logit_real = d.forward(real.clone()); // [part, 1]
+    let d_real = tensor_to_vec(logit_real.clone().inner());
+    let d_fake = tensor_to_vec(logit_fake.clone().inner());
+    let loss_d = softplus(logit_fake, 1.0).mean() + softplus(logit_real.clone().neg(), 1.0).mean();
+    let (total, r1) = match v {
+        Some(v) => {
+            // Finite-difference R1: with v ~ N(0, I), E[(grad D . v)^2] = |grad D|^2, and
+            // (D(x + h v) - D(x)) / h estimates grad D . v with first-order autodiff only.
+            let h = cfg.r1_fd_step;
+            let moved = d.forward(real.detach() + v.mul_scalar(h)); // [part, 1]
+            let r1 = (moved - logit_real).div_scalar(h).powi_scalar(2).mean();
+            let penalty = r1
+                .clone()
+                .mul_scalar(cfg.r1_gamma * 0.5 * cfg.r1_interval as f32);
+            let r1 = r1.inner().into_scalar::<f32>();
+            (loss_d.clone() + penalty, Some(r1))
+        }
+        None => (loss_d.clone(), None),
+    };
+    DPart {
+        grads: GradientsParams::from_grads(total.backward(), &d),
+        loss_d: loss_d.inner().into_scalar::<f32>(),
+        r1,
+        d_fake: d_fake.iter().sum::<f32>() / d_fake.len().max(1) as f32,
+        d_real,
+    }
+}
+
+/// The mean of the parts' gradients (each part's loss is a mean over its samples, so
+/// the mean is the whole batch's gradient).
+fn mean_grads<M: Module>(module: &M, parts: Vec<GradientsParams>) -> GradientsParams {
+    struct Mean {
+        parts: Vec<GradientsParams>,
+        out: GradientsParams,
+    }
+    impl ModuleVisitor for Mean {
+        fn visit_float<const D: usize>(&mut self, param: &Param<Tensor<D>>) {
+            let grads: Vec<Tensor<D>> = self
+                .parts
+                .iter_mut()
+                .filter_map(|g| g.remove::<D>(param.id))
+                .collect();
+            let n = grads.len() as f32;
+            if let Some(sum) = grads.into_iter().reduce(|a, b| a + b) {
+                self.out.register(param.id, sum.div_scalar(n));
+            }
+        }
+    }
+    if parts.len() == 1 {
+        return parts.into_iter().next().unwrap_or_default();
+    }
+    let mut mean = Mean {
+        parts,
+        out: GradientsParams::new(),
+    };
+    module.visit(&mut mean);
+    mean.out
 }
 
 /// Writes `RUN_DIR/checkpoint/` through `fill` into a temporary folder, then swaps it in, so a
@@ -997,6 +1112,48 @@ mod tests {
             tensor_to_vec(m.blocks[0].fourier.b_theta.val()),
             tensor_to_vec(b.blocks[0].fourier.b_theta.val())
         );
+    }
+
+    #[test]
+    fn the_mean_of_the_parts_gradients_is_the_whole_batch_gradient() {
+        let dev = Device::flex().autodiff();
+        let cfg = TrainConfig::new()
+            .with_arch(Arch::Vanilla)
+            .with_conv_generator(
+                ConvGeneratorConfig::new()
+                    .with_d_z(6)
+                    .with_channels(vec![8, 4])
+                    .with_base_height(2)
+                    .with_base_width(4),
+            );
+        let g = init_generator(&cfg, &dev);
+        let z = Rng::new(5).normal_tensor([4, 6], &dev);
+        let grads_of = |g: &AnyGenerator, z: Tensor<2>| {
+            let g = g.clone().fork(&dev);
+            let (out, _) = g.generate(z, None, None);
+            let loss = out.x_d.powi_scalar(2).mean();
+            GradientsParams::from_grads(loss.backward(), &g)
+        };
+        let whole = grads_of(&g, z.clone());
+        let parts = (0..2)
+            .map(|k| grads_of(&g, z.clone().narrow(0, 2 * k, 2)))
+            .collect();
+        let mean = mean_grads(&g, parts);
+        let AnyGenerator::Conv(conv) = &g else {
+            panic!("conv generator expected");
+        };
+        let id = conv.ups[0].weight.id;
+        let (a, b) = (whole.get::<4>(id), mean.get::<4>(id));
+        let (a, b) = (tensor_to_vec(a.unwrap()), tensor_to_vec(b.unwrap()));
+        assert!(
+            a.iter().any(|x| x.abs() > 1e-6),
+            "a gradient that is zero tests nothing"
+        );
+        for (x, y) in a.iter().zip(&b) {
+            assert!((x - y).abs() <= 1e-5 * (1.0 + x.abs()), "{x} vs {y}");
+        }
+        assert_eq!(batch_parts(8), 2);
+        assert_eq!(batch_parts(5), 1);
     }
 
     /// A dataset cache of `n` 64 x 64 images in `dir`: each pixel dropped (-1) with
