@@ -483,18 +483,6 @@ impl Trainer {
         tensor_from(v, [b, 1, data.height, data.width], device)
     }
 
-    fn measure(&mut self, out: Generated) -> Tensor<4> {
-        measure(&self.config.measurement, out, &mut self.state.rng)
-    }
-
-    fn d_input(&mut self, x: Tensor<4>) -> Tensor<4> {
-        let view = DView {
-            pixel_drop: self.pixel_drop(),
-            ada_p: self.state.ada_p,
-        };
-        view.apply(x, &mut self.state.rng)
-    }
-
     fn z(&mut self, device: &Device) -> Tensor<2> {
         let d_z = self.g.d_z();
         self.state
@@ -512,27 +500,31 @@ impl Trainer {
         let device = self.device.clone();
         let inner = device.clone().inner();
         let parts = batch_parts(cfg.batch_size);
-        let part = |x: &Tensor<4>, k: usize| {
-            let n = x.dims()[0] / parts;
-            x.clone().narrow(0, k * n, n)
-        };
 
         // ---- D step: fakes come from the generator without autodiff (constants for D).
         let z = self.z(&inner);
         let shift = self.subgrid();
-        let g_inner = self.g.valid();
-        let (fake, _) = g_inner.generate(z, self.grid_inner.as_ref(), shift.as_deref());
-        let fake = self.measure(fake).autodiff();
-        let fake = self.d_input(fake);
         let real = self.real_batch(data, &device);
-        let real = self.d_input(real);
         let lazy = cfg.r1_gamma > 0.0 && self.state.step.is_multiple_of(cfg.r1_interval as u64);
-        let v = lazy.then(|| self.state.rng.normal_tensor(real.dims(), &device));
+        let view = DView {
+            pixel_drop: self.pixel_drop(),
+            ada_p: self.state.ada_p,
+        };
+        let n = cfg.batch_size / parts;
+        let seeds: Vec<u64> = (0..parts).map(|_| self.state.rng.next_u64()).collect();
+        let g_inner = self.g.valid();
         let d_parts: Vec<DPart> = (0..parts)
             .into_par_iter()
             .map(|k| {
-                let v = v.as_ref().map(|v| part(v, k));
-                d_part(&self.d, &device, &cfg, part(&fake, k), part(&real, k), v)
+                let mut rng = Rng::new(seeds[k]);
+                let z = z.clone().narrow(0, k * n, n);
+                let shift = shift.as_ref().map(|s| &s[k * n..(k + 1) * n]);
+                let (fake, _) = g_inner.generate(z, self.grid_inner.as_ref(), shift);
+                let fake = measure(&cfg.measurement, fake, &mut rng).autodiff();
+                let fake = view.apply(fake, &mut rng);
+                let real = view.apply(real.clone().narrow(0, k * n, n), &mut rng);
+                let v = lazy.then(|| rng.normal_tensor(real.dims(), &device));
+                d_part(&self.d, &device, &cfg, fake, real, v)
             })
             .collect();
         let mean = |f: &dyn Fn(&DPart) -> f32| d_parts.iter().map(f).sum::<f32>() / parts as f32;
@@ -562,11 +554,10 @@ impl Trainer {
         let shift = self.subgrid();
         let d_frozen = self.d.valid();
         let view = DView {
-            pixel_drop: self.pixel_drop(),
             ada_p: self.state.ada_p,
+            ..view
         };
         let seeds: Vec<u64> = (0..parts).map(|_| self.state.rng.next_u64()).collect();
-        let n = cfg.batch_size / parts;
         let g_parts: Vec<(GradientsParams, f32, Option<Tensor<2>>)> = (0..parts)
             .into_par_iter()
             .map(|k| {
