@@ -9,7 +9,7 @@
 //! | `beam_dropout` | row | one free rate per row |
 //! | `material_dropout` | semantic class (labels, else neighbours' labels) | one free rate per class |
 //! | `self_occlusion` | (row, azimuth sector) in the lower half | per sector a "skyline" of blocked bottom rows and a probability |
-//! | `motion_distortion` (rows) | outward elevation shift of the top and bottom rows' returns, in half row spacings | logistic curve (shift_50, width); only where the seam step found motion |
+//! | `motion_distortion` (rows) | outward elevation shift of returns in the rows next to the top and bottom edges, in half row spacings | logistic curve (shift_50, width); only where the seam step found motion |
 
 use serde_json::{Map, Value, json};
 
