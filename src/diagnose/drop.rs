@@ -503,7 +503,7 @@ impl MotionRowsFamily {
     /// spacings, less two for each row between it and the edge (row `j` from the edge
     /// empties once the shift passes `j + 1/2` rows). None away from the edges or
     /// without geometry.
-    pub fn outward_shift(&self, px: &Pixels, i: usize) -> Option<f32> {
+    fn outward_shift(&self, px: &Pixels, i: usize) -> Option<f32> {
         let (h, row) = (px.height, px.row[i] as usize);
         let r = px.range_m[i];
         if h < 2 || !(r.is_finite() && r > 0.1) {
