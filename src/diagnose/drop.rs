@@ -9,8 +9,9 @@
 //! | `beam_dropout` | row | one free rate per row |
 //! | `material_dropout` | semantic class (labels, else neighbours' labels) | one free rate per class |
 //! | `self_occlusion` | (row, azimuth sector) in the lower half | per sector a "skyline" of blocked bottom rows and a probability |
-//! | `motion_distortion` (rows) | outward elevation shift of returns in the rows next to the top and bottom edges, in half row spacings | logistic curve (shift_50, width); only where the seam step found motion |
+//! | `motion_distortion` (coverage) | distance from a pixel to the nearest return after the sweep's shift, in half pixels | logistic curve (shift_50, width); only where the seam step found motion |
 
+use rayon::prelude::*;
 use serde_json::{Map, Value, json};
 
 use super::fit::{DropFamily, DropFit, Pixels, QTable, golden};
@@ -477,58 +478,124 @@ impl DropFamily for SelfOcclusionFamily {
     }
 }
 
-/// `motion_distortion` as the drop mask sees it. Where rows come from elevation
-/// (clouds without beam numbers), a sensor that moves during the sweep shifts each
-/// return's elevation by `Δe = −sin(e) · Δρ / r`, with `Δρ = −m · t(φ)/T · cos φ`
-/// its horizontal range change. Inner rows are refilled by their neighbours; the
-/// bottom rows (returns lifted up) and the top rows (returns pushed down) have no
-/// neighbour beyond them and empty once the shift passes half a row (the second
-/// row from the edge at one and a half rows, and so on). Built only
-/// when the seam's range step found motion: `seam_shift_m` (`m`) comes from there,
-/// and a two-parameter curve in the outward shift fits how much is lost. The sweep
-/// starts straight ahead; its direction is not in the data and is chosen by fit.
+/// `motion_distortion` as the drop mask sees it. A sensor that moves by `m` during
+/// the sweep moves each return by `−m · t(φ)/T` along its heading: horizontal
+/// range by `Δρ = −m · t/T · cos φ`, azimuth by `Δφ = m · t/T · sin φ / ρ`, and
+/// elevation by `Δe = −sin(e) · Δρ / r`. A pixel stays filled while some return lands
+/// within half a pixel of it. Columns always come from azimuth, so they spread
+/// apart where returns are near (ahead and behind). Where rows come from elevation
+/// (clouds without beam numbers), rows empty at the edges (the bottom rows behind
+/// a car moving forward, the top rows ahead) and between ground rows ahead, which
+/// spread apart because nearer (lower) rows move more (`Δe ≈ sin²|e| · m / h` on flat
+/// ground). Built only when the seam's range step found motion; the motion per
+/// sweep is chosen by fit at the scale of the seam's step, and a two-parameter curve
+/// in the distance to the nearest landed return fits how much is lost. The sweep
+/// starts straight ahead; its direction and where rows come from are not in the
+/// data and are chosen by fit.
 pub struct MotionRowsFamily {
     pub seam_shift_m: f32,
     /// Whether the sweep turns towards positive azimuth.
     pub counter_clockwise: bool,
+    /// Whether rows come from elevation (and so move with it), not beam numbers.
+    pub rows_from_elevation: bool,
 }
-/// Rows from each edge that motion can empty.
-const EDGE_ROWS: usize = 8;
-/// Outward shift bins: 1/8 of half a row spacing each, the last open-ended.
+/// Distance bins: 1/8 of half a pixel each, the last open-ended.
 const SHIFT_BIN: f32 = 0.125;
 const SHIFT_BINS: usize = 32;
 
 impl MotionRowsFamily {
-    /// How far pixel `i`'s row is emptied: its outward elevation shift in half row
-    /// spacings, less two for each row between it and the edge (row `j` from the edge
-    /// empties once the shift passes `j + 1/2` rows). None away from the edges or
-    /// without geometry.
-    fn outward_shift(&self, px: &Pixels, i: usize) -> Option<f32> {
-        let (h, row) = (px.height, px.row[i] as usize);
-        let r = px.range_m[i];
-        if h < 2 || !(r.is_finite() && r > 0.1) {
-            return None;
+    /// For every pixel of one scan (row-major), the distance in half pixels from its
+    /// centre to the nearest landed return: along its column and along its row, the
+    /// larger of the two (NaN where its column or row has no range at all).
+    fn scan_gaps(&self, px: &Pixels, scan: usize) -> Vec<f32> {
+        let (h, w) = (px.height, px.width);
+        let mut gaps = vec![f32::NAN; h * w];
+        let Some(ranges) = px.scan_range_m.get(scan) else {
+            return gaps;
+        };
+        let (elevation, azimuth) = (&px.row_elevation_rad, &px.column_azimuth_rad);
+        if h < 2 || w < 2 || elevation.len() != h || azimuth.len() != w || ranges.len() != h * w
+        {
+            return gaps;
         }
-        let e = |k: usize| px.row_elevation_rad.get(k).copied();
-        let top = row < h / 2;
-        let from_edge = if top { row } else { h - 1 - row };
-        if from_edge >= EDGE_ROWS {
-            return None;
+        let column_step = std::f32::consts::TAU / w as f32;
+        let mut rows_at: Vec<Vec<f32>> = vec![Vec::new(); w];
+        let mut columns_at: Vec<Vec<f32>> = vec![Vec::new(); h];
+        for (k, &e) in elevation.iter().enumerate() {
+            for (c, &phi) in azimuth.iter().enumerate() {
+                let r = ranges[k * w + c];
+                if !(r.is_finite() && r > 0.1) {
+                    continue;
+                }
+                let turned = if self.counter_clockwise { phi } else { -phi };
+                let moved = self.seam_shift_m * turned.rem_euclid(std::f32::consts::TAU)
+                    / std::f32::consts::TAU;
+                let row = if self.rows_from_elevation {
+                    row_position(px, e + e.sin() * moved * phi.cos() / r)
+                } else {
+                    k as f32
+                };
+                rows_at[c].push(row);
+                // Columns run from azimuth +180 deg down to -180 deg.
+                let d_phi = moved * phi.sin() / (r * e.cos()).max(0.1);
+                columns_at[k].push((c as f32 - d_phi / column_step).rem_euclid(w as f32));
+            }
         }
-        let (edge, inner) = if top { (0, 1) } else { (h - 1, h - 2) };
-        let half_spacing = 0.5 * (e(inner)? - e(edge)?).abs();
-        if half_spacing <= 1e-5 {
-            return None;
+        for v in rows_at.iter_mut().chain(columns_at.iter_mut()) {
+            v.sort_by(f32::total_cmp);
         }
-        let phi = *px.column_azimuth_rad.get(px.column[i] as usize)?;
-        let turned = if self.counter_clockwise { phi } else { -phi };
-        let t = turned.rem_euclid(std::f32::consts::TAU) / std::f32::consts::TAU;
-        let d_rho = -self.seam_shift_m * t * phi.cos();
-        let d_e = -e(row)?.sin() * d_rho / r;
-        // Outward: up for the bottom rows, down for the top rows.
-        let outward = if top { -d_e } else { d_e };
-        Some(outward / half_spacing - 2.0 * from_edge as f32)
+        for k in 0..h {
+            for c in 0..w {
+                let along_column = nearest(&rows_at[c], k as f32, None);
+                let along_row = nearest(&columns_at[k], c as f32, Some(w as f32));
+                gaps[k * w + c] = 2.0 * along_column.max(along_row);
+            }
+        }
+        gaps
     }
+}
+
+/// Distance from `y` to the nearest of the sorted `landed` (on a circle of
+/// `period` if given); NaN when nothing landed.
+fn nearest(landed: &[f32], y: f32, period: Option<f32>) -> f32 {
+    let (Some(&first), Some(&last)) = (landed.first(), landed.last()) else {
+        return f32::NAN;
+    };
+    let above = landed.partition_point(|&l| l < y);
+    let mut near = [above.checked_sub(1), Some(above)]
+        .into_iter()
+        .flatten()
+        .filter_map(|j| landed.get(j))
+        .map(|l| (l - y).abs())
+        .fold(f32::INFINITY, f32::min);
+    if let Some(p) = period {
+        near = near.min((first + p - y).abs()).min((y + p - last).abs());
+    }
+    near
+}
+
+/// Fractional row index of elevation `e` on the grid's rows (top row first),
+/// extended beyond the edges with the edge rows' spacing.
+fn row_position(px: &Pixels, e: f32) -> f32 {
+    let el = &px.row_elevation_rad;
+    let h = el.len();
+    let step = |a: usize, b: usize| {
+        let d = el[a] - el[b];
+        if d.abs() > 1e-6 { d } else { 1e-6 }
+    };
+    // Rows run from the highest elevation down.
+    let below = el.partition_point(|&x| x > e);
+    let (a, b) = match below {
+        0 => (0, 1),
+        k if k >= h => (h - 2, h - 1),
+        k => (k - 1, k),
+    };
+    a as f32 + (el[a] - e) / step(a, b)
+}
+
+fn gap_bin(gap: f32) -> Option<usize> {
+    gap.is_finite()
+        .then(|| ((gap / SHIFT_BIN) as usize).min(SHIFT_BINS - 1))
 }
 
 impl DropFamily for MotionRowsFamily {
@@ -545,8 +612,20 @@ impl DropFamily for MotionRowsFamily {
         SHIFT_BINS
     }
     fn bin(&self, px: &Pixels, i: usize) -> Option<usize> {
-        self.outward_shift(px, i)
-            .map(|x| ((x.max(0.0) / SHIFT_BIN) as usize).min(SHIFT_BINS - 1))
+        let gaps = self.scan_gaps(px, *px.scan.get(i)? as usize);
+        gap_bin(gaps[px.row[i] as usize * px.width + px.column[i] as usize])
+    }
+    fn bins_of(&self, px: &Pixels) -> Vec<Option<usize>> {
+        let gaps: Vec<Vec<f32>> = (0..px.scan_range_m.len())
+            .into_par_iter()
+            .map(|scan| self.scan_gaps(px, scan))
+            .collect();
+        (0..px.len())
+            .map(|i| {
+                let scan = gaps.get(*px.scan.get(i)? as usize)?;
+                gap_bin(scan[px.row[i] as usize * px.width + px.column[i] as usize])
+            })
+            .collect()
     }
     fn fit(&self, table: &QTable, _: &Pixels) -> Option<DropFit> {
         let grid_a: Vec<f32> = (0..=30).map(|i| 0.25 + 0.1 * i as f32).collect();
@@ -561,19 +640,30 @@ impl DropFamily for MotionRowsFamily {
         };
         let (a, b, drop_prob) = fit_curve(table, &grid_a, &grid_b, probs)?;
         let mut params = Map::new();
-        params.insert("shift_50_half_rows".into(), json!(round3(a.into())));
-        params.insert("width_half_rows".into(), json!(round3(b.into())));
+        params.insert("shift_50_half_pixels".into(), json!(round3(a.into())));
+        params.insert("width_half_pixels".into(), json!(round3(b.into())));
+        params.insert(
+            "motion_per_sweep_m".into(),
+            json!(round3(self.seam_shift_m.into())),
+        );
         Some(DropFit {
             drop_prob,
             params,
             physics: Map::new(),
-            n_params: 2,
+            // The motion per sweep is chosen by fit too.
+            n_params: 3,
             location: format!(
-                "the edge rows empty where the sweep ({}) shifts their returns outward by more than {a:.1} half rows (rows come from elevation)",
+                "pixels empty where the sweep ({}, {:.2} m per sweep) moves every return more than {a:.1} half pixels away from them: {}",
                 if self.counter_clockwise {
                     "counter-clockwise"
                 } else {
                     "clockwise"
+                },
+                self.seam_shift_m,
+                if self.rows_from_elevation {
+                    "columns spread apart near the sensor, rows at the edges and between the ground rows ahead (rows come from elevation)"
+                } else {
+                    "columns spread apart near the sensor"
                 }
             ),
         })
@@ -584,10 +674,10 @@ impl DropFamily for MotionRowsFamily {
 mod tests {
     use super::*;
 
-    /// Ground rows of a 4-row sensor (1 deg apart, -10 to -13 deg) 1.5 m up, 360
-    /// columns; pixels dropped where `dropped(shift)` says.
-    fn ground(dropped: impl Fn(f32) -> bool, motion: &MotionRowsFamily) -> Pixels {
-        let (h, w) = (4usize, 360usize);
+    /// One scan of ground rows (1 deg apart from -10 deg down) 1.5 m up, 360
+    /// columns; pixels dropped where `dropped(gap)` says.
+    fn ground(rows: usize, dropped: impl Fn(f32) -> bool, motion: &MotionRowsFamily) -> Pixels {
+        let (h, w) = (rows, 360usize);
         let mut px = Pixels {
             height: h,
             width: w,
@@ -597,59 +687,111 @@ mod tests {
                 .collect(),
             ..Default::default()
         };
+        let mut ranges = Vec::new();
         for row in 0..h {
             for j in 0..w {
                 px.row.push(row as u16);
                 px.column.push(j as u16);
-                px.range_m.push(1.5 / px.row_elevation_rad[row].abs().sin());
+                let r = 1.5 / px.row_elevation_rad[row].abs().sin();
+                px.range_m.push(r);
+                ranges.push(r);
                 px.cos_incidence.push(0.5);
                 px.class.push(0);
                 px.enclosure_px.push(0);
                 px.kept.push(true);
+                px.scan.push(0);
             }
         }
-        for i in 0..px.len() {
-            let shift = motion.outward_shift(&px, i);
-            px.kept[i] = !shift.is_some_and(&dropped);
+        px.scan_range_m.push(ranges);
+        let bins = motion.bins_of(&px);
+        for (i, b) in bins.iter().enumerate() {
+            let gap = b.map(|b| (b as f32 + 0.5) * SHIFT_BIN);
+            px.kept[i] = !gap.is_some_and(&dropped);
         }
         px
     }
 
+    fn gap_at(motion: &MotionRowsFamily, px: &Pixels, row: usize, az_deg: f32) -> f32 {
+        motion.scan_gaps(px, 0)[row * px.width + (180.0 - az_deg) as usize]
+    }
+
     #[test]
-    fn motion_empties_the_edge_rows_and_the_fit_finds_where() {
+    fn motion_empties_the_rows_no_beam_lands_in_and_the_fit_finds_where() {
         let motion = MotionRowsFamily {
             seam_shift_m: 0.8,
             counter_clockwise: true,
+            rows_from_elevation: true,
         };
-        let px = ground(|x| x > 1.0, &motion);
-        let shift = |row: u16, az: f32| {
-            let j = (180.0 - az) as u16;
-            let i = (0..px.len())
-                .find(|&i| px.row[i] == row && px.column[i] == j)
-                .unwrap();
-            motion.outward_shift(&px, i).unwrap()
-        };
+        let px = ground(8, |x| x > 1.0, &motion);
         // Straight behind, half a sweep in: returns 0.4 m farther, lifted by
-        // sin(13 deg) * 0.4 m / r, in half-rows of 0.5 deg (about 1.5).
-        let r = 1.5 / 13f32.to_radians().sin();
-        let expected = 13f32.to_radians().sin() * 0.4 / r / 0.5f32.to_radians();
-        assert!(
-            (shift(3, 179.5) - expected).abs() < 0.02,
-            "{}",
-            shift(3, 179.5)
-        );
-        // Ahead, returns come nearer: the bottom row's are pushed down, not out; the
-        // top row's too, and that row has nothing above to refill it.
-        assert!(shift(3, 30.5) < 0.0);
-        assert!(shift(0, 30.5) > 0.0);
-        // The row above empties only a full row later.
-        assert!(shift(2, 179.5) < shift(3, 179.5) - 1.0);
+        // sin(17 deg) * 0.4 m / r; the bottom row's nearest returns are its own.
+        let r = 1.5 / 17f32.to_radians().sin();
+        let lift = 17f32.to_radians().sin() * 0.4 / r / 1f32.to_radians();
+        let behind = gap_at(&motion, &px, 7, 179.5);
+        assert!((behind - 2.0 * lift).abs() < 0.05, "{behind} vs {}", 2.0 * lift);
+        // Ahead, late in the sweep, returns come nearer and move down, lower rows
+        // more: the top row has nothing above to refill it, and the rows spread.
+        assert!(gap_at(&motion, &px, 0, -30.5) > 0.0);
+        assert!(gap_at(&motion, &px, 7, -30.5) < gap_at(&motion, &px, 0, -30.5));
+        // Early in the sweep nothing has moved yet.
+        assert!((0..8).all(|row| gap_at(&motion, &px, row, 2.5) < 0.05));
+        // The bin and the per-pixel bin agree.
+        let i = px.len() - 1;
+        assert_eq!(motion.bin(&px, i), motion.bins_of(&px)[i]);
         let table = QTable::build(&motion, &px, &vec![1.0; px.len()]);
         let fit = motion.fit(&table, &px).unwrap();
-        let at = fit.params["shift_50_half_rows"].as_f64().unwrap();
+        let at = fit.params["shift_50_half_pixels"].as_f64().unwrap();
         assert!((0.8..=1.3).contains(&at), "shift_50 {at}");
         let dropped = px.kept.iter().filter(|k| !**k).count();
-        assert!((20..200).contains(&dropped), "{dropped} dropped");
+        assert!((20..1500).contains(&dropped), "{dropped} dropped");
+    }
+
+    #[test]
+    fn without_motion_every_row_is_covered() {
+        let still = MotionRowsFamily {
+            seam_shift_m: 0.0,
+            counter_clockwise: false,
+            rows_from_elevation: true,
+        };
+        let px = ground(8, |_| false, &still);
+        assert!(still.bins_of(&px).iter().all(|b| *b == Some(0)));
+    }
+
+    #[test]
+    fn with_beam_numbers_only_the_columns_spread() {
+        let motion = MotionRowsFamily {
+            seam_shift_m: 1.5,
+            counter_clockwise: true,
+            rows_from_elevation: false,
+        };
+        let px = ground(8, |_| false, &motion);
+        let gaps = motion.scan_gaps(&px, 0);
+        let row = |k: usize| &gaps[k * px.width..(k + 1) * px.width];
+        // Bottom row (4.9 m away), late in the sweep ahead: returns move sideways by up
+        // to ~1.5 m · sin φ / ρ, and the columns there spread by ~1.5 m / ρ (30 %), so
+        // some pixels have no return within half a column.
+        let ahead: Vec<f32> = row(7)[180..215].to_vec();
+        assert!(ahead.iter().any(|g| *g > 1.2), "{ahead:?}");
+        // Sideways (azimuth 90 deg) only the sweep's progress spreads them (~5 %), and
+        // rows never move.
+        assert!(row(7)[88..92].iter().all(|g| *g < 1.2), "{:?}", &row(7)[88..92]);
+        let moved_rows = MotionRowsFamily {
+            rows_from_elevation: true,
+            ..motion
+        };
+        let both = moved_rows.scan_gaps(&px, 0);
+        assert!(gaps.iter().zip(&both).all(|(a, b)| b >= a));
+    }
+
+    #[test]
+    fn row_positions_interpolate_and_extend_past_the_edges() {
+        let px = Pixels {
+            row_elevation_rad: vec![0.02, 0.0, -0.02],
+            ..Default::default()
+        };
+        assert!((row_position(&px, 0.01) - 0.5).abs() < 1e-4);
+        assert!((row_position(&px, -0.03) - 2.5).abs() < 1e-4);
+        assert!((row_position(&px, 0.04) + 1.0).abs() < 1e-4);
     }
 
     #[test]

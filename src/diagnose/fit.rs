@@ -148,6 +148,11 @@ pub struct Pixels {
     pub row_elevation_rad: Vec<f32>,
     /// Azimuth of each column, radians.
     pub column_azimuth_rad: Vec<f32>,
+    /// Which scan of `scan_range_m` each pixel comes from.
+    pub scan: Vec<u16>,
+    /// Each scan's whole completed range image (row-major, left-out pixels included):
+    /// the context of a pixel's column.
+    pub scan_range_m: Vec<Vec<f32>>,
 }
 
 impl Pixels {
@@ -168,6 +173,8 @@ impl Pixels {
             if f.height != px.height || f.width != px.width {
                 continue;
             }
+            let scan = px.scan_range_m.len() as u16;
+            px.scan_range_m.push(f.range_m.clone());
             for (k, enclosure) in enclosure_px(f).into_iter().enumerate() {
                 let r = f.range_m[k];
                 if r > reach_m || (r.is_nan() && f.elevation_rad[k] > open_above) {
@@ -181,6 +188,7 @@ impl Pixels {
                 px.class.push((f.class[k] & 0xffff) as u16);
                 px.kept.push(f.kept[k]);
                 px.enclosure_px.push(enclosure);
+                px.scan.push(scan);
             }
         }
         px
@@ -330,6 +338,11 @@ pub trait DropFamily: Sync {
     fn bins(&self, px: &Pixels) -> usize;
     /// Bin of pixel `i`, or None where the effect cannot act (unknown feature).
     fn bin(&self, px: &Pixels, i: usize) -> Option<usize>;
+    /// Every pixel's bin: a family whose feature comes from a pixel's context computes
+    /// it once per context here.
+    fn bins_of(&self, px: &Pixels) -> Vec<Option<usize>> {
+        (0..px.len()).map(|i| self.bin(px, i)).collect()
+    }
     /// Maximum-likelihood fit given the pooled table (None: nothing to fit).
     fn fit(&self, table: &QTable, px: &Pixels) -> Option<DropFit>;
     /// Whether the effect acts the same in every direction (sensor physics
@@ -368,8 +381,9 @@ impl QTable {
     pub fn build(family: &dyn DropFamily, px: &Pixels, rest_keep: &[f64]) -> Self {
         let bins = family.bins(px);
         let mut cells = vec![(0.0, 0.0, 0.0); bins * Q_LEVELS];
+        let of = family.bins_of(px);
         for (i, &q) in rest_keep.iter().enumerate() {
-            let Some(b) = family.bin(px, i).filter(|&b| b < bins) else {
+            let Some(b) = of[i].filter(|&b| b < bins) else {
                 continue;
             };
             let cell = &mut cells[b * Q_LEVELS + q_level(q)];
@@ -446,17 +460,15 @@ fn model_keep(
     c: f64,
     effects: &[(&dyn DropFamily, &DropFit)],
 ) -> Vec<f64> {
-    (0..px.len())
-        .map(|i| {
-            let mut k = c * baseline[i];
-            for (family, fit) in effects {
-                if let Some(b) = family.bin(px, i) {
-                    k *= 1.0 - fit.drop_prob.get(b).copied().unwrap_or(0.0);
-                }
+    let mut keep: Vec<f64> = baseline.iter().map(|b| c * b).collect();
+    for (family, fit) in effects {
+        for (k, b) in keep.iter_mut().zip(family.bins_of(px)) {
+            if let Some(b) = b {
+                *k *= 1.0 - fit.drop_prob.get(b).copied().unwrap_or(0.0);
             }
-            k.clamp(1e-12, KEEP_MAX)
-        })
-        .collect()
+        }
+    }
+    keep.iter().map(|k| k.clamp(1e-12, KEEP_MAX)).collect()
 }
 
 /// NLL of one pixel's kept/dropped state under keep probability `k`.
@@ -782,14 +794,13 @@ fn fit_given(
             .collect();
         let table = QTable::build(family, train, &rest);
         let f = family.fit(&table, train)?;
-        let with_effect: Vec<f64> = (0..train.len())
-            .map(|i| {
-                let p = family
-                    .bin(train, i)
-                    .and_then(|b| f.drop_prob.get(b))
-                    .copied()
-                    .unwrap_or(0.0);
-                rest_unit[i] * (1.0 - p)
+        let with_effect: Vec<f64> = family
+            .bins_of(train)
+            .into_iter()
+            .zip(&rest_unit)
+            .map(|(b, rest)| {
+                let p = b.and_then(|b| f.drop_prob.get(b)).copied().unwrap_or(0.0);
+                rest * (1.0 - p)
             })
             .collect();
         if fit_scale {

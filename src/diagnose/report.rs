@@ -7,6 +7,7 @@
 
 use serde::Serialize;
 use serde_json::{Map, Value};
+use rayon::prelude::*;
 
 use super::drop;
 use super::features::ScanFeatures;
@@ -444,7 +445,9 @@ pub fn diagnose(
 const MOTION: &str = "motion_distortion";
 
 /// The drop side of motion distortion, where the seam step found motion beyond the
-/// sim's: the sweep direction that fits the training scans better.
+/// sim's: the sweep direction, where rows come from and the motion per sweep that
+/// fit the training scans best. The seam's step sets the scale; the mask decides within it, because the
+/// step mixes moved and unmoved surfaces and its size trades off against their share.
 fn motion_rows(
     residual_fits: &[ResidualFit],
     baseline: &Baseline,
@@ -459,12 +462,20 @@ fn motion_rows(
         return None;
     }
     let base = baseline.keep_of(train);
-    [false, true]
-        .into_iter()
-        .map(|counter_clockwise| drop::MotionRowsFamily {
-            seam_shift_m: extra as f32,
-            counter_clockwise,
-        })
+    let mut candidates = Vec::new();
+    for counter_clockwise in [false, true] {
+        for rows_from_elevation in [false, true] {
+            for scale in MOTION_SCALES {
+                candidates.push(drop::MotionRowsFamily {
+                    seam_shift_m: (extra * scale) as f32,
+                    counter_clockwise,
+                    rows_from_elevation,
+                });
+            }
+        }
+    }
+    candidates
+        .into_par_iter()
         .filter_map(|family| {
             let table = fit::QTable::build(&family, train, &base);
             let nll = table.nll(&family.fit(&table, train)?.drop_prob);
@@ -473,6 +484,9 @@ fn motion_rows(
         .min_by(|a, b| a.0.total_cmp(&b.0))
         .map(|(_, family)| family)
 }
+
+/// Motion per sweep the drop mask may pick, as multiples of the seam's step.
+const MOTION_SCALES: [f64; 6] = [0.25, 0.35, 0.5, 0.7, 1.0, 1.4];
 
 /// Whether a recording carries semantic labels: at least 5 % of its returns
 /// have a class.
