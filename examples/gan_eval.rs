@@ -4,7 +4,8 @@
 //! the training set's own SWD against the same scans as the floor; plus each model's keep rate
 //! and a picture of samples (x_G) next to real scans; and the paper's 1-NNA (Chamfer distance
 //! on 2048 farthest-point-sampled points scaled by 1/80 m; 0.5 is ideal) between as many
-//! samples as held-out scans and those scans, with the training set's own as the floor.
+//! samples as held-out scans and those scans, with the training set's own as the floor; and
+//! each set's diversity (per-pixel standard deviation of x_G across its scans).
 //!
 //! ```text
 //! cargo run --release --example gan_eval -- --data ../shared/real_lidar \
@@ -87,6 +88,28 @@ fn summary(reports: &[SwdReport]) -> serde_json::Value {
 /// Points per scan for 1-NNA, as in the paper.
 const NNA_POINTS: usize = 2048;
 
+/// Diversity of a set of scans: the per-pixel standard deviation across the scans of
+/// x_G (network units, dropped rays at -1), averaged over pixels. A generator that
+/// ignores its latent code scores near 0; real scans of different places score high.
+fn pixel_std(images: &[&[f32]]) -> f64 {
+    let Some(n) = images.first().map(|i| i.len()) else {
+        return 0.0;
+    };
+    let k = images.len() as f64;
+    let total: f64 = (0..n)
+        .map(|p| {
+            let mean = images.iter().map(|i| f64::from(i[p])).sum::<f64>() / k;
+            let var = images
+                .iter()
+                .map(|i| (f64::from(i[p]) - mean).powi(2))
+                .sum::<f64>()
+                / k;
+            var.sqrt()
+        })
+        .sum();
+    total / n as f64
+}
+
 fn keep_rate(images: &[f32]) -> f64 {
     images.iter().filter(|v| **v > -1.0).count() as f64 / images.len().max(1) as f64
 }
@@ -127,10 +150,18 @@ fn main() -> Result<()> {
         &point_sets(&train_sub, &train.angles, NNA_POINTS),
         &heldout_points,
     );
-    let mut rows = vec![serde_json::json!({
-        "label": "training set (floor)", "images": train.len(), "swd": summary(&floor),
-        "keep_rate": keep_rate(&train.images), "one_nna": train_nna,
-    })];
+    let heldout_images: Vec<&[f32]> = heldout.images.chunks_exact(n).collect();
+    let mut rows = vec![
+        serde_json::json!({
+            "label": "held-out scans", "images": heldout.len(),
+            "diversity": pixel_std(&heldout_images),
+        }),
+        serde_json::json!({
+            "label": "training set (floor)", "images": train.len(), "swd": summary(&floor),
+            "keep_rate": keep_rate(&train.images), "one_nna": train_nna,
+            "diversity": pixel_std(&train_sub),
+        }),
+    ];
     let mut picture: Vec<Vec<f32>> = Vec::new();
     for (label, dir) in &args.models {
         let model = Model::load(dir.as_deref(), &device).with_context(|| label.clone())?;
@@ -177,6 +208,7 @@ fn main() -> Result<()> {
         rows.push(serde_json::json!({
             "label": label, "model": model.source, "arch": model.config.arch,
             "swd": summary(&reports), "keep_rate": kept, "one_nna": nna,
+            "diversity": pixel_std(&refs),
         }));
     }
     if let Some(png) = &args.png {

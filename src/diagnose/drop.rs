@@ -488,10 +488,11 @@ impl DropFamily for SelfOcclusionFamily {
 /// a car moving forward, the top rows ahead) and between ground rows ahead, which
 /// spread apart because nearer (lower) rows move more (`Δe ≈ sin²|e| · m / h` on flat
 /// ground). Built only when the seam's range step found motion; the motion per
-/// sweep is chosen by fit at the scale of the seam's step, and a two-parameter curve
-/// in the distance to the nearest landed return fits how much is lost. The sweep
-/// starts straight ahead; its direction and where rows come from are not in the
-/// data and are chosen by fit.
+/// sweep is chosen by fit at the scale of the seam's step. A pixel's feature is its
+/// distance to the nearest landed return along its column and along its row, and a
+/// two-parameter curve in each (either may be off) fits how much is lost: how many
+/// returns a sensor fires per column is not in the data. The sweep starts straight
+/// ahead; its direction and where rows come from are chosen by fit too.
 pub struct MotionRowsFamily {
     pub seam_shift_m: f32,
     /// Whether the sweep turns towards positive azimuth.
@@ -499,23 +500,22 @@ pub struct MotionRowsFamily {
     /// Whether rows come from elevation (and so move with it), not beam numbers.
     pub rows_from_elevation: bool,
 }
-/// Distance bins: 1/8 of half a pixel each, the last open-ended.
-const SHIFT_BIN: f32 = 0.125;
-const SHIFT_BINS: usize = 32;
+/// Distance bins per axis: a quarter of half a pixel each, the last open-ended.
+const GAP_BIN: f32 = 0.25;
+const GAP_BINS: usize = 16;
 
 impl MotionRowsFamily {
     /// For every pixel of one scan (row-major), the distance in half pixels from its
-    /// centre to the nearest landed return: along its column and along its row, the
-    /// larger of the two (NaN where its column or row has no range at all).
-    fn scan_gaps(&self, px: &Pixels, scan: usize) -> Vec<f32> {
+    /// centre to the nearest landed return along its column and along its row (NaN
+    /// where none lands in that column or row at all).
+    fn scan_gaps(&self, px: &Pixels, scan: usize) -> Vec<[f32; 2]> {
         let (h, w) = (px.height, px.width);
-        let mut gaps = vec![f32::NAN; h * w];
+        let mut gaps = vec![[f32::NAN; 2]; h * w];
         let Some(ranges) = px.scan_range_m.get(scan) else {
             return gaps;
         };
         let (elevation, azimuth) = (&px.row_elevation_rad, &px.column_azimuth_rad);
-        if h < 2 || w < 2 || elevation.len() != h || azimuth.len() != w || ranges.len() != h * w
-        {
+        if h < 2 || w < 2 || elevation.len() != h || azimuth.len() != w || ranges.len() != h * w {
             return gaps;
         }
         let column_step = std::f32::consts::TAU / w as f32;
@@ -530,12 +530,9 @@ impl MotionRowsFamily {
                 let turned = if self.counter_clockwise { phi } else { -phi };
                 let moved = self.seam_shift_m * turned.rem_euclid(std::f32::consts::TAU)
                     / std::f32::consts::TAU;
-                let row = if self.rows_from_elevation {
-                    row_position(px, e + e.sin() * moved * phi.cos() / r)
-                } else {
-                    k as f32
-                };
-                rows_at[c].push(row);
+                if self.rows_from_elevation {
+                    rows_at[c].push(row_position(px, e + e.sin() * moved * phi.cos() / r));
+                }
                 // Columns run from azimuth +180 deg down to -180 deg.
                 let d_phi = moved * phi.sin() / (r * e.cos()).max(0.1);
                 columns_at[k].push((c as f32 - d_phi / column_step).rem_euclid(w as f32));
@@ -546,12 +543,25 @@ impl MotionRowsFamily {
         }
         for k in 0..h {
             for c in 0..w {
-                let along_column = nearest(&rows_at[c], k as f32, None);
+                let along_column = if self.rows_from_elevation {
+                    nearest(&rows_at[c], k as f32, None)
+                } else {
+                    0.0
+                };
                 let along_row = nearest(&columns_at[k], c as f32, Some(w as f32));
-                gaps[k * w + c] = 2.0 * along_column.max(along_row);
+                gaps[k * w + c] = [2.0 * along_column, 2.0 * along_row];
             }
         }
         gaps
+    }
+
+    /// The direction in words.
+    fn sweep(&self) -> &'static str {
+        if self.counter_clockwise {
+            "counter-clockwise"
+        } else {
+            "clockwise"
+        }
     }
 }
 
@@ -593,9 +603,35 @@ fn row_position(px: &Pixels, e: f32) -> f32 {
     a as f32 + (el[a] - e) / step(a, b)
 }
 
-fn gap_bin(gap: f32) -> Option<usize> {
-    gap.is_finite()
-        .then(|| ((gap / SHIFT_BIN) as usize).min(SHIFT_BINS - 1))
+/// The (along-column, along-row) bin of a pixel's gaps, flattened.
+fn gap_bin([along_column, along_row]: [f32; 2]) -> Option<usize> {
+    let axis = |g: f32| {
+        g.is_finite()
+            .then(|| ((g / GAP_BIN) as usize).min(GAP_BINS - 1))
+    };
+    Some(axis(along_column)? * GAP_BINS + axis(along_row)?)
+}
+
+/// One axis's logistic curve over the gap bins (`a` infinite: off).
+fn gap_curve(a: f32, b: f32) -> Vec<f64> {
+    (0..GAP_BINS)
+        .map(|bin| {
+            let x = (bin as f32 + 0.5) * GAP_BIN;
+            if a.is_finite() {
+                1.0 / (1.0 + f64::from((a - x) / b).exp())
+            } else {
+                0.0
+            }
+        })
+        .collect()
+}
+
+/// Drop probability per flattened bin: either axis's curve may empty a pixel.
+fn gap_probs(column: &[f64], row: &[f64]) -> Vec<f64> {
+    column
+        .iter()
+        .flat_map(|pc| row.iter().map(move |pr| 1.0 - (1.0 - pc) * (1.0 - pr)))
+        .collect()
 }
 
 impl DropFamily for MotionRowsFamily {
@@ -609,14 +645,14 @@ impl DropFamily for MotionRowsFamily {
         "motion_distortion"
     }
     fn bins(&self, _: &Pixels) -> usize {
-        SHIFT_BINS
+        GAP_BINS * GAP_BINS
     }
     fn bin(&self, px: &Pixels, i: usize) -> Option<usize> {
         let gaps = self.scan_gaps(px, *px.scan.get(i)? as usize);
         gap_bin(gaps[px.row[i] as usize * px.width + px.column[i] as usize])
     }
     fn bins_of(&self, px: &Pixels) -> Vec<Option<usize>> {
-        let gaps: Vec<Vec<f32>> = (0..px.scan_range_m.len())
+        let gaps: Vec<Vec<[f32; 2]>> = (0..px.scan_range_m.len())
             .into_par_iter()
             .map(|scan| self.scan_gaps(px, scan))
             .collect();
@@ -627,21 +663,56 @@ impl DropFamily for MotionRowsFamily {
             })
             .collect()
     }
+    /// The two curves by coordinate descent, each over its grid given the other.
     fn fit(&self, table: &QTable, _: &Pixels) -> Option<DropFit> {
-        let grid_a: Vec<f32> = (0..=30).map(|i| 0.25 + 0.1 * i as f32).collect();
+        if table.bins != GAP_BINS * GAP_BINS {
+            return None;
+        }
+        let grid_a: Vec<f32> = std::iter::once(f32::INFINITY)
+            .chain((0..=30).map(|i| 0.25 + 0.1 * i as f32))
+            .collect();
         let grid_b = [0.05, 0.1, 0.2, 0.3, 0.5, 0.8];
-        let probs = |a: f32, b: f32| {
-            (0..SHIFT_BINS)
-                .map(|bin| {
-                    let x = (bin as f32 + 0.5) * SHIFT_BIN;
-                    1.0 / (1.0 + f64::from((a - x) / b).exp())
-                })
-                .collect()
-        };
-        let (a, b, drop_prob) = fit_curve(table, &grid_a, &grid_b, probs)?;
+        // (a, b) along columns, then along rows.
+        let mut curves = [(f32::INFINITY, 1.0f32); 2];
+        for _ in 0..3 {
+            for axis in [1, 0] {
+                if axis == 0 && !self.rows_from_elevation {
+                    continue;
+                }
+                let other = curves[1 - axis];
+                let other_probs = gap_curve(other.0, other.1);
+                let (a, b, _) = fit_curve(table, &grid_a, &grid_b, |a, b| {
+                    let this = gap_curve(a, b);
+                    if axis == 0 {
+                        gap_probs(&this, &other_probs)
+                    } else {
+                        gap_probs(&other_probs, &this)
+                    }
+                })?;
+                curves[axis] = (a, b);
+            }
+        }
+        let [column, row] = curves;
+        let drop_prob = gap_probs(&gap_curve(column.0, column.1), &gap_curve(row.0, row.1));
         let mut params = Map::new();
-        params.insert("shift_50_half_pixels".into(), json!(round3(a.into())));
-        params.insert("width_half_pixels".into(), json!(round3(b.into())));
+        let mut words = Vec::new();
+        for ((a, b), axis, what) in [
+            (
+                column,
+                "rows",
+                "rows at the edges and between the ground rows ahead (rows come from elevation)",
+            ),
+            (row, "columns", "columns spread apart near the sensor"),
+        ] {
+            if a.is_finite() {
+                params.insert(
+                    format!("{axis}_shift_50_half_pixels"),
+                    json!(round3(a.into())),
+                );
+                params.insert(format!("{axis}_width_half_pixels"), json!(round3(b.into())));
+                words.push(format!("{what}, beyond {a:.1} half pixels"));
+            }
+        }
         params.insert(
             "motion_per_sweep_m".into(),
             json!(round3(self.seam_shift_m.into())),
@@ -650,20 +721,16 @@ impl DropFamily for MotionRowsFamily {
             drop_prob,
             params,
             physics: Map::new(),
-            // The motion per sweep is chosen by fit too.
-            n_params: 3,
+            // Two per curve in use, and the motion per sweep, chosen by fit too.
+            n_params: 1 + 2 * words.len(),
             location: format!(
-                "pixels empty where the sweep ({}, {:.2} m per sweep) moves every return more than {a:.1} half pixels away from them: {}",
-                if self.counter_clockwise {
-                    "counter-clockwise"
-                } else {
-                    "clockwise"
-                },
+                "pixels empty where the sweep ({}, {:.2} m per sweep) moves every return away from them: {}",
+                self.sweep(),
                 self.seam_shift_m,
-                if self.rows_from_elevation {
-                    "columns spread apart near the sensor, rows at the edges and between the ground rows ahead (rows come from elevation)"
+                if words.is_empty() {
+                    "nowhere".to_string()
                 } else {
-                    "columns spread apart near the sensor"
+                    words.join("; ")
                 }
             ),
         })
@@ -675,8 +742,12 @@ mod tests {
     use super::*;
 
     /// One scan of ground rows (1 deg apart from -10 deg down) 1.5 m up, 360
-    /// columns; pixels dropped where `dropped(gap)` says.
-    fn ground(rows: usize, dropped: impl Fn(f32) -> bool, motion: &MotionRowsFamily) -> Pixels {
+    /// columns; pixels dropped where `dropped([along column, along row])` says.
+    fn ground(
+        rows: usize,
+        dropped: impl Fn([f32; 2]) -> bool,
+        motion: &MotionRowsFamily,
+    ) -> Pixels {
         let (h, w) = (rows, 360usize);
         let mut px = Pixels {
             height: h,
@@ -703,16 +774,21 @@ mod tests {
             }
         }
         px.scan_range_m.push(ranges);
-        let bins = motion.bins_of(&px);
-        for (i, b) in bins.iter().enumerate() {
-            let gap = b.map(|b| (b as f32 + 0.5) * SHIFT_BIN);
-            px.kept[i] = !gap.is_some_and(&dropped);
+        let gaps = motion.scan_gaps(&px, 0);
+        for (kept, gap) in px.kept.iter_mut().zip(gaps) {
+            *kept = !dropped(gap);
         }
         px
     }
 
-    fn gap_at(motion: &MotionRowsFamily, px: &Pixels, row: usize, az_deg: f32) -> f32 {
+    fn gap_at(motion: &MotionRowsFamily, px: &Pixels, row: usize, az_deg: f32) -> [f32; 2] {
         motion.scan_gaps(px, 0)[row * px.width + (180.0 - az_deg) as usize]
+    }
+
+    fn fitted(motion: &MotionRowsFamily, px: &Pixels, key: &str) -> Option<f64> {
+        let table = QTable::build(motion, px, &vec![1.0; px.len()]);
+        let fit = motion.fit(&table, px).unwrap();
+        fit.params.get(key).and_then(Value::as_f64)
     }
 
     #[test]
@@ -722,32 +798,34 @@ mod tests {
             counter_clockwise: true,
             rows_from_elevation: true,
         };
-        let px = ground(8, |x| x > 1.0, &motion);
+        let px = ground(8, |[rows, _]| rows > 1.0, &motion);
         // Straight behind, half a sweep in: returns 0.4 m farther, lifted by
         // sin(17 deg) * 0.4 m / r; the bottom row's nearest returns are its own.
         let r = 1.5 / 17f32.to_radians().sin();
         let lift = 17f32.to_radians().sin() * 0.4 / r / 1f32.to_radians();
-        let behind = gap_at(&motion, &px, 7, 179.5);
-        assert!((behind - 2.0 * lift).abs() < 0.05, "{behind} vs {}", 2.0 * lift);
+        let behind = gap_at(&motion, &px, 7, 179.5)[0];
+        assert!(
+            (behind - 2.0 * lift).abs() < 0.05,
+            "{behind} vs {}",
+            2.0 * lift
+        );
         // Ahead, late in the sweep, returns come nearer and move down, lower rows
         // more: the top row has nothing above to refill it, and the rows spread.
-        assert!(gap_at(&motion, &px, 0, -30.5) > 0.0);
-        assert!(gap_at(&motion, &px, 7, -30.5) < gap_at(&motion, &px, 0, -30.5));
+        assert!(gap_at(&motion, &px, 0, -30.5)[0] > 0.0);
+        assert!(gap_at(&motion, &px, 7, -30.5)[0] < gap_at(&motion, &px, 0, -30.5)[0]);
         // Early in the sweep nothing has moved yet.
-        assert!((0..8).all(|row| gap_at(&motion, &px, row, 2.5) < 0.05));
+        assert!((0..8).all(|row| gap_at(&motion, &px, row, 2.5)[0] < 0.05));
         // The bin and the per-pixel bin agree.
         let i = px.len() - 1;
         assert_eq!(motion.bin(&px, i), motion.bins_of(&px)[i]);
-        let table = QTable::build(&motion, &px, &vec![1.0; px.len()]);
-        let fit = motion.fit(&table, &px).unwrap();
-        let at = fit.params["shift_50_half_pixels"].as_f64().unwrap();
+        let at = fitted(&motion, &px, "rows_shift_50_half_pixels").unwrap();
         assert!((0.8..=1.3).contains(&at), "shift_50 {at}");
         let dropped = px.kept.iter().filter(|k| !**k).count();
         assert!((20..1500).contains(&dropped), "{dropped} dropped");
     }
 
     #[test]
-    fn without_motion_every_row_is_covered() {
+    fn without_motion_every_pixel_is_covered() {
         let still = MotionRowsFamily {
             seam_shift_m: 0.0,
             counter_clockwise: false,
@@ -764,23 +842,29 @@ mod tests {
             counter_clockwise: true,
             rows_from_elevation: false,
         };
-        let px = ground(8, |_| false, &motion);
+        let px = ground(8, |[_, columns]| columns > 1.0, &motion);
         let gaps = motion.scan_gaps(&px, 0);
-        let row = |k: usize| &gaps[k * px.width..(k + 1) * px.width];
+        let row = |k: usize| -> Vec<f32> {
+            gaps[k * px.width..(k + 1) * px.width]
+                .iter()
+                .map(|g| g[1])
+                .collect()
+        };
         // Bottom row (4.9 m away), late in the sweep ahead: returns move sideways by up
         // to ~1.5 m · sin φ / ρ, and the columns there spread by ~1.5 m / ρ (30 %), so
         // some pixels have no return within half a column.
-        let ahead: Vec<f32> = row(7)[180..215].to_vec();
-        assert!(ahead.iter().any(|g| *g > 1.2), "{ahead:?}");
+        assert!(row(7)[180..215].iter().any(|g| *g > 1.2), "{:?}", row(7));
         // Sideways (azimuth 90 deg) only the sweep's progress spreads them (~5 %), and
         // rows never move.
-        assert!(row(7)[88..92].iter().all(|g| *g < 1.2), "{:?}", &row(7)[88..92]);
-        let moved_rows = MotionRowsFamily {
-            rows_from_elevation: true,
-            ..motion
-        };
-        let both = moved_rows.scan_gaps(&px, 0);
-        assert!(gaps.iter().zip(&both).all(|(a, b)| b >= a));
+        assert!(
+            row(7)[88..92].iter().all(|g| *g < 1.2),
+            "{:?}",
+            &row(7)[88..92]
+        );
+        assert!(gaps.iter().all(|g| g[0] == 0.0));
+        let at = fitted(&motion, &px, "columns_shift_50_half_pixels").unwrap();
+        assert!((0.8..=1.3).contains(&at), "shift_50 {at}");
+        assert_eq!(fitted(&motion, &px, "rows_shift_50_half_pixels"), None);
     }
 
     #[test]

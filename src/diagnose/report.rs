@@ -5,9 +5,9 @@
 //! the numbers the report and its plots show. No I/O: the CLI reads the
 //! recordings and writes the report (`crate::report`).
 
+use rayon::prelude::*;
 use serde::Serialize;
 use serde_json::{Map, Value};
-use rayon::prelude::*;
 
 use super::drop;
 use super::features::ScanFeatures;
@@ -486,7 +486,7 @@ fn motion_rows(
 }
 
 /// Motion per sweep the drop mask may pick, as multiples of the seam's step.
-const MOTION_SCALES: [f64; 6] = [0.25, 0.35, 0.5, 0.7, 1.0, 1.4];
+const MOTION_SCALES: [f64; 9] = [0.25, 0.35, 0.5, 0.7, 1.0, 1.4, 2.0, 2.8, 4.0];
 
 /// Whether a recording carries semantic labels: at least 5 % of its returns
 /// have a class.
