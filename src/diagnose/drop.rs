@@ -9,7 +9,7 @@
 //! | `beam_dropout` | row | one free rate per row |
 //! | `material_dropout` | semantic class (labels, else neighbours' labels) | one free rate per class |
 //! | `self_occlusion` | (row, azimuth sector) in the lower half | per sector a "skyline" of blocked bottom rows and a probability |
-//! | `motion_distortion` (coverage) | distance from a pixel to the nearest return after the sweep's shift, in half pixels | logistic curve (shift_50, width); only where the seam step found motion |
+//! | `motion_distortion` (coverage) | distance to the nearest moved return along the pixel's column and along its row, in half pixels | a logistic curve per axis; only where the seam step found motion |
 
 use rayon::prelude::*;
 use serde_json::{Map, Value, json};
