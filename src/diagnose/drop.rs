@@ -493,8 +493,9 @@ impl DropFamily for SelfOcclusionFamily {
 /// two-parameter curve in each (either may be off) fits how much is lost: how many
 /// returns a sensor fires per column is not in the data. The sweep starts straight
 /// ahead; its direction and where rows come from are chosen by fit too.
-pub struct MotionRowsFamily {
-    pub seam_shift_m: f32,
+pub struct MotionCoverageFamily {
+    /// How far the sensor moves during one sweep.
+    pub motion_per_sweep_m: f32,
     /// Whether the sweep turns towards positive azimuth.
     pub counter_clockwise: bool,
     /// Whether rows come from elevation (and so move with it), not beam numbers.
@@ -504,7 +505,7 @@ pub struct MotionRowsFamily {
 const GAP_BIN: f32 = 0.25;
 const GAP_BINS: usize = 16;
 
-impl MotionRowsFamily {
+impl MotionCoverageFamily {
     /// For every pixel of one scan (row-major), the distance in half pixels from its
     /// centre to the nearest landed return along its column and along its row (NaN
     /// where none lands in that column or row at all).
@@ -528,7 +529,7 @@ impl MotionRowsFamily {
                     continue;
                 }
                 let turned = if self.counter_clockwise { phi } else { -phi };
-                let moved = self.seam_shift_m * turned.rem_euclid(std::f32::consts::TAU)
+                let moved = self.motion_per_sweep_m * turned.rem_euclid(std::f32::consts::TAU)
                     / std::f32::consts::TAU;
                 if self.rows_from_elevation {
                     rows_at[c].push(row_position(px, e + e.sin() * moved * phi.cos() / r));
@@ -634,7 +635,7 @@ fn gap_probs(column: &[f64], row: &[f64]) -> Vec<f64> {
         .collect()
 }
 
-impl DropFamily for MotionRowsFamily {
+impl DropFamily for MotionCoverageFamily {
     fn azimuth_invariant(&self) -> bool {
         false
     }
@@ -715,7 +716,7 @@ impl DropFamily for MotionRowsFamily {
         }
         params.insert(
             "motion_per_sweep_m".into(),
-            json!(round3(self.seam_shift_m.into())),
+            json!(round3(self.motion_per_sweep_m.into())),
         );
         Some(DropFit {
             drop_prob,
@@ -726,7 +727,7 @@ impl DropFamily for MotionRowsFamily {
             location: format!(
                 "pixels empty where the sweep ({}, {:.2} m per sweep) moves every return away from them: {}",
                 self.sweep(),
-                self.seam_shift_m,
+                self.motion_per_sweep_m,
                 if words.is_empty() {
                     "nowhere".to_string()
                 } else {
@@ -746,7 +747,7 @@ mod tests {
     fn ground(
         rows: usize,
         dropped: impl Fn([f32; 2]) -> bool,
-        motion: &MotionRowsFamily,
+        motion: &MotionCoverageFamily,
     ) -> Pixels {
         let (h, w) = (rows, 360usize);
         let mut px = Pixels {
@@ -781,11 +782,11 @@ mod tests {
         px
     }
 
-    fn gap_at(motion: &MotionRowsFamily, px: &Pixels, row: usize, az_deg: f32) -> [f32; 2] {
+    fn gap_at(motion: &MotionCoverageFamily, px: &Pixels, row: usize, az_deg: f32) -> [f32; 2] {
         motion.scan_gaps(px, 0)[row * px.width + (180.0 - az_deg) as usize]
     }
 
-    fn fitted(motion: &MotionRowsFamily, px: &Pixels, key: &str) -> Option<f64> {
+    fn fitted(motion: &MotionCoverageFamily, px: &Pixels, key: &str) -> Option<f64> {
         let table = QTable::build(motion, px, &vec![1.0; px.len()]);
         let fit = motion.fit(&table, px).unwrap();
         fit.params.get(key).and_then(Value::as_f64)
@@ -793,8 +794,8 @@ mod tests {
 
     #[test]
     fn motion_empties_the_rows_no_beam_lands_in_and_the_fit_finds_where() {
-        let motion = MotionRowsFamily {
-            seam_shift_m: 0.8,
+        let motion = MotionCoverageFamily {
+            motion_per_sweep_m: 0.8,
             counter_clockwise: true,
             rows_from_elevation: true,
         };
@@ -826,8 +827,8 @@ mod tests {
 
     #[test]
     fn without_motion_every_pixel_is_covered() {
-        let still = MotionRowsFamily {
-            seam_shift_m: 0.0,
+        let still = MotionCoverageFamily {
+            motion_per_sweep_m: 0.0,
             counter_clockwise: false,
             rows_from_elevation: true,
         };
@@ -837,8 +838,8 @@ mod tests {
 
     #[test]
     fn with_beam_numbers_only_the_columns_spread() {
-        let motion = MotionRowsFamily {
-            seam_shift_m: 1.5,
+        let motion = MotionCoverageFamily {
+            motion_per_sweep_m: 1.5,
             counter_clockwise: true,
             rows_from_elevation: false,
         };

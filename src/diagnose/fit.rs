@@ -149,7 +149,7 @@ pub struct Pixels {
     /// Azimuth of each column, radians.
     pub column_azimuth_rad: Vec<f32>,
     /// Which scan of `scan_range_m` each pixel comes from.
-    pub scan: Vec<u16>,
+    pub scan: Vec<u32>,
     /// Each scan's whole completed range image (row-major, left-out pixels included):
     /// the context of a pixel's column.
     pub scan_range_m: Vec<Vec<f32>>,
@@ -173,7 +173,7 @@ impl Pixels {
             if f.height != px.height || f.width != px.width {
                 continue;
             }
-            let scan = px.scan_range_m.len() as u16;
+            let scan = px.scan_range_m.len() as u32;
             px.scan_range_m.push(f.range_m.clone());
             for (k, enclosure) in enclosure_px(f).into_iter().enumerate() {
                 let r = f.range_m[k];

@@ -270,12 +270,12 @@ pub fn diagnose(
     let px_test = Pixels::collect(&test, reach_m);
     let baseline = Baseline::from_sim(&px_sim, reach_m);
     let boxed = drop::families();
-    let motion_rows = motion_rows(&residual_fits, &baseline, &px_train);
+    let motion_coverage = motion_coverage(&residual_fits, &baseline, &px_train);
     let families: Vec<&dyn DropFamily> = boxed
         .iter()
         .map(|b| b.as_ref())
         .filter(|f| unlabelled.is_empty() || f.id() != "material_dropout")
-        .chain(motion_rows.as_ref().map(|f| f as &dyn DropFamily))
+        .chain(motion_coverage.as_ref().map(|f| f as &dyn DropFamily))
         .collect();
     let selection = fit::select(
         &families,
@@ -289,10 +289,10 @@ pub fn diagnose(
     let mut effects = Vec::new();
     let mut fitted_physics = sim_physics.clone();
     // The rows motion empties are part of the motion effect the seam found.
-    let mut motion_rows_part: Option<(f64, String)> = None;
+    let mut motion_coverage_part: Option<(f64, String)> = None;
     for s in &selection.selected {
         if s.id == MOTION {
-            motion_rows_part = Some((s.gain(), s.fit.location.clone()));
+            motion_coverage_part = Some((s.gain(), s.fit.location.clone()));
             continue;
         }
         let mut location = s.fit.location.clone();
@@ -328,11 +328,11 @@ pub fn diagnose(
             residual_after += r.after_nll * n;
             let mut location = r.location.clone();
             let mut gain = r.gain() * n / test_pixels;
-            if let Some((rows_gain, rows_location)) =
-                motion_rows_part.take().filter(|_| r.id == MOTION)
+            if let Some((coverage_gain, coverage_location)) =
+                motion_coverage_part.take().filter(|_| r.id == MOTION)
             {
-                location.push_str(&format!("; {rows_location}"));
-                gain += rows_gain;
+                location.push_str(&format!("; {coverage_location}"));
+                gain += coverage_gain;
             }
             effects.push(EffectReport {
                 id: r.id.to_string(),
@@ -446,13 +446,14 @@ const MOTION: &str = "motion_distortion";
 
 /// The drop side of motion distortion, where the seam step found motion beyond the
 /// sim's: the sweep direction, where rows come from and the motion per sweep that
-/// fit the training scans best. The seam's step sets the scale; the mask decides within it, because the
-/// step mixes moved and unmoved surfaces and its size trades off against their share.
-fn motion_rows(
+/// fit the training scans best. The seam's step sets the scale; the mask decides
+/// within it, because the step mixes moved and unmoved surfaces and its size trades
+/// off against their share.
+fn motion_coverage(
     residual_fits: &[ResidualFit],
     baseline: &Baseline,
     train: &Pixels,
-) -> Option<drop::MotionRowsFamily> {
+) -> Option<drop::MotionCoverageFamily> {
     let motion = residual_fits
         .iter()
         .find(|r| r.id == MOTION && r.significant())?;
@@ -466,8 +467,8 @@ fn motion_rows(
     for counter_clockwise in [false, true] {
         for rows_from_elevation in [false, true] {
             for scale in MOTION_SCALES {
-                candidates.push(drop::MotionRowsFamily {
-                    seam_shift_m: (extra * scale) as f32,
+                candidates.push(drop::MotionCoverageFamily {
+                    motion_per_sweep_m: (extra * scale) as f32,
                     counter_clockwise,
                     rows_from_elevation,
                 });
