@@ -11,6 +11,10 @@
 //! | `self_occlusion` | (row, azimuth sector) in the lower half | per sector a "skyline" of blocked bottom rows and a probability |
 //! | `motion_distortion` (coverage) | distance to the nearest moved return along the pixel's column and along its row, in half pixels | a logistic curve per axis; only where the seam step found motion |
 
+use std::collections::HashMap;
+use std::hash::{DefaultHasher, Hash, Hasher};
+use std::sync::{Arc, Mutex};
+
 use rayon::prelude::*;
 use serde_json::{Map, Value, json};
 
@@ -500,12 +504,43 @@ pub struct MotionCoverageFamily {
     pub counter_clockwise: bool,
     /// Whether rows come from elevation (and so move with it), not beam numbers.
     pub rows_from_elevation: bool,
+    /// Bins already computed, by a fingerprint of the pixel set's content: the
+    /// selection asks for the same sets' bins in every round.
+    /// (`u16::MAX`: no bin)
+    bins_by_set: Mutex<HashMap<u64, Arc<Vec<u16>>>>,
 }
 /// Distance bins per axis: a quarter of half a pixel each, the last open-ended.
 const GAP_BIN: f32 = 0.25;
 const GAP_BINS: usize = 16;
 
 impl MotionCoverageFamily {
+    pub fn new(
+        motion_per_sweep_m: f32,
+        counter_clockwise: bool,
+        rows_from_elevation: bool,
+    ) -> Self {
+        Self {
+            motion_per_sweep_m,
+            counter_clockwise,
+            rows_from_elevation,
+            bins_by_set: Mutex::default(),
+        }
+    }
+
+    fn compute_bins(&self, px: &Pixels) -> Vec<u16> {
+        let gaps: Vec<Vec<[f32; 2]>> = (0..px.scan_range_m.len())
+            .into_par_iter()
+            .map(|scan| self.scan_gaps(px, scan))
+            .collect();
+        (0..px.len())
+            .map(|i| {
+                let scan = gaps.get(*px.scan.get(i)? as usize)?;
+                gap_bin(scan[px.row[i] as usize * px.width + px.column[i] as usize])
+            })
+            .map(|b| b.map_or(u16::MAX, |b| b as u16))
+            .collect()
+    }
+
     /// For every pixel of one scan (row-major), the distance in half pixels from its
     /// centre to the nearest landed return along its column and along its row (NaN
     /// where none lands in that column or row at all).
@@ -564,6 +599,20 @@ impl MotionCoverageFamily {
             "clockwise"
         }
     }
+}
+
+/// A hash of everything a pixel set's coverage bins depend on.
+fn fingerprint(px: &Pixels) -> u64 {
+    let mut h = DefaultHasher::new();
+    (px.height, px.width, &px.row, &px.column, &px.scan).hash(&mut h);
+    for v in [&px.row_elevation_rad, &px.column_azimuth_rad]
+        .into_iter()
+        .chain(&px.scan_range_m)
+    {
+        v.len().hash(&mut h);
+        v.iter().for_each(|x| x.to_bits().hash(&mut h));
+    }
+    h.finish()
 }
 
 /// Distance from `y` to the nearest of the sorted `landed` (on a circle of
@@ -653,15 +702,21 @@ impl DropFamily for MotionCoverageFamily {
         gap_bin(gaps[px.row[i] as usize * px.width + px.column[i] as usize])
     }
     fn bins_of(&self, px: &Pixels) -> Vec<Option<usize>> {
-        let gaps: Vec<Vec<[f32; 2]>> = (0..px.scan_range_m.len())
-            .into_par_iter()
-            .map(|scan| self.scan_gaps(px, scan))
-            .collect();
-        (0..px.len())
-            .map(|i| {
-                let scan = gaps.get(*px.scan.get(i)? as usize)?;
-                gap_bin(scan[px.row[i] as usize * px.width + px.column[i] as usize])
-            })
+        let key = fingerprint(px);
+        let cached = self
+            .bins_by_set
+            .lock()
+            .ok()
+            .and_then(|m| m.get(&key).cloned());
+        let bins = cached.unwrap_or_else(|| {
+            let bins = Arc::new(self.compute_bins(px));
+            if let Ok(mut m) = self.bins_by_set.lock() {
+                m.insert(key, bins.clone());
+            }
+            bins
+        });
+        bins.iter()
+            .map(|&b| (b != u16::MAX).then_some(usize::from(b)))
             .collect()
     }
     /// The two curves by coordinate descent, each over its grid given the other.
@@ -794,11 +849,7 @@ mod tests {
 
     #[test]
     fn motion_empties_the_rows_no_beam_lands_in_and_the_fit_finds_where() {
-        let motion = MotionCoverageFamily {
-            motion_per_sweep_m: 0.8,
-            counter_clockwise: true,
-            rows_from_elevation: true,
-        };
+        let motion = MotionCoverageFamily::new(0.8, true, true);
         let px = ground(8, |[rows, _]| rows > 1.0, &motion);
         // Straight behind, half a sweep in: returns 0.4 m farther, lifted by
         // sin(17 deg) * 0.4 m / r; the bottom row's nearest returns are its own.
@@ -827,22 +878,14 @@ mod tests {
 
     #[test]
     fn without_motion_every_pixel_is_covered() {
-        let still = MotionCoverageFamily {
-            motion_per_sweep_m: 0.0,
-            counter_clockwise: false,
-            rows_from_elevation: true,
-        };
+        let still = MotionCoverageFamily::new(0.0, false, true);
         let px = ground(8, |_| false, &still);
         assert!(still.bins_of(&px).iter().all(|b| *b == Some(0)));
     }
 
     #[test]
     fn with_beam_numbers_only_the_columns_spread() {
-        let motion = MotionCoverageFamily {
-            motion_per_sweep_m: 1.5,
-            counter_clockwise: true,
-            rows_from_elevation: false,
-        };
+        let motion = MotionCoverageFamily::new(1.5, true, false);
         let px = ground(8, |[_, columns]| columns > 1.0, &motion);
         let gaps = motion.scan_gaps(&px, 0);
         let row = |k: usize| -> Vec<f32> {

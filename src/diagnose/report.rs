@@ -467,11 +467,11 @@ fn motion_coverage(
     for counter_clockwise in [false, true] {
         for rows_from_elevation in [false, true] {
             for scale in MOTION_SCALES {
-                candidates.push(drop::MotionCoverageFamily {
-                    motion_per_sweep_m: (extra * scale) as f32,
+                candidates.push(drop::MotionCoverageFamily::new(
+                    (extra * scale) as f32,
                     counter_clockwise,
                     rows_from_elevation,
-                });
+                ));
             }
         }
     }
