@@ -867,9 +867,13 @@ mod tests {
         assert!(gap_at(&motion, &px, 7, -30.5)[0] < gap_at(&motion, &px, 0, -30.5)[0]);
         // Early in the sweep nothing has moved yet.
         assert!((0..8).all(|row| gap_at(&motion, &px, row, 2.5)[0] < 0.05));
-        // The bin and the per-pixel bin agree.
+        // The bin and the per-pixel bin agree, and the kept bins belong to their set.
         let i = px.len() - 1;
         assert_eq!(motion.bin(&px, i), motion.bins_of(&px)[i]);
+        let other = ground(6, |_| false, &motion);
+        let fresh = MotionCoverageFamily::new(0.8, true, true);
+        assert_eq!(motion.bins_of(&other), fresh.bins_of(&other));
+        assert_eq!(motion.bins_of(&px), fresh.bins_of(&px));
         let at = fitted(&motion, &px, "rows_shift_50_half_pixels").unwrap();
         assert!((0.8..=1.3).contains(&at), "shift_50 {at}");
         let dropped = px.kept.iter().filter(|k| !**k).count();
