@@ -533,10 +533,7 @@ impl MotionCoverageFamily {
             .map(|scan| self.scan_gaps(px, scan))
             .collect();
         (0..px.len())
-            .map(|i| {
-                let scan = gaps.get(*px.scan.get(i)? as usize)?;
-                gap_bin(scan[px.row[i] as usize * px.width + px.column[i] as usize])
-            })
+            .map(|i| gap_bin(gaps.get(*px.scan.get(i)? as usize)?[in_scan(px, i)]))
             .map(|b| b.map_or(u16::MAX, |b| b as u16))
             .collect()
     }
@@ -555,22 +552,31 @@ impl MotionCoverageFamily {
             return gaps;
         }
         let column_step = std::f32::consts::TAU / w as f32;
+        // Per column: how far the sensor has moved when it fires there, and the
+        // heading's components along the ray and across it.
+        let columns: Vec<(f32, f32, f32)> = azimuth
+            .iter()
+            .map(|&phi| {
+                let turned = if self.counter_clockwise { phi } else { -phi };
+                let moved = self.motion_per_sweep_m * turned.rem_euclid(std::f32::consts::TAU)
+                    / std::f32::consts::TAU;
+                (moved, phi.cos(), phi.sin())
+            })
+            .collect();
         let mut rows_at: Vec<Vec<f32>> = vec![Vec::new(); w];
         let mut columns_at: Vec<Vec<f32>> = vec![Vec::new(); h];
         for (k, &e) in elevation.iter().enumerate() {
-            for (c, &phi) in azimuth.iter().enumerate() {
+            let (sin_e, cos_e) = e.sin_cos();
+            for (c, &(moved, cos_phi, sin_phi)) in columns.iter().enumerate() {
                 let r = ranges[k * w + c];
                 if !(r.is_finite() && r > 0.1) {
                     continue;
                 }
-                let turned = if self.counter_clockwise { phi } else { -phi };
-                let moved = self.motion_per_sweep_m * turned.rem_euclid(std::f32::consts::TAU)
-                    / std::f32::consts::TAU;
                 if self.rows_from_elevation {
-                    rows_at[c].push(row_position(px, e + e.sin() * moved * phi.cos() / r));
+                    rows_at[c].push(row_position(px, e + sin_e * moved * cos_phi / r));
                 }
                 // Columns run from azimuth +180 deg down to -180 deg.
-                let d_phi = moved * phi.sin() / (r * e.cos()).max(0.1);
+                let d_phi = moved * sin_phi / (r * cos_e).max(0.1);
                 columns_at[k].push((c as f32 - d_phi / column_step).rem_euclid(w as f32));
             }
         }
@@ -599,6 +605,11 @@ impl MotionCoverageFamily {
             "clockwise"
         }
     }
+}
+
+/// Pixel `i`'s index in its scan's row-major image.
+fn in_scan(px: &Pixels, i: usize) -> usize {
+    px.row[i] as usize * px.width + px.column[i] as usize
 }
 
 /// A hash of everything a pixel set's coverage bins depend on.
@@ -698,8 +709,7 @@ impl DropFamily for MotionCoverageFamily {
         GAP_BINS * GAP_BINS
     }
     fn bin(&self, px: &Pixels, i: usize) -> Option<usize> {
-        let gaps = self.scan_gaps(px, *px.scan.get(i)? as usize);
-        gap_bin(gaps[px.row[i] as usize * px.width + px.column[i] as usize])
+        gap_bin(self.scan_gaps(px, *px.scan.get(i)? as usize)[in_scan(px, i)])
     }
     fn bins_of(&self, px: &Pixels) -> Vec<Option<usize>> {
         let key = fingerprint(px);
