@@ -114,11 +114,23 @@ impl ScanFeatures {
         let (mut range_m, class) = neighbour_fill(&grid, image, &kept, options.fill_passes);
         // Holes spanned by one surface get its geometry back, so their normals
         // (the incidence features) are not the flat patches a fill makes.
+        let mut bridged = vec![false; n];
         for (k, r) in bridge_fill(&grid, image, &kept, options.bridge_gap_px)
             .into_iter()
             .enumerate()
         {
             if r.is_finite() {
+                range_m[k] = r;
+                bridged[k] = true;
+            }
+        }
+        // Inside wide holes near the ground, where nothing bridges, the ground
+        // and the walls standing on it are a better guess than a copied range.
+        for (k, r) in ground_wall_fill(&grid, image, &kept)
+            .into_iter()
+            .enumerate()
+        {
+            if r.is_finite() && range_m[k].is_finite() && !bridged[k] {
                 range_m[k] = r;
             }
         }
@@ -336,6 +348,85 @@ fn bridge_fill(grid: &Grid, image: &RangeImage, kept: &[bool], max_gap: usize) -
             &|p| image.angles.elevation_rad[pixels[p]],
             &|xa, ua, xb, ub, x| (ua * (xb - x).sin() + ub * (x - xa).sin()) / (xb - xa).sin(),
         );
+    }
+    range
+}
+
+/// Returns below the sensor at least this far (m) may be ground.
+const MIN_GROUND_DEPTH_M: f32 = 0.2;
+/// A return lies on the ground when its height is within this share of the
+/// ground's depth below the sensor (at least [`MIN_GROUND_DEPTH_M`]).
+const GROUND_TOLERANCE: f32 = 0.15;
+
+/// The ground's depth below the sensor: the 80th percentile over the bottom two
+/// rows' returns below the sensor (the ground is the lowest surface; cars and
+/// kerbs stand above it), None with fewer than 20 of them.
+fn ground_depth_m(image: &RangeImage, kept: &[bool]) -> Option<f32> {
+    let first = image.len().saturating_sub(2 * image.width);
+    let mut depths: Vec<f32> = (first..image.len())
+        .filter(|&k| kept[k])
+        .map(|k| -image.range_m[k] * image.angles.elevation_rad[k].sin())
+        .filter(|d| d.is_finite() && *d > MIN_GROUND_DEPTH_M)
+        .collect();
+    if depths.len() < 20 {
+        return None;
+    }
+    let i = depths.len() * 4 / 5;
+    Some(*depths.select_nth_unstable_by(i, f32::total_cmp).1)
+}
+
+/// Completes dropped rays below the horizon in a world of a level ground and
+/// walls standing on it: a ray whose nearest return below it in its column lies
+/// on the ground hits the ground at that return's depth, unless the nearest
+/// return above it stands nearer than that ground point (then it hits that
+/// wall). NaN where the column shows no ground below the ray.
+fn ground_wall_fill(grid: &Grid, image: &RangeImage, kept: &[bool]) -> Vec<f32> {
+    let n = kept.len();
+    let mut range = vec![f32::NAN; n];
+    let Some(ground) = ground_depth_m(image, kept) else {
+        return range;
+    };
+    let tolerance = (GROUND_TOLERANCE * ground).max(MIN_GROUND_DEPTH_M);
+    let elevation = |k: usize| image.angles.elevation_rad[k];
+    for j in 0..grid.w {
+        let column: Vec<usize> = (0..grid.h).map(|i| i * grid.w + j).collect();
+        // Nearest return above each pixel: (range, elevation).
+        let mut above: Option<(f32, f32)> = None;
+        let mut nearest_above = vec![None; grid.h];
+        for (i, &k) in column.iter().enumerate() {
+            nearest_above[i] = above;
+            if kept[k] {
+                above = Some((image.range_m[k], elevation(k)));
+            }
+        }
+        // Never farther than the column's farthest return: beyond it the ground
+        // may have been out of reach, which the fill must not decide.
+        let farthest = column
+            .iter()
+            .filter(|&&k| kept[k])
+            .map(|&k| image.range_m[k])
+            .fold(0.0f32, f32::max);
+        let mut below_depth: Option<f32> = None;
+        for (i, &k) in column.iter().enumerate().rev() {
+            if kept[k] {
+                let depth = -image.range_m[k] * elevation(k).sin();
+                below_depth = ((depth - ground).abs() <= tolerance).then_some(depth);
+                continue;
+            }
+            let (Some(depth), e) = (below_depth, elevation(k)) else {
+                continue;
+            };
+            if e >= 0.0 {
+                continue;
+            }
+            let ground_r = depth / (-e).sin();
+            let wall_r = nearest_above[i]
+                .map(|(r, ea)| r * ea.cos() / e.cos())
+                .filter(|&r| r < ground_r);
+            if let Some(r) = wall_r.or((ground_r <= farthest).then_some(ground_r)) {
+                range[k] = r;
+            }
+        }
     }
     range
 }
@@ -595,6 +686,84 @@ mod tests {
             let expected = std::f32::consts::FRAC_PI_2 + img.angles.elevation_rad[k];
             assert!((f.incidence_rad[k] - expected).abs() < 0.02, "k={k}");
         }
+    }
+
+    /// Checks the completed range and incidence of every completed pixel of `hole`.
+    fn assert_completed_as(
+        f: &ScanFeatures,
+        truth: &[f32],
+        expected_incidence: &[f32],
+        hole: &[usize],
+    ) {
+        let mut checked = 0;
+        for &k in hole {
+            if f.range_m[k].is_nan() {
+                continue; // beyond the neighbour fill's reach: no geometry
+            }
+            let rel = (f.range_m[k] - truth[k]).abs() / truth[k];
+            assert!(rel < 1e-3, "k={k}: {} vs {}", f.range_m[k], truth[k]);
+            assert!(
+                (f.incidence_rad[k] - expected_incidence[k]).abs() < 0.05,
+                "k={k}: incidence {} vs {}",
+                f.incidence_rad[k],
+                expected_incidence[k]
+            );
+            checked += 1;
+        }
+        assert!(
+            checked >= hole.len() / 3,
+            "only {checked} of {} completed",
+            hole.len()
+        );
+    }
+
+    #[test]
+    fn wide_holes_in_the_ground_are_completed_as_ground() {
+        // Too tall and too wide for a bridge: rows 4-21 over 60 columns dropped.
+        let w = 256;
+        let mut img = ground_image(24, w, 1.7);
+        let truth = img.range_m.clone();
+        let hole: Vec<usize> = (4..22)
+            .flat_map(|i| (20..80).map(move |j| i * w + j))
+            .collect();
+        for &k in &hole {
+            img.range_m[k] = 0.0;
+        }
+        let f = ScanFeatures::from_image(&img, &FeatureOptions::default());
+        let grazing: Vec<f32> = (0..img.len())
+            .map(|k| std::f32::consts::FRAC_PI_2 + img.angles.elevation_rad[k])
+            .collect();
+        assert_completed_as(&f, &truth, &grazing, &hole);
+    }
+
+    #[test]
+    fn holes_under_a_wall_are_completed_as_the_wall() {
+        // A wall 6 m away over columns 100-159 stands on the ground (rows 0-11 see
+        // it, rows 12 and below the ground in front of it); the wall's rows 5-11
+        // are dropped there, too tall and wide for a bridge.
+        let (h, w, depth, wall_m) = (24, 256, 1.7f32, 6.0f32);
+        let mut img = ground_image(h, w, depth);
+        let mut facing = vec![0.0f32; h * w];
+        for (k, incidence) in facing.iter_mut().enumerate() {
+            let (j, e) = (k % w, img.angles.elevation_rad[k]);
+            let on_wall = (100..160).contains(&j) && depth / (-e).tan() > wall_m;
+            *incidence = if on_wall {
+                img.range_m[k] = wall_m / e.cos();
+                // A vertical wall facing the sensor: incidence = |elevation|.
+                -e
+            } else {
+                std::f32::consts::FRAC_PI_2 + e
+            };
+        }
+        let truth = img.range_m.clone();
+        let hole: Vec<usize> = (5..12)
+            .flat_map(|i| (100..160).map(move |j| i * w + j))
+            .collect();
+        for &k in &hole {
+            img.range_m[k] = 0.0;
+        }
+        let f = ScanFeatures::from_image(&img, &FeatureOptions::default());
+        assert_completed_as(&f, &truth, &facing, &hole);
     }
 
     #[test]
