@@ -2,9 +2,10 @@
 //! real or a simulated scan projected onto a [`RangeImage`].
 //!
 //! This module owns the cheap geometry that the drop-rate comparisons condition
-//! on: a completion of dropped pixels (holes bridged along their surface and a
-//! cheap neighbour fill, or a completed depth given by the caller: the GAN's x_d,
-//! see `completion`), incidence angles from the normals of the completed depth,
+//! on: a completion of dropped pixels (holes bridged along their surface, wide
+//! holes near the ground completed as ground and walls, and a cheap neighbour
+//! fill, or a completed depth given by the caller: the GAN's x_d, see
+//! `completion`), incidence angles from the normals of the completed depth,
 //! depth-edge proximity, and classes (labels where present, else the most common
 //! label among valid neighbours). It does no statistics (see `stats`) and no I/O.
 
