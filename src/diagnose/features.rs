@@ -380,7 +380,8 @@ fn ground_depth_m(image: &RangeImage, kept: &[bool]) -> Option<f32> {
 /// walls standing on it: a ray whose nearest return below it in its column lies
 /// on the ground hits the ground at that return's depth, unless the nearest
 /// return above it stands nearer than that ground point (then it hits that
-/// wall). NaN where the column shows no ground below the ray.
+/// wall). NaN where the column shows no ground below the ray, and where that
+/// ground lies beyond the column's farthest return.
 fn ground_wall_fill(grid: &Grid, image: &RangeImage, kept: &[bool]) -> Vec<f32> {
     let n = kept.len();
     let mut range = vec![f32::NAN; n];
@@ -400,8 +401,8 @@ fn ground_wall_fill(grid: &Grid, image: &RangeImage, kept: &[bool]) -> Vec<f32> 
                 above = Some((image.range_m[k], elevation(k)));
             }
         }
-        // Never farther than the column's farthest return: beyond it the ground
-        // may have been out of reach, which the fill must not decide.
+        // Beyond the column's farthest return the ground may have been out of
+        // reach, which the fill must not decide.
         let farthest = column
             .iter()
             .filter(|&&k| kept[k])
