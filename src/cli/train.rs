@@ -122,6 +122,10 @@ pub struct TrainArgs {
     /// of the time per training image.
     #[arg(long, conflicts_with = "reference_size")]
     pub half_resolution_discriminator: bool,
+    /// With `--init-from`: train only the generator's ray-drop logit (starting from its EMA
+    /// weights); its depth x_d, and so an encoder trained for it, stays as it was.
+    #[arg(long, requires = "init_from")]
+    pub drop_head_only: bool,
 }
 
 pub fn run_train(global: &GlobalArgs, args: TrainArgs) -> anyhow::Result<Outcome> {
@@ -149,6 +153,14 @@ pub fn run_train(global: &GlobalArgs, args: TrainArgs) -> anyhow::Result<Outcome
     }
     if let Some(b) = args.batch {
         config = config.with_batch_size(b);
+    }
+    if args.drop_head_only {
+        anyhow::ensure!(
+            config.arch == Arch::Dusty2,
+            "--drop-head-only needs a dusty2 generator (the run in --init-from is {:?})",
+            config.arch
+        );
+        config = config.with_drop_head_only(true);
     }
     if let Some(s) = args.run.seed {
         config = config.with_seed(s);

@@ -155,6 +155,11 @@ pub struct TrainConfig {
     pub log_every_steps: u64,
     #[config(default = 2)]
     pub seed: u64,
+    /// Train only the generator's ray-drop logit (the second output of every block's
+    /// head); its depth, synthesis layers and mapping stay frozen. For fine-tuning the
+    /// drop model of a pretrained generator on real drop masks without touching x_d.
+    #[config(default = false)]
+    pub drop_head_only: bool,
 }
 
 /// How to run training (not part of the saved config).
@@ -351,7 +356,7 @@ impl Trainer {
                 serde_json::to_value(&c.discriminator).ok()
                     == serde_json::to_value(&config.discriminator).ok()
             });
-            (g, g_ema, d) = init_from(src, g, g_ema, d, same_d)?;
+            (g, g_ema, d) = init_from(src, g, g_ema, d, same_d, config.drop_head_only)?;
             std::fs::write(
                 opts.run_dir.join("init_from.json"),
                 serde_json::to_string_pretty(&serde_json::json!({
@@ -578,7 +583,14 @@ impl Trainer {
         let w: Option<Vec<Tensor<2>>> = g_parts.iter().map(|p| p.2.clone()).collect();
         let w = w.map(|w| Tensor::cat(w, 0));
         let grads = mean_grads(&self.g, g_parts.into_iter().map(|p| p.0).collect());
+        let grads = if cfg.drop_head_only {
+            drop_head_grads(&self.g, grads)
+        } else {
+            grads
+        };
         let g = self.opt_g.step(cfg.lr, self.g.clone(), grads);
+        // A frozen mapping keeps its w average too: the decode starts from it.
+        let w = w.filter(|_| !cfg.drop_head_only);
         self.g = match (g, w) {
             (AnyGenerator::Implicit(mut generator), Some(w)) => {
                 generator.mapping = generator.mapping.track_w_avg(&w);
@@ -674,20 +686,23 @@ impl Trainer {
 
 /// The weights of a fine-tuning run's start: from a training run's checkpoint (G, EMA G,
 /// and D where `load_d`), or from a model directory (`g_ema.bpk`: G and EMA G). A D not
-/// loaded keeps its fresh weights.
+/// loaded keeps its fresh weights. `g_from_ema`: G starts as the EMA generator too, so
+/// whatever training leaves frozen stays the EMA's.
 fn init_from(
     src: &Path,
     g: AnyGenerator,
     g_ema: AnyGenerator,
     d: Discriminator,
     load_d: bool,
+    g_from_ema: bool,
 ) -> Result<(AnyGenerator, AnyGenerator, Discriminator)> {
     let err = |what: &str, e: burn::store::RecordError| {
         anyhow::anyhow!("failed to load {what} from '{}': {e}", src.display())
     };
     let ck = src.join(CHECKPOINT);
     if ck.join("g.bpk").exists() {
-        let g = g.try_load_file(ck.join("g.bpk")).map_err(|e| err("g", e))?;
+        let g_file = if g_from_ema { "g_ema.bpk" } else { "g.bpk" };
+        let g = g.try_load_file(ck.join(g_file)).map_err(|e| err("g", e))?;
         let g_ema = g_ema
             .try_load_file(ck.join("g_ema.bpk"))
             .map_err(|e| err("g_ema", e))?;
@@ -817,6 +832,37 @@ fn d_part(
 
 /// The mean of the parts' gradients (each part's loss is a mean over its samples, so
 /// the mean is the whole batch's gradient).
+/// The gradients of the ray-drop logit alone: each synthesis block's head keeps the
+/// gradient of its second output row (weight and bias), everything else has none, so
+/// Adam leaves it exactly as it is.
+fn drop_head_grads(g: &AnyGenerator, mut grads: GradientsParams) -> GradientsParams {
+    let mut out = GradientsParams::new();
+    let AnyGenerator::Implicit(generator) = g else {
+        return out;
+    };
+    for head in generator.blocks.iter().map(|b| &b.head) {
+        if let Some(w) = grads.remove::<2>(head.weight.id) {
+            let [rows, cols] = w.dims();
+            let mask: Vec<f32> = (0..rows * cols)
+                .map(|i| if i / cols == 1 { 1.0 } else { 0.0 })
+                .collect();
+            out.register(
+                head.weight.id,
+                w.clone() * tensor_from(mask, [rows, cols], &w.device()),
+            );
+        }
+        if let Some(b) = grads.remove::<1>(head.bias.id) {
+            let n = b.dims()[0];
+            let mask: Vec<f32> = (0..n).map(|i| if i == 1 { 1.0 } else { 0.0 }).collect();
+            out.register(
+                head.bias.id,
+                b.clone() * tensor_from(mask, [n], &b.device()),
+            );
+        }
+    }
+    out
+}
+
 fn mean_grads<M: Module>(module: &M, parts: Vec<GradientsParams>) -> GradientsParams {
     struct Mean {
         parts: Vec<GradientsParams>,
@@ -1001,6 +1047,20 @@ pub fn ema_update<M: Module>(ema: M, g: &M, beta: f32) -> M {
 mod tests {
     use super::*;
     use crate::lidar::SensorProfile;
+    use burn::module::ParamId;
+
+    /// Every float parameter of a generator, in visiting order, with its id.
+    fn generator_values(g: &AnyGenerator) -> Vec<(ParamId, Vec<f32>)> {
+        struct Values(Vec<(ParamId, Vec<f32>)>);
+        impl ModuleVisitor for Values {
+            fn visit_float<const D: usize>(&mut self, param: &Param<Tensor<D>>) {
+                self.0.push((param.id, tensor_to_vec(param.val().inner())));
+            }
+        }
+        let mut v = Values(Vec::new());
+        g.visit(&mut v);
+        v.0
+    }
 
     #[test]
     fn backends_parse_by_name_and_the_cpu_ones_always_exist() {
@@ -1313,6 +1373,40 @@ mod tests {
                 .with_channels(vec![4, 8]),
         );
         Trainer::new(&half_d, &other, &data).expect("init from run with another discriminator");
+        // Fine-tuning the ray-drop logit alone: a few steps change the second row of the
+        // heads and nothing else of the generator.
+        let drop_only = TrainOptions {
+            run_dir: dir.path().join("fine-tune-drop-head"),
+            ..ft.clone()
+        };
+        std::fs::create_dir_all(&drop_only.run_dir).expect("mkdir");
+        let cfg = ft.config.clone().with_drop_head_only(true).with_lr(0.05);
+        let mut t = Trainer::new(&cfg, &drop_only, &data).expect("init from run");
+        let before = generator_values(&t.g);
+        for _ in 0..3 {
+            t.step(&data).expect("step");
+        }
+        let after = generator_values(&t.g);
+        let AnyGenerator::Implicit(generator) = &t.g else {
+            panic!("dusty2 run")
+        };
+        let heads: Vec<ParamId> = generator
+            .blocks
+            .iter()
+            .flat_map(|b| [b.head.weight.id, b.head.bias.id])
+            .collect();
+        let mut drop_rows_moved = false;
+        for ((id, a), (_, b)) in before.iter().zip(&after) {
+            if !heads.contains(id) {
+                assert_eq!(a, b, "a frozen parameter moved");
+                continue;
+            }
+            // [2, d] or [2]: the first half is the depth row, the second the drop logit.
+            let half = a.len() / 2;
+            assert_eq!(a[..half], b[..half], "the depth output of a head moved");
+            drop_rows_moved |= a[half..] != b[half..];
+        }
+        assert!(drop_rows_moved, "the drop logit did not train");
         // Sampling from the run, on the training grid and on a 2x denser one.
         let mut sopts = super::super::sample::SampleOptions {
             n: 3,
