@@ -830,8 +830,9 @@ fn d_part(
     }
 }
 
-/// The mean of the parts' gradients (each part's loss is a mean over its samples, so
-/// the mean is the whole batch's gradient).
+/// The keep logit's output row in a generator head (row 0 is x_d before tanh).
+const KEEP_LOGIT: usize = 1;
+
 /// The gradients of the ray-drop logit alone: each synthesis block's head keeps the
 /// gradient of its second output row (weight and bias), everything else has none, so
 /// Adam leaves it exactly as it is.
@@ -844,7 +845,7 @@ fn drop_head_grads(g: &AnyGenerator, mut grads: GradientsParams) -> GradientsPar
         if let Some(w) = grads.remove::<2>(head.weight.id) {
             let [rows, cols] = w.dims();
             let mask: Vec<f32> = (0..rows * cols)
-                .map(|i| if i / cols == 1 { 1.0 } else { 0.0 })
+                .map(|i| if i / cols == KEEP_LOGIT { 1.0 } else { 0.0 })
                 .collect();
             out.register(
                 head.weight.id,
@@ -853,7 +854,9 @@ fn drop_head_grads(g: &AnyGenerator, mut grads: GradientsParams) -> GradientsPar
         }
         if let Some(b) = grads.remove::<1>(head.bias.id) {
             let n = b.dims()[0];
-            let mask: Vec<f32> = (0..n).map(|i| if i == 1 { 1.0 } else { 0.0 }).collect();
+            let mask: Vec<f32> = (0..n)
+                .map(|i| if i == KEEP_LOGIT { 1.0 } else { 0.0 })
+                .collect();
             out.register(
                 head.bias.id,
                 b.clone() * tensor_from(mask, [n], &b.device()),
@@ -863,6 +866,8 @@ fn drop_head_grads(g: &AnyGenerator, mut grads: GradientsParams) -> GradientsPar
     out
 }
 
+/// The mean of the parts' gradients (each part's loss is a mean over its samples, so
+/// the mean is the whole batch's gradient).
 fn mean_grads<M: Module>(module: &M, parts: Vec<GradientsParams>) -> GradientsParams {
     struct Mean {
         parts: Vec<GradientsParams>,
