@@ -690,15 +690,24 @@ mod tests {
         }
     }
 
-    /// Checks the completed range and incidence of every completed pixel of `hole`.
-    fn assert_completed_as(
-        f: &ScanFeatures,
-        truth: &[f32],
+    /// Drops the block `rows` x `columns` of `img`, completes it, and checks the range
+    /// and incidence of every completed pixel against the image's own and `expected_incidence`.
+    fn assert_block_completed_as(
+        mut img: RangeImage,
+        rows: std::ops::Range<usize>,
+        columns: std::ops::Range<usize>,
         expected_incidence: &[f32],
-        hole: &[usize],
     ) {
+        let (w, truth) = (img.width, img.range_m.clone());
+        let hole: Vec<usize> = rows
+            .flat_map(|i| columns.clone().map(move |j| i * w + j))
+            .collect();
+        for &k in &hole {
+            img.range_m[k] = 0.0;
+        }
+        let f = ScanFeatures::from_image(&img, &FeatureOptions::default());
         let mut checked = 0;
-        for &k in hole {
+        for &k in &hole {
             if f.range_m[k].is_nan() {
                 continue; // beyond the neighbour fill's reach: no geometry
             }
@@ -722,20 +731,11 @@ mod tests {
     #[test]
     fn wide_holes_in_the_ground_are_completed_as_ground() {
         // Too tall and too wide for a bridge: rows 4-21 over 60 columns dropped.
-        let w = 256;
-        let mut img = ground_image(24, w, 1.7);
-        let truth = img.range_m.clone();
-        let hole: Vec<usize> = (4..22)
-            .flat_map(|i| (20..80).map(move |j| i * w + j))
-            .collect();
-        for &k in &hole {
-            img.range_m[k] = 0.0;
-        }
-        let f = ScanFeatures::from_image(&img, &FeatureOptions::default());
+        let img = ground_image(24, 256, 1.7);
         let grazing: Vec<f32> = (0..img.len())
             .map(|k| std::f32::consts::FRAC_PI_2 + img.angles.elevation_rad[k])
             .collect();
-        assert_completed_as(&f, &truth, &grazing, &hole);
+        assert_block_completed_as(img, 4..22, 20..80, &grazing);
     }
 
     #[test]
@@ -757,15 +757,7 @@ mod tests {
                 std::f32::consts::FRAC_PI_2 + e
             };
         }
-        let truth = img.range_m.clone();
-        let hole: Vec<usize> = (5..12)
-            .flat_map(|i| (100..160).map(move |j| i * w + j))
-            .collect();
-        for &k in &hole {
-            img.range_m[k] = 0.0;
-        }
-        let f = ScanFeatures::from_image(&img, &FeatureOptions::default());
-        assert_completed_as(&f, &truth, &facing, &hole);
+        assert_block_completed_as(img, 5..12, 100..160, &facing);
     }
 
     #[test]

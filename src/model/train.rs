@@ -843,27 +843,24 @@ fn drop_head_grads(g: &AnyGenerator, mut grads: GradientsParams) -> GradientsPar
     };
     for head in generator.blocks.iter().map(|b| &b.head) {
         if let Some(w) = grads.remove::<2>(head.weight.id) {
-            let [rows, cols] = w.dims();
-            let mask: Vec<f32> = (0..rows * cols)
-                .map(|i| if i / cols == KEEP_LOGIT { 1.0 } else { 0.0 })
-                .collect();
-            out.register(
-                head.weight.id,
-                w.clone() * tensor_from(mask, [rows, cols], &w.device()),
-            );
+            out.register(head.weight.id, keep_logit_only(w));
         }
         if let Some(b) = grads.remove::<1>(head.bias.id) {
-            let n = b.dims()[0];
-            let mask: Vec<f32> = (0..n)
-                .map(|i| if i == KEEP_LOGIT { 1.0 } else { 0.0 })
-                .collect();
-            out.register(
-                head.bias.id,
-                b.clone() * tensor_from(mask, [n], &b.device()),
-            );
+            out.register(head.bias.id, keep_logit_only(b));
         }
     }
     out
+}
+
+/// A head parameter's gradient with every output row but the keep logit's zeroed.
+fn keep_logit_only<const D: usize>(grad: Tensor<D>) -> Tensor<D> {
+    let dims = grad.dims();
+    let per_row = dims[1..].iter().product::<usize>();
+    let mask: Vec<f32> = (0..dims[0] * per_row)
+        .map(|i| if i / per_row == KEEP_LOGIT { 1.0 } else { 0.0 })
+        .collect();
+    let mask = tensor_from(mask, dims, &grad.device());
+    grad * mask
 }
 
 /// The mean of the parts' gradients (each part's loss is a mean over its samples, so
