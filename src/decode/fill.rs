@@ -18,7 +18,9 @@ use crate::lidar::{
 pub enum Fill {
     /// Measured returns kept; a new pixel interpolated only from the neighbouring returns on
     /// its own surface ([`SurfaceRule`]): across a trusted depth edge (adjacent pixels) the
-    /// nearest return's surface, else the blend; inverse depth within a surface.
+    /// nearest return's surface, else the blend; inverse depth within a surface. From
+    /// scattered returns: an inverse-depth plane where one explains the returns around the
+    /// pixel, else the side of a depth edge that carries most of their weight.
     EdgeAware,
     /// The same, but the decoded scene may pick the surface where its depth clearly agrees
     /// with one surface rather than with the blend.
@@ -126,24 +128,16 @@ impl Decoded {
                 resample(&source, &guide_source, &self.model, fill, rule)
             }
             (_, Some(Sparsify::Fraction(_))) => {
-                // Inverse depth measured worse for scattered points (training scans).
-                let scattered = SurfaceRule {
-                    inverse_depth: false,
-                    ..*rule
-                };
                 let how = match fill {
                     Fill::Nearest => ScatterFill::Nearest,
-                    Fill::Bilinear => ScatterFill::Idw {
-                        rule: SurfaceRule::ANY,
+                    Fill::Bilinear => ScatterFill::Idw,
+                    Fill::EdgeAware => ScatterFill::Surfaces {
                         guide: None,
+                        guide_jump: rule.guide_jump,
                     },
-                    Fill::EdgeAware => ScatterFill::Idw {
-                        rule: scattered,
-                        guide: None,
-                    },
-                    Fill::Guided | Fill::Gan => ScatterFill::Idw {
-                        rule: scattered,
+                    Fill::Guided | Fill::Gan => ScatterFill::Surfaces {
                         guide: Some(&self.model.depth_m),
+                        guide_jump: rule.guide_jump,
                     },
                 };
                 fill_scattered(&self.observed_m, grid, how)

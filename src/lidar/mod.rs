@@ -14,6 +14,7 @@ pub mod projection;
 pub mod range_image;
 pub mod resample;
 pub mod scan;
+pub mod scatter;
 pub mod surface;
 
 pub use estimate::{EstimateMethod, SensorEstimate, estimate_profile};
@@ -22,4 +23,5 @@ pub use projection::{ProjectionError, Strategy, project};
 pub use range_image::{AngleGrid, RangeImage};
 pub use resample::{Interpolation, resample_by_surface, resample_image, resample_to_profile};
 pub use scan::Scan;
-pub use surface::{Guide, ScatterFill, SurfaceRule, fill_scattered};
+pub use scatter::{ScatterFill, fill_scattered};
+pub use surface::{Guide, SurfaceRule};

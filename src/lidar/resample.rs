@@ -317,7 +317,7 @@ fn resample_with(image: &RangeImage, target: &AngleGrid, read: Read<'_>) -> Rang
             for c in corners.iter_mut() {
                 c.guide = guide.map_or(0.0, |g| g.source(c.index));
             }
-            let one = keep_surface(&mut corners, guide.map_or(0.0, |g| g.target(k)), rule, None);
+            let one = keep_surface(&mut corners, guide.map_or(0.0, |g| g.target(k)), rule);
             inverse = rule.inverse_depth && one;
         }
         // The nearest corner is valid and weighs >= 1/4, so something is left.

@@ -2,11 +2,9 @@
 //! are grouped by surface (by their measured depths and, optionally, by a guide depth such
 //! as a decoded scene's completed depth), and only the target pixel's surface is blended.
 //!
-//! This module owns the grouping rule ([`SurfaceRule`], [`Guide`]) and the fill of
-//! scattered observations on one grid ([`fill_scattered`]); grid-to-grid resampling with
-//! the same rule is [`super::resample::resample_by_surface`].
-
-use super::AngleGrid;
+//! This module owns the grouping rule ([`SurfaceRule`], [`Guide`]); the fill of scattered
+//! observations is [`super::scatter`], grid-to-grid resampling with the same rule
+//! [`super::resample::resample_by_surface`].
 
 /// When neighbouring returns count as one surface.
 #[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
@@ -94,25 +92,18 @@ fn angle_deg(a: [f32; 3], b: [f32; 3]) -> f32 {
 /// Keeps the neighbours on the new pixel's surface and renormalises their weights to 1.
 ///
 /// Surfaces: the neighbours sorted by measured depth, split wherever two consecutive depths
-/// differ by more than `rule.jump_per_deg` times the angle between them (log depth), or
-/// times `spacing_deg` where given (scattered neighbours, where two consecutive ones may be
-/// far apart: the spacing of the observation around the new pixel). One surface: every
+/// differ by more than `rule.jump_per_deg` times the angle between them (log depth). One
+/// surface: every
 /// neighbour is kept. Across an edge, with a guide depth at the new pixel (`guide_target`)
 /// and at the neighbours, each hypothesis, "the new pixel lies on surface S" and "it lies
 /// between them" (everything blended), predicts the guide at the new pixel by blending the
 /// neighbours' guide depths the same way; a single surface is kept when its prediction
 /// beats the blend's by more than `rule.guide_jump` (log depth). Where the guide does not
 /// decide (or there is none), the surface with the most weight is kept if a split is
-/// trusted (`rule.trust_below_deg`; never with `spacing_deg`: trusting close scattered
-/// neighbours measured worse on training scans), else the blend.
+/// trusted (`rule.trust_below_deg`), else the blend.
 ///
 /// Returns whether what is kept is one surface (false: a blend across an edge).
-pub(crate) fn keep_surface(
-    ns: &mut Vec<Neighbour>,
-    guide_target: f32,
-    rule: &SurfaceRule,
-    spacing_deg: Option<f32>,
-) -> bool {
+pub(crate) fn keep_surface(ns: &mut Vec<Neighbour>, guide_target: f32, rule: &SurfaceRule) -> bool {
     if ns.len() < 2 {
         renormalise(ns);
         return true;
@@ -123,10 +114,9 @@ pub(crate) fn keep_surface(
     let mut trusted = false;
     for i in 1..ns.len() {
         let pair = angle_deg(ns[i].direction, ns[i - 1].direction);
-        let limit = rule.jump_per_deg * spacing_deg.unwrap_or(pair);
-        if (ns[i].depth / ns[i - 1].depth).ln() > limit {
+        if (ns[i].depth / ns[i - 1].depth).ln() > rule.jump_per_deg * pair {
             starts.push(i);
-            trusted |= spacing_deg.is_none() && pair < rule.trust_below_deg;
+            trusted |= pair < rule.trust_below_deg;
         }
     }
     if starts.len() == 1 {
@@ -170,7 +160,7 @@ pub(crate) fn keep_surface(
     one
 }
 
-fn renormalise(ns: &mut [Neighbour]) {
+pub(crate) fn renormalise(ns: &mut [Neighbour]) {
     let total: f32 = ns.iter().map(|n| n.weight).sum();
     for n in ns.iter_mut() {
         n.weight /= total;
@@ -186,90 +176,6 @@ pub(crate) fn blend_depth(ns: &[Neighbour], inverse: bool) -> f32 {
     } else {
         ns.iter().map(|n| n.weight * n.depth).sum()
     }
-}
-
-/// How [`fill_scattered`] estimates an unobserved pixel.
-#[derive(Debug, Clone, Copy)]
-pub enum ScatterFill<'a> {
-    /// The nearest observed pixel.
-    Nearest,
-    /// Inverse-distance weighting restricted to one surface by `rule` (optionally guided by
-    /// `guide`, a depth on the same grid), over that surface's observed pixels within
-    /// twice the distance of its nearest one. [`SurfaceRule::ANY`] without a guide is
-    /// plain IDW.
-    Idw {
-        rule: SurfaceRule,
-        guide: Option<&'a [f32]>,
-    },
-}
-
-/// How far (in pixels) [`fill_scattered`] looks for observed pixels.
-pub const SCATTER_RADIUS: isize = 8;
-
-/// Fills `grid` (row-major, columns circular) from a scattered observation on it (meters,
-/// 0 = not observed): observed pixels keep their depth exactly, other pixels are estimated
-/// from the observed ones within [`SCATTER_RADIUS`] pixels and stay 0 where there are none.
-pub fn fill_scattered(observed: &[f32], grid: &AngleGrid, how: ScatterFill) -> Vec<f32> {
-    let (height, width) = (grid.height, grid.width);
-    let mut out = vec![0.0f32; height * width];
-    if observed.len() != height * width || grid.len() != height * width || width == 0 {
-        return out;
-    }
-    let mut ns: Vec<Neighbour> = Vec::new();
-    let r = SCATTER_RADIUS;
-    for i in 0..height as isize {
-        for j in 0..width as isize {
-            let k = i as usize * width + j as usize;
-            if observed[k] > 0.0 {
-                out[k] = observed[k];
-                continue;
-            }
-            ns.clear();
-            for ii in (i - r).max(0)..(i + r + 1).min(height as isize) {
-                for dj in -r..=r {
-                    let jj = (j + dj).rem_euclid(width as isize) as usize;
-                    let idx = ii as usize * width + jj;
-                    if observed[idx] > 0.0 {
-                        let di = ii - i;
-                        ns.push(Neighbour {
-                            index: idx,
-                            depth: observed[idx],
-                            // Distance in pixels until the IDW step below.
-                            weight: ((di * di + dj * dj) as f32).sqrt(),
-                            direction: grid.direction(idx),
-                            guide: 0.0,
-                        });
-                    }
-                }
-            }
-            let Some(nearest) = ns
-                .iter()
-                .min_by(|a, b| a.weight.total_cmp(&b.weight))
-                .copied()
-            else {
-                continue;
-            };
-            out[k] = match how {
-                ScatterFill::Nearest => nearest.depth,
-                ScatterFill::Idw { rule, guide } => {
-                    let g = |idx: usize| guide.and_then(|g| g.get(idx)).copied().unwrap_or(0.0);
-                    for n in ns.iter_mut() {
-                        n.weight = 1.0 / n.weight.max(0.5);
-                        n.guide = g(n.index);
-                    }
-                    // The spacing of the observation here: the nearest return's angle.
-                    let spacing = angle_deg(grid.direction(k), nearest.direction);
-                    let one = keep_surface(&mut ns, g(k), &rule, Some(spacing));
-                    // Within twice the distance of the surface's nearest return.
-                    let reach = ns.iter().map(|n| n.weight).fold(0.0, f32::max) * 0.5;
-                    ns.retain(|n| n.weight >= reach);
-                    renormalise(&mut ns);
-                    blend_depth(&ns, rule.inverse_depth && one)
-                }
-            };
-        }
-    }
-    out
 }
 
 #[cfg(test)]
@@ -295,11 +201,11 @@ mod tests {
             n(1, 10.5, 0.1, 0.0),
             n(2, 40.0, 0.3, 0.0),
         ];
-        keep_surface(&mut ns, 0.0, &SurfaceRule::default(), None);
+        keep_surface(&mut ns, 0.0, &SurfaceRule::default());
         assert_eq!(ns.iter().map(|n| n.index).collect::<Vec<_>>(), vec![0, 1]);
         // A smooth slope (the road between two beams) is one surface.
         let mut ns = vec![n(0, 10.0, 0.5, 0.0), n(1, 11.0, 0.5, 0.0)];
-        keep_surface(&mut ns, 0.0, &SurfaceRule::default(), None);
+        keep_surface(&mut ns, 0.0, &SurfaceRule::default());
         assert_eq!(blend_depth(&ns, false), 10.5);
         assert!((ns.iter().map(|n| n.weight).sum::<f32>() - 1.0).abs() < 1e-6);
         let d = blend_depth(&ns, false);
@@ -315,7 +221,7 @@ mod tests {
             n(1, 41.0, 0.3, 39.0),
             n(2, 40.0, 0.1, 38.0),
         ];
-        keep_surface(&mut ns, 38.5, &SurfaceRule::default(), None);
+        keep_surface(&mut ns, 38.5, &SurfaceRule::default());
         let mut kept: Vec<usize> = ns.iter().map(|n| n.index).collect();
         kept.sort();
         assert_eq!(kept, vec![1, 2]);
@@ -324,76 +230,24 @@ mod tests {
         // A guide that lies between the surfaces (a blurred edge) keeps the blend where the
         // edge is not trusted (neighbours 4 deg apart).
         let mut ns = vec![n(0, 10.0, 0.5, 11.0), n(8, 40.0, 0.5, 39.0)];
-        assert!(!keep_surface(&mut ns, 25.0, &SurfaceRule::default(), None));
+        assert!(!keep_surface(&mut ns, 25.0, &SurfaceRule::default()));
         assert_eq!(ns.len(), 2);
         // With no opinion from the guide, the nearest return decides again.
         let mut ns = vec![n(0, 10.0, 0.6, 0.0), n(1, 41.0, 0.3, 0.0)];
-        keep_surface(&mut ns, 38.5, &SurfaceRule::default(), None);
+        keep_surface(&mut ns, 38.5, &SurfaceRule::default());
         assert_eq!(ns.len(), 1);
         // An edge between neighbours far apart (beams several rows apart) is not trusted
         // without a guide: blended, as the road rising between beams looks the same.
         let mut ns = vec![n(0, 10.0, 0.6, 0.0), n(8, 41.0, 0.3, 0.0)];
-        assert!(!keep_surface(&mut ns, 0.0, &SurfaceRule::default(), None));
+        assert!(!keep_surface(&mut ns, 0.0, &SurfaceRule::default()));
         assert_eq!(ns[0].index, 0);
     }
 
     #[test]
     fn plain_rule_blends_everything() {
         let mut ns = vec![n(0, 10.0, 0.5, 0.0), n(1, 40.0, 0.5, 0.0)];
-        keep_surface(&mut ns, 0.0, &SurfaceRule::ANY, None);
+        keep_surface(&mut ns, 0.0, &SurfaceRule::ANY);
         assert_eq!(blend_depth(&ns, false), 25.0);
         assert_eq!(blend_depth(&ns, true), 16.0);
-    }
-
-    /// 16 x 512 grid (0.4 deg rows, 0.7 deg columns): a wall at 10 m on the left half,
-    /// 40 m on the right; 10 % observed.
-    fn scattered_edge() -> (AngleGrid, Vec<f32>, Vec<f32>) {
-        let (h, w) = (16, 512);
-        let grid = AngleGrid::regular_columns(h, w, |i| (0.4 * (8.0 - i as f32)).to_radians());
-        let truth: Vec<f32> = (0..h * w)
-            .map(|k| if k % w < w / 2 { 10.0 } else { 40.0 })
-            .collect();
-        let observed = (0..h * w)
-            .map(|k| if (k * 7919) % 10 == 0 { truth[k] } else { 0.0 })
-            .collect();
-        (grid, truth, observed)
-    }
-
-    #[test]
-    fn guided_scattered_fill_keeps_returns_and_never_averages_across_the_edge() {
-        let (grid, truth, observed) = scattered_edge();
-        let (h, w) = (grid.height, grid.width);
-        let plain = fill_scattered(
-            &observed,
-            &grid,
-            ScatterFill::Idw {
-                rule: SurfaceRule::ANY,
-                guide: None,
-            },
-        );
-        assert!(
-            plain.iter().any(|d| *d > 11.0 && *d < 39.0),
-            "plain IDW smears the edge"
-        );
-        // A guide that sees the edge exactly: any margin would let a blend that is almost
-        // one surface through, so none.
-        let rule = SurfaceRule {
-            guide_jump: 0.0,
-            ..SurfaceRule::default()
-        };
-        let out = fill_scattered(
-            &observed,
-            &grid,
-            ScatterFill::Idw {
-                rule,
-                guide: Some(&truth),
-            },
-        );
-        for k in 0..h * w {
-            if observed[k] > 0.0 {
-                assert_eq!(out[k].to_bits(), observed[k].to_bits(), "return {k} kept");
-            }
-            assert!((out[k] - truth[k]).abs() < 1e-4, "pixel {k}: {}", out[k]);
-        }
     }
 }

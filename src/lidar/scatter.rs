@@ -1,0 +1,374 @@
+//! Restoration of a grid from scattered returns on it (for example a random 10 % of a
+//! scan's points): observed pixels keep their depth exactly, a new pixel is estimated from
+//! the returns within [`SCATTER_RADIUS`] pixels ([`ScatterFill`]).
+//!
+//! The default estimate ([`ScatterFill::Surfaces`]) reads the returns around a new pixel as
+//! local surfaces: where one plane explains them (road, walls: planes are linear in inverse
+//! depth over small angles) the plane is evaluated at the new pixel; across a depth edge
+//! the side that carries most of the weight (or that a guide depth agrees with) is kept.
+
+use super::AngleGrid;
+
+use nalgebra::{Matrix3, Vector3};
+
+/// How [`fill_scattered`] estimates an unobserved pixel.
+#[derive(Debug, Clone, Copy)]
+pub enum ScatterFill<'a> {
+    /// The nearest observed pixel.
+    Nearest,
+    /// Inverse-distance weighting of the observed pixels within twice the distance of the
+    /// nearest one.
+    Idw,
+    /// Local surfaces ([`local_surface`]). At a depth edge, `guide` (a depth on the same
+    /// grid, 0 = no opinion) picks the side whose returns' guide depths agree with the
+    /// guide at the new pixel by `guide_jump` (log depth) better than the other side's.
+    Surfaces {
+        guide: Option<&'a [f32]>,
+        guide_jump: f32,
+    },
+}
+
+/// How far (in pixels) [`fill_scattered`] looks for observed pixels.
+pub const SCATTER_RADIUS: isize = 8;
+
+/// Fills `grid` (row-major, columns circular) from a scattered observation on it (meters,
+/// 0 = not observed): observed pixels keep their depth exactly, other pixels are estimated
+/// from the observed ones within [`SCATTER_RADIUS`] pixels and stay 0 where there are none.
+pub fn fill_scattered(observed: &[f32], grid: &AngleGrid, how: ScatterFill) -> Vec<f32> {
+    let (height, width) = (grid.height, grid.width);
+    let mut out = vec![0.0f32; height * width];
+    if observed.len() != height * width || grid.len() != height * width || width == 0 {
+        return out;
+    }
+    let mut around: Vec<Return> = Vec::new();
+    let r = SCATTER_RADIUS;
+    let guide_at = |idx: usize| match how {
+        ScatterFill::Surfaces { guide, .. } => guide.and_then(|g| g.get(idx)).copied(),
+        _ => None,
+    };
+    for i in 0..height as isize {
+        for j in 0..width as isize {
+            let k = i as usize * width + j as usize;
+            if observed[k] > 0.0 {
+                out[k] = observed[k];
+                continue;
+            }
+            around.clear();
+            for ii in (i - r).max(0)..(i + r + 1).min(height as isize) {
+                for dj in -r..=r {
+                    let jj = (j + dj).rem_euclid(width as isize) as usize;
+                    let idx = ii as usize * width + jj;
+                    if observed[idx] > 0.0 {
+                        let di = ii - i;
+                        let pixels = ((di * di + dj * dj) as f32).sqrt();
+                        let guide = guide_at(idx).unwrap_or(0.0);
+                        around.push(Return::at(grid, k, idx, observed[idx], pixels, guide));
+                    }
+                }
+            }
+            if around.is_empty() {
+                continue;
+            }
+            out[k] = match how {
+                ScatterFill::Nearest => around
+                    .iter()
+                    .min_by(|a, b| a.pixels.total_cmp(&b.pixels))
+                    .map_or(0.0, |r| r.depth),
+                ScatterFill::Idw => idw(&within(&around, 2.0), 1),
+                ScatterFill::Surfaces { guide_jump, .. } => {
+                    local_surface(&around, guide_at(k).unwrap_or(0.0), guide_jump)
+                }
+            };
+        }
+    }
+    out
+}
+
+/// A measured return near a new pixel: its depth, its distance in pixels, its direction
+/// relative to the new pixel (degrees of elevation and azimuth) and the guide depth at it.
+#[derive(Debug, Clone, Copy)]
+struct Return {
+    depth: f32,
+    pixels: f32,
+    elevation_deg: f32,
+    azimuth_deg: f32,
+    guide: f32,
+}
+
+impl Return {
+    /// The return at pixel `idx` (`depth`, `pixels` from pixel `k`), seen from pixel `k`.
+    fn at(grid: &AngleGrid, k: usize, idx: usize, depth: f32, pixels: f32, guide: f32) -> Return {
+        let wrap = |a: f32| {
+            let tau = std::f32::consts::TAU;
+            (a + std::f32::consts::PI).rem_euclid(tau) - std::f32::consts::PI
+        };
+        Return {
+            depth,
+            pixels,
+            elevation_deg: (grid.elevation_rad[idx] - grid.elevation_rad[k]).to_degrees(),
+            azimuth_deg: wrap(grid.azimuth_rad[idx] - grid.azimuth_rad[k]).to_degrees(),
+            guide,
+        }
+    }
+
+    /// Inverse-distance weight, `power` of 1 / pixels.
+    fn weight(&self, power: i32) -> f64 {
+        f64::from(self.pixels.max(0.5)).powi(-power)
+    }
+}
+
+// Tuned on KITTI training scans, never on the evaluation scans (BENCHMARKS.md,
+// "Restoration from scattered points").
+/// The plane is fitted to the returns within this many times the nearest one's distance...
+const PLANE_REACH: f32 = 4.0;
+/// ...when there are at least this many...
+const PLANE_MIN_RETURNS: usize = 4;
+/// ...and used when its weighted rms residual is below this (log depth)...
+const PLANE_RMS: f64 = 0.05;
+/// ...and no two of their depths, sorted, are further apart than this (log depth): two
+/// surfaces, each seen along one line of returns, fit a plane exactly.
+const PLANE_GAP: f32 = 0.5;
+/// Otherwise the returns within this many times the nearest one's distance are blended...
+const BLEND_REACH: f32 = 2.0;
+/// ...from one side of their largest depth gap where it exceeds this (log depth)...
+const EDGE_GAP: f32 = 0.3;
+/// ...and that side carries at least this share of the weight.
+const EDGE_SHARE: f64 = 0.6;
+
+/// The depth at a new pixel from the returns `around` it (at least one): an inverse-depth
+/// plane where one explains the near returns; else, across a depth edge, the side the guide
+/// agrees with or that carries most of the weight; else the blend, weighted towards the
+/// nearest returns.
+fn local_surface(around: &[Return], guide_target: f32, guide_jump: f32) -> f32 {
+    if let Some(d) = plane_depth(&within(around, PLANE_REACH)) {
+        return d;
+    }
+    let near = within(around, BLEND_REACH);
+    match edge_side(&near, guide_target, guide_jump) {
+        Some(side) => idw(&side, 2),
+        None => idw(&near, 3),
+    }
+}
+
+/// The returns within `reach` times the distance of the nearest one.
+fn within(around: &[Return], reach: f32) -> Vec<Return> {
+    let nearest = around
+        .iter()
+        .map(|r| r.pixels)
+        .fold(f32::INFINITY, f32::min);
+    let limit = reach * nearest.max(0.5);
+    around
+        .iter()
+        .filter(|r| r.pixels <= limit)
+        .copied()
+        .collect()
+}
+
+/// Inverse-distance weighting with weights 1 / pixels^`power`.
+fn idw(returns: &[Return], power: i32) -> f32 {
+    let (mut sum, mut total) = (0.0f64, 0.0f64);
+    for r in returns {
+        let w = r.weight(power);
+        sum += w * f64::from(r.depth);
+        total += w;
+    }
+    (sum / total) as f32
+}
+
+/// Weighted least squares of inverse depth against (1, elevation, azimuth): the depth at
+/// the new pixel (the intercept) when the plane explains the returns, kept within their
+/// depths.
+fn plane_depth(returns: &[Return]) -> Option<f32> {
+    if returns.len() < PLANE_MIN_RETURNS || largest_gap(returns).is_some_and(|(_, g)| g > PLANE_GAP)
+    {
+        return None;
+    }
+    let basis =
+        |r: &Return| Vector3::new(1.0, f64::from(r.elevation_deg), f64::from(r.azimuth_deg));
+    // A small ridge keeps a line of returns (one row) solvable.
+    let mut normal = Matrix3::identity() * 1e-4;
+    let mut rhs = Vector3::zeros();
+    for r in returns {
+        let (x, w) = (basis(r), r.weight(2));
+        normal += w * x * x.transpose();
+        rhs += w * x / f64::from(r.depth);
+    }
+    let coef = normal.lu().solve(&rhs)?;
+    if coef[0] <= 0.0 {
+        return None;
+    }
+    let (mut sq, mut total) = (0.0, 0.0);
+    for r in returns {
+        let fitted = coef.dot(&basis(r)).max(1e-6);
+        let w = r.weight(2);
+        sq += w * (fitted * f64::from(r.depth)).ln().powi(2);
+        total += w;
+    }
+    if (sq / total).sqrt() >= PLANE_RMS {
+        return None;
+    }
+    let (lo, hi) = returns.iter().fold((f32::INFINITY, 0.0f32), |(lo, hi), r| {
+        (lo.min(r.depth), hi.max(r.depth))
+    });
+    Some(((1.0 / coef[0]) as f32).clamp(lo, hi))
+}
+
+/// The returns on the new pixel's side of the largest depth gap among `returns`, when the
+/// gap is an edge (> [`EDGE_GAP`]) and a side is clearly chosen: by the guide, or by
+/// carrying at least [`EDGE_SHARE`] of the weight.
+fn edge_side(returns: &[Return], guide_target: f32, guide_jump: f32) -> Option<Vec<Return>> {
+    let (split, gap) = largest_gap(returns)?;
+    if gap <= EDGE_GAP {
+        return None;
+    }
+    let mut sorted = returns.to_vec();
+    sorted.sort_by(|a, b| a.depth.total_cmp(&b.depth));
+    let (front, back) = sorted.split_at(split);
+    let weight = |s: &[Return]| s.iter().map(|r| r.weight(2)).sum::<f64>();
+    let share = weight(front) / (weight(front) + weight(back));
+    let front_wins =
+        guide_side(front, back, guide_target, guide_jump).or(if share >= EDGE_SHARE {
+            Some(true)
+        } else if share <= 1.0 - EDGE_SHARE {
+            Some(false)
+        } else {
+            None
+        })?;
+    Some(if front_wins { front } else { back }.to_vec())
+}
+
+/// The largest gap between consecutive depths of `returns` (log depth), with the number of
+/// returns in front of it; None for fewer than two returns.
+fn largest_gap(returns: &[Return]) -> Option<(usize, f32)> {
+    let mut depths: Vec<f32> = returns.iter().map(|r| r.depth).collect();
+    depths.sort_by(f32::total_cmp);
+    depths
+        .windows(2)
+        .enumerate()
+        .map(|(i, p)| (i + 1, (p[1] / p[0]).ln()))
+        .max_by(|a, b| a.1.total_cmp(&b.1))
+}
+
+/// Whether the guide puts the new pixel on the front side (true) or the back side (false):
+/// the side whose weighted guide depth lies nearer the guide at the new pixel, by more than
+/// `guide_jump` (log depth). None without a guide at every return and the new pixel.
+fn guide_side(front: &[Return], back: &[Return], target: f32, guide_jump: f32) -> Option<bool> {
+    let all_guided = front.iter().chain(back).all(|r| r.guide > 0.0);
+    if target <= 0.0 || !all_guided {
+        return None;
+    }
+    let miss = |s: &[Return]| {
+        let total: f64 = s.iter().map(|r| r.weight(2)).sum();
+        let g = s
+            .iter()
+            .map(|r| r.weight(2) * f64::from(r.guide))
+            .sum::<f64>()
+            / total;
+        (g / f64::from(target)).ln().abs()
+    };
+    let (f, b) = (miss(front), miss(back));
+    let margin = f64::from(guide_jump);
+    if f + margin < b {
+        Some(true)
+    } else if b + margin < f {
+        Some(false)
+    } else {
+        None
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// 16 x 512 grid (0.4 deg rows, 0.7 deg columns): a wall at 10 m on the left half,
+    /// 40 m on the right; 10 % observed.
+    fn scattered_edge() -> (AngleGrid, Vec<f32>, Vec<f32>) {
+        let (h, w) = (16, 512);
+        let grid = AngleGrid::regular_columns(h, w, |i| (0.4 * (8.0 - i as f32)).to_radians());
+        let truth: Vec<f32> = (0..h * w)
+            .map(|k| if k % w < w / 2 { 10.0 } else { 40.0 })
+            .collect();
+        let observed = (0..h * w)
+            .map(|k| if (k * 7919) % 10 == 0 { truth[k] } else { 0.0 })
+            .collect();
+        (grid, truth, observed)
+    }
+
+    /// Mean absolute error of `out` against `truth` on the pixels not observed.
+    fn mae(out: &[f32], truth: &[f32], observed: &[f32]) -> f32 {
+        let held: Vec<usize> = (0..truth.len()).filter(|k| observed[*k] == 0.0).collect();
+        held.iter()
+            .map(|k| (out[*k] - truth[*k]).abs())
+            .sum::<f32>()
+            / held.len() as f32
+    }
+
+    #[test]
+    fn scattered_fill_keeps_returns_and_never_averages_across_the_edge() {
+        let (grid, truth, observed) = scattered_edge();
+        let plain = fill_scattered(&observed, &grid, ScatterFill::Idw);
+        assert!(
+            plain.iter().any(|d| *d > 11.0 && *d < 39.0),
+            "plain IDW smears the edge"
+        );
+        let unguided = ScatterFill::Surfaces {
+            guide: None,
+            guide_jump: 0.0,
+        };
+        let out = fill_scattered(&observed, &grid, unguided);
+        let (e_out, e_plain) = (mae(&out, &truth, &observed), mae(&plain, &truth, &observed));
+        assert!(
+            e_out < 0.75 * e_plain,
+            "surfaces {e_out} m, IDW {e_plain} m"
+        );
+        // Away from the edges (columns 0 and 256) every pixel lies on its own wall.
+        for k in (0..truth.len()).filter(|k| (4..252).contains(&(k % 256))) {
+            assert!((out[k] - truth[k]).abs() < 1e-3, "pixel {k}: {}", out[k]);
+        }
+        // A guide that sees the edge exactly puts every pixel on its side: any margin would
+        // leave a tie to the weights, so none.
+        let guided = ScatterFill::Surfaces {
+            guide: Some(&truth),
+            guide_jump: 0.0,
+        };
+        let out = fill_scattered(&observed, &grid, guided);
+        for k in 0..truth.len() {
+            if observed[k] > 0.0 {
+                assert_eq!(out[k].to_bits(), observed[k].to_bits(), "return {k} kept");
+            }
+            assert!((out[k] - truth[k]).abs() < 1e-3, "pixel {k}: {}", out[k]);
+        }
+    }
+
+    #[test]
+    fn the_road_between_scattered_returns_is_a_plane_in_inverse_depth() {
+        // Level road 1.7 m below a 64-beam sensor (rows 0.4 deg apart, 2 to 27 deg down):
+        // depth 1.7 / sin(-elevation), 10 % of the pixels observed at random.
+        let (h, w) = (64, 512);
+        let grid = AngleGrid::regular_columns(h, w, |i| (-2.0 - 0.4 * i as f32).to_radians());
+        let truth: Vec<f32> = grid
+            .elevation_rad
+            .iter()
+            .map(|e| 1.7 / (-e).sin())
+            .collect();
+        // A multiplicative hash of the pixel index scatters the observed ones.
+        let observed: Vec<f32> = (0..h * w)
+            .map(|k| {
+                let hash = (k as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15) >> 54;
+                if hash % 10 == 0 { truth[k] } else { 0.0 }
+            })
+            .collect();
+        let plain = fill_scattered(&observed, &grid, ScatterFill::Idw);
+        let surfaces = ScatterFill::Surfaces {
+            guide: None,
+            guide_jump: 0.3,
+        };
+        let out = fill_scattered(&observed, &grid, surfaces);
+        let (e_plain, e_plane) = (mae(&plain, &truth, &observed), mae(&out, &truth, &observed));
+        assert!(
+            e_plane < 0.25 * e_plain,
+            "plane {e_plane} m, IDW {e_plain} m"
+        );
+    }
+}
