@@ -111,10 +111,11 @@ pub struct ConvertArgs {
     pub restore_fraction: Option<f32>,
     /// What the `--upsample` and `--target-sensor` grids and a `--restore-*` depth hold:
     /// `edge-aware` (measured returns kept, new pixels interpolated only from neighbouring
-    /// returns on their own surface), `guided` (the same, the decoded scene picking the
-    /// surface where it clearly can), `bilinear` (inverse-distance weighting for scattered
-    /// points), `nearest`, or `gan` (the decoded scene's rendering). Where no observed return
-    /// reaches, the rendering fills in.
+    /// returns on their own surface; from scattered points a local inverse-depth plane where
+    /// one fits), `guided` (the same, the decoded scene picking the surface where it clearly
+    /// can), `bilinear` (inverse-distance weighting for scattered points), `nearest`, or `gan`
+    /// (the decoded scene's rendering). Where no observed return reaches, the rendering fills
+    /// in.
     #[arg(long, value_enum, default_value_t = Fill::DEFAULT)]
     pub upsample_method: Fill,
 }
