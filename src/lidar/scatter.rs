@@ -356,7 +356,11 @@ mod tests {
         let observed: Vec<f32> = (0..h * w)
             .map(|k| {
                 let hash = (k as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15) >> 54;
-                if hash % 10 == 0 { truth[k] } else { 0.0 }
+                if hash.is_multiple_of(10) {
+                    truth[k]
+                } else {
+                    0.0
+                }
             })
             .collect();
         let plain = fill_scattered(&observed, &grid, ScatterFill::Idw);
