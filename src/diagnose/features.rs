@@ -295,9 +295,6 @@ fn neighbour_fill(
 const DARK_QUANTILE: f64 = 0.3;
 /// Fewest returns in a range band for its dark threshold.
 const MIN_BAND_RETURNS: usize = 50;
-/// Pixels seen at more grazing incidence than this cos are of unknown shade:
-/// their intensity is mostly the angle's, and so are their drops.
-const MIN_SHADE_COS: f32 = 0.25;
 /// Rows and columns either side where a dropped pixel looks for returns of its class.
 const SHADE_REACH: (usize, usize) = (4, 8);
 
@@ -310,10 +307,8 @@ fn range_band(range_m: f32) -> usize {
         .unwrap_or(4)
 }
 
-/// Each pixel's shade. Only pixels whose completed surface faces the sensor
-/// (cos incidence >= [`MIN_SHADE_COS`]) have one. A return is [`DARK`] when
-/// its intensity over cos(incidence) (an albedo up to the sensor's own range
-/// falloff) lies in the
+/// Each pixel's shade. A return is [`DARK`] when its intensity over
+/// cos(incidence) (an albedo up to the sensor's own range falloff) lies in the
 /// lowest [`DARK_QUANTILE`] of the scan's returns in its range band, else
 /// [`BRIGHT`]. A dropped pixel takes the most common shade of the returns of its
 /// class within [`SHADE_REACH`] ([`UNKNOWN_SHADE`] where there is none): dark
@@ -328,10 +323,10 @@ fn shades(
     incidence_rad: &[f32],
 ) -> Vec<u8> {
     let n = kept.len();
-    let facing = |k: usize| incidence_rad[k].cos() >= MIN_SHADE_COS;
     let albedo = |k: usize| {
         let i = image.intensity.get(k).copied().unwrap_or(0.0);
-        (kept[k] && i > 0.0 && facing(k)).then(|| i / incidence_rad[k].cos())
+        let c = incidence_rad[k].cos();
+        (kept[k] && i > 0.0 && c.is_finite()).then(|| i / c.max(0.25))
     };
     let mut bands: Vec<Vec<f32>> = vec![Vec::new(); 5];
     for k in 0..n {
@@ -348,24 +343,17 @@ fn shades(
             })
         })
         .collect();
-    let intensities = (0..n).any(|k| kept[k] && image.intensity.get(k).is_some_and(|i| *i > 0.0));
-    if !intensities {
+    if bands.iter().all(Vec::is_empty) {
         return vec![0; n];
     }
     let mut shade: Vec<u8> = (0..n)
         .map(|k| match (albedo(k), threshold[range_band(range_m[k])]) {
-            (Some(a), Some(t)) => {
-                if a < t {
-                    DARK
-                } else {
-                    BRIGHT
-                }
-            }
+            (Some(a), Some(t)) => if a < t { DARK } else { BRIGHT },
             _ => UNKNOWN_SHADE,
         })
         .collect();
     let (ri, rj) = SHADE_REACH;
-    for k in (0..n).filter(|&k| !kept[k] && class[k] != 0 && facing(k)) {
+    for k in (0..n).filter(|&k| !kept[k] && class[k] != 0) {
         let (i, j) = (k / grid.w, k % grid.w);
         let mut seen: Vec<u32> = Vec::new();
         for di in -(ri as isize)..=ri as isize {
@@ -942,14 +930,10 @@ mod tests {
 
     #[test]
     fn dark_surfaces_and_the_holes_in_them_are_shaded_dark() {
-        // A wall 10 m around the sensor, facing it (bright building, class 50), and
-        // a car (class 10) over columns 100-139: dark paint on 100-119, bright on
-        // 120-139. Holes in each half take its shade.
-        let angles = AngleGrid::regular_columns(8, 256, |i| 0.02 - 0.01 * i as f32);
-        let mut img = RangeImage::empty(angles);
+        // Bright road everywhere, a car (class 10) over columns 100-139: dark paint
+        // on 100-119, bright on 120-139. Holes in each half take its shade.
+        let mut img = ground_image(8, 256, 1.7);
         for k in 0..img.len() {
-            img.range_m[k] = 10.0;
-            img.label[k] = 50;
             let j = k % 256;
             img.intensity[k] = match j {
                 100..=119 => 0.03,
@@ -969,12 +953,7 @@ mod tests {
         let f = ScanFeatures::from_image(&img, &FeatureOptions::default());
         assert_eq!(f.shade[3 * 256 + 105], DARK);
         assert_eq!(f.shade[3 * 256 + 125], BRIGHT);
-        assert_eq!(f.shade[3 * 256 + 20], BRIGHT, "the wall");
-        // The ground is seen at grazing incidence: its shade is unknown.
-        let mut ground = ground_image(8, 64, 1.7);
-        ground.intensity.iter_mut().for_each(|i| *i = 0.3);
-        let g = ScanFeatures::from_image(&ground, &FeatureOptions::default());
-        assert!(g.shade.iter().all(|s| *s == UNKNOWN_SHADE));
+        assert_eq!(f.shade[3 * 256 + 20], BRIGHT, "the road");
         assert_eq!((f.shade[dark_hole], f.shade[bright_hole]), (DARK, BRIGHT));
         // Without intensities nothing is shaded.
         img.intensity.iter_mut().for_each(|i| *i = 0.0);
