@@ -7,18 +7,17 @@
 //! | `range_dropout` | completed range (drops only where returns enclose them), 1 m bins | the physics module's log-logistic curve (range_50_m, softness) |
 //! | `incidence_dropout` | cos(incidence) of the completed normal, 0.02 bins | log-logistic in cos (cos_50, softness) |
 //! | `beam_dropout` | row | one free rate per row |
-//! | `material_dropout` | semantic class (labels, else neighbours' labels) and shade (dark or bright, from intensities) | one free rate per class and shade |
+//! | `material_dropout` | semantic class (labels, else neighbours' labels) | one free rate per class |
 //! | `self_occlusion` | (row, azimuth sector) in the lower half | per sector a "skyline" of blocked bottom rows and a probability |
 //! | `motion_distortion` (coverage) | distance to the nearest moved return along the pixel's column and along its row, in half pixels | a logistic curve per axis; only where the seam step found motion |
 
-use std::collections::{BTreeMap, HashMap};
+use std::collections::HashMap;
 use std::hash::{DefaultHasher, Hash, Hasher};
 use std::sync::{Arc, Mutex};
 
 use rayon::prelude::*;
 use serde_json::{Map, Value, json};
 
-use super::features::{BRIGHT, DARK, UNKNOWN_SHADE};
 use super::fit::{DropFamily, DropFit, Pixels, QTable, golden};
 use crate::physics::dropout::{IncidenceDropout, RangeDropout};
 use crate::physics::{Effect, RayFeatures};
@@ -267,33 +266,14 @@ impl DropFamily for BeamFamily {
     }
 }
 
-/// `material_dropout`: one free drop rate per semantic class and shade (real
-/// data has classes, not materials; dark paint, glass and tyres are what a class
-/// loses, and the returns left of them are dark; see docs/diagnose.md).
+/// `material_dropout`: one free drop rate per semantic class (real data has
+/// classes, not materials; see docs/diagnose.md).
 pub struct ClassFamily;
 const CLASSES: usize = 260;
-/// Shades per class: none (no intensities), dark, bright (`features::DARK`, `BRIGHT`).
-const SHADES: usize = 3;
 /// A class needs this many training pixels to get a rate of its own.
 const MIN_CLASS_PIXELS: f64 = 200.0;
 /// Smallest extra drop rate of a class that is attributed to its material.
 const MIN_CLASS_PROB: f64 = 0.08;
-
-impl ClassFamily {
-    fn class_of(bin: usize) -> usize {
-        bin / SHADES
-    }
-
-    fn name(bin: usize) -> String {
-        let class = Self::class_of(bin);
-        let shade = match (bin % SHADES) as u8 {
-            DARK => "dark ",
-            BRIGHT => "bright ",
-            _ => "",
-        };
-        format!("{shade}{} ({class})", label::name(class as u32))
-    }
-}
 
 impl DropFamily for ClassFamily {
     /// A class is a proxy for materials whose mix differs object by object
@@ -306,28 +286,20 @@ impl DropFamily for ClassFamily {
         "material_dropout"
     }
     fn bins(&self, _: &Pixels) -> usize {
-        CLASSES * SHADES
+        CLASSES
     }
     /// Enclosed pixels only: a dropped pixel at an object's outline takes the
     /// object's class from its neighbours, and how much outline borders open
     /// space is the scene's. Wider than the beam's: a window dropped at high
-    /// rates leaves big holes that are still the object's. Pixels of unknown
-    /// shade are left out: a bin of them would hold mostly dropped pixels.
+    /// rates leaves big holes that are still the object's.
     fn bin(&self, px: &Pixels, i: usize) -> Option<usize> {
         let c = px.class[i] as usize;
-        let shade = px.shade.get(i).copied().unwrap_or(0);
-        (px.enclosure_px[i] <= CLASS_ENCLOSURE_PX
-            && c != 0
-            && c < CLASSES
-            && shade != UNKNOWN_SHADE)
-            .then_some(c * SHADES + usize::from(shade))
+        (px.enclosure_px[i] <= CLASS_ENCLOSURE_PX && c != 0 && c < CLASSES).then_some(c)
     }
     fn fit(&self, table: &QTable, _: &Pixels) -> Option<DropFit> {
         let mut drop_prob = vec![0.0; table.bins];
+        let mut by_class = Map::new();
         let mut items = Vec::new();
-        // Per class: pixels and expected drops over its shades, for the physics
-        // model's one rate per class.
-        let mut per_class: BTreeMap<usize, (f64, f64)> = BTreeMap::new();
         let mut n_params = 0;
         for (b, p) in drop_prob.iter_mut().enumerate() {
             let (kept, dropped) = table.counts(b);
@@ -341,21 +313,13 @@ impl DropFamily for ClassFamily {
             if *p < MIN_CLASS_PROB {
                 *p = 0.0;
             }
-            let class = per_class.entry(Self::class_of(b)).or_default();
-            class.0 += kept + dropped;
-            class.1 += (kept + dropped) * *p;
             if *p > 0.005 {
-                items.push((Self::name(b), *p));
+                by_class.insert(b.to_string(), json!(round3(*p)));
+                items.push((format!("{} ({b})", label::name(b as u32)), *p));
             }
         }
         if n_params == 0 {
             return None;
-        }
-        let mut by_class = Map::new();
-        for (class, (pixels, drops)) in per_class {
-            if drops / pixels > 0.005 {
-                by_class.insert(class.to_string(), json!(round3(drops / pixels)));
-            }
         }
         let mut params = Map::new();
         params.insert("drop_prob_by_class".into(), Value::Object(by_class.clone()));
@@ -870,7 +834,6 @@ mod tests {
                 ranges.push(r);
                 px.cos_incidence.push(0.5);
                 px.class.push(0);
-                px.shade.push(0);
                 px.enclosure_px.push(0);
                 px.kept.push(true);
                 px.scan.push(0);

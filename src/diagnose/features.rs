@@ -6,9 +6,8 @@
 //! holes near the ground completed as ground and walls, and a cheap neighbour
 //! fill, or a completed depth given by the caller: the GAN's x_d, see
 //! `completion`), incidence angles from the normals of the completed depth,
-//! depth-edge proximity, classes (labels where present, else the most common
-//! label among valid neighbours) and shades (dark or bright surfaces, from the
-//! returns' intensities). It does no statistics (see `stats`) and no I/O.
+//! depth-edge proximity, and classes (labels where present, else the most common
+//! label among valid neighbours). It does no statistics (see `stats`) and no I/O.
 
 use crate::lidar::RangeImage;
 
@@ -65,23 +64,9 @@ pub struct ScanFeatures {
     /// Semantic class (the low 16 bits of a SemanticKITTI label, the instance id
     /// dropped); 0 = unknown.
     pub class: Vec<u32>,
-    /// Whether the pixel lies on a dark surface ([`DARK`]), a bright one
-    /// ([`BRIGHT`]), one of unknown shade ([`UNKNOWN_SHADE`]), or the scan has no
-    /// intensities (0); see [`shades`].
-    pub shade: Vec<u8>,
     /// Whether the pixel holds a return.
     pub kept: Vec<bool>,
 }
-
-/// [`ScanFeatures::shade`] of a dark surface.
-pub const DARK: u8 = 1;
-/// [`ScanFeatures::shade`] of a bright surface.
-pub const BRIGHT: u8 = 2;
-/// [`ScanFeatures::shade`] of a pixel whose shade cannot be told: a return in a
-/// range band with too few returns, or a dropped pixel with no return of its
-/// class near. Not the same as a scan without intensities: there, only dropped
-/// pixels would have it.
-pub const UNKNOWN_SHADE: u8 = 3;
 
 impl ScanFeatures {
     pub fn len(&self) -> usize {
@@ -167,7 +152,6 @@ impl ScanFeatures {
             options.edge_relative_jump,
             options.max_edge_px,
         );
-        let shade = shades(&grid, image, &kept, &class, &range_m, &incidence_rad);
         ScanFeatures {
             height: h,
             width: w,
@@ -178,7 +162,6 @@ impl ScanFeatures {
             incidence_rad,
             edge_px,
             class,
-            shade,
             kept,
         }
     }
@@ -289,87 +272,6 @@ fn neighbour_fill(
         }
     }
     (range, class)
-}
-
-/// Share of a scan's returns at similar range that count as dark.
-const DARK_QUANTILE: f64 = 0.3;
-/// Fewest returns in a range band for its dark threshold.
-const MIN_BAND_RETURNS: usize = 50;
-/// Rows and columns either side where a dropped pixel looks for returns of its class.
-const SHADE_REACH: (usize, usize) = (4, 8);
-
-/// Range bands (10, 20, 40, 80 m edges) within which intensities are compared:
-/// intensity falls with range, differently on every sensor.
-fn range_band(range_m: f32) -> usize {
-    [10.0, 20.0, 40.0, 80.0]
-        .iter()
-        .position(|edge| range_m < *edge)
-        .unwrap_or(4)
-}
-
-/// Each pixel's shade. A return is [`DARK`] when its intensity over
-/// cos(incidence) (an albedo up to the sensor's own range falloff) lies in the
-/// lowest [`DARK_QUANTILE`] of the scan's returns in its range band, else
-/// [`BRIGHT`]. A dropped pixel takes the most common shade of the returns of its
-/// class within [`SHADE_REACH`] ([`UNKNOWN_SHADE`] where there is none): dark
-/// paint, glass and tyres lose rays, and what is left of them is dark. Without
-/// intensities every shade is 0.
-fn shades(
-    grid: &Grid,
-    image: &RangeImage,
-    kept: &[bool],
-    class: &[u32],
-    range_m: &[f32],
-    incidence_rad: &[f32],
-) -> Vec<u8> {
-    let n = kept.len();
-    let albedo = |k: usize| {
-        let i = image.intensity.get(k).copied().unwrap_or(0.0);
-        let c = incidence_rad[k].cos();
-        (kept[k] && i > 0.0 && c.is_finite()).then(|| i / c.max(0.25))
-    };
-    let mut bands: Vec<Vec<f32>> = vec![Vec::new(); 5];
-    for k in 0..n {
-        if let Some(a) = albedo(k) {
-            bands[range_band(range_m[k])].push(a);
-        }
-    }
-    let threshold: Vec<Option<f32>> = bands
-        .iter_mut()
-        .map(|b| {
-            (b.len() >= MIN_BAND_RETURNS).then(|| {
-                b.sort_by(f32::total_cmp);
-                b[((b.len() - 1) as f64 * DARK_QUANTILE) as usize]
-            })
-        })
-        .collect();
-    if bands.iter().all(Vec::is_empty) {
-        return vec![0; n];
-    }
-    let mut shade: Vec<u8> = (0..n)
-        .map(|k| match (albedo(k), threshold[range_band(range_m[k])]) {
-            (Some(a), Some(t)) => if a < t { DARK } else { BRIGHT },
-            _ => UNKNOWN_SHADE,
-        })
-        .collect();
-    let (ri, rj) = SHADE_REACH;
-    for k in (0..n).filter(|&k| !kept[k] && class[k] != 0) {
-        let (i, j) = (k / grid.w, k % grid.w);
-        let mut seen: Vec<u32> = Vec::new();
-        for di in -(ri as isize)..=ri as isize {
-            for dj in -(rj as isize)..=rj as isize {
-                if let Some(m) = grid.at(i, j, di, dj)
-                    && kept[m]
-                    && class[m] == class[k]
-                    && matches!(shade[m], DARK | BRIGHT)
-                {
-                    seen.push(u32::from(shade[m]));
-                }
-            }
-        }
-        shade[k] = most_common(&mut seen).map_or(UNKNOWN_SHADE, |s| s as u8);
-    }
-    shade
 }
 
 /// Largest disagreement, as a fraction of the inverse range, between a bridge and
@@ -926,39 +828,6 @@ mod tests {
         let wrapped = ScanFeatures::from_image(&img, &FeatureOptions::default());
         assert_eq!(wrapped.edge_px[0], 0);
         assert_eq!(wrapped.edge_px[1], 1);
-    }
-
-    #[test]
-    fn dark_surfaces_and_the_holes_in_them_are_shaded_dark() {
-        // Bright road everywhere, a car (class 10) over columns 100-139: dark paint
-        // on 100-119, bright on 120-139. Holes in each half take its shade.
-        let mut img = ground_image(8, 256, 1.7);
-        for k in 0..img.len() {
-            let j = k % 256;
-            img.intensity[k] = match j {
-                100..=119 => 0.03,
-                120..=139 => 0.4,
-                _ => 0.3,
-            };
-            if (100..140).contains(&j) {
-                img.label[k] = 10;
-            }
-        }
-        let (dark_hole, bright_hole) = (4 * 256 + 110, 4 * 256 + 130);
-        for k in [dark_hole, bright_hole] {
-            img.range_m[k] = 0.0;
-            img.label[k] = 0;
-            img.intensity[k] = 0.0;
-        }
-        let f = ScanFeatures::from_image(&img, &FeatureOptions::default());
-        assert_eq!(f.shade[3 * 256 + 105], DARK);
-        assert_eq!(f.shade[3 * 256 + 125], BRIGHT);
-        assert_eq!(f.shade[3 * 256 + 20], BRIGHT, "the road");
-        assert_eq!((f.shade[dark_hole], f.shade[bright_hole]), (DARK, BRIGHT));
-        // Without intensities nothing is shaded.
-        img.intensity.iter_mut().for_each(|i| *i = 0.0);
-        let f = ScanFeatures::from_image(&img, &FeatureOptions::default());
-        assert!(f.shade.iter().all(|s| *s == 0));
     }
 
     #[test]

@@ -137,8 +137,6 @@ pub struct Pixels {
     /// cos(incidence) of the completed surface (NaN = unknown).
     pub cos_incidence: Vec<f32>,
     pub class: Vec<u16>,
-    /// Dark, bright or unknown surface (`features::DARK`, `BRIGHT`, 0).
-    pub shade: Vec<u8>,
     pub kept: Vec<bool>,
     /// 0 for a kept pixel; for a dropped one, the smallest `d` such that it has
     /// returns on both sides within `d` pixels along its row or along its column
@@ -188,7 +186,6 @@ impl Pixels {
                 px.range_m.push(r);
                 px.cos_incidence.push(f.incidence_rad[k].cos());
                 px.class.push((f.class[k] & 0xffff) as u16);
-                px.shade.push(f.shade[k]);
                 px.kept.push(f.kept[k]);
                 px.enclosure_px.push(enclosure);
                 px.scan.push(scan);

@@ -375,7 +375,6 @@ mod tests {
             incidence_rad: Vec::new(),
             edge_px: Vec::new(),
             class: Vec::new(),
-            shade: Vec::new(),
             kept: Vec::new(),
         };
         for k in 0..n {
@@ -388,7 +387,6 @@ mod tests {
             f.incidence_rad.push(1.5 * u(k, 4));
             f.edge_px.push((u(k, 5) * 8.0) as u8 % 8);
             f.class.push(1 + (u(k, 6) * 4.0) as u32 % 4);
-            f.shade.push(0);
             f.kept.push(u(k, 7) >= drop_prob(range_m));
         }
         f
