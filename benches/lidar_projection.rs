@@ -2,8 +2,9 @@
 //! projection per strategy at 64x2048, sensor estimation, and resampling. Reads
 //! `../shared/real_lidar/semantickitti_ssv3/000000.bin` when it exists, else
 //! generates a scan with the same layout (64 rings x 2010 points in KITTI ring
-//! order). Plain timing harness (no criterion), single-threaded like one scan in
-//! `convert`:
+//! order). Also the fill of a 64x512 grid from a random 10 % of its returns
+//! (`fill_scattered`: IDW and local surfaces). Plain timing harness (no
+//! criterion), single-threaded like one scan in `convert`:
 //!
 //! `cargo bench --bench lidar_projection`
 //!
@@ -15,7 +16,8 @@ use std::path::Path;
 use std::time::Instant;
 
 use rangegan_mcap::lidar::{
-    Interpolation, Scan, SensorProfile, Strategy, estimate_profile, kitti, project, resample_image,
+    Interpolation, Scan, ScatterFill, SensorProfile, Strategy, estimate_profile, fill_scattered,
+    kitti, project, resample_image,
 };
 
 /// CPU seconds used by this process so far (user + system), from `/proc/self/stat`;
@@ -109,6 +111,27 @@ fn main() {
             &format!("lidar/resample/{}/64x512-to-64x2048", m.name()),
             runs,
             || resample_image(&small, &fine, m).valid_count(),
+        );
+    }
+    // A fixed hash of the pixel index picks 10 % of the returns.
+    let observed: Vec<f32> = small
+        .range_m
+        .iter()
+        .enumerate()
+        .map(|(k, d)| {
+            let hash = (k as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15) >> 54;
+            if hash.is_multiple_of(10) { *d } else { 0.0 }
+        })
+        .collect();
+    let surfaces = ScatterFill::Surfaces {
+        guide: None,
+        guide_jump: 0.3,
+    };
+    for (name, how) in [("idw", ScatterFill::Idw), ("surfaces", surfaces)] {
+        time_runs(
+            &format!("lidar/fill-scattered/{name}/64x512-10pct"),
+            runs,
+            || fill_scattered(&observed, &small.angles, how).len(),
         );
     }
 }
