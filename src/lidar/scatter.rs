@@ -32,14 +32,16 @@ pub enum ScatterFill<'a> {
 pub const SCATTER_RADIUS: isize = 8;
 
 /// Fills `grid` (row-major, columns circular) from a scattered observation on it (meters,
-/// 0 = not observed): observed pixels keep their depth exactly, other pixels are estimated
-/// from the observed ones within [`SCATTER_RADIUS`] pixels and stay 0 where there are none.
+/// 0 = not observed; anything not finite and positive counts as not observed): observed
+/// pixels keep their depth exactly, other pixels are estimated from the observed ones within
+/// [`SCATTER_RADIUS`] pixels and stay 0 where there are none.
 pub fn fill_scattered(observed: &[f32], grid: &AngleGrid, how: ScatterFill) -> Vec<f32> {
     let (height, width) = (grid.height, grid.width);
     let mut out = vec![0.0f32; height * width];
     if observed.len() != height * width || grid.len() != height * width || width == 0 {
         return out;
     }
+    let returned = |d: f32| d.is_finite() && d > 0.0;
     let mut around: Vec<Return> = Vec::new();
     let r = SCATTER_RADIUS;
     let guide_at = |idx: usize| match how {
@@ -49,7 +51,7 @@ pub fn fill_scattered(observed: &[f32], grid: &AngleGrid, how: ScatterFill) -> V
     for i in 0..height as isize {
         for j in 0..width as isize {
             let k = i as usize * width + j as usize;
-            if observed[k] > 0.0 {
+            if returned(observed[k]) {
                 out[k] = observed[k];
                 continue;
             }
@@ -58,7 +60,7 @@ pub fn fill_scattered(observed: &[f32], grid: &AngleGrid, how: ScatterFill) -> V
                 for dj in -r..=r {
                     let jj = (j + dj).rem_euclid(width as isize) as usize;
                     let idx = ii as usize * width + jj;
-                    if observed[idx] > 0.0 {
+                    if returned(observed[idx]) {
                         let di = ii - i;
                         let pixels = ((di * di + dj * dj) as f32).sqrt();
                         let guide = guide_at(idx).unwrap_or(0.0);
@@ -340,6 +342,32 @@ mod tests {
             }
             assert!((out[k] - truth[k]).abs() < 1e-3, "pixel {k}: {}", out[k]);
         }
+    }
+
+    #[test]
+    fn values_that_are_not_returns_are_not_observed() {
+        let (grid, _, mut observed) = scattered_edge();
+        let clean = fill_scattered(&observed, &grid, ScatterFill::Idw);
+        // Pixels 11, 21 and 31 were not observed (every 10th pixel is).
+        let (nan, inf, negative) = (11, 21, 31);
+        observed[nan] = f32::NAN;
+        observed[inf] = f32::INFINITY;
+        observed[negative] = -5.0;
+        for how in [ScatterFill::Idw, ScatterFill::Nearest] {
+            let out = fill_scattered(&observed, &grid, how);
+            assert!(out.iter().all(|d| d.is_finite() && *d >= 0.0));
+        }
+        let out = fill_scattered(
+            &observed,
+            &grid,
+            ScatterFill::Surfaces {
+                guide: None,
+                guide_jump: 0.3,
+            },
+        );
+        assert!(out.iter().all(|d| d.is_finite() && *d >= 0.0));
+        // The bad values sit where nothing was observed, so plain IDW is unchanged.
+        assert_eq!(fill_scattered(&observed, &grid, ScatterFill::Idw), clean);
     }
 
     #[test]
