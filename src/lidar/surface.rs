@@ -93,8 +93,7 @@ fn angle_deg(a: [f32; 3], b: [f32; 3]) -> f32 {
 ///
 /// Surfaces: the neighbours sorted by measured depth, split wherever two consecutive depths
 /// differ by more than `rule.jump_per_deg` times the angle between them (log depth). One
-/// surface: every
-/// neighbour is kept. Across an edge, with a guide depth at the new pixel (`guide_target`)
+/// surface: every neighbour is kept. Across an edge, with a guide depth at the new pixel (`guide_target`)
 /// and at the neighbours, each hypothesis, "the new pixel lies on surface S" and "it lies
 /// between them" (everything blended), predicts the guide at the new pixel by blending the
 /// neighbours' guide depths the same way; a single surface is kept when its prediction
@@ -160,7 +159,7 @@ pub(crate) fn keep_surface(ns: &mut Vec<Neighbour>, guide_target: f32, rule: &Su
     one
 }
 
-pub(crate) fn renormalise(ns: &mut [Neighbour]) {
+fn renormalise(ns: &mut [Neighbour]) {
     let total: f32 = ns.iter().map(|n| n.weight).sum();
     for n in ns.iter_mut() {
         n.weight /= total;
