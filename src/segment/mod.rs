@@ -71,7 +71,8 @@ impl SegModel {
         );
         let net = info
             .net
-            .init(device)
+            // The loaded weights replace the drawn ones: the seed does not matter.
+            .init(&mut crate::model::rng::Rng::new(0), device)
             .try_load_file(dir.join(Self::WEIGHTS))
             .map_err(|e| anyhow::anyhow!("{}: cannot load weights: {e}", dir.display()))?;
         Ok(SegModel { info, net })

@@ -5,7 +5,7 @@
 //! a 1x1 head gives one logit per class and pixel.
 
 use burn::config::Config;
-use burn::module::Module;
+use burn::module::{Module, Param};
 use burn::nn::conv::{Conv2d, Conv2dConfig};
 use burn::nn::pool::{MaxPool2d, MaxPool2dConfig};
 use burn::nn::{BatchNorm, BatchNormConfig, PaddingConfig2d};
@@ -14,6 +14,7 @@ use burn::tensor::{Device, Tensor};
 
 use super::classes::NUM_CLASSES;
 use super::data::CHANNELS;
+use crate::model::rng::{Rng, tensor_from};
 
 #[derive(Config, Debug)]
 pub struct SegNetConfig {
@@ -32,28 +33,51 @@ impl SegNetConfig {
         1 << self.widths.len().saturating_sub(1)
     }
 
-    pub fn init(&self, device: &Device) -> SegNet {
+    /// A fresh network, its weights drawn from `rng` (so a run repeats exactly).
+    pub fn init(&self, rng: &mut Rng, device: &Device) -> SegNet {
         let w = &self.widths;
         let mut encoder = Vec::new();
         let mut d_in = self.d_input;
         for &d in w {
-            encoder.push(Block::new(d_in, d, device));
+            encoder.push(Block::new(d_in, d, rng, device));
             d_in = d;
         }
         // Level i of the decoder takes the upsampled level below and the encoder's skip.
         let mut decoder = Vec::new();
         for i in (0..w.len() - 1).rev() {
             let d_out = w[i.saturating_sub(1)];
-            decoder.push(Block::new(d_in + w[i], d_out, device));
+            decoder.push(Block::new(d_in + w[i], d_out, rng, device));
             d_in = d_out;
         }
         SegNet {
             encoder,
             decoder,
             pool: MaxPool2dConfig::new([2, 2]).init(),
-            head: Conv2dConfig::new([d_in, self.classes], [1, 1]).init(device),
+            head: seeded(Conv2dConfig::new([d_in, self.classes], [1, 1]), rng, device),
         }
     }
+}
+
+/// A convolution with burn's default initialisation (weights and bias uniform within
+/// +-1/sqrt(fan_in)), drawn from `rng` rather than the backend's unseeded generator.
+fn seeded(config: Conv2dConfig, rng: &mut Rng, device: &Device) -> Conv2d {
+    let [d_in, d_out] = config.channels;
+    let [kh, kw] = config.kernel_size;
+    let bound = 1.0 / ((d_in * kh * kw) as f32).sqrt();
+    let mut draw = |n: usize| -> Vec<f32> {
+        rng.uniform_vec(n)
+            .into_iter()
+            .map(|u| (2.0 * u - 1.0) * bound)
+            .collect()
+    };
+    let weight = tensor_from(draw(d_out * d_in * kh * kw), [d_out, d_in, kh, kw], device);
+    let bias = config
+        .bias
+        .then(|| Param::from_tensor(tensor_from(draw(d_out), [d_out], device)));
+    let mut conv = config.init(device);
+    conv.weight = Param::from_tensor(weight);
+    conv.bias = bias;
+    conv
 }
 
 /// 3x3 convolution, batch norm, ReLU.
@@ -64,12 +88,15 @@ pub struct ConvBn {
 }
 
 impl ConvBn {
-    fn new(d_in: usize, d_out: usize, device: &Device) -> Self {
+    fn new(d_in: usize, d_out: usize, rng: &mut Rng, device: &Device) -> Self {
         ConvBn {
-            conv: Conv2dConfig::new([d_in, d_out], [3, 3])
-                .with_padding(PaddingConfig2d::Valid)
-                .with_bias(false)
-                .init(device),
+            conv: seeded(
+                Conv2dConfig::new([d_in, d_out], [3, 3])
+                    .with_padding(PaddingConfig2d::Valid)
+                    .with_bias(false),
+                rng,
+                device,
+            ),
             norm: BatchNormConfig::new(d_out).init(device),
         }
     }
@@ -87,10 +114,10 @@ pub struct Block {
 }
 
 impl Block {
-    fn new(d_in: usize, d_out: usize, device: &Device) -> Self {
+    fn new(d_in: usize, d_out: usize, rng: &mut Rng, device: &Device) -> Self {
         Block {
-            a: ConvBn::new(d_in, d_out, device),
-            b: ConvBn::new(d_out, d_out, device),
+            a: ConvBn::new(d_in, d_out, rng, device),
+            b: ConvBn::new(d_out, d_out, rng, device),
         }
     }
 
@@ -164,8 +191,8 @@ mod tests {
     #[test]
     fn logits_have_the_input_grid_and_whole_scans_are_shift_equivariant() {
         let device = Device::flex();
-        let net = SegNetConfig::new().init(&device);
         let mut rng = Rng::new(1);
+        let net = SegNetConfig::new().init(&mut rng, &device);
         let (h, w) = (8, 32);
         let x = rng.normal_tensor([1, CHANNELS, h, w], &device);
         let y = net.forward(x.clone(), true);
@@ -187,6 +214,18 @@ mod tests {
             .map(|(a, b)| (a - b).abs())
             .fold(0.0, f32::max);
         assert!(err < 1e-4, "max difference {err}");
+    }
+
+    #[test]
+    fn the_seed_alone_decides_the_initial_weights() {
+        let device = Device::flex();
+        let x = Rng::new(9).normal_tensor([1, CHANNELS, 8, 16], &device);
+        let logits = |seed| {
+            let net = SegNetConfig::new().init(&mut Rng::new(seed), &device);
+            tensor_to_vec(net.forward(x.clone(), false))
+        };
+        assert_eq!(logits(3), logits(3));
+        assert_ne!(logits(3), logits(4));
     }
 
     #[test]

@@ -156,12 +156,10 @@ impl Trainer {
     fn new(config: &SegTrainConfig, run_dir: &Path, data: &SegDataset) -> Result<Self> {
         crate::model::tune_allocator();
         let device = Device::flex().autodiff();
-        let mut net = config.net.init(&device);
+        let mut rng = Rng::new(config.seed);
+        let mut net = config.net.init(&mut rng, &device);
         let mut opt = AdamConfig::new().init();
-        let mut state = SegTrainState {
-            step: 0,
-            rng: Rng::new(config.seed),
-        };
+        let mut state = SegTrainState { step: 0, rng };
         let ck = run_dir.join(CHECKPOINT);
         if ck.join("state.json").exists() {
             let err = |what: &str, e: burn::store::RecordError| {
