@@ -88,16 +88,47 @@ impl EqualConv {
     /// - x: `[batch, in, H, W]` -> `[batch, out, H, W]`
     pub fn forward(&self, x: Tensor<4>) -> Tensor<4> {
         let k = self.weight.dims()[2];
-        let x = pad_circular(x, k / 2);
         let weight = self.weight.val().mul_scalar(self.weight_gain);
-        let y = conv2d(
-            x,
-            weight,
-            self.bias.as_ref().map(|b| b.val()),
-            ConvOptions::new([1, 1], [0, 0], [1, 1], 1),
-        );
+        let bias = self.bias.as_ref().map(|b| b.val());
+        let y = conv_as_matmul(pad_circular(x, k / 2), weight, bias);
         if self.activate { lrelu_gain(y) } else { y }
     }
+}
+
+/// A stride-1 convolution of an already padded input, written as one matrix product over
+/// its `k x k` shifted views (im2col). Same result as `conv2d`, but its gradients are matrix
+/// products too: the CPU backend computes `conv2d`'s weight gradient as a convolution with
+/// an image-sized kernel, which took a third of a training step.
+///
+/// # Shapes
+/// - x: `[batch, in, H + k - 1, W + k - 1]`, weight: `[out, in, k, k]` -> `[batch, out, H, W]`
+pub fn conv_as_matmul(x: Tensor<4>, weight: Tensor<4>, bias: Option<Tensor<1>>) -> Tensor<4> {
+    let [b, c, hp, wp] = x.dims();
+    let [o, _, k, _] = weight.dims();
+    let (h, w) = (hp + 1 - k, wp + 1 - k);
+    let cols = if k == 1 {
+        x.reshape([b, c, h * w])
+    } else {
+        // Ordered (channel, dy, dx) like the weight's last three axes.
+        let views: Vec<Tensor<5>> = (0..k * k)
+            .map(|t| {
+                x.clone()
+                    .narrow(2, t / k, h)
+                    .narrow(3, t % k, w)
+                    .unsqueeze_dim::<5>(2)
+            })
+            .collect();
+        Tensor::cat(views, 2).reshape([b, c * k * k, h * w]) // [batch, in*k*k, H*W]
+    };
+    let y = weight
+        .reshape([1, o, c * k * k])
+        .expand([b, o, c * k * k])
+        .matmul(cols); // [batch, out, H*W]
+    let y = match bias {
+        Some(bias) => y + bias.reshape([1, o, 1]),
+        None => y,
+    };
+    y.reshape([b, o, h, w])
 }
 
 /// Residual block: conv 3x3 -> blur-downsample -> conv 3x3, plus a downsampled 1x1 skip.
@@ -378,6 +409,47 @@ mod tests {
         assert!(x.grad(&grads).is_some());
         assert!(d.fc.weight.val().grad(&grads).is_some());
         assert!(d.blocks[0].conv0.weight.val().grad(&grads).is_some());
+    }
+
+    #[test]
+    fn conv_as_matmul_matches_conv2d_and_its_gradients() {
+        let dev = Device::flex().autodiff();
+        let mut rng = Rng::new(5);
+        for k in [1, 3] {
+            let x = rng.normal_tensor([2, 3, 5 + k - 1, 9 + k - 1], &dev);
+            let weight = rng.normal_tensor([4, 3, k, k], &dev);
+            let bias = rng.normal_tensor([4], &dev);
+            let upstream = rng.normal_tensor([2, 4, 5, 9], &dev);
+            let run = |im2col: bool| {
+                let (x, weight, bias) = (
+                    x.clone().require_grad(),
+                    weight.clone().require_grad(),
+                    bias.clone().require_grad(),
+                );
+                let y = if im2col {
+                    conv_as_matmul(x.clone(), weight.clone(), Some(bias.clone()))
+                } else {
+                    let options = ConvOptions::new([1, 1], [0, 0], [1, 1], 1);
+                    conv2d(x.clone(), weight.clone(), Some(bias.clone()), options)
+                };
+                let grads = (y.clone() * upstream.clone()).sum().backward();
+                let grad = |t: Option<Tensor<4>>| tensor_to_vec(t.unwrap());
+                (
+                    tensor_to_vec(y.inner()),
+                    grad(x.grad(&grads)),
+                    grad(weight.grad(&grads)),
+                    tensor_to_vec(bias.grad(&grads).unwrap()),
+                )
+            };
+            let (a, b) = (run(true), run(false));
+            let close = |p: &[f32], q: &[f32]| {
+                p.len() == q.len() && p.iter().zip(q).all(|(p, q)| (p - q).abs() < 1e-4)
+            };
+            assert!(close(&a.0, &b.0), "output, k = {k}");
+            assert!(close(&a.1, &b.1), "input gradient, k = {k}");
+            assert!(close(&a.2, &b.2), "weight gradient, k = {k}");
+            assert!(close(&a.3, &b.3), "bias gradient, k = {k}");
+        }
     }
 
     #[test]
