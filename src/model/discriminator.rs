@@ -102,7 +102,7 @@ impl EqualConv {
 ///
 /// # Shapes
 /// - x: `[batch, in, H + k - 1, W + k - 1]`, weight: `[out, in, k, k]` -> `[batch, out, H, W]`
-pub fn conv_as_matmul(x: Tensor<4>, weight: Tensor<4>, bias: Option<Tensor<1>>) -> Tensor<4> {
+fn conv_as_matmul(x: Tensor<4>, weight: Tensor<4>, bias: Option<Tensor<1>>) -> Tensor<4> {
     let [b, c, hp, wp] = x.dims();
     let [o, _, k, _] = weight.dims();
     let (h, w) = (hp + 1 - k, wp + 1 - k);
