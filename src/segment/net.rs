@@ -8,7 +8,7 @@ use burn::config::Config;
 use burn::module::{Module, Param};
 use burn::nn::conv::{Conv2d, Conv2dConfig};
 use burn::nn::pool::{MaxPool2d, MaxPool2dConfig};
-use burn::nn::{BatchNorm, BatchNormConfig, PaddingConfig2d};
+use burn::nn::{BatchNorm, BatchNormConfig, Initializer, PaddingConfig2d};
 use burn::tensor::activation::relu;
 use burn::tensor::{Device, Tensor};
 
@@ -74,7 +74,8 @@ fn seeded(config: Conv2dConfig, rng: &mut Rng, device: &Device) -> Conv2d {
     let bias = config
         .bias
         .then(|| Param::from_tensor(tensor_from(draw(d_out), [d_out], device)));
-    let mut conv = config.init(device);
+    // Zeros: nothing is drawn from the backend's unseeded generator; both are replaced.
+    let mut conv = config.with_initializer(Initializer::Zeros).init(device);
     conv.weight = Param::from_tensor(weight);
     conv.bias = bias;
     conv
@@ -186,7 +187,7 @@ fn upsample2(x: Tensor<4>) -> Tensor<4> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::model::rng::{Rng, tensor_to_vec};
+    use crate::model::rng::tensor_to_vec;
 
     #[test]
     fn logits_have_the_input_grid_and_whole_scans_are_shift_equivariant() {
@@ -231,7 +232,7 @@ mod tests {
     #[test]
     fn upsample_repeats_each_pixel() {
         let device = Device::flex();
-        let x = crate::model::rng::tensor_from(vec![1.0, 2.0, 3.0, 4.0], [1, 1, 2, 2], &device);
+        let x = tensor_from(vec![1.0, 2.0, 3.0, 4.0], [1, 1, 2, 2], &device);
         let y = tensor_to_vec(upsample2(x));
         assert_eq!(
             y,
