@@ -7,6 +7,7 @@
 //!         [--paper-scans 2] [--fast-scans 26] [--encoder DIR] [--model DIR] [--out eval.json]
 //!         [--png docs/img/raydrop_reliability.png] [--sparse-paper-scans 4] [--only-sparse]
 //!         [--tune N] [--validation kitti_raw_drive_d] [--fast-schedule ...] [--only-reconstruction]
+//!         [--reference-scans 4]
 //!
 //! The upsampling and restoration cases also measure the library's fills that `convert
 //! --upsample-method` offers (guided, edge-aware), with MAE near (<= 30 m) and far and the
@@ -25,7 +26,9 @@ use std::time::Instant;
 
 use anyhow::{Context, Result, bail};
 use rangegan_mcap::decode::amortised::TrainedEncoder;
-use rangegan_mcap::decode::{DecodeOptions, Decoded, Decoder, Fill, Quality, Sparsify, model_grid};
+use rangegan_mcap::decode::{
+    DecodeOptions, Decoded, Decoder, Fill, Quality, Schedule, Sparsify, model_grid,
+};
 use rangegan_mcap::lidar::{
     self, AngleGrid, Interpolation, RangeImage, SensorProfile, Strategy, SurfaceRule,
     resample_image,
@@ -44,13 +47,15 @@ struct Args {
     model: Option<PathBuf>,
     out: Option<PathBuf>,
     /// `w_steps,w_lr,tune_steps,tune_lr,tune_decay,tune_w_lr` of the fast path (default: `Schedule::fast()`).
-    fast_schedule: Option<rangegan_mcap::decode::Schedule>,
+    fast_schedule: Option<Schedule>,
     /// Stop after the reconstruction numbers (for tuning the fast schedule).
     only_reconstruction: bool,
     /// Write the ray-drop reliability curves here (PNG).
     png: Option<PathBuf>,
     /// Also run the row upsampling / restoration cases with `paper` decodes on this many scans.
     sparse_paper_scans: usize,
+    /// Also decode this many scans with the paper's own schedule from w_avg (`Schedule::reference`).
+    reference_scans: usize,
     /// Only the upsampling and restoration cases (skip reconstruction and calibration).
     only_sparse: bool,
     /// Tune the surface rule of the guided and edge-aware fills on this many TRAINING scans
@@ -73,6 +78,7 @@ fn parse_args() -> Result<Args> {
         only_reconstruction: false,
         png: None,
         sparse_paper_scans: 0,
+        reference_scans: 0,
         only_sparse: false,
         validation: None,
         tune: None,
@@ -89,6 +95,7 @@ fn parse_args() -> Result<Args> {
             "--out" => a.out = Some(PathBuf::from(value()?)),
             "--png" => a.png = Some(PathBuf::from(value()?)),
             "--sparse-paper-scans" => a.sparse_paper_scans = value()?.parse()?,
+            "--reference-scans" => a.reference_scans = value()?.parse()?,
             "--only-reconstruction" => a.only_reconstruction = true,
             "--only-sparse" => a.only_sparse = true,
             "--validation" => a.validation = Some(value()?),
@@ -101,7 +108,7 @@ fn parse_args() -> Result<Args> {
                         "--fast-schedule w_steps,w_lr,tune_steps,tune_lr,tune_decay(0|1),tune_w_lr"
                     );
                 }
-                a.fast_schedule = Some(rangegan_mcap::decode::Schedule {
+                a.fast_schedule = Some(Schedule {
                     w_steps: p[0].parse()?,
                     w_lr: p[1].parse()?,
                     tune_steps: p[2].parse()?,
@@ -392,7 +399,7 @@ fn decoder(
     model: &Option<PathBuf>,
     encoder: &Option<PathBuf>,
     mut opts: DecodeOptions,
-    fast_schedule: &Option<rangegan_mcap::decode::Schedule>,
+    fast_schedule: &Option<Schedule>,
 ) -> Result<Decoder> {
     let dev = burn::tensor::Device::flex();
     if let (Some(s), Quality::Fast) = (fast_schedule, opts.quality) {
@@ -403,9 +410,8 @@ fn decoder(
             opts.schedule.tune_steps = 0;
         }
     }
-    let quality = opts.quality;
     let mut d = Decoder::new(Model::load(model.as_deref(), &dev)?, opts)?;
-    if let (Some(e), Quality::Fast) = (encoder, quality) {
+    if let Some(e) = encoder {
         d = d.with_encoder(TrainedEncoder::from_dir(e, &dev)?)?;
     }
     Ok(d)
@@ -451,16 +457,16 @@ fn main() -> Result<()> {
     }
     let paper = decoder(
         &args.model,
-        &None,
+        &args.encoder,
         DecodeOptions::new(Quality::Paper),
         &None,
     )?;
+    let mut reference_opts = DecodeOptions::new(Quality::Paper);
+    reference_opts.schedule = Schedule::reference();
+    let reference = decoder(&args.model, &None, reference_opts, &None)?.without_encoder();
     let mut no_enc_opts = DecodeOptions::new(Quality::Paper);
-    no_enc_opts.schedule = args
-        .fast_schedule
-        .clone()
-        .unwrap_or_else(rangegan_mcap::decode::Schedule::fast);
-    let no_encoder = decoder(&args.model, &None, no_enc_opts, &None)?;
+    no_enc_opts.schedule = args.fast_schedule.clone().unwrap_or_else(Schedule::fast);
+    let no_encoder = decoder(&args.model, &None, no_enc_opts, &None)?.without_encoder();
     let mut encoder_only_opts = DecodeOptions::new(Quality::Fast);
     encoder_only_opts.schedule.w_steps = 0;
     encoder_only_opts.schedule.tune_steps = 0;
@@ -495,13 +501,18 @@ fn main() -> Result<()> {
             Ok((f64::from(a), f64::from(b)))
         })
         .collect::<Result<_>>()?;
-    let t1 = Instant::now();
-    let paper_res: Vec<(Decoded, f64)> = scans[..paper_n]
-        .par_iter()
-        .enumerate()
-        .map(|(i, s)| timed(&paper, s, i as u64))
-        .collect::<Result<_>>()?;
-    let paper_wall = t1.elapsed().as_secs_f64();
+    let decode_all = |d: &Decoder, n: usize| -> Result<(Vec<(Decoded, f64)>, f64)> {
+        let t = Instant::now();
+        let res = scans[..n]
+            .par_iter()
+            .enumerate()
+            .map(|(i, s)| timed(d, s, i as u64))
+            .collect::<Result<_>>()?;
+        Ok((res, t.elapsed().as_secs_f64()))
+    };
+    let (paper_res, paper_wall) = decode_all(&paper, paper_n)?;
+    let reference_n = args.reference_scans.min(scans.len());
+    let (reference_res, reference_wall) = decode_all(&reference, reference_n)?;
     let err = |r: &[(Decoded, f64)]| -> Vec<f64> {
         r.iter()
             .map(|(d, _)| f64::from(d.error.unwrap_or(f32::NAN)))
@@ -509,6 +520,7 @@ fn main() -> Result<()> {
     };
     let fast_err = err(&fast_res);
     let paper_err = err(&paper_res);
+    let reference_err = err(&reference_res);
     let fast_on_paper_scans = mean(&fast_err[..paper_n.min(fast_n)]);
     let speedup = (fast_n as f64 / fast_wall) / (paper_n as f64 / paper_wall);
     let reconstruction = json!({
@@ -521,6 +533,10 @@ fn main() -> Result<()> {
         "paper": {"scans": paper_n, "rel_l1_mean": mean(&paper_err), "rel_l1_per_scan": paper_err,
                    "scans_per_sec": paper_n as f64 / paper_wall, "wall_secs": paper_wall,
                    "steps": paper.options().schedule.steps()},
+        "reference": {"scans": reference_n, "rel_l1_mean": mean(&reference_err),
+                      "rel_l1_per_scan": reference_err,
+                      "scans_per_sec": reference_n as f64 / reference_wall,
+                      "steps": reference.options().schedule.steps()},
         "encoder_only_rel_l1": mean(&ablation.iter().map(|a| a.0).collect::<Vec<_>>()),
         "w_avg_plus_fast_steps_rel_l1": mean(&ablation.iter().map(|a| a.1).collect::<Vec<_>>()),
     });

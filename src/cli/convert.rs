@@ -70,19 +70,19 @@ pub struct ConvertArgs {
     #[command(flatten)]
     pub dataset: DatasetArgs,
     /// Auto-decoding with the range-image GAN: `fast` (amortised encoder + 33 pivotal-tuning
-    /// steps), `paper` (the paper's 1000-step pivotal tuning inversion, minutes per scan) or
-    /// `off` (range images only).
+    /// steps), `paper` (encoder + 500 pivotal-tuning steps, seconds per scan) or `off` (range
+    /// images only).
     #[arg(long, value_enum, default_value = "fast")]
     pub quality: QualityArg,
     /// Generator: a model directory (config.json + g_ema.bpk) or a training run directory
     /// (default: the shipped weights).
     #[arg(long)]
     pub model: Option<PathBuf>,
-    /// Encoder of `--quality fast`: a `train-encoder` run or model directory (default: the
+    /// Encoder that starts each decode: a `train-encoder` run or model directory (default: the
     /// shipped weights).
     #[arg(long)]
     pub encoder: Option<PathBuf>,
-    /// Override the optimisation steps on w (fast: 0, paper: 500).
+    /// Override the optimisation steps on w after the encoder (default 0).
     #[arg(long)]
     pub w_steps: Option<usize>,
     /// Override the pivotal-tuning steps on the generator weights (fast: 33, paper: 500).
@@ -179,7 +179,7 @@ pub(crate) fn resolve_decoding(
     let device = burn::tensor::Device::flex();
     let model = Model::load(args.model.as_deref(), &device)?;
     let mut decoder = Decoder::new(model, opts)?;
-    if let (Some(dir), Quality::Fast) = (&args.encoder, quality) {
+    if let Some(dir) = &args.encoder {
         decoder = decoder.with_encoder(TrainedEncoder::from_dir(dir, &device)?)?;
     }
     let target_sensors = args

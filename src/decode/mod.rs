@@ -48,7 +48,7 @@ use loss::{network_to_depth, relative_depth_error};
 pub enum Quality {
     /// Encoder prediction + a few refinement steps ([`Schedule::fast`]).
     Fast,
-    /// The paper's pivotal tuning inversion from w_avg ([`Schedule::paper`]).
+    /// Encoder prediction + a long pivotal tuning ([`Schedule::paper`]): seconds per scan.
     Paper,
 }
 
@@ -279,8 +279,9 @@ pub fn model_grid() -> AngleGrid {
 }
 
 impl Decoder {
-    /// A decoder for `model` (must be the implicit DUSty v2 generator). `Fast` uses the shipped
-    /// encoder unless [`Decoder::with_encoder`] gives another.
+    /// A decoder for `model` (must be the implicit DUSty v2 generator). It starts each inversion
+    /// from the shipped encoder's prediction unless [`Decoder::with_encoder`] gives another or
+    /// [`Decoder::without_encoder`] starts from w_avg.
     pub fn new(model: Model, opts: DecodeOptions) -> Result<Decoder> {
         let AnyGenerator::Implicit(generator) = model.generator else {
             bail!(
@@ -300,15 +301,12 @@ impl Decoder {
             elevation_range: elevation_range(&grid),
             grid,
         };
-        let encoder = match opts.quality {
-            Quality::Fast => Some(TrainedEncoder::shipped(&device)?),
-            Quality::Paper => None,
-        };
+        let encoder = TrainedEncoder::shipped(&device)?;
         let calibration = model
             .calibration
             .filter(|_| opts.calibrate_raydrop)
             .map(Arc::new);
-        let mut d = Decoder {
+        let d = Decoder {
             pools: Pools::new(rayon::current_num_threads())?,
             source: model.source,
             calibration,
@@ -320,10 +318,15 @@ impl Decoder {
             model: model_grid,
             cache_ad,
         };
-        if let Some(e) = encoder {
-            d = d.with_encoder(e)?;
+        d.with_encoder(encoder)
+    }
+
+    /// Start every inversion from w_avg, as the paper does ([`Schedule::reference`]).
+    pub fn without_encoder(mut self) -> Decoder {
+        if let Some(e) = self.encoder.take() {
+            self.source = self.source.replace(&format!(" + encoder {}", e.source), "");
         }
-        Ok(d)
+        self
     }
 
     /// Use this encoder for the fast path (e.g. one from `train-encoder`).

@@ -63,13 +63,17 @@ fn generated_scan(model: &Model, seed: u64) -> RangeImage {
     img
 }
 
+/// The paper's schedule from w_avg, shortened: both phases of the optimiser run.
 fn decoder(w_steps: usize, tune_steps: usize, restore: Option<Sparsify>) -> Decoder {
     let model = Model::shipped(&Device::flex()).expect("shipped model");
     let mut opts = DecodeOptions::new(Quality::Paper);
+    opts.schedule = Schedule::reference();
     opts.schedule.w_steps = w_steps;
     opts.schedule.tune_steps = tune_steps;
     opts.restore = restore;
-    Decoder::new(model, opts).expect("decoder")
+    Decoder::new(model, opts)
+        .expect("decoder")
+        .without_encoder()
 }
 
 #[test]
@@ -129,6 +133,21 @@ fn a_few_steps_reduce_the_error_and_renders_any_grid() {
     assert_eq!(r.depth_m.len(), 32 * 1800);
     assert_eq!(r.depth_m[0], 0.0, "+15 deg is outside the model's beams");
     assert!(r.depth_m[20 * 1800] > 0.0, "-3 deg is inside");
+}
+
+/// Both qualities start from the encoder's prediction, which is much closer to a generated
+/// scene than w_avg, the paper's start (`without_encoder`).
+#[test]
+fn decoding_starts_from_the_encoder_unless_told_otherwise() {
+    let model = Model::shipped(&Device::flex()).expect("shipped model");
+    let scan = generated_scan(&model, 5);
+    let mut opts = DecodeOptions::new(Quality::Paper);
+    opts.schedule.tune_steps = 0;
+    let d = Decoder::new(model, opts).expect("decoder");
+    let from_encoder = d.decode(&scan, 1).expect("decode");
+    let from_w_avg = d.without_encoder().decode(&scan, 1).expect("decode");
+    let (e, a) = (from_encoder.error.unwrap(), from_w_avg.error.unwrap());
+    assert!(e < 0.8 * a, "encoder start {e} against w_avg {a}");
 }
 
 #[test]
