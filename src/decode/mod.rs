@@ -233,6 +233,8 @@ pub struct Decoder {
     calibration: Option<Arc<RaydropCalibration>>,
     /// Where the generator and encoder came from.
     pub source: String,
+    /// Where the generator came from.
+    model_source: String,
 }
 
 /// The result of decoding one scan.
@@ -308,7 +310,8 @@ impl Decoder {
             .map(Arc::new);
         let d = Decoder {
             pools: Pools::new(rayon::current_num_threads())?,
-            source: model.source,
+            source: model.source.clone(),
+            model_source: model.source,
             calibration,
             generator,
             encoder: None,
@@ -323,9 +326,8 @@ impl Decoder {
 
     /// Start every inversion from w_avg, as the paper does ([`Schedule::reference`]).
     pub fn without_encoder(mut self) -> Decoder {
-        if let Some(e) = self.encoder.take() {
-            self.source = self.source.replace(&format!(" + encoder {}", e.source), "");
-        }
+        self.encoder = None;
+        self.source = self.model_source.clone();
         self
     }
 
@@ -347,7 +349,7 @@ impl Decoder {
                 self.model.grid.width
             );
         }
-        self.source = format!("{} + encoder {}", self.source, encoder.source);
+        self.source = format!("{} + encoder {}", self.model_source, encoder.source);
         self.encoder = Some(TrainedEncoder {
             encoder: encoder.encoder.to_device(&self.device),
             ..encoder
