@@ -331,7 +331,7 @@ impl Decoder {
         self
     }
 
-    /// Use this encoder for the fast path (e.g. one from `train-encoder`).
+    /// Start each inversion from this encoder's prediction (e.g. one from `train-encoder`).
     pub fn with_encoder(mut self, encoder: TrainedEncoder) -> Result<Decoder> {
         let d_w = self.generator.d_w();
         if encoder.config.d_w != d_w
