@@ -61,7 +61,7 @@ pub fn run(global: &GlobalArgs, args: CalibrateArgs) -> Result<Outcome> {
     let fitted_on = format!(
         "fast decodes ({} steps) of {n} KITTI training scans, {}",
         decoder.options().schedule.steps(),
-        decoder.source
+        decoder.source()
     );
     let calibration = RaydropCalibration::fit(&samples, fitted_on)?;
     let (mut before, mut after, mut pixels) = (0.0, 0.0, 0usize);

@@ -401,7 +401,7 @@ impl<'d> FileConverter<'d> {
             // What made the decoded channels, so a regenerated dataset says which weights it used.
             let schedule = &decoder.options().schedule;
             metadata.extend([
-                ("decode_model".to_string(), decoder.source.clone()),
+                ("decode_model".to_string(), decoder.source()),
                 (
                     "decode_steps".to_string(),
                     format!("{} w + {} tuning", schedule.w_steps, schedule.tune_steps),

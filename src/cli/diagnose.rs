@@ -221,7 +221,7 @@ pub fn run(global: &GlobalArgs, args: DiagnoseArgs) -> anyhow::Result<Outcome> {
     diagnosis.report.inputs.completion_model = decoder.as_ref().map(|d| {
         format!(
             "{} (fast: {} pivotal-tuning steps per scan)",
-            d.source,
+            d.source(),
             d.options().schedule.tune_steps
         )
     });

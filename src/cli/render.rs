@@ -300,7 +300,7 @@ pub fn run(global: &GlobalArgs, args: RenderArgs) -> anyhow::Result<Outcome> {
         }
         words = format!(
             "raydrop_gan: x_n of each scan from {} (fast auto-decoding; mean drop probability {:.1} %)",
-            decoder.source,
+            decoder.source(),
             100.0 * sum / n.max(1) as f64
         );
         for (t, p) in input.log_times.iter().zip(probs) {

@@ -231,8 +231,6 @@ pub struct Decoder {
     model: PreparedGrid,
     cache_ad: GridCache,
     calibration: Option<Arc<RaydropCalibration>>,
-    /// Where the generator and encoder came from.
-    pub source: String,
     /// Where the generator came from.
     model_source: String,
 }
@@ -310,7 +308,6 @@ impl Decoder {
             .map(Arc::new);
         let d = Decoder {
             pools: Pools::new(rayon::current_num_threads())?,
-            source: model.source.clone(),
             model_source: model.source,
             calibration,
             generator,
@@ -327,8 +324,15 @@ impl Decoder {
     /// Start every inversion from w_avg, as the paper does ([`Schedule::reference`]).
     pub fn without_encoder(mut self) -> Decoder {
         self.encoder = None;
-        self.source = self.model_source.clone();
         self
+    }
+
+    /// Where the generator and encoder came from.
+    pub fn source(&self) -> String {
+        match &self.encoder {
+            Some(e) => format!("{} + encoder {}", self.model_source, e.source),
+            None => self.model_source.clone(),
+        }
     }
 
     /// Start each inversion from this encoder's prediction (e.g. one from `train-encoder`).
@@ -349,7 +353,6 @@ impl Decoder {
                 self.model.grid.width
             );
         }
-        self.source = format!("{} + encoder {}", self.model_source, encoder.source);
         self.encoder = Some(TrainedEncoder {
             encoder: encoder.encoder.to_device(&self.device),
             ..encoder

@@ -146,10 +146,15 @@ fn decoding_starts_from_the_encoder_unless_told_otherwise() {
     let d = Decoder::new(model, opts).expect("decoder");
     let shipped = TrainedEncoder::shipped(&Device::flex()).expect("shipped encoder");
     let d = d.with_encoder(shipped).expect("same sizes");
-    assert_eq!(d.source.matches(" + encoder ").count(), 1, "{}", d.source);
+    assert_eq!(
+        d.source().matches(" + encoder ").count(),
+        1,
+        "{}",
+        d.source()
+    );
     let from_encoder = d.decode(&scan, 1).expect("decode");
     let d = d.without_encoder();
-    assert!(!d.source.contains("encoder"), "{}", d.source);
+    assert!(!d.source().contains("encoder"), "{}", d.source());
     let from_w_avg = d.decode(&scan, 1).expect("decode");
     let (e, a) = (from_encoder.error.unwrap(), from_w_avg.error.unwrap());
     assert!(e < 0.8 * a, "encoder start {e} against w_avg {a}");
