@@ -27,8 +27,8 @@ use rangegan_mcap::model::metrics::{
     SwdConfig, SwdReport, one_nna, point_sets, swd_between, swd_of_model,
 };
 use rangegan_mcap::model::sample::{SampleOptions, sample};
-use rangegan_mcap::model::train::write_png;
 use rangegan_mcap::model::weights::Model;
+use rangegan_mcap::train::write_png;
 
 struct Args {
     data: PathBuf,

@@ -28,3 +28,4 @@ pub mod recording;
 pub mod report;
 pub mod segment;
 pub mod sim;
+pub mod train;

@@ -11,8 +11,9 @@ use crate::model::Arch;
 use crate::model::data::kitti_validation_split;
 use crate::model::discriminator::DiscriminatorConfig;
 use crate::model::generator::GeneratorConfig;
-use crate::model::train::{Backend, TrainConfig, TrainOptions, load_config, run};
 use crate::physics::pretraining::PretrainingSet;
+use crate::train::growth::{Stage, parse_stage};
+use crate::train::{Backend, TrainConfig, TrainOptions, load_config, run};
 
 #[derive(Debug, Clone, Copy, clap::ValueEnum)]
 pub enum ArchArg {
@@ -126,6 +127,12 @@ pub struct TrainArgs {
     /// weights); its depth x_d, and so an encoder trained for it, stays as it was.
     #[arg(long, requires = "init_from")]
     pub drop_head_only: bool,
+    /// A coarse-to-fine stage of a new run, `BLOCKS:IMAGES` (repeatable, in order): only the
+    /// first BLOCKS synthesis blocks render, on a grid halved per block left out, for IMAGES
+    /// real images, against a discriminator of that size; after the last stage every block
+    /// renders the full grid. E.g. `--stage 3:300k --stage 4:300k` (dusty2).
+    #[arg(long = "stage", value_name = "BLOCKS:IMAGES", value_parser = parse_stage)]
+    pub stages: Vec<Stage>,
 }
 
 pub fn run_train(global: &GlobalArgs, args: TrainArgs) -> anyhow::Result<Outcome> {
@@ -161,6 +168,9 @@ pub fn run_train(global: &GlobalArgs, args: TrainArgs) -> anyhow::Result<Outcome
             config.arch
         );
         config = config.with_drop_head_only(true);
+    }
+    if !args.stages.is_empty() {
+        config = config.with_stages(args.stages.clone());
     }
     if let Some(s) = args.run.seed {
         config = config.with_seed(s);

@@ -20,7 +20,7 @@ pub struct TrainEncoderArgs {
 }
 
 pub fn run_train_encoder(_global: &GlobalArgs, args: TrainEncoderArgs) -> anyhow::Result<Outcome> {
-    crate::model::train::Backend::from(args.run.backend).device()?;
+    crate::train::Backend::from(args.run.backend).device()?;
     let mut config = EncoderTrainConfig::new();
     if let Some(s) = args.run.seed {
         config = config.with_seed(s);

@@ -44,14 +44,21 @@ pub fn network_to_range(x: &[f32]) -> Vec<f32> {
         .collect()
 }
 
-/// The training scans of `real_lidar/`: every KITTI raw drive (`kitti_raw_*/*.bin`) and
-/// `semantickitti_mini/SS/velodyne/*.bin` for every SS except 00 and 07. Those two sequences,
+/// The training scans of `real_lidar/`: every KITTI raw drive (`kitti_raw_*/*.bin`), the
+/// KITTI object and odometry folders (`kitti_object_*/velodyne/*.bin`,
+/// `kitti_odometry_*/velodyne/*.bin`) and `semantickitti_mini/SS/velodyne/*.bin` for every
+/// SS except 00 and 07. Those two sequences,
 /// `semantickitti_ssv3` and `patchworkpp` are the evaluation data and never trained on.
 pub fn kitti_training_files(real_lidar: &Path) -> Result<Vec<PathBuf>> {
     let mut files = Vec::new();
     for drive in subdirs(real_lidar)? {
-        if dir_name(&drive).starts_with(KITTI_RAW_PREFIX) {
+        let name = dir_name(&drive);
+        if name.starts_with(KITTI_RAW_PREFIX) {
             files.extend(bins_in(&drive)?);
+        } else if KITTI_VELODYNE_PREFIXES.iter().any(|p| name.starts_with(p))
+            && drive.join("velodyne").is_dir()
+        {
+            files.extend(bins_in(&drive.join("velodyne"))?);
         }
     }
     for seq in subdirs(&real_lidar.join("semantickitti_mini"))? {
@@ -104,6 +111,9 @@ pub fn kitti_validation_split(
 
 /// Folders of KITTI raw drives (training data) start with this.
 pub const KITTI_RAW_PREFIX: &str = "kitti_raw_";
+
+/// Folders of KITTI object and odometry scans (training data, in `velodyne/`) start with these.
+pub const KITTI_VELODYNE_PREFIXES: [&str; 2] = ["kitti_object_", "kitti_odometry_"];
 
 /// SemanticKITTI sequences kept out of training.
 pub const HELD_OUT_SEQUENCES: [&str; 2] = ["00", "07"];
@@ -353,9 +363,12 @@ mod tests {
                 assert!(!f.contains(eval), "{f} is evaluation data");
             }
         }
-        // Every KITTI raw drive present is trained on.
+        // Every KITTI raw drive, object and odometry folder present is trained on.
         for drive in subdirs(&root).expect("list") {
-            if dir_name(&drive).starts_with(KITTI_RAW_PREFIX) {
+            let name = dir_name(&drive);
+            if name.starts_with(KITTI_RAW_PREFIX)
+                || KITTI_VELODYNE_PREFIXES.iter().any(|p| name.starts_with(p))
+            {
                 let d = lossy(&drive);
                 assert!(
                     train.iter().any(|f| lossy(f).starts_with(&d)),
@@ -366,12 +379,13 @@ mod tests {
         assert!(held.iter().all(|f| !train.contains(f)));
     }
 
-    /// Builds a `real_lidar`-shaped folder: drives `a` (3 scans) and `b` (2), and mini
-    /// sequences 00 (held out) and 01 (1 scan each).
+    /// Builds a `real_lidar`-shaped folder: drives `a` (3 scans) and `b` (2), an object
+    /// folder (2), and mini sequences 00 (held out) and 01 (1 scan each).
     fn fake_real_lidar(root: &Path) {
         let scans = [
             ("kitti_raw_a", 3),
             ("kitti_raw_b", 2),
+            ("kitti_object_x/velodyne", 2),
             ("semantickitti_mini/00/velodyne", 1),
             ("semantickitti_mini/01/velodyne", 1),
         ];
@@ -388,7 +402,7 @@ mod tests {
         let dir = tempfile::tempdir().expect("tempdir");
         fake_real_lidar(dir.path());
         let all = kitti_training_files(dir.path()).expect("list");
-        assert_eq!(all.len(), 6);
+        assert_eq!(all.len(), 8);
         let (train, val) =
             kitti_validation_split(dir.path(), &["kitti_raw_b".into()]).expect("split");
         assert_eq!(val.len(), 2);
@@ -396,7 +410,7 @@ mod tests {
             val.iter()
                 .all(|f| f.starts_with(dir.path().join("kitti_raw_b")))
         );
-        assert_eq!(train.len(), 4);
+        assert_eq!(train.len(), 6);
         assert!(train.iter().all(|f| !val.contains(f)));
         let (same, none) = kitti_validation_split(dir.path(), &[]).expect("split");
         assert_eq!((same, none.len()), (all, 0));
@@ -418,6 +432,7 @@ mod tests {
             );
         }
         std::fs::remove_dir_all(dir.path().join("semantickitti_mini/01")).expect("rm");
+        std::fs::remove_dir_all(dir.path().join("kitti_object_x")).expect("rm");
         let err = kitti_validation_split(dir.path(), &["kitti_raw_a".into(), "kitti_raw_b".into()])
             .unwrap_err();
         assert!(

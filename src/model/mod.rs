@@ -5,7 +5,7 @@
 //! - [`baseline`]: fixed-resolution transposed-conv generator (DUSty v1, vanilla).
 //! - [`measurement`]: the differentiable ray-drop model (keep/drop probability, sampled masks).
 //! - [`discriminator`]: circular residual discriminator.
-//! - [`data`], [`train`]: dataset cache and the GAN training loop with checkpoints.
+//! - [`data`]: the projected-dataset cache.
 //! - [`weights`]: the shipped model and loading trained generators.
 //! - [`sample`], [`metrics`]: drawing scans, SWD.
 //!
@@ -22,7 +22,6 @@ pub mod measurement;
 pub mod metrics;
 pub mod rng;
 pub mod sample;
-pub mod train;
 pub mod weights;
 
 use burn::module::Module;

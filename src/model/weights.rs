@@ -12,7 +12,7 @@ use burn::tensor::{Bytes, Device};
 
 use super::AnyGenerator;
 use super::calibration::RaydropCalibration;
-use super::train::{CHECKPOINT, TrainConfig, init_generator, load_config};
+use crate::train::{CHECKPOINT, TrainConfig, init_generator, load_config};
 
 /// The shipped model's training configuration.
 pub const SHIPPED_CONFIG: &str = include_str!("../../models/dusty2/config.json");
@@ -35,7 +35,7 @@ pub struct Model {
 impl Model {
     /// The weights shipped in `models/dusty2`, compiled into the binary.
     pub fn shipped(device: &Device) -> Result<Self> {
-        let config: TrainConfig = super::train::parse_config(SHIPPED_CONFIG)
+        let config: TrainConfig = crate::train::parse_config(SHIPPED_CONFIG)
             .context("the shipped model's config.json")?;
         let record = ModuleRecord::from_bytes(Bytes::from_bytes_vec(SHIPPED_WEIGHTS.to_vec()))
             .map_err(|e| anyhow::anyhow!("the shipped weights are unreadable: {e}"))?;

@@ -25,7 +25,7 @@ use super::data::{CHANNELS, SegDataset, batch, benchmark_profile};
 use super::net::{SegNet, SegNetConfig};
 use super::{SegModel, SegModelInfo};
 use crate::model::rng::{Rng, tensor_from};
-use crate::model::train::{CHECKPOINT, write_checkpoint};
+use crate::train::{CHECKPOINT, write_checkpoint};
 
 /// Everything that defines a run; saved as `config.json` before training starts.
 #[derive(Config, Debug)]

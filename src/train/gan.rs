@@ -11,7 +11,7 @@ use std::io::Write;
 use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
 
-use anyhow::{Context, Result, bail};
+use anyhow::{Context, Result, bail, ensure};
 use burn::config::Config;
 use burn::module::{Module, ModuleMapper, ModuleVisitor, Param};
 use burn::optim::{AdamConfig, GradientsParams, ModuleOptimizer};
@@ -21,13 +21,15 @@ use indicatif::{ProgressBar, ProgressStyle};
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
-use super::baseline::ConvGeneratorConfig;
-use super::data::RangeDataset;
-use super::discriminator::{Discriminator, DiscriminatorConfig};
-use super::generator::{GeneratorConfig, GridCache, random_subgrid_shift};
-use super::measurement::MeasurementConfig;
-use super::rng::{Rng, tensor_from, tensor_to_vec};
-use super::{AnyGenerator, Arch, Generated};
+use crate::model::baseline::ConvGeneratorConfig;
+use crate::model::data::RangeDataset;
+use crate::model::discriminator::{Discriminator, DiscriminatorConfig};
+use crate::model::generator::{GeneratorConfig, GridCache, random_subgrid_shift};
+use crate::model::measurement::MeasurementConfig;
+use crate::model::rng::{Rng, tensor_from, tensor_to_vec};
+use crate::model::{AnyGenerator, Arch, Generated};
+
+use super::growth::{Level, Stage, stage_at};
 
 /// The burn backend a training run computes on. The CPU ones are always built;
 /// the GPU ones need the cargo feature of the same name (`--features cuda` or
@@ -160,6 +162,14 @@ pub struct TrainConfig {
     /// drop model of a pretrained generator on real drop masks without touching x_d.
     #[config(default = false)]
     pub drop_head_only: bool,
+    /// Coarse-to-fine stages (dusty2 only), in order; after the last, every block renders
+    /// the full grid. Empty: the full grid from the start.
+    #[config(default = "vec![]")]
+    pub stages: Vec<Stage>,
+    /// After each growth, the fresh discriminator trains alone for this many images before
+    /// the generator takes its gradients again.
+    #[config(default = 2000)]
+    pub d_warmup_images: u64,
 }
 
 /// How to run training (not part of the saved config).
@@ -193,6 +203,12 @@ pub struct TrainState {
     /// Sum of sign(D(real)) over the current ADA interval.
     pub ada_acc: f32,
     pub ada_count: u64,
+    /// The coarse-to-fine stage the discriminator in the checkpoint belongs to.
+    #[serde(default)]
+    pub stage: usize,
+    /// Images seen when that stage began.
+    #[serde(default)]
+    pub stage_start_images: u64,
 }
 
 pub const CHECKPOINT: &str = "checkpoint";
@@ -220,7 +236,7 @@ pub fn init_generator(config: &TrainConfig, device: &Device) -> AnyGenerator {
 
 /// Load the EMA generator of a run (inference); returns it with the run's config.
 pub fn load_generator(run_dir: &Path, device: &Device) -> Result<(AnyGenerator, TrainConfig)> {
-    let m = super::weights::Model::from_dir(run_dir, device)?;
+    let m = crate::model::weights::Model::from_dir(run_dir, device)?;
     Ok((m.generator, m.config))
 }
 
@@ -282,6 +298,20 @@ pub fn run(opts: &TrainOptions) -> Result<()> {
     if data.len() < config.batch_size {
         bail!("dataset has {} images, fewer than a batch", data.len());
     }
+    if !config.stages.is_empty() {
+        ensure!(
+            config.arch == Arch::Dusty2 && !config.drop_head_only,
+            "coarse-to-fine stages need a dusty2 generator trained whole"
+        );
+        let d = &config.discriminator;
+        let fold = d.stem.max(1) << d.channels.len().saturating_sub(1);
+        super::growth::check_stages(
+            &config.stages,
+            config.generator.channels.len(),
+            (data.height, data.width),
+            fold,
+        )?;
+    }
     let mut trainer = Trainer::new(&config, opts, &data)?;
     trainer.train(opts, &data)
 }
@@ -295,8 +325,13 @@ struct Trainer {
     opt_g: ModuleOptimizer,
     opt_d: ModuleOptimizer,
     state: TrainState,
+    /// The generator's grid caches (autodiff and inner device) on the full grid; the
+    /// current level renders the first blocks of them.
+    full_grid: Option<(GridCache, GridCache)>,
     grid: Option<GridCache>,
     grid_inner: Option<GridCache>,
+    /// The resolution of the current coarse-to-fine stage.
+    level: Level,
     snapshot_z: Tensor<2>,
     /// The latest (lazy) R1 estimate, logged on every log line.
     last_r1: Option<f32>,
@@ -312,24 +347,34 @@ impl Trainer {
             .with_epsilon(1e-8);
         let mut g = init_generator(config, &device);
         let mut g_ema = init_generator(config, &inner);
-        let mut d = config
-            .discriminator
-            .clone()
-            .with_height(data.height)
-            .with_width(data.width)
-            .init(&device);
         let mut opt_g = adam.init();
         let mut opt_d = adam.init();
-        let mut state = TrainState {
-            step: 0,
-            images: 0,
-            ada_p: 0.0,
-            rng: Rng::new(config.seed),
-            ada_acc: 0.0,
-            ada_count: 0,
-        };
         let ck = opts.run_dir.join(CHECKPOINT);
-        if ck.join("state.json").exists() {
+        let resumed = ck.join("state.json").exists();
+        let state = if resumed {
+            let text = std::fs::read_to_string(ck.join("state.json"))?;
+            serde_json::from_str(&text).context("bad checkpoint/state.json")?
+        } else {
+            TrainState {
+                step: 0,
+                images: 0,
+                ada_p: 0.0,
+                rng: Rng::new(config.seed),
+                ada_acc: 0.0,
+                ada_count: 0,
+                stage: 0,
+                stage_start_images: 0,
+            }
+        };
+        let level = Level::of(
+            &config.stages,
+            state.stage,
+            config.generator.channels.len(),
+            data.height,
+            data.width,
+        );
+        let mut d = stage_discriminator(config, &level, &device);
+        if resumed {
             let load_err = |what: &str, e: burn::store::RecordError| {
                 anyhow::anyhow!("failed to load {what} from '{}': {e}", ck.display())
             };
@@ -348,14 +393,13 @@ impl Trainer {
             opt_d = opt_d
                 .load(ck.join("opt_d.bpk"))
                 .map_err(|e| load_err("opt_d", e))?;
-            let text = std::fs::read_to_string(ck.join("state.json"))?;
-            state = serde_json::from_str(&text).context("bad checkpoint/state.json")?;
         } else if let Some(src) = &opts.init_from {
             // A discriminator of another shape than the source's starts fresh.
-            let same_d = load_config(&src.join("config.json")).is_ok_and(|c| {
-                serde_json::to_value(&c.discriminator).ok()
-                    == serde_json::to_value(&config.discriminator).ok()
-            });
+            let same_d = level.factor == 1
+                && load_config(&src.join("config.json")).is_ok_and(|c| {
+                    serde_json::to_value(&c.discriminator).ok()
+                        == serde_json::to_value(&config.discriminator).ok()
+                });
             (g, g_ema, d) = init_from(src, g, g_ema, d, same_d, config.drop_head_only)?;
             std::fs::write(
                 opts.run_dir.join("init_from.json"),
@@ -370,15 +414,15 @@ impl Trainer {
             // The EMA starts as a copy of the generator.
             g_ema = g.valid();
         }
-        let (grid, grid_inner) = match &g {
-            AnyGenerator::Implicit(generator) => (
-                Some(generator.prepare(&data.angles, &device)),
-                Some(generator.prepare(&data.angles, &inner)),
-            ),
-            AnyGenerator::Conv(_) => (None, None),
+        let full_grid = match &g {
+            AnyGenerator::Implicit(generator) => Some((
+                generator.prepare(&data.angles, &device),
+                generator.prepare(&data.angles, &inner),
+            )),
+            AnyGenerator::Conv(_) => None,
         };
         let snapshot_z = Rng::new(config.seed ^ 0x5eed).normal_tensor([4, g.d_z()], &inner);
-        Ok(Self {
+        let mut trainer = Self {
             config: config.clone(),
             device,
             g,
@@ -387,11 +431,50 @@ impl Trainer {
             opt_g,
             opt_d,
             state,
-            grid,
-            grid_inner,
+            full_grid,
+            grid: None,
+            grid_inner: None,
+            level,
             snapshot_z,
             last_r1: None,
-        })
+        };
+        trainer.cut_grids();
+        Ok(trainer)
+    }
+
+    /// The grid caches of the current level.
+    fn cut_grids(&mut self) {
+        (self.grid, self.grid_inner) = match &self.full_grid {
+            Some((grid, inner)) => (Some(self.level.grid(grid)), Some(self.level.grid(inner))),
+            None => (None, None),
+        };
+    }
+
+    /// Moves to the next coarse-to-fine stage once the images seen reach it: one more block
+    /// renders, on a grid twice as fine, against a fresh discriminator of that size.
+    fn grow(&mut self, data: &RangeDataset) -> bool {
+        let stage = stage_at(&self.config.stages, self.state.images);
+        if stage <= self.state.stage {
+            return false;
+        }
+        let blocks = self.config.generator.channels.len();
+        self.state.stage = stage;
+        self.state.stage_start_images = self.state.images;
+        self.level = Level::of(&self.config.stages, stage, blocks, data.height, data.width);
+        self.d = stage_discriminator(&self.config, &self.level, &self.device);
+        self.opt_d = AdamConfig::new()
+            .with_beta_1(self.config.beta1)
+            .with_beta_2(self.config.beta2)
+            .with_epsilon(1e-8)
+            .init();
+        self.cut_grids();
+        true
+    }
+
+    /// Whether the generator sits out this step: a fresh discriminator learns first.
+    fn d_warming_up(&self) -> bool {
+        self.state.stage > 0
+            && self.state.images < self.state.stage_start_images + self.config.d_warmup_images
     }
 
     fn train(&mut self, opts: &TrainOptions, data: &RangeDataset) -> Result<()> {
@@ -427,6 +510,11 @@ impl Trainer {
             let m = self.step(data)?;
             self.state.step += 1;
             self.state.images += b as u64;
+            if self.grow(data) {
+                // The fresh discriminator's start is a checkpoint of its own.
+                self.checkpoint(&opts.run_dir)?;
+                last_ckpt = Instant::now();
+            }
             bar.set_position(self.state.images);
             if self.state.step.is_multiple_of(cfg.log_every_steps) {
                 let dt = window.0.elapsed().as_secs_f64();
@@ -447,6 +535,8 @@ impl Trainer {
                     "ada_p": self.state.ada_p,
                     "pixel_drop": m.pixel_drop,
                     "images_per_s": ips,
+                    "stage": self.state.stage,
+                    "grid": [self.level.height, self.level.width],
                     "elapsed_s": started.elapsed().as_secs_f64(),
                 });
                 writeln!(log, "{line}")?;
@@ -479,13 +569,18 @@ impl Trainer {
 
     fn real_batch(&mut self, data: &RangeDataset, device: &Device) -> Tensor<4> {
         let b = self.config.batch_size;
-        let n = data.height * data.width;
-        let mut v = Vec::with_capacity(b * n);
+        let level = self.level;
+        let mut v = Vec::with_capacity(b * level.height * level.width);
         for _ in 0..b {
             let i = self.state.rng.below(data.len());
-            v.extend_from_slice(data.image(i));
+            if level.factor == 1 {
+                v.extend_from_slice(data.image(i));
+            } else {
+                let phase = level.random_phase(&mut self.state.rng);
+                v.extend(level.sample(data.image(i), data.width, phase));
+            }
         }
-        tensor_from(v, [b, 1, data.height, data.width], device)
+        tensor_from(v, [b, 1, level.height, level.width], device)
     }
 
     fn z(&mut self, device: &Device) -> Tensor<2> {
@@ -554,7 +649,28 @@ impl Trainer {
             self.state.ada_count = 0;
         }
 
-        // ---- G step: D without autodiff on its weights still passes gradients to its input.
+        let loss_g = if self.d_warming_up() {
+            f32::NAN
+        } else {
+            self.g_step(view)
+        };
+        Ok(StepMetrics {
+            loss_d,
+            loss_g,
+            r1,
+            d_real: d_real.iter().sum::<f32>() / d_real.len() as f32,
+            d_fake,
+            pixel_drop: self.pixel_drop(),
+        })
+    }
+
+    /// The generator's step (D without autodiff on its weights still passes gradients to
+    /// its input), then its EMA; returns G's loss.
+    fn g_step(&mut self, view: DView) -> f32 {
+        let cfg = self.config.clone();
+        let device = self.device.clone();
+        let parts = batch_parts(cfg.batch_size);
+        let n = cfg.batch_size / parts;
         let z = self.z(&device);
         let shift = self.subgrid();
         let d_frozen = self.d.valid();
@@ -606,15 +722,7 @@ impl Trainer {
             .max(1.0);
         let beta = 0.5f64.powf(cfg.batch_size as f64 / half_life) as f32;
         self.g_ema = ema_update(self.g_ema.clone(), &self.g, beta);
-
-        Ok(StepMetrics {
-            loss_d,
-            loss_g,
-            r1,
-            d_real: d_real.iter().sum::<f32>() / d_real.len() as f32,
-            d_fake,
-            pixel_drop: self.pixel_drop(),
-        })
+        loss_g
     }
 
     /// Write the checkpoint (a kill never leaves half a one).
@@ -652,7 +760,7 @@ impl Trainer {
     /// PNG: for 4 fixed latents (EMA generator) the rows x_d | x_n (drop prob) | x_G, then
     /// 2 real scans.
     fn snapshot(&mut self, opts: &TrainOptions, data: &RangeDataset) -> Result<()> {
-        let (h, w) = (data.height, data.width);
+        let (h, w) = (self.level.height, self.level.width);
         let (out, _) = self
             .g_ema
             .generate(self.snapshot_z.clone(), self.grid_inner.as_ref(), None);
@@ -674,14 +782,25 @@ impl Trainer {
             rows.push(&x_n[i * n..(i + 1) * n]);
             rows.push(&x_g[i * n..(i + 1) * n]);
         }
-        rows.push(data.image(0));
-        rows.push(data.image(data.len() / 2));
+        let reals =
+            [0, data.len() / 2].map(|i| self.level.sample(data.image(i), data.width, (0, 0)));
+        rows.extend(reals.iter().map(|r| r.as_slice()));
         let path = opts
             .run_dir
             .join("snapshots")
             .join(format!("{:09}.png", self.state.images));
         write_png(&path, &rows, h, w)
     }
+}
+
+/// A fresh discriminator for `level`'s resolution.
+fn stage_discriminator(config: &TrainConfig, level: &Level, device: &Device) -> Discriminator {
+    config
+        .discriminator
+        .clone()
+        .with_height(level.height)
+        .with_width(level.width)
+        .init(device)
 }
 
 /// The weights of a fine-tuning run's start: from a training run's checkpoint (G, EMA G,
@@ -1133,7 +1252,7 @@ mod tests {
         let cfg = TrainConfig::new().with_generator(
             GeneratorConfig::new()
                 .with_mapping(
-                    super::super::generator::MappingConfig::new()
+                    crate::model::generator::MappingConfig::new()
                         .with_d_z(4)
                         .with_d_w(4),
                 )
@@ -1292,7 +1411,7 @@ mod tests {
         let (h, w) = (data.height, data.width);
         let generator = GeneratorConfig::new()
             .with_mapping(
-                super::super::generator::MappingConfig::new()
+                crate::model::generator::MappingConfig::new()
                     .with_d_z(8)
                     .with_d_w(8),
             )
@@ -1410,39 +1529,39 @@ mod tests {
         }
         assert!(drop_rows_moved, "the drop logit did not train");
         // Sampling from the run, on the training grid and on a 2x denser one.
-        let mut sopts = super::super::sample::SampleOptions {
+        let mut sopts = crate::model::sample::SampleOptions {
             n: 3,
             seed: 1,
             truncation: 1.0,
             grid: Some(data.angles.clone()),
         };
         let model =
-            super::super::weights::Model::from_dir(&opts.run_dir, &Device::flex()).expect("model");
-        let scans = super::super::sample::sample(&model, &sopts, &Device::flex()).expect("sample");
+            crate::model::weights::Model::from_dir(&opts.run_dir, &Device::flex()).expect("model");
+        let scans = crate::model::sample::sample(&model, &sopts, &Device::flex()).expect("sample");
         assert_eq!(scans.len(), 3);
         let s = &scans[0];
         assert_eq!(s.range_m.len(), h * w);
         assert!(s.drop_prob.iter().all(|p| (0.0..=1.0).contains(p)));
         assert!(s.range_m.iter().zip(&s.mask).all(|(r, m)| (*r > 0.0) == *m));
         assert_eq!(s.points().len(), s.mask.iter().filter(|m| **m).count());
-        sopts.grid = Some(super::super::layers::AngleGridExt::resample(
+        sopts.grid = Some(crate::model::layers::AngleGridExt::resample(
             &data.angles,
             2 * h,
             2 * w,
         ));
-        let dense = super::super::sample::sample(&model, &sopts, &Device::flex()).expect("dense");
+        let dense = crate::model::sample::sample(&model, &sopts, &Device::flex()).expect("dense");
         assert_eq!(dense[0].range_m.len(), 4 * h * w);
         // SWD of the run against the real set, and the real set against itself (floor 0).
-        let cfg = super::super::metrics::SwdConfig {
+        let cfg = crate::model::metrics::SwdConfig {
             patches_per_image: 16,
             projections: 8,
             ..Default::default()
         };
-        let report = super::super::metrics::swd_of_model(&model, &data, 4, &cfg, &Device::flex())
+        let report = crate::model::metrics::swd_of_model(&model, &data, 4, &cfg, &Device::flex())
             .expect("swd");
         assert_eq!(report.per_level.len(), 3);
         assert!(report.mean > 0.0 && report.mean.is_finite());
-        let floor = super::super::metrics::swd_between(&data, &data, &cfg);
+        let floor = crate::model::metrics::swd_between(&data, &data, &cfg);
         assert!(
             floor.mean < report.mean,
             "floor {} run {}",

@@ -1,0 +1,11 @@
+//! Training, kept apart from inference: everything here produces weights that the inference
+//! modules ([`crate::model`], [`crate::decode`], [`crate::segment`]) load.
+//!
+//! - [`gan`]: the range-image GAN's training loop, with checkpoints and resume.
+//! - [`growth`]: coarse-to-fine training: the generator's synthesis pyramid grown a level at
+//!   a time, each level with its own discriminator, on real scans sampled at that level.
+
+pub mod gan;
+pub mod growth;
+
+pub use gan::*;
