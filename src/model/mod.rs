@@ -7,7 +7,7 @@
 //! - [`discriminator`]: circular residual discriminator.
 //! - [`data`]: the projected-dataset cache.
 //! - [`weights`]: the shipped model and loading trained generators.
-//! - [`sample`], [`metrics`]: drawing scans, SWD.
+//! - [`sample`], [`metrics`], [`two_sample`]: drawing scans, SWD, the classifier two-sample test.
 //!
 //! Images are in network units: inverse depth x_d = 1.45 m / depth in [0.018, 1] mapped to
 //! 2 x_d - 1, no return = -1. The backend/device is chosen by the caller.
@@ -22,6 +22,7 @@ pub mod measurement;
 pub mod metrics;
 pub mod rng;
 pub mod sample;
+pub mod two_sample;
 pub mod weights;
 
 use burn::module::Module;
