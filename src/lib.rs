@@ -29,3 +29,4 @@ pub mod report;
 pub mod segment;
 pub mod sim;
 pub mod train;
+pub mod util;

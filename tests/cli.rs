@@ -127,6 +127,118 @@ fn import_of_an_empty_folder_is_a_clear_error() {
     assert!(!dir.path().join("o.mcap").exists());
 }
 
+/// A one-scan KITTI folder for `import`'s input checks.
+fn one_scan_folder(root: &Path) {
+    std::fs::create_dir_all(root.join("velodyne")).unwrap();
+    write_bin(
+        &root.join("velodyne/000000.bin"),
+        &[[5.0, 0.0, 0.0, 0.5], [0.0, 5.0, -1.0, 0.5]],
+    );
+}
+
+#[test]
+fn import_refuses_start_times_a_ros_stamp_cannot_hold() {
+    let dir = tempfile::tempdir().unwrap();
+    one_scan_folder(&dir.path().join("seq"));
+    let out = dir.path().join("o.mcap");
+    for bad in ["3000000000", "20000000000", "-1", "inf"] {
+        let o = run(&[
+            "import",
+            dir.path().join("seq").to_str().unwrap(),
+            out.to_str().unwrap(),
+            &format!("--start-secs={bad}"),
+        ]);
+        assert_ne!(o.status.code(), Some(0), "{bad}");
+        assert!(stderr(&o).contains("--start-secs"), "{bad}: {}", stderr(&o));
+        assert!(!out.exists(), "{bad}: no output is left behind");
+    }
+    let o = run(&[
+        "import",
+        dir.path().join("seq").to_str().unwrap(),
+        out.to_str().unwrap(),
+        "--start-secs",
+        "2000000000",
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+}
+
+/// A FIFO named like a scan would block a reader forever; `import` passes it by, and it
+/// takes `*.BIN` as well as `*.bin`.
+#[cfg(unix)]
+#[test]
+fn import_skips_fifos_and_reads_upper_case_extensions() {
+    let dir = tempfile::tempdir().unwrap();
+    let root = dir.path().join("seq");
+    one_scan_folder(&root);
+    std::fs::rename(
+        root.join("velodyne/000000.bin"),
+        root.join("velodyne/000000.BIN"),
+    )
+    .unwrap();
+    let fifo = root.join("velodyne/000001.bin");
+    let made = std::process::Command::new("mkfifo")
+        .arg(&fifo)
+        .status()
+        .unwrap();
+    assert!(made.success());
+    let o = run(&[
+        "import",
+        root.to_str().unwrap(),
+        dir.path().join("o.mcap").to_str().unwrap(),
+        "--json",
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let v: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    assert_eq!(v["scans"].as_u64(), Some(1), "{v}");
+}
+
+/// Every file of a model folder is an input: `sample --force` into the folder is refused.
+#[test]
+fn sample_never_writes_into_its_model_folder() {
+    let dir = tempfile::tempdir().unwrap();
+    let model = dir.path().join("model");
+    let shipped = Path::new(env!("CARGO_MANIFEST_DIR")).join("models/dusty2");
+    std::fs::create_dir_all(&model).unwrap();
+    for f in ["config.json", "g_ema.bpk"] {
+        std::fs::copy(shipped.join(f), model.join(f)).unwrap();
+    }
+    let weights = std::fs::read(model.join("g_ema.bpk")).unwrap();
+    for target in ["g_ema.bpk", "new.mcap"] {
+        let o = run(&[
+            "sample",
+            "--n",
+            "1",
+            "--force",
+            "--model",
+            model.to_str().unwrap(),
+            model.join(target).to_str().unwrap(),
+        ]);
+        assert_eq!(o.status.code(), Some(1), "{target}: {}", stderr(&o));
+        assert!(
+            stderr(&o).contains("inputs are never modified"),
+            "{}",
+            stderr(&o)
+        );
+    }
+    assert_eq!(std::fs::read(model.join("g_ema.bpk")).unwrap(), weights);
+    assert!(!model.join("new.mcap").exists());
+}
+
+#[test]
+fn sample_counts_are_bounded() {
+    let dir = tempfile::tempdir().unwrap();
+    for bad in ["18446744073709551615", "0", "100001"] {
+        let o = run(&[
+            "sample",
+            "--n",
+            bad,
+            dir.path().join("s.mcap").to_str().unwrap(),
+        ]);
+        assert_eq!(o.status.code(), Some(2), "{bad}: {}", stderr(&o));
+        assert!(stderr(&o).contains("--n"), "{bad}: {}", stderr(&o));
+    }
+}
+
 /// A GPU backend this build lacks stops `train` and `train-encoder` before
 /// anything is read or written, naming the cargo feature to build with.
 #[cfg(not(feature = "cuda"))]

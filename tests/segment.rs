@@ -130,12 +130,32 @@ fn trains_resumes_scores_and_draws() {
         png.to_str().unwrap(),
         "--scan",
         "3",
+        "--force",
     ]);
     assert!(
         !out.status.success() && stderr(&out).contains("scan 3 does not exist"),
         "{}",
         stderr(&out)
     );
+    // The picture never replaces an input, and replaces an earlier picture only when told.
+    let recording_before = std::fs::read(&heldout).unwrap();
+    for (target, force, expect) in [
+        (&heldout, true, "inputs are never modified"),
+        (&png, false, "pass --force"),
+    ] {
+        let mut args = vec!["segment", "picture", "--model", m];
+        args.extend([heldout.to_str().unwrap(), target.to_str().unwrap()]);
+        if force {
+            args.push("--force");
+        }
+        let out = run(&args);
+        assert!(
+            !out.status.success() && stderr(&out).contains(expect),
+            "{}",
+            stderr(&out)
+        );
+    }
+    assert_eq!(std::fs::read(&heldout).unwrap(), recording_before);
 
     // Real labelled scans, never seen: every class is scored and the numbers are rates.
     let Some(real) = real_data("trains_resumes_scores_and_draws (real part)") else {
@@ -233,4 +253,41 @@ fn recordings_without_labels_are_refused_by_name() {
         "{}",
         stderr(&out)
     );
+}
+
+/// A model folder whose `segment.json` asks for impossible or enormous layers gets an error
+/// naming the file, before anything is built (no panic, no huge allocation).
+#[test]
+fn model_folders_with_bad_sizes_are_refused_by_name() {
+    let dir = tempfile::tempdir().unwrap();
+    let rec = dir.path().join("labelled.mcap");
+    simulate(&rec, "3", "1");
+    let shipped = Path::new(env!("CARGO_MANIFEST_DIR")).join("models/segment/A/s0");
+    let text = std::fs::read_to_string(shipped.join("segment.json")).unwrap();
+    for widths in ["[0, 0, 0, 0]", "[100000, 100000, 100000, 100000]", "[]"] {
+        let model = dir.path().join("model");
+        std::fs::create_dir_all(&model).unwrap();
+        std::fs::copy(shipped.join("net.bpk"), model.join("net.bpk")).unwrap();
+        let mut info: serde_json::Value = serde_json::from_str(&text).unwrap();
+        info["net"]["widths"] = serde_json::from_str(widths).unwrap();
+        std::fs::write(model.join("segment.json"), info.to_string()).unwrap();
+        let out = run(&[
+            "segment",
+            "eval",
+            "--model",
+            model.to_str().unwrap(),
+            rec.to_str().unwrap(),
+        ]);
+        assert_eq!(out.status.code(), Some(1), "{widths}: {}", stderr(&out));
+        assert!(
+            stderr(&out).contains("segment.json"),
+            "{widths}: {}",
+            stderr(&out)
+        );
+        assert!(
+            stderr(&out).contains("widths"),
+            "{widths}: {}",
+            stderr(&out)
+        );
+    }
 }

@@ -110,6 +110,6 @@ for c in A B C E F G real; do
   [ -d runs/$c-s0/model ] && models+=(--model runs/$c-s0/model)
 done
 if [ ${#models[@]} -eq 14 ]; then
-  rg segment picture "${models[@]}" real/heldout_mini07.mcap figure.png --scan 5
+  rg segment picture "${models[@]}" real/heldout_mini07.mcap figure.png --scan 5 --force
 fi
 log "done: $OUT/table.md, $OUT/figure.png"

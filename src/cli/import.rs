@@ -35,7 +35,9 @@ fn files_with_extension(dir: &Path, ext: &str) -> anyhow::Result<Vec<PathBuf>> {
     let mut files: Vec<PathBuf> = std::fs::read_dir(dir)
         .with_context(|| format!("cannot read {}", dir.display()))?
         .filter_map(|e| e.ok().map(|e| e.path()))
-        .filter(|p| p.extension().is_some_and(|e| e == ext))
+        // Only regular files: a FIFO or device named *.bin would block or never end.
+        .filter(|p| p.is_file())
+        .filter(|p| p.extension().is_some_and(|e| e.eq_ignore_ascii_case(ext)))
         .collect();
     files.sort();
     Ok(files)
@@ -101,6 +103,7 @@ pub fn run(global: &GlobalArgs, args: ImportArgs) -> anyhow::Result<Outcome> {
         .flat_map(|(bin, label)| std::iter::once(bin.as_path()).chain(label.as_deref()))
         .collect();
     crate::io::writer::refuse_overwriting_inputs(&args.out.output, &inputs)?;
+    let start_nanos = args.out.start_nanos(files.len() as u64)?;
     let mut out = args.out.create()?;
     out.write_metadata(
         "rangegan",
@@ -112,7 +115,6 @@ pub fn run(global: &GlobalArgs, args: ImportArgs) -> anyhow::Result<Outcome> {
     )?;
     let channel = out.own_channel(&args.out.topic, Family::Ros2, Kind::Cloud)?;
     let bar = super::progress_bar(global, files.len() as u64);
-    let start_nanos = args.out.start_nanos()?;
     let mut written = 0u64;
     for (bin, label) in &files {
         let mut scan = kitti::read_scan(bin, label.as_deref())?;

@@ -95,11 +95,16 @@ impl CloudOutputArgs {
         crate::io::McapOutput::create(&self.output, self.force)
     }
 
-    /// `--start-secs` in nanoseconds.
-    pub fn start_nanos(&self) -> anyhow::Result<u64> {
+    /// `--start-secs` in nanoseconds, for `scans` scans at 10 Hz: refused unless every
+    /// scan's header stamp fits ROS 2's `int32` seconds (and so the log times their u64
+    /// nanoseconds), rather than wrapping.
+    pub fn start_nanos(&self, scans: u64) -> anyhow::Result<u64> {
+        let last = self.start_secs + scans.saturating_sub(1) as f64 * 0.1;
         anyhow::ensure!(
-            self.start_secs.is_finite() && self.start_secs >= 0.0,
-            "--start-secs must be >= 0 (got {})",
+            self.start_secs.is_finite() && self.start_secs >= 0.0 && last <= i32::MAX as f64,
+            "--start-secs must be between 0 and {} so that the last of {scans} scans at 10 Hz \
+             has a header stamp ROS 2 can hold (int32 seconds, until 2038-01-19); got {}",
+            (i32::MAX as f64 - scans.saturating_sub(1) as f64 * 0.1).floor(),
             self.start_secs
         );
         Ok((self.start_secs * 1e9).round() as u64)

@@ -24,10 +24,14 @@ pub enum FamilyArg {
     Foxglove,
 }
 
+/// The most scans one `sample` run draws (a bound, so a typo cannot ask for 2^64).
+pub const MAX_SAMPLES: u64 = 100_000;
+
 #[derive(Debug, clap::Args)]
 pub struct SampleArgs {
-    /// Number of scans to draw (written 10 per second).
-    #[arg(long, default_value_t = 16)]
+    /// Number of scans to draw (written 10 per second), 1 to 100 000.
+    #[arg(long, default_value_t = 16,
+          value_parser = clap::builder::RangedU64ValueParser::<usize>::new().range(1..=MAX_SAMPLES))]
     pub n: usize,
     /// Seed of the latent codes and ray-drop masks.
     #[arg(long, default_value_t = 0)]
@@ -121,6 +125,9 @@ pub fn run(global: &GlobalArgs, args: SampleArgs) -> anyhow::Result<Outcome> {
     };
     let scans = sample(&model, &opts, &device)?;
 
+    if let Some(dir) = &args.model {
+        crate::io::writer::refuse_overwriting_inputs(&args.output, &[dir.as_path()])?;
+    }
     let mut out = McapOutput::create(&args.output, args.force)?;
     out.write_metadata(
         "rangegan.sample",

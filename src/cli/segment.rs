@@ -84,6 +84,9 @@ pub struct PictureArgs {
     /// Point-cloud topic (default: the recording's first).
     #[arg(long)]
     pub topic: Option<String>,
+    /// Overwrite an existing OUTPUT.
+    #[arg(long)]
+    pub force: bool,
 }
 
 pub fn run_segment(global: &GlobalArgs, args: SegmentArgs) -> anyhow::Result<Outcome> {
@@ -200,6 +203,14 @@ fn print_report(r: &EvalReport) {
 }
 
 fn draw(a: PictureArgs) -> anyhow::Result<Outcome> {
+    let mut inputs: Vec<&std::path::Path> = a.models.iter().map(|m| m.as_path()).collect();
+    inputs.push(&a.recording);
+    crate::io::writer::refuse_overwriting_inputs(&a.output, &inputs)?;
+    anyhow::ensure!(
+        a.force || !a.output.exists(),
+        "{} exists; pass --force to replace it",
+        a.output.display()
+    );
     let device = burn::tensor::Device::flex();
     let models = a
         .models

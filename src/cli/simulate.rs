@@ -88,6 +88,7 @@ pub fn run(global: &GlobalArgs, args: SimulateArgs) -> anyhow::Result<Outcome> {
     if physics_file.is_file() {
         crate::io::writer::refuse_overwriting_inputs(&args.out.output, &[physics_file])?;
     }
+    let start_nanos = args.out.start_nanos(args.scans as u64)?;
     let mut out = args.out.create()?;
     out.write_metadata(
         "rangegan.simulate",
@@ -105,7 +106,6 @@ pub fn run(global: &GlobalArgs, args: SimulateArgs) -> anyhow::Result<Outcome> {
     let cloud_channel = out.own_channel(&args.out.topic, Family::Ros2, Kind::Cloud)?;
     let tf_channel = out.own_channel("/tf", Family::Ros2, Kind::Transforms)?;
     let tf_static_channel = out.own_channel("/tf_static", Family::Ros2, Kind::Transforms)?;
-    let start_nanos = args.out.start_nanos()?;
     let mount = Transform {
         parent_frame_id: "base_link".into(),
         child_frame_id: args.out.frame_id.clone(),

@@ -13,6 +13,7 @@ use crate::model::discriminator::DiscriminatorConfig;
 use crate::model::generator::GeneratorConfig;
 use crate::physics::pretraining::PretrainingSet;
 use crate::train::growth::{Stage, parse_stage};
+use crate::train::reconstruct::ReconstructionConfig;
 use crate::train::{Backend, TrainConfig, TrainOptions, load_config, run};
 
 #[derive(Debug, Clone, Copy, clap::ValueEnum)]
@@ -133,6 +134,11 @@ pub struct TrainArgs {
     /// renders the full grid. E.g. `--stage 3:300k --stage 4:300k` (dusty2).
     #[arg(long = "stage", value_name = "BLOCKS:IMAGES", value_parser = parse_stage)]
     pub stages: Vec<Stage>,
+    /// Reconstruction-assisted training of a new run (dusty2) with this weight: an encoder
+    /// in the generator's loop renders every real batch back, and the generator learns from
+    /// the reconstruction beside the discriminator.
+    #[arg(long, value_name = "WEIGHT")]
+    pub reconstruction: Option<f32>,
 }
 
 pub fn run_train(global: &GlobalArgs, args: TrainArgs) -> anyhow::Result<Outcome> {
@@ -168,6 +174,13 @@ pub fn run_train(global: &GlobalArgs, args: TrainArgs) -> anyhow::Result<Outcome
             config.arch
         );
         config = config.with_drop_head_only(true);
+    }
+    if let Some(weight) = args.reconstruction {
+        anyhow::ensure!(
+            weight.is_finite() && weight > 0.0,
+            "--reconstruction must be a positive weight"
+        );
+        config = config.with_reconstruction(Some(ReconstructionConfig::new().with_weight(weight)));
     }
     if !args.stages.is_empty() {
         config = config.with_stages(args.stages.clone());

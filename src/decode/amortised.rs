@@ -102,6 +102,16 @@ pub struct Encoder {
 }
 
 impl EncoderConfig {
+    /// Refuses sizes that cannot be built or would not fit in memory.
+    pub fn check(&self) -> Result<()> {
+        use crate::util::bounds;
+        bounds::size("encoder.height", self.height, 1..=4096)?;
+        bounds::size("encoder.width", self.width, 1..=16384)?;
+        bounds::sizes("encoder.channels", &self.channels, 1..=8, 1..=1024)?;
+        bounds::size("encoder.d_hidden", self.d_hidden, 1..=8192)?;
+        bounds::size("encoder.d_w", self.d_w, 1..=4096)
+    }
+
     /// Spatial size after the convolutions.
     fn feature_dims(&self) -> (usize, usize) {
         let n = self.channels.len();
@@ -199,6 +209,9 @@ impl TrainedEncoder {
             let run = super::encoder_train::load_config(&dir.join("config.json"))?;
             (run.encoder, dir.join("checkpoint").join("encoder.bpk"))
         };
+        config.check().with_context(|| {
+            format!("{}: bad encoder config", dir.join("config.json").display())
+        })?;
         let encoder = config
             .init(device)
             .try_load_file(&weights)

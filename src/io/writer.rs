@@ -69,7 +69,7 @@ pub struct McapOutput {
 /// a hard link of it (same device and inode). Inputs are never modified, `--force` or not.
 pub fn refuse_overwriting_inputs(out: &Path, inputs: &[&Path]) -> anyhow::Result<()> {
     for input in inputs {
-        if same_file(out, input) {
+        if same_file(out, input) || (input.is_dir() && lies_in(out, input)) {
             bail!(
                 "{}: output is the input {}; write to another file (inputs are never modified)",
                 out.display(),
@@ -78,6 +78,22 @@ pub fn refuse_overwriting_inputs(out: &Path, inputs: &[&Path]) -> anyhow::Result
         }
     }
     Ok(())
+}
+
+/// Whether `path` (which need not exist) lies inside the folder `dir`: a model folder, say,
+/// whose files are all inputs.
+pub fn lies_in(path: &Path, dir: &Path) -> bool {
+    let Ok(dir) = dir.canonicalize() else {
+        return false;
+    };
+    let parent = match path.parent() {
+        Some(p) if !p.as_os_str().is_empty() => p,
+        _ => Path::new("."),
+    };
+    match (parent.canonicalize(), path.file_name()) {
+        (Ok(p), Some(name)) => p.join(name).starts_with(&dir),
+        _ => false,
+    }
 }
 
 /// Whether `a` and `b` name one file: equal paths, equal canonical paths, or (on Unix)

@@ -31,6 +31,18 @@ pub struct ConvGeneratorConfig {
     pub seed: u64,
 }
 
+impl ConvGeneratorConfig {
+    /// Refuses sizes that cannot be built or would not fit in memory.
+    pub fn check(&self) -> anyhow::Result<()> {
+        use crate::util::bounds;
+        bounds::sizes("conv_generator.channels", &self.channels, 1..=8, 1..=4096)?;
+        bounds::size("conv_generator.d_z", self.d_z, 1..=4096)?;
+        bounds::size("conv_generator.base_height", self.base_height, 1..=64)?;
+        bounds::size("conv_generator.base_width", self.base_width, 1..=512)?;
+        bounds::size("conv_generator.out_channels", self.out_channels, 1..=2)
+    }
+}
+
 /// Transposed conv 4x4, stride 2 (equalised lr) + LeakyReLU.
 #[derive(Module, Debug)]
 pub struct UpConv {

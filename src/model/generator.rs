@@ -211,6 +211,21 @@ pub struct GeneratorOutput {
 }
 
 impl GeneratorConfig {
+    /// Refuses sizes that cannot be built or would not fit in memory.
+    pub fn check(&self) -> anyhow::Result<()> {
+        use crate::util::bounds;
+        let blocks = self.channels.len();
+        bounds::sizes("generator.channels", &self.channels, 1..=8, 1..=4096)?;
+        bounds::sizes("generator.n_freq", &self.n_freq, blocks..=blocks, 1..=4096)?;
+        let lh: Vec<usize> = self.lh.iter().map(|&v| v as usize).collect();
+        let lw: Vec<usize> = self.lw.iter().map(|&v| v as usize).collect();
+        bounds::sizes("generator.lh", &lh, blocks..=blocks, 0..=20)?;
+        bounds::sizes("generator.lw", &lw, blocks..=blocks, 0..=20)?;
+        bounds::size("generator.mapping.d_z", self.mapping.d_z, 1..=4096)?;
+        bounds::size("generator.mapping.d_w", self.mapping.d_w, 1..=4096)?;
+        bounds::size("generator.mapping.n_layers", self.mapping.n_layers, 1..=32)
+    }
+
     /// The CPU configuration chosen by measurement (docs/model_benchmarks.md).
     pub fn cpu() -> Self {
         Self::new()

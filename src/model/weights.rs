@@ -56,7 +56,13 @@ impl Model {
     /// A model directory (`config.json`, `g_ema.bpk`) or a run directory
     /// (`config.json`, `checkpoint/g_ema.bpk`).
     pub fn from_dir(dir: &Path, device: &Device) -> Result<Self> {
-        let config = load_config(&dir.join("config.json"))?;
+        let config_path = dir.join("config.json");
+        let config = load_config(&config_path)?;
+        match config.arch {
+            super::Arch::Dusty2 => config.generator.check(),
+            _ => config.conv_generator.check(),
+        }
+        .with_context(|| format!("{}: bad generator config", config_path.display()))?;
         let direct = dir.join("g_ema.bpk");
         let path = if direct.is_file() {
             direct

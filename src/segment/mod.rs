@@ -69,6 +69,9 @@ impl SegModel {
             info.classes,
             classes::CLASSES
         );
+        info.net
+            .check()
+            .with_context(|| format!("{}: bad network size", info_path.display()))?;
         let net = info
             .net
             // The loaded weights replace the drawn ones: the seed does not matter.

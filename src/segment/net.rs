@@ -28,6 +28,14 @@ pub struct SegNetConfig {
 }
 
 impl SegNetConfig {
+    /// Refuses sizes this version cannot build or that would not fit in memory.
+    pub fn check(&self) -> anyhow::Result<()> {
+        use crate::util::bounds;
+        bounds::sizes("net.widths", &self.widths, 1..=8, 1..=1024)?;
+        bounds::size("net.d_input", self.d_input, CHANNELS..=CHANNELS)?;
+        bounds::size("net.classes", self.classes, NUM_CLASSES..=NUM_CLASSES)
+    }
+
     /// Both image axes must divide by this.
     pub fn multiple(&self) -> usize {
         1 << self.widths.len().saturating_sub(1)

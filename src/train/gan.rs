@@ -24,12 +24,13 @@ use serde::{Deserialize, Serialize};
 use crate::model::baseline::ConvGeneratorConfig;
 use crate::model::data::RangeDataset;
 use crate::model::discriminator::{Discriminator, DiscriminatorConfig};
-use crate::model::generator::{GeneratorConfig, GridCache, random_subgrid_shift};
+use crate::model::generator::{Generator, GeneratorConfig, GridCache, random_subgrid_shift};
 use crate::model::measurement::MeasurementConfig;
 use crate::model::rng::{Rng, tensor_from, tensor_to_vec};
 use crate::model::{AnyGenerator, Arch, Generated};
 
 use super::growth::{Level, Stage, stage_at};
+use super::reconstruct::{self, InLoopEncoder, Losses, ReconstructionConfig};
 
 /// The burn backend a training run computes on. The CPU ones are always built;
 /// the GPU ones need the cargo feature of the same name (`--features cuda` or
@@ -170,6 +171,9 @@ pub struct TrainConfig {
     /// the generator takes its gradients again.
     #[config(default = 2000)]
     pub d_warmup_images: u64,
+    /// Reconstruction-assisted training (dusty2): an encoder in the generator's loop.
+    #[config(default = "None")]
+    pub reconstruction: Option<ReconstructionConfig>,
 }
 
 /// How to run training (not part of the saved config).
@@ -332,6 +336,8 @@ struct Trainer {
     grid_inner: Option<GridCache>,
     /// The resolution of the current coarse-to-fine stage.
     level: Level,
+    /// The encoder of reconstruction-assisted training, at the current level.
+    encoder: Option<InLoopEncoder>,
     snapshot_z: Tensor<2>,
     /// The latest (lazy) R1 estimate, logged on every log line.
     last_r1: Option<f32>,
@@ -374,6 +380,7 @@ impl Trainer {
             data.width,
         );
         let mut d = stage_discriminator(config, &level, &device);
+        let mut encoder = in_loop_encoder(config, &level, &device);
         if resumed {
             let load_err = |what: &str, e: burn::store::RecordError| {
                 anyhow::anyhow!("failed to load {what} from '{}': {e}", ck.display())
@@ -393,6 +400,16 @@ impl Trainer {
             opt_d = opt_d
                 .load(ck.join("opt_d.bpk"))
                 .map_err(|e| load_err("opt_d", e))?;
+            if let Some(e) = encoder.as_mut().filter(|_| ck.join("e.bpk").exists()) {
+                e.encoder = e
+                    .encoder
+                    .clone()
+                    .try_load_file(ck.join("e.bpk"))
+                    .map_err(|err| load_err("e", err))?;
+                e.opt = std::mem::replace(&mut e.opt, AdamConfig::new().init())
+                    .load(ck.join("opt_e.bpk"))
+                    .map_err(|err| load_err("opt_e", err))?;
+            }
         } else if let Some(src) = &opts.init_from {
             // A discriminator of another shape than the source's starts fresh.
             let same_d = level.factor == 1
@@ -435,6 +452,7 @@ impl Trainer {
             grid: None,
             grid_inner: None,
             level,
+            encoder,
             snapshot_z,
             last_r1: None,
         };
@@ -462,6 +480,7 @@ impl Trainer {
         self.state.stage_start_images = self.state.images;
         self.level = Level::of(&self.config.stages, stage, blocks, data.height, data.width);
         self.d = stage_discriminator(&self.config, &self.level, &self.device);
+        self.encoder = in_loop_encoder(&self.config, &self.level, &self.device);
         self.opt_d = AdamConfig::new()
             .with_beta_1(self.config.beta1)
             .with_beta_2(self.config.beta2)
@@ -536,6 +555,8 @@ impl Trainer {
                     "pixel_drop": m.pixel_drop,
                     "images_per_s": ips,
                     "stage": self.state.stage,
+                    "reconstruction": m.assisted.map(|a| a.reconstruction),
+                    "cycle": m.assisted.map(|a| a.cycle),
                     "grid": [self.level.height, self.level.width],
                     "elapsed_s": started.elapsed().as_secs_f64(),
                 });
@@ -649,10 +670,10 @@ impl Trainer {
             self.state.ada_count = 0;
         }
 
-        let loss_g = if self.d_warming_up() {
-            f32::NAN
+        let (loss_g, assisted) = if self.d_warming_up() {
+            (f32::NAN, None)
         } else {
-            self.g_step(view)
+            self.g_step(view, data)
         };
         Ok(StepMetrics {
             loss_d,
@@ -661,12 +682,13 @@ impl Trainer {
             d_real: d_real.iter().sum::<f32>() / d_real.len() as f32,
             d_fake,
             pixel_drop: self.pixel_drop(),
+            assisted,
         })
     }
 
     /// The generator's step (D without autodiff on its weights still passes gradients to
     /// its input), then its EMA; returns G's loss.
-    fn g_step(&mut self, view: DView) -> f32 {
+    fn g_step(&mut self, view: DView, data: &RangeDataset) -> (f32, Option<Losses>) {
         let cfg = self.config.clone();
         let device = self.device.clone();
         let parts = batch_parts(cfg.batch_size);
@@ -679,26 +701,67 @@ impl Trainer {
             ..view
         };
         let seeds: Vec<u64> = (0..parts).map(|_| self.state.rng.next_u64()).collect();
-        let g_parts: Vec<(GradientsParams, f32, Option<Tensor<2>>)> = (0..parts)
+        // Reconstruction-assisted runs encode a batch of real scans as well.
+        let real = self
+            .encoder
+            .is_some()
+            .then(|| self.real_batch(data, &device));
+        let rendering = self.rendering_generator();
+        let mut g_parts: Vec<GPart> = (0..parts)
             .into_par_iter()
             .map(|k| {
-                let g = self.g.clone().fork(&device);
+                let g = rendering.clone().fork(&device);
                 let z = z.clone().narrow(0, k * n, n);
                 let shift = shift.as_ref().map(|s| &s[k * n..(k + 1) * n]);
                 let (fake, w) = g.generate(z, self.grid.as_ref(), shift);
                 let mut rng = Rng::new(seeds[k]);
                 let fake = measure(&cfg.measurement, fake, &mut rng);
-                let logit = d_frozen.forward(view.apply(fake, &mut rng));
+                let logit = d_frozen.forward(view.apply(fake.clone(), &mut rng));
                 let loss_g = softplus(logit.neg(), 1.0).mean();
                 let loss = loss_g.clone().inner().into_scalar::<f32>();
-                let grads = GradientsParams::from_grads(loss_g.backward(), &g);
-                (grads, loss, w.map(|w| w.detach()))
+                let encoder = self
+                    .encoder
+                    .as_ref()
+                    .map(|e| e.encoder.clone().fork(&device));
+                let (total, assisted) = match (&g, &encoder, &real, &w) {
+                    (AnyGenerator::Implicit(generator), Some(e), Some(real), Some(w)) => {
+                        let grid = self
+                            .grid
+                            .as_ref()
+                            .expect("the implicit generator has a grid");
+                        let real = real.clone().narrow(0, k * n, n);
+                        let (extra, values) = reconstruct::losses(
+                            cfg.reconstruction
+                                .as_ref()
+                                .expect("an encoder has its config"),
+                            generator,
+                            e,
+                            grid,
+                            real,
+                            fake,
+                            w.clone(),
+                        );
+                        (loss_g + extra, Some(values))
+                    }
+                    _ => (loss_g, None),
+                };
+                let mut grads = total.backward();
+                GPart {
+                    grads: GradientsParams::from_module(&mut grads, &g),
+                    encoder_grads: encoder
+                        .as_ref()
+                        .map(|e| GradientsParams::from_module(&mut grads, e)),
+                    loss,
+                    w: w.map(|w| w.detach()),
+                    assisted,
+                }
             })
             .collect();
-        let loss_g = g_parts.iter().map(|p| p.1).sum::<f32>() / parts as f32;
-        let w: Option<Vec<Tensor<2>>> = g_parts.iter().map(|p| p.2.clone()).collect();
+        let loss_g = g_parts.iter().map(|p| p.loss).sum::<f32>() / parts as f32;
+        let assisted = self.encoder_step(&mut g_parts);
+        let w: Option<Vec<Tensor<2>>> = g_parts.iter().map(|p| p.w.clone()).collect();
         let w = w.map(|w| Tensor::cat(w, 0));
-        let grads = mean_grads(&self.g, g_parts.into_iter().map(|p| p.0).collect());
+        let grads = mean_grads(&self.g, g_parts.into_iter().map(|p| p.grads).collect());
         let grads = if cfg.drop_head_only {
             drop_head_grads(&self.g, grads)
         } else {
@@ -722,7 +785,42 @@ impl Trainer {
             .max(1.0);
         let beta = 0.5f64.powf(cfg.batch_size as f64 / half_life) as f32;
         self.g_ema = ema_update(self.g_ema.clone(), &self.g, beta);
-        loss_g
+        (loss_g, assisted)
+    }
+
+    /// The generator as the current stage renders: the first blocks only. Blocks that take
+    /// no part must not enter the autodiff graph either: a tracked parameter that no backward
+    /// pass ever consumes stays registered, and every later backward pass walks it again (a
+    /// run slowed from 115 to 33 images/s in 1 400 steps that way).
+    fn rendering_generator(&self) -> AnyGenerator {
+        match &self.g {
+            AnyGenerator::Implicit(g) if self.level.blocks < g.blocks.len() => {
+                AnyGenerator::Implicit(Generator {
+                    mapping: g.mapping.clone(),
+                    blocks: g.blocks[..self.level.blocks].to_vec(),
+                    output_gain: g.output_gain,
+                })
+            }
+            g => g.clone(),
+        }
+    }
+
+    /// The in-loop encoder's Adam step on the parts' mean gradient; the parts' mean losses.
+    fn encoder_step(&mut self, parts: &mut [GPart]) -> Option<Losses> {
+        let lr = self.config.reconstruction.as_ref()?.lr;
+        let e = self.encoder.as_mut()?;
+        let grads: Vec<GradientsParams> = parts
+            .iter_mut()
+            .filter_map(|p| p.encoder_grads.take())
+            .collect();
+        let grads = mean_grads(&e.encoder, grads);
+        e.encoder = e.opt.step(lr, e.encoder.clone(), grads);
+        let k = parts.len().max(1) as f32;
+        let values = parts.iter().filter_map(|p| p.assisted);
+        Some(values.fold(Losses::default(), |acc, v| Losses {
+            reconstruction: acc.reconstruction + v.reconstruction / k,
+            cycle: acc.cycle + v.cycle / k,
+        }))
     }
 
     /// Write the checkpoint (a kill never leaves half a one).
@@ -749,6 +847,15 @@ impl Trainer {
             self.opt_d
                 .save(tmp.join("opt_d.bpk"))
                 .map_err(|e| save_err("opt_d", e))?;
+            if let Some(e) = &self.encoder {
+                e.encoder
+                    .clone()
+                    .save_file(tmp.join("e.bpk"))
+                    .map_err(|err| save_err("e", err))?;
+                e.opt
+                    .save(tmp.join("opt_e.bpk"))
+                    .map_err(|err| save_err("opt_e", err))?;
+            }
             std::fs::write(
                 tmp.join("state.json"),
                 serde_json::to_string_pretty(&self.state)?,
@@ -803,6 +910,16 @@ fn stage_discriminator(config: &TrainConfig, level: &Level, device: &Device) -> 
         .init(device)
 }
 
+/// The in-loop encoder for `level` where the run is reconstruction-assisted.
+fn in_loop_encoder(config: &TrainConfig, level: &Level, device: &Device) -> Option<InLoopEncoder> {
+    let d_w = config.generator.mapping.d_w;
+    config
+        .reconstruction
+        .as_ref()
+        .filter(|_| config.arch == Arch::Dusty2)
+        .map(|r| InLoopEncoder::new(r, level, d_w, device))
+}
+
 /// The weights of a fine-tuning run's start: from a training run's checkpoint (G, EMA G,
 /// and D where `load_d`), or from a model directory (`g_ema.bpk`: G and EMA G). A D not
 /// loaded keeps its fresh weights. `g_from_ema`: G starts as the EMA generator too, so
@@ -852,6 +969,17 @@ struct StepMetrics {
     d_real: f32,
     d_fake: f32,
     pixel_drop: f32,
+    /// Reconstruction-assisted runs: the reconstruction and latent-cycle losses.
+    assisted: Option<Losses>,
+}
+
+/// One part of a G step: its gradients (and the in-loop encoder's) and numbers.
+struct GPart {
+    grads: GradientsParams,
+    encoder_grads: Option<GradientsParams>,
+    loss: f32,
+    w: Option<Tensor<2>>,
+    assisted: Option<Losses>,
 }
 
 /// How many parts a batch is split into: each part runs forward and backward on its own
@@ -1567,6 +1695,87 @@ mod tests {
             "floor {} run {}",
             floor.mean,
             report.mean
+        );
+    }
+
+    /// A coarse-to-fine, reconstruction-assisted run grows at its stage boundary (a fresh
+    /// discriminator and encoder of the finer grid), and a run stopped right after the growth
+    /// and resumed ends with the same weights as one that ran through.
+    #[test]
+    fn a_staged_assisted_run_grows_and_resumes_as_if_uninterrupted() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        let cache = synthetic_cache(dir.path(), 8, 5, |i, _| (i % 64) as f32 / 64.0 - 0.5);
+        let generator = GeneratorConfig::new()
+            .with_mapping(
+                crate::model::generator::MappingConfig::new()
+                    .with_d_z(8)
+                    .with_d_w(8),
+            )
+            .with_channels(vec![8, 8])
+            .with_n_freq(vec![4, 4])
+            .with_lh(vec![4, 5])
+            .with_lw(vec![3, 4]);
+        let config = TrainConfig::new()
+            .with_generator(generator)
+            .with_discriminator(DiscriminatorConfig::new().with_channels(vec![4, 8, 8]))
+            .with_batch_size(2)
+            .with_r1_interval(2)
+            .with_total_images(10)
+            .with_snapshot_every_images(100)
+            .with_stages(vec![Stage::new(1, 4)])
+            .with_d_warmup_images(2)
+            .with_log_every_steps(1)
+            .with_reconstruction(Some(ReconstructionConfig::new()));
+        let opts = |name: &str, total: u64| TrainOptions {
+            run_dir: dir.path().join(name),
+            dataset_cache: cache.clone(),
+            scans: vec![],
+            config: config.clone(),
+            backend: Backend::Flex,
+            total_images: Some(total),
+            max_duration: None,
+            progress: false,
+            init_from: None,
+        };
+        let state = |o: &TrainOptions| -> TrainState {
+            let text = std::fs::read_to_string(o.run_dir.join("checkpoint/state.json"));
+            serde_json::from_str(&text.expect("state")).expect("json")
+        };
+        let through = opts("through", 10);
+        run(&through).expect("train");
+        let stopped = opts("stopped", 4);
+        run(&stopped).expect("train to the boundary");
+        let at_boundary = state(&stopped);
+        assert_eq!((at_boundary.images, at_boundary.stage), (4, 1));
+        assert!(stopped.run_dir.join("checkpoint/e.bpk").exists());
+        run(&opts("stopped", 10)).expect("resume");
+        assert_eq!(state(&through).stage, 1);
+        for file in ["g_ema.bpk", "d.bpk", "e.bpk"] {
+            let read = |o: &TrainOptions| std::fs::read(o.run_dir.join("checkpoint").join(file));
+            assert!(
+                read(&through).expect("read") == read(&stopped).expect("read"),
+                "{file} differs after a resume"
+            );
+        }
+        // The log shows both grids, and the generator sitting out the warm-up after growing.
+        let log = std::fs::read_to_string(through.run_dir.join("log.jsonl")).expect("log");
+        let lines: Vec<serde_json::Value> = log
+            .lines()
+            .map(|l| serde_json::from_str(l).expect("json line"))
+            .collect();
+        let grids: Vec<&serde_json::Value> = lines.iter().map(|l| &l["grid"]).collect();
+        assert_eq!(grids[0], &serde_json::json!([32, 32]));
+        assert_eq!(grids[lines.len() - 1], &serde_json::json!([64, 64]));
+        let grown = lines.iter().position(|l| l["stage"] == 1).expect("grew");
+        assert!(
+            lines[grown + 1]["loss_g"].is_null(),
+            "the generator waits out the warm-up"
+        );
+        assert!(lines[grown + 2]["loss_g"].is_number());
+        assert!(
+            lines
+                .iter()
+                .all(|l| l["reconstruction"].is_number() || l["loss_g"].is_null())
         );
     }
 }

@@ -4,8 +4,10 @@
 //! - [`gan`]: the range-image GAN's training loop, with checkpoints and resume.
 //! - [`growth`]: coarse-to-fine training: the generator's synthesis pyramid grown a level at
 //!   a time, each level with its own discriminator, on real scans sampled at that level.
+//! - [`reconstruct`]: reconstruction-assisted training: an encoder in the generator's loop.
 
 pub mod gan;
 pub mod growth;
+pub mod reconstruct;
 
 pub use gan::*;

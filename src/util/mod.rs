@@ -1,0 +1,6 @@
+//! Code without domain knowledge that the rest of the crate shares.
+//!
+//! - [`bounds`]: checks that sizes read from files and flags lie in a sane range, before
+//!   anything is allocated from them.
+
+pub mod bounds;
