@@ -1,17 +1,17 @@
-//! How real the generator's samples look, with measures that can see structure: the
-//! classifier two-sample test (`model::two_sample`) and SWD, each model's samples against
-//! held-out real scans, beside two references measured in the same run:
+//! How real the generator's samples look, with measures that can see structure. Each model's
+//! samples are told apart from real scans by the classifier two-sample test
+//! (`model::two_sample`: accuracy and cross-validated log-loss) and compared by the Fréchet
+//! distance of the same texture statistics (FTD) and by SWD, beside two references measured
+//! in the same run:
 //!
-//! - real vs real: training scans against the held-out scans (other drives, other places):
-//!   the accuracy and SWD a perfect generator would reach;
-//! Beside the classifier's accuracy, the Fréchet distance of the same texture statistics
-//! (FTD) ranks sets that the classifier tells apart perfectly.
+//! - real: the training scans are interleaved into two halves; every set is told apart from
+//!   one half, and the other half scores what a perfect generator would (about 0.5);
+//! - known bad: that other half with its returns 3 x 3-blurred: a measure that does not
+//!   score it clearly worse than real scans cannot be trusted.
 //!
-//! - known bad: the same training scans with their returns 3 x 3-blurred: a measure that
-//!   does not score them clearly worse than real scans cannot be trusted.
-//!
-//! SWD is reported against two held-out sets (the validation drive, and SemanticKITTI 00 and
-//! 07) to show how much it moves with the choice of scans.
+//! The same sets are also told apart from the held-out scans (the validation drive, and
+//! SemanticKITTI 00 and 07), and SWD is reported against each held-out set separately, to
+//! show how much it moves with the choice of scans.
 //!
 //! ```text
 //! cargo run --release --example prior_eval -- [--data ../shared/real_lidar] \

@@ -97,7 +97,6 @@ fn scan_messages(
 }
 
 pub fn run(global: &GlobalArgs, args: SampleArgs) -> anyhow::Result<Outcome> {
-    anyhow::ensure!(args.n > 0, "--n must be > 0");
     anyhow::ensure!(
         (1..=8).contains(&args.scale),
         "--scale must be 1..=8 (got {})",
