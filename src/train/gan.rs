@@ -171,6 +171,10 @@ pub struct TrainConfig {
     /// the generator takes its gradients again.
     #[config(default = 2000)]
     pub d_warmup_images: u64,
+    /// The discriminator of each coarse-to-fine stage, where it differs from
+    /// `discriminator` (which also serves the full grid): entry i for stage i.
+    #[config(default = "vec![]")]
+    pub stage_discriminators: Vec<DiscriminatorConfig>,
     /// Reconstruction-assisted training (dusty2): an encoder in the generator's loop.
     #[config(default = "None")]
     pub reconstruction: Option<ReconstructionConfig>,
@@ -307,13 +311,14 @@ pub fn run(opts: &TrainOptions) -> Result<()> {
             config.arch == Arch::Dusty2 && !config.drop_head_only,
             "coarse-to-fine stages need a dusty2 generator trained whole"
         );
-        let d = &config.discriminator;
-        let fold = d.stem.max(1) << d.channels.len().saturating_sub(1);
         super::growth::check_stages(
             &config.stages,
             config.generator.channels.len(),
             (data.height, data.width),
-            fold,
+            |stage| {
+                let d = config.discriminator_of(stage);
+                d.stem.max(1) << d.channels.len().saturating_sub(1)
+            },
         )?;
     }
     let mut trainer = Trainer::new(&config, opts, &data)?;
@@ -379,7 +384,7 @@ impl Trainer {
             data.height,
             data.width,
         );
-        let mut d = stage_discriminator(config, &level, &device);
+        let mut d = stage_discriminator(config, state.stage, &level, &device);
         let mut encoder = in_loop_encoder(config, &level, &device);
         if resumed {
             let load_err = |what: &str, e: burn::store::RecordError| {
@@ -479,7 +484,7 @@ impl Trainer {
         self.state.stage = stage;
         self.state.stage_start_images = self.state.images;
         self.level = Level::of(&self.config.stages, stage, blocks, data.height, data.width);
-        self.d = stage_discriminator(&self.config, &self.level, &self.device);
+        self.d = stage_discriminator(&self.config, stage, &self.level, &self.device);
         self.encoder = in_loop_encoder(&self.config, &self.level, &self.device);
         self.opt_d = AdamConfig::new()
             .with_beta_1(self.config.beta1)
@@ -901,13 +906,28 @@ impl Trainer {
 }
 
 /// A fresh discriminator for `level`'s resolution.
-fn stage_discriminator(config: &TrainConfig, level: &Level, device: &Device) -> Discriminator {
+fn stage_discriminator(
+    config: &TrainConfig,
+    stage: usize,
+    level: &Level,
+    device: &Device,
+) -> Discriminator {
     config
-        .discriminator
+        .discriminator_of(stage)
         .clone()
         .with_height(level.height)
         .with_width(level.width)
         .init(device)
+}
+
+impl TrainConfig {
+    /// The discriminator configuration of coarse-to-fine stage `stage`.
+    pub fn discriminator_of(&self, stage: usize) -> &DiscriminatorConfig {
+        self.stage_discriminators
+            .get(stage)
+            .filter(|_| stage < self.stages.len())
+            .unwrap_or(&self.discriminator)
+    }
 }
 
 /// The in-loop encoder for `level` where the run is reconstruction-assisted.
@@ -1736,6 +1756,10 @@ mod tests {
             .with_total_images(10)
             .with_snapshot_every_images(100)
             .with_stages(vec![Stage::new(1, 4)])
+            // The first stage's discriminator differs from the full grid's.
+            .with_stage_discriminators(vec![
+                DiscriminatorConfig::new().with_channels(vec![4, 4, 8]),
+            ])
             .with_d_warmup_images(2)
             .with_log_every_steps(1)
             .with_reconstruction(Some(ReconstructionConfig::new()));
@@ -1759,7 +1783,7 @@ mod tests {
         let weights = |o: &TrainOptions| {
             let ck = o.run_dir.join("checkpoint");
             let (g_ema, _) = load_generator(&o.run_dir, &device).expect("g_ema");
-            let d = stage_discriminator(&config, &Level::of(&[], 0, 2, 64, 64), &device)
+            let d = stage_discriminator(&config, 1, &Level::of(&[], 0, 2, 64, 64), &device)
                 .try_load_file(ck.join("d.bpk"))
                 .expect("d");
             let level = Level::of(&[], 0, 2, 64, 64);

@@ -91,12 +91,13 @@ impl Level {
 }
 
 /// Refuses stages that cannot run: blocks out of order or beyond the generator's, or a
-/// level whose grid the discriminator (which halves it `fold` times over) cannot take.
+/// level whose grid stage `i`'s discriminator (which needs multiples of `fold(i)`) cannot
+/// take.
 pub fn check_stages(
     stages: &[Stage],
     total_blocks: usize,
     (height, width): (usize, usize),
-    fold: usize,
+    fold: impl Fn(usize) -> usize,
 ) -> anyhow::Result<()> {
     let mut previous = 0;
     for (i, stage) in stages.iter().enumerate() {
@@ -107,6 +108,7 @@ pub fn check_stages(
         );
         previous = stage.blocks;
         let level = Level::of(stages, i, total_blocks, height, width);
+        let fold = fold(i);
         anyhow::ensure!(
             level.height.is_multiple_of(fold)
                 && level.width.is_multiple_of(fold)
@@ -180,10 +182,14 @@ mod tests {
         assert_eq!((level.factor, level.height, level.width), (4, 16, 128));
         let full = Level::of(&stages, 2, 5, 64, 512);
         assert_eq!((full.blocks, full.factor, full.height), (5, 1, 64));
-        assert!(check_stages(&stages, 5, (64, 512), 16).is_ok());
-        assert!(check_stages(&[Stage::new(2, 10)], 5, (64, 512), 16).is_err());
-        assert!(check_stages(&[Stage::new(4, 10), Stage::new(3, 10)], 5, (64, 512), 16).is_err());
-        assert!(check_stages(&[Stage::new(5, 10)], 5, (64, 512), 16).is_err());
+        let fold = |_| 16;
+        assert!(check_stages(&stages, 5, (64, 512), fold).is_ok());
+        assert!(check_stages(&[Stage::new(2, 10)], 5, (64, 512), fold).is_err());
+        assert!(check_stages(&[Stage::new(4, 10), Stage::new(3, 10)], 5, (64, 512), fold).is_err());
+        assert!(check_stages(&[Stage::new(5, 10)], 5, (64, 512), fold).is_err());
+        // A finer discriminator for the first stage only.
+        let per_stage = |i| if i == 0 { 32 } else { 16 };
+        assert!(check_stages(&stages, 5, (64, 512), per_stage).is_err());
     }
 
     #[test]
