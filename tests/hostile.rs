@@ -9,7 +9,7 @@ use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use std::process::Output;
 
-use common::{bin, stderr, top_level_records, write_recording, write_recording_with};
+use common::{bin, run, stderr, top_level_records, write_recording, write_recording_with};
 use rangegan_mcap::io::decoders::{DecodedCloud, Family};
 use rangegan_mcap::io::encoders::{self, Kind};
 use rangegan_mcap::lidar::Scan;
@@ -180,7 +180,7 @@ fn distinct_ring_values_beyond_any_sensor_are_bounded_and_reported() {
         .add_channel(schema, "/points", "cdr", &BTreeMap::new())
         .unwrap();
     let cloud = DecodedCloud {
-        scan,
+        scan: scan.clone(),
         stamp_nanos: 5,
         frame_id: "lidar".into(),
     };
@@ -214,6 +214,62 @@ fn distinct_ring_values_beyond_any_sensor_are_bounded_and_reported() {
     assert_eq!(o.status.code(), Some(3));
     let o = convert(&input, &output, &["--columns", "4000000000"]);
     expect_exit(&o, 1, "give 1 to 16384 columns");
+    // `render` skips such a scan with a warning and exits 0; only `--strict` makes that
+    // exit 3, and then it leaves no output.
+    let mixed = dir.path().join("mixed.mcap");
+    let mut w = mcap::Writer::new(std::io::BufWriter::new(
+        std::fs::File::create(&mixed).unwrap(),
+    ))
+    .unwrap();
+    let schema = w.add_schema(&s.name, &s.encoding, &s.data).unwrap();
+    let channel = w
+        .add_channel(schema, "/points", "cdr", &BTreeMap::new())
+        .unwrap();
+    for (i, scan) in [common::synthetic_scan(10.0, 1), scan]
+        .into_iter()
+        .enumerate()
+    {
+        let stamp = 100_000_000 * (i as u64 + 1);
+        let cloud = DecodedCloud {
+            scan,
+            stamp_nanos: stamp,
+            frame_id: "lidar".into(),
+        };
+        let header = mcap::records::MessageHeader {
+            channel_id: channel,
+            sequence: i as u32,
+            log_time: stamp,
+            publish_time: stamp,
+        };
+        let data = encoders::encode_scan(Family::Ros2, &cloud, &[]);
+        w.write_to_known_channel(&header, &data).unwrap();
+    }
+    w.finish().unwrap();
+    drop(w);
+    let rendered = dir.path().join("rendered.mcap");
+    let render = |extra: &[&str]| {
+        let mut args = vec![
+            "render",
+            "--physics",
+            "ideal",
+            "--sensor",
+            "vlp16",
+            "--force",
+        ];
+        args.extend_from_slice(extra);
+        args.extend([mixed.to_str().unwrap(), rendered.to_str().unwrap()]);
+        run(&args)
+    };
+    let o = render(&[]);
+    assert_eq!(o.status.code(), Some(0), "{}", stderr(&o));
+    assert!(stderr(&o).contains("warning"), "{}", stderr(&o));
+    std::fs::remove_file(&rendered).unwrap();
+    let o = render(&["--strict"]);
+    assert_eq!(o.status.code(), Some(3), "{}", stderr(&o));
+    assert!(
+        !rendered.exists(),
+        "--strict keeps no output when it exits non-zero"
+    );
 }
 
 /// SIGTERM and SIGINT in the middle of a conversion remove the temporary output

@@ -70,6 +70,10 @@ pub struct RenderArgs {
     /// Overwrite an existing OUT.
     #[arg(long)]
     pub force: bool,
+    /// Leave no OUT and exit 3 if any scan had to be skipped (otherwise each is a warning
+    /// and the record is copied unchanged).
+    #[arg(long)]
+    pub strict: bool,
     /// Simulated input recording.
     pub input: PathBuf,
     /// Output recording.
@@ -389,12 +393,22 @@ pub fn run(global: &GlobalArgs, args: RenderArgs) -> anyhow::Result<Outcome> {
         |_| {},
     )
     .map_err(|e| e.for_strict_reader(&args.input))?;
-    out.finish()?;
     for s in &skipped {
         if !global.quiet {
             eprintln!("warning: {s}");
         }
     }
+    if args.strict && !skipped.is_empty() {
+        // Dropping the unfinished output removes its temporary file.
+        drop(out);
+        eprintln!(
+            "{}: not written (--strict: {} scans were skipped)",
+            args.output.display(),
+            skipped.len()
+        );
+        return Ok(Outcome::DataSkipped);
+    }
+    out.finish()?;
     let keep = kept as f64 / pixels.max(1) as f64;
     if global.json {
         println!(
@@ -409,9 +423,5 @@ pub fn run(global: &GlobalArgs, args: RenderArgs) -> anyhow::Result<Outcome> {
             100.0 * keep
         );
     }
-    Ok(if skipped.is_empty() {
-        Outcome::Success
-    } else {
-        Outcome::DataSkipped
-    })
+    Ok(Outcome::Success)
 }
