@@ -1319,6 +1319,26 @@ mod tests {
     use burn::module::ParamId;
 
     /// Every float parameter of a generator, in visiting order, with its id.
+    /// A two-block generator and a small discriminator on the synthetic 64 x 64 scans,
+    /// batch 2, lazy R1 every 2 steps: runs that take well under a second.
+    fn tiny_run_config() -> TrainConfig {
+        let generator = GeneratorConfig::new()
+            .with_mapping(
+                crate::model::generator::MappingConfig::new()
+                    .with_d_z(8)
+                    .with_d_w(8),
+            )
+            .with_channels(vec![8, 8])
+            .with_n_freq(vec![4, 4])
+            .with_lh(vec![4, 5])
+            .with_lw(vec![3, 4]);
+        TrainConfig::new()
+            .with_generator(generator)
+            .with_discriminator(DiscriminatorConfig::new().with_channels(vec![4, 8, 8]))
+            .with_batch_size(2)
+            .with_r1_interval(2)
+    }
+
     /// Every float parameter's values, in module order (ids left out).
     fn module_values<M: Module>(m: &M) -> Vec<Vec<f32>> {
         struct Values(Vec<Vec<f32>>);
@@ -1570,21 +1590,7 @@ mod tests {
         let cache = synthetic_cache(dir.path(), 8, 3, |i, _| (i % 64) as f32 / 64.0 - 0.5);
         let data = RangeDataset::load(&cache).expect("cache");
         let (h, w) = (data.height, data.width);
-        let generator = GeneratorConfig::new()
-            .with_mapping(
-                crate::model::generator::MappingConfig::new()
-                    .with_d_z(8)
-                    .with_d_w(8),
-            )
-            .with_channels(vec![8, 8])
-            .with_n_freq(vec![4, 4])
-            .with_lh(vec![4, 5])
-            .with_lw(vec![3, 4]);
-        let config = TrainConfig::new()
-            .with_generator(generator)
-            .with_discriminator(DiscriminatorConfig::new().with_channels(vec![4, 8, 8]))
-            .with_batch_size(2)
-            .with_r1_interval(2)
+        let config = tiny_run_config()
             .with_total_images(8)
             .with_snapshot_every_images(4)
             .with_ada_interval(1)
@@ -1738,21 +1744,7 @@ mod tests {
     fn a_staged_assisted_run_grows_and_resumes_as_if_uninterrupted() {
         let dir = tempfile::tempdir().expect("tempdir");
         let cache = synthetic_cache(dir.path(), 8, 5, |i, _| (i % 64) as f32 / 64.0 - 0.5);
-        let generator = GeneratorConfig::new()
-            .with_mapping(
-                crate::model::generator::MappingConfig::new()
-                    .with_d_z(8)
-                    .with_d_w(8),
-            )
-            .with_channels(vec![8, 8])
-            .with_n_freq(vec![4, 4])
-            .with_lh(vec![4, 5])
-            .with_lw(vec![3, 4]);
-        let config = TrainConfig::new()
-            .with_generator(generator)
-            .with_discriminator(DiscriminatorConfig::new().with_channels(vec![4, 8, 8]))
-            .with_batch_size(2)
-            .with_r1_interval(2)
+        let config = tiny_run_config()
             .with_total_images(10)
             .with_snapshot_every_images(100)
             .with_stages(vec![Stage::new(1, 4)])
