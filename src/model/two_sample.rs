@@ -103,6 +103,21 @@ pub fn texture_features(x: &[f32], h: usize, w: usize) -> Vec<f64> {
     f
 }
 
+/// Per feature: the mean of `set` and 1 / its standard deviation (0 for a constant feature).
+fn standardiser(set: &[&Vec<f64>]) -> (Vec<f64>, Vec<f64>) {
+    let (d, n) = (set[0].len(), set.len() as f64);
+    let mean: Vec<f64> = (0..d)
+        .map(|j| set.iter().map(|x| x[j]).sum::<f64>() / n)
+        .collect();
+    let scale = (0..d)
+        .map(|j| {
+            let var = set.iter().map(|x| (x[j] - mean[j]).powi(2)).sum::<f64>() / n;
+            if var > 1e-24 { 1.0 / var.sqrt() } else { 0.0 }
+        })
+        .collect();
+    (mean, scale)
+}
+
 /// A seeded shuffle of `0..n` (Fisher-Yates).
 fn permutation(rng: &mut Rng, n: usize) -> Vec<usize> {
     let mut idx: Vec<usize> = (0..n).collect();
@@ -224,16 +239,7 @@ impl Logistic {
     fn fit(a: &[Vec<f64>], b: &[Vec<f64>], l2: f64) -> Logistic {
         let d = a[0].len();
         let all: Vec<&Vec<f64>> = a.iter().chain(b).collect();
-        let m = all.len() as f64;
-        let mean: Vec<f64> = (0..d)
-            .map(|j| all.iter().map(|x| x[j]).sum::<f64>() / m)
-            .collect();
-        let scale: Vec<f64> = (0..d)
-            .map(|j| {
-                let var = all.iter().map(|x| (x[j] - mean[j]).powi(2)).sum::<f64>() / m;
-                if var > 1e-24 { 1.0 / var.sqrt() } else { 0.0 }
-            })
-            .collect();
+        let (mean, scale) = standardiser(&all);
         let mut model = Logistic {
             mean,
             scale,
@@ -292,20 +298,7 @@ impl Logistic {
 /// easy to tell from real scans.
 pub fn frechet_distance(a: &[Vec<f64>], b: &[Vec<f64>], reference: &[Vec<f64>]) -> f64 {
     let d = reference[0].len();
-    let n = reference.len() as f64;
-    let mean: Vec<f64> = (0..d)
-        .map(|j| reference.iter().map(|x| x[j]).sum::<f64>() / n)
-        .collect();
-    let scale: Vec<f64> = (0..d)
-        .map(|j| {
-            let var = reference
-                .iter()
-                .map(|x| (x[j] - mean[j]).powi(2))
-                .sum::<f64>()
-                / n;
-            if var > 1e-24 { 1.0 / var.sqrt() } else { 0.0 }
-        })
-        .collect();
+    let (mean, scale) = standardiser(&reference.iter().collect::<Vec<_>>());
     let gaussian = |set: &[Vec<f64>]| -> (DVector<f64>, DMatrix<f64>) {
         let rows: Vec<DVector<f64>> = set
             .iter()
