@@ -114,7 +114,8 @@ pub struct TrainConfig {
     pub beta1: f32,
     #[config(default = 0.99)]
     pub beta2: f32,
-    /// Weight of the (finite-difference) R1 penalty, paper gamma = 1.
+    /// Weight of the (finite-difference) R1 penalty at full resolution, paper gamma = 1; a
+    /// coarse-to-fine stage scales it with its pixel count.
     #[config(default = 1.0)]
     pub r1_gamma: f32,
     /// Lazy regularisation: every this many D steps, weighted by the interval.
@@ -638,6 +639,7 @@ impl Trainer {
         };
         let n = cfg.batch_size / parts;
         let seeds: Vec<u64> = (0..parts).map(|_| self.state.rng.next_u64()).collect();
+        let r1_gamma = self.level.r1_gamma(cfg.r1_gamma);
         let g_inner = self.g.valid();
         let d_parts: Vec<DPart> = (0..parts)
             .into_par_iter()
@@ -650,7 +652,7 @@ impl Trainer {
                 let fake = view.apply(fake, &mut rng);
                 let real = view.apply(real.clone().narrow(0, k * n, n), &mut rng);
                 let v = lazy.then(|| rng.normal_tensor(real.dims(), &device));
-                d_part(&self.d, &device, &cfg, fake, real, v)
+                d_part(&self.d, &device, &cfg, r1_gamma, fake, real, v)
             })
             .collect();
         let mean = |f: &dyn Fn(&DPart) -> f32| d_parts.iter().map(f).sum::<f32>() / parts as f32;
@@ -1057,12 +1059,13 @@ struct DPart {
     d_fake: f32,
 }
 
-/// D's loss on one part of the batch (with the lazy finite-difference R1 where `v` is
-/// given) and its gradients, on a fork of `d`.
+/// D's loss on one part of the batch (with the lazy finite-difference R1 of weight
+/// `r1_gamma` where `v` is given) and its gradients, on a fork of `d`.
 fn d_part(
     d: &Discriminator,
     device: &Device,
     cfg: &TrainConfig,
+    r1_gamma: f32,
     fake: Tensor<4>,
     real: Tensor<4>,
     v: Option<Tensor<4>>,
@@ -1082,7 +1085,7 @@ fn d_part(
             let r1 = (moved - logit_real).div_scalar(h).powi_scalar(2).mean();
             let penalty = r1
                 .clone()
-                .mul_scalar(cfg.r1_gamma * 0.5 * cfg.r1_interval as f32);
+                .mul_scalar(r1_gamma * 0.5 * cfg.r1_interval as f32);
             let r1 = r1.inner().into_scalar::<f32>();
             (loss_d.clone() + penalty, Some(r1))
         }

@@ -81,6 +81,14 @@ impl Level {
         out
     }
 
+    /// The R1 weight at this level for `full_gamma` at full resolution: scaled with the
+    /// pixel count, as StyleGAN2 scales gamma with resolution squared. A full-resolution
+    /// gamma on a 32 x 256 grid kept a fresh discriminator near chance (loss 1.19 after
+    /// 10 000 images alone against a fixed generator, 0.76 at a sixteenth of it).
+    pub fn r1_gamma(&self, full_gamma: f32) -> f32 {
+        full_gamma / (self.factor * self.factor) as f32
+    }
+
     /// A random sampling phase.
     pub fn random_phase(&self, rng: &mut Rng) -> (usize, usize) {
         if self.factor == 1 {
@@ -182,6 +190,9 @@ mod tests {
         assert_eq!((level.factor, level.height, level.width), (4, 16, 128));
         let full = Level::of(&stages, 2, 5, 64, 512);
         assert_eq!((full.blocks, full.factor, full.height), (5, 1, 64));
+        // R1 weighs by pixel count: a sixteenth on the 16 x 128 grid, all of it at full size.
+        assert_eq!(level.r1_gamma(1.0), 1.0 / 16.0);
+        assert_eq!(full.r1_gamma(0.5), 0.5);
         let fold = |_| 16;
         assert!(check_stages(&stages, 5, (64, 512), fold).is_ok());
         assert!(check_stages(&[Stage::new(2, 10)], 5, (64, 512), fold).is_err());
