@@ -247,6 +247,20 @@ fn dataset_flags_and_folders_are_checked() {
         std::fs::read(foreign.join("x.mcap")).unwrap(),
         b"someone else's"
     );
+    // An output folder inside the input folder whose file is not ours: that file is an
+    // input, refused even with --force, and the error does not suggest --force.
+    let sub = input.join("sub");
+    std::fs::create_dir_all(&sub).unwrap();
+    std::fs::write(sub.join("x.mcap"), b"an input").unwrap();
+    for flags in [vec![], vec!["--force"]] {
+        let mut args = vec![s(&input), s(&sub)];
+        args.extend(flags);
+        let o = convert_dataset(&args);
+        assert_eq!(o.status.code(), Some(4), "{args:?}: {}", stderr(&o));
+        assert!(stderr(&o).contains("input folder"), "{}", stderr(&o));
+        assert!(!stderr(&o).contains("--force"), "{}", stderr(&o));
+        assert_eq!(std::fs::read(sub.join("x.mcap")).unwrap(), b"an input");
+    }
 }
 
 /// The topics of a recording's messages.

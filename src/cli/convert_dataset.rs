@@ -49,42 +49,75 @@ pub fn is_dataset(args: &ConvertArgs) -> bool {
     args.inputs.len() > 1 || args.inputs[0].is_dir() || args.output.is_dir()
 }
 
-/// Whether a converted file had data skipped (what `--strict` turns into exit code 3).
-static DATA_SKIPPED: AtomicBool = AtomicBool::new(false);
-
 /// What a run does with one file.
 struct Planned {
     file: DatasetFile,
     input_hash: Result<String, String>,
-    /// `None`: up to date (its manifest line).
-    todo: Result<Option<&'static str>, Entry>,
+    todo: Todo,
 }
 
-/// Hashes every file and compares it with its latest manifest line.
+/// The plan for one file.
+enum Todo {
+    /// No output yet (or `--force`): convert.
+    New,
+    /// The output is stale, for this reason: convert again.
+    Stale(&'static str),
+    /// The output is up to date: its manifest line.
+    UpToDate(Entry),
+    /// The output exists and is not ours: refused, with the reason.
+    Refused(String),
+}
+
+/// Hashes every file and compares it with its latest manifest line. An existing output
+/// that the manifest does not show as written by this tool is refused: `--force` overwrites
+/// it only when it does not lie in one of `input_dirs`, whose files are inputs and are never
+/// overwritten (nor is an output there that changed since this tool wrote it).
 fn plan(
     files: Vec<DatasetFile>,
     out: &Path,
+    input_dirs: &[PathBuf],
     settings: &str,
     force: bool,
 ) -> anyhow::Result<Vec<Planned>> {
-    let earlier = if force {
-        Default::default()
-    } else {
-        manifest::load_latest(out)?
+    let earlier = manifest::load_latest(out)?;
+    let in_input = input_dirs
+        .iter()
+        .find(|dir| crate::io::writer::lies_in(out, dir));
+    let in_input_folder = |output: &Path, dir: &Path| {
+        Todo::Refused(format!(
+            "{} lies in the input folder {} and is not an unchanged output of this tool: it is an input, never overwritten; write to a folder outside the inputs",
+            output.display(),
+            dir.display()
+        ))
     };
     Ok(files
         .into_par_iter()
         .map(|file| {
             let input_hash = manifest::hash_file(&file.path).map_err(|e| format!("{e:#}"));
             let output = out.join(&file.rel);
-            let todo = match (&input_hash, earlier.get(&file.rel)) {
-                (Ok(hash), Some(e)) => match manifest::stale_reason(e, hash, settings, &output) {
-                    Ok(None) => Err(e.clone()),
-                    Ok(Some(why)) => Ok(Some(why)),
-                    Err(_) => Ok(Some("output unreadable")),
+            let ours = earlier.get(&file.rel).filter(|e| e.status == Status::Ok);
+            let todo = match (output.exists(), ours, &input_hash) {
+                (true, None, _) => match in_input {
+                    Some(dir) => in_input_folder(&output, dir),
+                    None if force => Todo::New,
+                    None => Todo::Refused(format!(
+                        "{} exists and is not in the manifest; pass --force to overwrite it",
+                        output.display()
+                    )),
                 },
-                (_, None) if output.exists() && !force => Ok(Some("exists, not in the manifest")),
-                _ => Ok(None),
+                (exists, Some(e), Ok(hash)) => {
+                    let why = manifest::stale_reason(e, hash, settings, &output)
+                        .unwrap_or(Some("output unreadable"));
+                    match (why, in_input) {
+                        (Some("output changed" | "output unreadable"), Some(dir)) if exists => {
+                            in_input_folder(&output, dir)
+                        }
+                        _ if force => Todo::New,
+                        (None, _) => Todo::UpToDate(e.clone()),
+                        (Some(why), _) => Todo::Stale(why),
+                    }
+                }
+                _ => Todo::New,
             };
             Planned {
                 file,
@@ -138,18 +171,24 @@ pub fn run(global: &GlobalArgs, args: &ConvertArgs) -> anyhow::Result<Outcome> {
     }
     let settings = convert::output_settings(args);
     let started = std::time::Instant::now();
-    let planned = plan(files, out, &settings, args.force)?;
+    let input_dirs: Vec<PathBuf> = args.inputs.iter().filter(|i| i.is_dir()).cloned().collect();
+    let planned = plan(files, out, &input_dirs, &settings, args.force)?;
     if args.dataset.dry_run {
         return dry_run(global, &planned);
     }
     std::fs::create_dir_all(out)?;
-    let todo: Vec<&Planned> = planned.iter().filter(|p| p.todo.is_ok()).collect();
+    let todo: Vec<&Planned> = planned
+        .iter()
+        .filter(|p| !matches!(p.todo, Todo::UpToDate(_)))
+        .collect();
     let mut entries: Vec<Entry> = planned
         .iter()
-        .filter_map(|p| p.todo.as_ref().err())
-        .map(|e| Entry {
-            status: Status::Skipped,
-            ..e.clone()
+        .filter_map(|p| match &p.todo {
+            Todo::UpToDate(e) => Some(Entry {
+                status: Status::Skipped,
+                ..e.clone()
+            }),
+            _ => None,
         })
         .collect();
     if !global.quiet && !entries.is_empty() {
@@ -159,6 +198,7 @@ pub fn run(global: &GlobalArgs, args: &ConvertArgs) -> anyhow::Result<Outcome> {
             planned.len()
         );
     }
+    let mut data_skipped = false;
     if !todo.is_empty() {
         let manifest_path = out.join(manifest::manifest_name(shard));
         let writer = Mutex::new(ManifestWriter::open(&manifest_path)?);
@@ -170,6 +210,8 @@ pub fn run(global: &GlobalArgs, args: &ConvertArgs) -> anyhow::Result<Outcome> {
         let done = convert::with_progress(&bar, &counters, Some(todo.len()), || {
             convert_all(global, args, &todo, &converter, &counters, &writer)
         })?;
+        data_skipped = done.data_skipped;
+        let done = done.entries;
         entries.extend(done);
     }
     let failed = entries
@@ -196,7 +238,7 @@ pub fn run(global: &GlobalArgs, args: &ConvertArgs) -> anyhow::Result<Outcome> {
     }
     Ok(if failed > 0 {
         Outcome::FilesFailed
-    } else if DATA_SKIPPED.load(Ordering::Relaxed) && args.strict {
+    } else if data_skipped && args.strict {
         Outcome::DataSkipped
     } else {
         Outcome::Success
@@ -226,13 +268,10 @@ fn dry_run(global: &GlobalArgs, planned: &[Planned]) -> anyhow::Result<Outcome> 
         .iter()
         .map(|p| {
             let (action, reason) = match &p.todo {
-                Err(_) => ("skip", "up to date"),
-                Ok(Some("exists, not in the manifest")) => (
-                    "refuse",
-                    "output exists, not in the manifest; --force overwrites it",
-                ),
-                Ok(Some(why)) => ("convert", *why),
-                Ok(None) => ("convert", "new"),
+                Todo::UpToDate(_) => ("skip", "up to date"),
+                Todo::Refused(why) => ("refuse", why.as_str()),
+                Todo::Stale(why) => ("convert", *why),
+                Todo::New => ("convert", "new"),
             };
             serde_json::json!({
                 "input": p.file.rel, "path": p.file.path, "size": p.file.size,
@@ -258,6 +297,13 @@ fn dry_run(global: &GlobalArgs, planned: &[Planned]) -> anyhow::Result<Outcome> 
     Ok(Outcome::Success)
 }
 
+/// The files a run converted (or failed), and whether any had data skipped (what
+/// `--strict` turns into exit code 3).
+struct Converted {
+    entries: Vec<Entry>,
+    data_skipped: bool,
+}
+
 /// Converts `todo` on `--jobs` workers, each with its share of the threads; appends each
 /// file's manifest line as soon as it is done.
 fn convert_all(
@@ -267,7 +313,8 @@ fn convert_all(
     converter: &FileConverter<'_>,
     counters: &Counters,
     writer: &Mutex<ManifestWriter>,
-) -> anyhow::Result<Vec<Entry>> {
+) -> anyhow::Result<Converted> {
+    let data_skipped = AtomicBool::new(false);
     let threads = global
         .threads
         .or_else(|| std::thread::available_parallelism().ok().map(|n| n.get()))
@@ -288,8 +335,9 @@ fn convert_all(
                         let Some(p) = todo.get(i) else {
                             return Ok(());
                         };
-                        let entry =
-                            pool.install(|| convert_one(global, args, p, converter, counters));
+                        let entry = pool.install(|| {
+                            convert_one(global, args, p, converter, counters, &data_skipped)
+                        });
                         let line = writer
                             .lock()
                             .unwrap_or_else(|e| e.into_inner())
@@ -311,7 +359,10 @@ fn convert_all(
     })?;
     let mut entries = entries.into_inner().unwrap_or_else(|e| e.into_inner());
     entries.sort_by(|a, b| a.input.cmp(&b.input));
-    Ok(entries)
+    Ok(Converted {
+        entries,
+        data_skipped: data_skipped.into_inner(),
+    })
 }
 
 /// Converts one file of the dataset; its failure becomes its manifest line.
@@ -321,15 +372,12 @@ fn convert_one(
     p: &Planned,
     converter: &FileConverter<'_>,
     counters: &Counters,
+    data_skipped: &AtomicBool,
 ) -> Entry {
     let output: PathBuf = args.output.join(&p.file.rel);
-    let refused = matches!(p.todo, Ok(Some("exists, not in the manifest")));
-    let result = match (&p.input_hash, refused) {
+    let result = match (&p.input_hash, &p.todo) {
         (Err(e), _) => Err(anyhow::anyhow!("{e}")), // names the file
-        (_, true) => Err(anyhow::anyhow!(
-            "{} exists and is not in the manifest; pass --force to overwrite it",
-            output.display()
-        )),
+        (_, Todo::Refused(why)) => Err(anyhow::anyhow!("{why}")),
         _ => output
             .parent()
             .map_or(Ok(()), std::fs::create_dir_all)
@@ -341,7 +389,7 @@ fn convert_one(
     match &result {
         Ok(c) => {
             if convert::data_skipped(&c.report) {
-                DATA_SKIPPED.store(true, Ordering::Relaxed);
+                data_skipped.store(true, Ordering::Relaxed);
             }
             convert::print_file_summary(global, &p.file.path, &output, c)
         }

@@ -100,6 +100,10 @@ pub enum ReadError {
     BadChunk(BadChunk),
     #[error("{0}; use --on-error skip to skip it and go on")]
     BadRecord(BadRecord),
+    /// An id defined twice with different contents: what was recorded under it after the
+    /// second definition cannot be told apart from what came before, so no copy is faithful.
+    #[error("{0}")]
+    Redefined(String),
     #[error(transparent)]
     Visitor(#[from] anyhow::Error),
 }
@@ -181,6 +185,8 @@ pub fn read_records<R: Read + Seek>(
         topics: HashMap::new(),
         seen_schemas: HashSet::new(),
         seen_channels: HashSet::new(),
+        definitions: HashMap::new(),
+        offset: 0,
         pending_bad: None,
         in_summary_section: false,
         visit,
@@ -201,6 +207,10 @@ struct Walk<V, P> {
     topics: HashMap<u16, String>,
     seen_schemas: HashSet<u16>,
     seen_channels: HashSet<u16>,
+    /// Each schema and channel id's first definition, to refuse a conflicting second one.
+    definitions: HashMap<(Definition, u16), (String, u64)>,
+    /// File offset of the record (or chunk) being visited.
+    offset: u64,
     /// A broken chunk is completed from the message indexes that follow it (they
     /// list its messages per channel) before it is reported or fails the read.
     pending_bad: Option<(BadChunk, BTreeSet<u16>, u64)>,
@@ -352,6 +362,7 @@ where
 
     /// One framed record at file offset `offset`.
     fn record(&mut self, offset: u64, opcode: u8, data: &[u8]) -> Result<(), ReadError> {
+        self.offset = offset;
         if opcode == op::MESSAGE_INDEX {
             if let Some((_, channels, indexed)) = self.pending_bad.as_mut()
                 && let Ok(Record::MessageIndex(index)) = parse_record(opcode, data)
@@ -493,6 +504,7 @@ where
                 data: data.into(),
             })?;
         }
+        self.check_definition(rec)?;
         match rec {
             Record::Schema { header, .. } => {
                 self.seen_schemas.insert(header.id);
@@ -505,6 +517,26 @@ where
         }
         (self.visit)(rec)?;
         Ok(())
+    }
+
+    /// Refuses a schema or channel id defined again with other contents (repeating the same
+    /// definition, as chunks and the summary do, is fine).
+    fn check_definition(&mut self, rec: &Record<'_>) -> Result<(), ReadError> {
+        let Some((kind, id, described)) = Definition::of(rec) else {
+            return Ok(());
+        };
+        match self.definitions.get(&(kind, id)) {
+            None => {
+                self.definitions
+                    .insert((kind, id), (described, self.offset));
+                Ok(())
+            }
+            Some((first, _)) if *first == described => Ok(()),
+            Some((first, at)) => Err(ReadError::Redefined(format!(
+                "{kind} id {id} is defined twice with different contents: as {first} (at offset {at}) and as {described} (at offset {}); ids must be unique in an MCAP file, and the messages recorded under this one cannot be told apart",
+                self.offset
+            ))),
+        }
     }
 
     /// Reports (or, with [`OnError::Fail`], raises) a broken chunk once the message
@@ -525,6 +557,51 @@ where
         }
         self.report.bad_chunks.push(bad);
         Ok(())
+    }
+}
+
+/// The two kinds of record that define an id other records refer to.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+enum Definition {
+    Schema,
+    Channel,
+}
+
+impl Definition {
+    /// The kind, id and a description of everything a definition says (two definitions
+    /// agree when their descriptions do).
+    fn of(rec: &Record<'_>) -> Option<(Self, u16, String)> {
+        match rec {
+            Record::Schema { header, data } => Some((
+                Definition::Schema,
+                header.id,
+                format!(
+                    "'{}' ({} encoding, {} bytes, CRC32 {:08x})",
+                    header.name,
+                    header.encoding,
+                    data.len(),
+                    crc32fast::hash(data)
+                ),
+            )),
+            Record::Channel(c) => Some((
+                Definition::Channel,
+                c.id,
+                format!(
+                    "topic '{}' (schema {}, {} messages, metadata {:?})",
+                    c.topic, c.schema_id, c.message_encoding, c.metadata
+                ),
+            )),
+            _ => None,
+        }
+    }
+}
+
+impl std::fmt::Display for Definition {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(match self {
+            Definition::Schema => "schema",
+            Definition::Channel => "channel",
+        })
     }
 }
 
@@ -932,6 +1009,107 @@ mod tests {
         assert!(
             matches!(parse_record(op::CHANNEL, &good), Ok(Record::Channel(c)) if c.topic == "/points")
         );
+    }
+
+    /// `bytes` (a whole MCAP file) with `records` (opcode, body) spliced in before its
+    /// data end record.
+    fn splice_before_data_end(bytes: &[u8], records: &[(u8, Vec<u8>)]) -> Vec<u8> {
+        let mut at = 8;
+        while bytes[at] != op::DATA_END {
+            let len = u64::from_le_bytes(bytes[at + 1..at + 9].try_into().unwrap());
+            at += 9 + len as usize;
+        }
+        let mut out = bytes[..at].to_vec();
+        for (opcode, body) in records {
+            out.push(*opcode);
+            out.extend_from_slice(&(body.len() as u64).to_le_bytes());
+            out.extend_from_slice(body);
+        }
+        out.extend_from_slice(&bytes[at..]);
+        out
+    }
+
+    fn channel_body(id: u16, schema: u16, topic: &str, encoding: &str) -> Vec<u8> {
+        let mut b = Vec::new();
+        b.extend_from_slice(&id.to_le_bytes());
+        b.extend_from_slice(&schema.to_le_bytes());
+        for text in [topic, encoding] {
+            b.extend_from_slice(&(text.len() as u32).to_le_bytes());
+            b.extend_from_slice(text.as_bytes());
+        }
+        b.extend_from_slice(&0u32.to_le_bytes());
+        b
+    }
+
+    fn message_body(channel: u16, time: u64) -> Vec<u8> {
+        let mut b = Vec::new();
+        b.extend_from_slice(&channel.to_le_bytes());
+        b.extend_from_slice(&0u32.to_le_bytes());
+        b.extend_from_slice(&time.to_le_bytes());
+        b.extend_from_slice(&time.to_le_bytes());
+        b.extend_from_slice(b"{}");
+        b
+    }
+
+    /// A channel id defined again for another topic would merge two topics' messages: the
+    /// read stops and names the id, both topics and both offsets, whatever `on_error` says.
+    /// The same definition repeated is read as one channel.
+    #[test]
+    fn a_channel_id_redefined_for_another_topic_stops_the_read() {
+        let mut file = std::io::Cursor::new(Vec::new());
+        let mut w = mcap::WriteOptions::new()
+            .use_chunks(false)
+            .create(&mut file)
+            .unwrap();
+        let schema = w.add_schema("custom/Thing", "jsonschema", b"{}").unwrap();
+        let channel = w
+            .add_channel(schema, "/a", "json", &Default::default())
+            .unwrap();
+        w.finish().unwrap();
+        drop(w);
+        let bytes = file.into_inner();
+        let read = |extra: &[(u8, Vec<u8>)]| {
+            let bytes = splice_before_data_end(&bytes, extra);
+            let mut topics = Vec::new();
+            let len = bytes.len() as u64;
+            let result = read_records(
+                std::io::Cursor::new(bytes),
+                Some(len),
+                OnError::Skip,
+                |rec| {
+                    if let Record::Channel(c) = rec {
+                        topics.push(c.topic.clone());
+                    }
+                    Ok(())
+                },
+                |_| {},
+            );
+            (result, topics)
+        };
+        let same = channel_body(channel, schema, "/a", "json");
+        let (result, topics) = read(&[
+            (op::MESSAGE, message_body(channel, 1)),
+            (op::CHANNEL, same),
+            (op::MESSAGE, message_body(channel, 2)),
+        ]);
+        assert!(result.is_ok(), "{result:?}");
+        assert!(topics.iter().all(|t| t == "/a"), "{topics:?}");
+        let other = channel_body(channel, schema, "/b", "json");
+        let (result, _) = read(&[
+            (op::MESSAGE, message_body(channel, 1)),
+            (op::CHANNEL, other),
+            (op::MESSAGE, message_body(channel, 2)),
+        ]);
+        let Err(ReadError::Redefined(message)) = result else {
+            panic!("expected a refusal, got {result:?}");
+        };
+        for needle in [
+            format!("channel id {channel}"),
+            "'/a'".into(),
+            "'/b'".into(),
+        ] {
+            assert!(message.contains(&needle), "{needle} missing: {message}");
+        }
     }
 
     /// A chunk that inflates past its declared size is cut at the size plus one byte.

@@ -110,6 +110,14 @@ pub struct TrainConfig {
     /// Adam, paper values: lr 0.002, betas (0, 0.99).
     #[config(default = 0.002)]
     pub lr: f64,
+    /// The generator's own learning rate where it differs from the discriminator's `lr`
+    /// (two time-scale updates): a generator that moves as fast as a small discriminator
+    /// erases every difference the discriminator finds within a step.
+    pub g_lr: Option<f64>,
+    /// The generator takes a step on every this many discriminator steps (one batch of
+    /// real scans each): a slow discriminator gets the time to find differences.
+    #[config(default = 1)]
+    pub g_every: usize,
     #[config(default = 0.0)]
     pub beta1: f32,
     #[config(default = 0.99)]
@@ -677,11 +685,12 @@ impl Trainer {
             self.state.ada_count = 0;
         }
 
-        let (loss_g, assisted) = if self.d_warming_up() {
-            (f32::NAN, None)
-        } else {
-            self.g_step(view, data)
-        };
+        let (loss_g, assisted) =
+            if self.d_warming_up() || !self.state.step.is_multiple_of(cfg.g_every.max(1) as u64) {
+                (f32::NAN, None)
+            } else {
+                self.g_step(view, data)
+            };
         Ok(StepMetrics {
             loss_d,
             loss_g,
@@ -774,7 +783,9 @@ impl Trainer {
         } else {
             grads
         };
-        let g = self.opt_g.step(cfg.lr, self.g.clone(), grads);
+        let g = self
+            .opt_g
+            .step(cfg.g_lr.unwrap_or(cfg.lr), self.g.clone(), grads);
         // A frozen mapping keeps its w average too: the decode starts from it.
         let w = w.filter(|_| !cfg.drop_head_only);
         self.g = match (g, w) {
