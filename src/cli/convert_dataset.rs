@@ -63,7 +63,7 @@ enum Todo {
     /// The output is stale, for this reason: convert again.
     Stale(&'static str),
     /// The output is up to date: its manifest line.
-    UpToDate(Entry),
+    UpToDate(Box<Entry>),
     /// The output exists and is not ours: refused, with the reason.
     Refused(String),
 }
@@ -113,7 +113,7 @@ fn plan(
                             in_input_folder(&output, dir)
                         }
                         _ if force => Todo::New,
-                        (None, _) => Todo::UpToDate(e.clone()),
+                        (None, _) => Todo::UpToDate(Box::new(e.clone())),
                         (Some(why), _) => Todo::Stale(why),
                     }
                 }
@@ -186,7 +186,7 @@ pub fn run(global: &GlobalArgs, args: &ConvertArgs) -> anyhow::Result<Outcome> {
         .filter_map(|p| match &p.todo {
             Todo::UpToDate(e) => Some(Entry {
                 status: Status::Skipped,
-                ..e.clone()
+                ..(**e).clone()
             }),
             _ => None,
         })
