@@ -6,6 +6,7 @@
 //! - [`measurement`]: the differentiable ray-drop model (keep/drop probability, sampled masks).
 //! - [`discriminator`]: circular residual discriminator.
 //! - [`data`]: the projected-dataset cache.
+//! - [`config`]: what a trained generator is (family, shapes, measurement).
 //! - [`weights`]: the shipped model and loading trained generators.
 //! - [`sample`], [`metrics`], [`two_sample`]: drawing scans, SWD, the classifier two-sample test.
 //!
@@ -14,6 +15,7 @@
 
 pub mod baseline;
 pub mod calibration;
+pub mod config;
 pub mod data;
 pub mod discriminator;
 pub mod generator;
@@ -80,6 +82,8 @@ impl std::str::FromStr for Arch {
         }
     }
 }
+
+pub use config::ModelConfig;
 
 /// Any of the three generators behind one interface.
 #[allow(clippy::large_enum_variant)] // one generator per run; never stored in bulk

@@ -10,9 +10,11 @@ use burn::module::Module;
 use burn::store::ModuleRecord;
 use burn::tensor::{Bytes, Device};
 
-use super::AnyGenerator;
 use super::calibration::RaydropCalibration;
-use crate::train::{CHECKPOINT, TrainConfig, init_generator, load_config};
+use super::{AnyGenerator, ModelConfig};
+
+/// The folder of a training run's latest checkpoint (`g_ema.bpk` and the rest).
+pub const CHECKPOINT: &str = "checkpoint";
 
 /// The shipped model's training configuration.
 pub const SHIPPED_CONFIG: &str = include_str!("../../models/dusty2/config.json");
@@ -21,11 +23,11 @@ const SHIPPED_WEIGHTS: &[u8] = include_bytes!("../../models/dusty2/g_ema.bpk");
 /// The shipped model's x_n calibration (`rangegan-mcap calibrate-raydrop`).
 const SHIPPED_CALIBRATION: &str = include_str!("../../models/dusty2/calibration.json");
 
-/// A trained generator with the configuration it was trained with.
+/// A trained generator with its configuration.
 #[derive(Debug)]
 pub struct Model {
     pub generator: AnyGenerator,
-    pub config: TrainConfig,
+    pub config: ModelConfig,
     /// Per-beam calibration of x_n, when one was fitted for these weights.
     pub calibration: Option<RaydropCalibration>,
     /// Where it came from, for reports ("shipped" or a path).
@@ -35,11 +37,12 @@ pub struct Model {
 impl Model {
     /// The weights shipped in `models/dusty2`, compiled into the binary.
     pub fn shipped(device: &Device) -> Result<Self> {
-        let config: TrainConfig = crate::train::parse_config(SHIPPED_CONFIG)
-            .context("the shipped model's config.json")?;
+        let config =
+            ModelConfig::parse(SHIPPED_CONFIG).context("the shipped model's config.json")?;
         let record = ModuleRecord::from_bytes(Bytes::from_bytes_vec(SHIPPED_WEIGHTS.to_vec()))
             .map_err(|e| anyhow::anyhow!("the shipped weights are unreadable: {e}"))?;
-        let generator = init_generator(&config, device)
+        let generator = config
+            .init_generator(device)
             .try_load_record(record)
             .map_err(|e| anyhow::anyhow!("the shipped weights do not fit their config: {e}"))?;
         Ok(Self {
@@ -56,20 +59,15 @@ impl Model {
     /// A model directory (`config.json`, `g_ema.bpk`) or a run directory
     /// (`config.json`, `checkpoint/g_ema.bpk`).
     pub fn from_dir(dir: &Path, device: &Device) -> Result<Self> {
-        let config_path = dir.join("config.json");
-        let config = load_config(&config_path)?;
-        match config.arch {
-            super::Arch::Dusty2 => config.generator.check(),
-            _ => config.conv_generator.check(),
-        }
-        .with_context(|| format!("{}: bad generator config", config_path.display()))?;
+        let config = ModelConfig::load(&dir.join("config.json"))?;
         let direct = dir.join("g_ema.bpk");
         let path = if direct.is_file() {
             direct
         } else {
             dir.join(CHECKPOINT).join("g_ema.bpk")
         };
-        let generator = init_generator(&config, device)
+        let generator = config
+            .init_generator(device)
             .try_load_file(&path)
             .map_err(|e| anyhow::anyhow!("failed to load '{}': {e}", path.display()))?;
         let calibration_path = dir.join("calibration.json");

@@ -27,7 +27,7 @@ use crate::model::discriminator::{Discriminator, DiscriminatorConfig};
 use crate::model::generator::{Generator, GeneratorConfig, GridCache, random_subgrid_shift};
 use crate::model::measurement::MeasurementConfig;
 use crate::model::rng::{Rng, tensor_from, tensor_to_vec};
-use crate::model::{AnyGenerator, Arch, Generated};
+use crate::model::{AnyGenerator, Arch, Generated, ModelConfig};
 
 use super::growth::{Level, Stage, stage_at};
 use super::reconstruct::{self, InLoopEncoder, Losses, ReconstructionConfig};
@@ -228,33 +228,17 @@ pub struct TrainState {
     pub stage_start_images: u64,
 }
 
-pub const CHECKPOINT: &str = "checkpoint";
+pub use crate::model::weights::CHECKPOINT;
 
-/// Build the generator of `arch`.
+/// Build the generator of `config.arch`.
 pub fn init_generator(config: &TrainConfig, device: &Device) -> AnyGenerator {
-    match config.arch {
-        Arch::Dusty2 => AnyGenerator::Implicit(config.generator.init(device)),
-        Arch::Dusty1 => AnyGenerator::Conv(
-            config
-                .conv_generator
-                .clone()
-                .with_out_channels(2)
-                .init(device),
-        ),
-        Arch::Vanilla => AnyGenerator::Conv(
-            config
-                .conv_generator
-                .clone()
-                .with_out_channels(1)
-                .init(device),
-        ),
-    }
+    config.model().init_generator(device)
 }
 
 /// Load the EMA generator of a run (inference); returns it with the run's config.
 pub fn load_generator(run_dir: &Path, device: &Device) -> Result<(AnyGenerator, TrainConfig)> {
     let m = crate::model::weights::Model::from_dir(run_dir, device)?;
-    Ok((m.generator, m.config))
+    Ok((m.generator, load_config(&run_dir.join("config.json"))?))
 }
 
 /// Read a run's `config.json`; fields added to [`TrainConfig`] after the run started take
@@ -269,24 +253,8 @@ pub fn load_config(path: &Path) -> Result<TrainConfig> {
 pub fn parse_config(text: &str) -> Result<TrainConfig> {
     let saved: serde_json::Value = serde_json::from_str(text).context("not JSON")?;
     let mut merged = serde_json::to_value(TrainConfig::new())?;
-    merge_json(&mut merged, saved);
+    crate::util::json::merge(&mut merged, saved);
     Ok(serde_json::from_value(merged)?)
-}
-
-fn merge_json(base: &mut serde_json::Value, over: serde_json::Value) {
-    match (base, over) {
-        (serde_json::Value::Object(b), serde_json::Value::Object(o)) => {
-            for (k, v) in o {
-                match b.get_mut(&k) {
-                    Some(slot) => merge_json(slot, v),
-                    None => {
-                        b.insert(k, v);
-                    }
-                }
-            }
-        }
-        (slot, v) => *slot = v,
-    }
 }
 
 /// Train (or resume) in `opts.run_dir`.
@@ -934,6 +902,16 @@ fn stage_discriminator(
 }
 
 impl TrainConfig {
+    /// The generator this run trains, as its model folder's config describes it.
+    pub fn model(&self) -> ModelConfig {
+        ModelConfig {
+            arch: self.arch,
+            generator: self.generator.clone(),
+            conv_generator: self.conv_generator.clone(),
+            measurement: self.measurement.clone(),
+        }
+    }
+
     /// The discriminator configuration of coarse-to-fine stage `stage`.
     pub fn discriminator_of(&self, stage: usize) -> &DiscriminatorConfig {
         self.stage_discriminators

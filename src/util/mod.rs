@@ -2,5 +2,7 @@
 //!
 //! - [`bounds`]: checks that sizes read from files and flags lie in a sane range, before
 //!   anything is allocated from them.
+//! - [`json`]: merging a saved JSON config over the current defaults.
 
 pub mod bounds;
+pub mod json;
