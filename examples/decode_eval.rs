@@ -203,6 +203,16 @@ fn load_training_scans(data: &Path, n: usize) -> Result<Vec<Scan>> {
 }
 
 /// The interpolation baselines of the upsampling and row-restoration tasks, in order.
+/// The baselines of the row cases: the grid ones with per-column linear interpolation.
+const LINE_BASELINES: [&str; 6] = [
+    "gan_fast",
+    "nearest",
+    "bilinear",
+    "column_linear",
+    "anchored_add",
+    "anchored_mul",
+];
+
 const GRID_BASELINES: [&str; 5] = [
     "gan_fast",
     "nearest",
@@ -251,6 +261,8 @@ struct ErrorSums {
     far_n: usize,
     /// Pixels more than 1 m off the true surface.
     off_1m: usize,
+    /// Pixels the method left empty, scored with the fallback.
+    holes: usize,
 }
 
 impl ErrorSums {
@@ -260,6 +272,7 @@ impl ErrorSums {
         self.far += o.far;
         self.far_n += o.far_n;
         self.off_1m += o.off_1m;
+        self.holes += o.holes;
     }
 
     fn n(&self) -> usize {
@@ -271,17 +284,26 @@ impl ErrorSums {
     }
 }
 
-/// Absolute errors in meters over pixels where `truth` is measured, `mask` allows and every
-/// prediction has a value, split near (truth <= 30 m) / far.
-fn errors(truth: &[f32], preds: &[&[f32]], mask: &dyn Fn(usize) -> bool) -> Vec<ErrorSums> {
+/// Absolute errors in meters over every pixel where `truth` is measured and `mask` allows,
+/// split near (truth <= 30 m) / far. Each prediction comes with its fallback: where the
+/// method leaves a pixel empty it is scored with what its user gets there (`convert`'s
+/// fills: x_d; an interpolation baseline: the nearest return), never skipped; a pixel
+/// nothing answers counts as a prediction of 0 m.
+fn errors(
+    truth: &[f32],
+    preds: &[(&[f32], &[f32])],
+    mask: &dyn Fn(usize) -> bool,
+) -> Vec<ErrorSums> {
     let mut sums = vec![ErrorSums::default(); preds.len()];
     for k in 0..truth.len() {
-        if truth[k] <= 0.0 || !mask(k) || preds.iter().any(|p| p[k] <= 0.0) {
+        if truth[k] <= 0.0 || !mask(k) {
             continue;
         }
         let near = truth[k] <= NEAR_M;
-        for (s, p) in sums.iter_mut().zip(preds) {
-            let e = f64::from((p[k] - truth[k]).abs());
+        for (s, (p, fallback)) in sums.iter_mut().zip(preds) {
+            let hole = p[k] <= 0.0;
+            let value = if hole { fallback[k].max(0.0) } else { p[k] };
+            let e = f64::from((value - truth[k]).abs());
             if near {
                 s.near += e;
                 s.near_n += 1;
@@ -290,9 +312,91 @@ fn errors(truth: &[f32], preds: &[&[f32]], mask: &dyn Fn(usize) -> bool) -> Vec<
                 s.far_n += 1;
             }
             s.off_1m += usize::from(e > 1.0);
+            s.holes += usize::from(hole);
         }
     }
     sums
+}
+
+/// The predictions of a case with their fallbacks: the interpolation baselines fall back to
+/// the nearest return (`nearest`), `convert`'s fills to the rendering x_d (`x_d`), as
+/// `convert` completes them.
+fn with_fallbacks<'a>(
+    baselines: &[&'a Vec<f32>],
+    nearest: &'a [f32],
+    fills: &'a [Vec<f32>],
+    x_d: &'a [f32],
+) -> Vec<(&'a [f32], &'a [f32])> {
+    baselines
+        .iter()
+        .map(|b| (b.as_slice(), nearest))
+        .chain(fills.iter().map(|f| (f.as_slice(), x_d)))
+        .collect()
+}
+
+/// For every pixel of an `h x w` image of observed ranges (0 = none), the nearest observed
+/// range in its column, else in its row (circular): the fallback a user has for a hole.
+fn nearest_in_column_then_row(observed: &[f32], h: usize, w: usize) -> Vec<f32> {
+    let mut out = vec![0f32; h * w];
+    for c in 0..w {
+        let rows: Vec<usize> = (0..h).filter(|r| observed[r * w + c] > 0.0).collect();
+        if rows.is_empty() {
+            continue;
+        }
+        for r in 0..h {
+            let nearest = rows
+                .iter()
+                .min_by_key(|&&q| q.abs_diff(r))
+                .expect("not empty");
+            out[r * w + c] = observed[nearest * w + c];
+        }
+    }
+    for r in 0..h {
+        let row = &observed[r * w..(r + 1) * w];
+        let cols: Vec<usize> = (0..w).filter(|&c| row[c] > 0.0).collect();
+        for c in 0..w {
+            if out[r * w + c] > 0.0 || cols.is_empty() {
+                continue;
+            }
+            let gap = |q: usize| q.abs_diff(c).min(w - q.abs_diff(c));
+            let nearest = cols.iter().min_by_key(|&&q| gap(q)).expect("not empty");
+            out[r * w + c] = row[*nearest];
+        }
+    }
+    out
+}
+
+/// Per-column linear interpolation of range, in elevation angle, between the nearest
+/// observed returns above and below each pixel; one side only: that side's range; none: 0.
+fn column_linear(observed: &[f32], elevation_rad: &[f32], h: usize, w: usize) -> Vec<f32> {
+    let mut out = vec![0f32; h * w];
+    for c in 0..w {
+        let rows: Vec<usize> = (0..h).filter(|r| observed[r * w + c] > 0.0).collect();
+        for r in 0..h {
+            let k = r * w + c;
+            let above = rows.iter().rev().find(|&&q| q <= r);
+            let below = rows.iter().find(|&&q| q >= r);
+            out[k] = match (above, below) {
+                (Some(&a), Some(&b)) if a == b => observed[a * w + c],
+                (Some(&a), Some(&b)) => {
+                    let (ea, eb, e) = (
+                        elevation_rad[a * w + c],
+                        elevation_rad[b * w + c],
+                        elevation_rad[k],
+                    );
+                    let t = if (eb - ea).abs() > 1e-9 {
+                        ((e - ea) / (eb - ea)).clamp(0.0, 1.0)
+                    } else {
+                        0.5
+                    };
+                    observed[a * w + c] * (1.0 - t) + observed[b * w + c] * t
+                }
+                (Some(&q), None) | (None, Some(&q)) => observed[q * w + c],
+                (None, None) => 0.0,
+            };
+        }
+    }
+    out
 }
 
 /// The kept rows of `img` as their own image (with their angles), for row interpolation.
@@ -767,6 +871,7 @@ fn summarize(per: &[Vec<ErrorSums>], names: &[String]) -> serde_json::Value {
                 "mae_near": t.near / t.near_n.max(1) as f64,
                 "mae_far": t.far / t.far_n.max(1) as f64,
                 "off_1m": t.off_1m as f64 / t.n().max(1) as f64,
+                "holes": t.holes as f64 / t.n().max(1) as f64,
             }),
         );
         total = t;
@@ -816,13 +921,24 @@ fn lines_case(
                 .iter()
                 .map(|v| dec.interpolate_restored(v.fill, &v.rule))
                 .collect();
-            let mut preds: Vec<&[f32]> = vec![&dec.model.depth_m, &near, &bil, &add, &mul];
-            preds.extend(filled.iter().map(|f| f.as_slice()));
+            let observed: Vec<f32> = (0..s.image.range_m.len())
+                .map(|k| {
+                    if kept.contains(&(k / 512)) {
+                        s.image.range_m[k]
+                    } else {
+                        0.0
+                    }
+                })
+                .collect();
+            let column = column_linear(&observed, &s.image.angles.elevation_rad, 64, 512);
+            let fallback = nearest_in_column_then_row(&observed, 64, 512);
+            let baselines = [&dec.model.depth_m, &near, &bil, &column, &add, &mul];
+            let preds = with_fallbacks(&baselines, &fallback, &filled, &dec.model.depth_m);
             let held = |k: usize| !kept.contains(&(k / 512));
             Ok(errors(&s.image.range_m, &preds, &held))
         })
         .collect::<Result<_>>()?;
-    Ok(summarize(&per, &names(&GRID_BASELINES, variants)))
+    Ok(summarize(&per, &names(&LINE_BASELINES, variants)))
 }
 
 /// Restoration from a random 10 % of the measured pixels.
@@ -848,8 +964,10 @@ fn fraction_case(args: &Args, scans: &[Scan], variants: &[Variant]) -> Result<se
                 .iter()
                 .map(|v| dec.interpolate_restored(v.fill, &v.rule))
                 .collect();
-            let mut preds: Vec<&[f32]> = vec![&dec.model.depth_m, &near, &idw, &add, &mul];
-            preds.extend(filled.iter().map(|f| f.as_slice()));
+            let column = column_linear(&dec.observed_m, &s.image.angles.elevation_rad, 64, 512);
+            let fallback = nearest_in_column_then_row(&dec.observed_m, 64, 512);
+            let baselines = [&dec.model.depth_m, &near, &idw, &column, &add, &mul];
+            let preds = with_fallbacks(&baselines, &fallback, &filled, &dec.model.depth_m);
             let held = |k: usize| dec.held_out_m[k] > 0.0;
             Ok(errors(&s.image.range_m, &preds, &held))
         })
@@ -857,7 +975,14 @@ fn fraction_case(args: &Args, scans: &[Scan], variants: &[Variant]) -> Result<se
     Ok(summarize(
         &per,
         &names(
-            &["gan_fast", "nearest", "idw", "anchored_add", "anchored_mul"],
+            &[
+                "gan_fast",
+                "nearest",
+                "idw",
+                "column_linear",
+                "anchored_add",
+                "anchored_mul",
+            ],
             variants,
         ),
     ))
@@ -891,8 +1016,9 @@ fn columns_case(fast: &Decoder, scans: &[Scan], variants: &[Variant]) -> Result<
                 .iter()
                 .map(|v| dec.interpolate_on(&dense, v.fill, &v.rule))
                 .collect();
-            let mut preds: Vec<&[f32]> = vec![&dense.depth_m, &near, &bil, &add, &mul];
-            preds.extend(filled.iter().map(|f| f.as_slice()));
+            let fallback = nearest_in_column_then_row(&near, 64, 2048);
+            let baselines = [&dense.depth_m, &near, &bil, &add, &mul];
+            let preds = with_fallbacks(&baselines, &fallback, &filled, &dense.depth_m);
             Ok(errors(&truth, &preds, &|_| true))
         })
         .collect::<Result<_>>()?;
