@@ -130,6 +130,9 @@ pub(crate) fn warn_read_damage(input: &std::path::Path, read: &crate::io::ReadRe
             input.display()
         );
     }
+    for r in &read.repaired {
+        eprintln!("warning: {}: {r}", input.display());
+    }
 }
 
 /// How a command ended when it did not fail outright.

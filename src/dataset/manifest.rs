@@ -103,10 +103,12 @@ pub fn load_latest(dir: &Path) -> anyhow::Result<HashMap<String, Entry>> {
         .collect();
     names.sort();
     for path in names {
-        let text = std::fs::read_to_string(&path)
-            .with_context(|| format!("cannot read {}", path.display()))?;
-        for line in text.lines() {
-            if let Ok(e) = serde_json::from_str::<Entry>(line) {
+        let bytes =
+            std::fs::read(&path).with_context(|| format!("cannot read {}", path.display()))?;
+        // A damaged line (torn, or not UTF-8) says nothing about any file: its file is
+        // converted again, and the lines around it still count.
+        for line in bytes.split(|&b| b == b'\n') {
+            if let Ok(e) = serde_json::from_slice::<Entry>(line) {
                 latest.insert(e.input.clone(), e);
             }
         }
@@ -227,6 +229,15 @@ mod tests {
         let latest = load_latest(dir.path()).unwrap();
         assert_eq!(latest.len(), 2);
         assert_eq!(latest["a.mcap"].status, Status::Ok);
+        // A line that is not UTF-8 is passed over; the lines after it still count.
+        let mut f = OpenOptions::new().append(true).open(&path).unwrap();
+        f.write_all(b"{\"input\":\"\xff\xfe\"}\n").unwrap();
+        drop(f);
+        let mut w = ManifestWriter::open(&path).unwrap();
+        w.append(&entry("d.mcap", Status::Ok)).unwrap();
+        let latest = load_latest(dir.path()).unwrap();
+        assert_eq!(latest.len(), 3);
+        assert!(latest.contains_key("d.mcap"));
     }
 
     #[test]

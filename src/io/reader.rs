@@ -145,6 +145,9 @@ pub struct ReadReport {
     pub bad_records: Vec<BadRecord>,
     /// Records rebuilt from the summary section because their own copy was lost.
     pub from_summary: Vec<String>,
+    /// Damage read through with nothing lost (e.g. an uncompressed chunk whose declared
+    /// size is wrong), one sentence each.
+    pub repaired: Vec<String>,
 }
 
 impl ReadReport {
@@ -402,7 +405,14 @@ where
         data: &[u8],
     ) -> Result<(), ReadError> {
         let records = match open_chunk(header, data) {
-            Ok(records) => records,
+            Ok((records, note)) => {
+                if let Some(note) = note {
+                    self.report
+                        .repaired
+                        .push(format!("{note} (chunk at offset {offset})"));
+                }
+                records
+            }
             Err(reason) => {
                 let mut bad = describe_bad_chunk(reason, header, data, &self.topics);
                 bad.offset = offset;
@@ -859,8 +869,26 @@ fn decompress(header: &mcap::records::ChunkHeader, data: &[u8]) -> Result<Vec<u8
     Ok(out)
 }
 
-/// Decompresses a chunk and checks its size and CRC; returns its records' bytes.
-fn open_chunk(header: &mcap::records::ChunkHeader, data: &[u8]) -> Result<Vec<u8>, String> {
+/// Decompresses a chunk and checks its size and CRC; returns its records' bytes, with a
+/// note when a wrong declared size was read through. An empty chunk is empty whatever its
+/// compression; an uncompressed chunk's records are its data, so a wrong
+/// `uncompressed_size` there loses nothing (its CRC, where set, still decides).
+fn open_chunk(
+    header: &mcap::records::ChunkHeader,
+    data: &[u8],
+) -> Result<(Vec<u8>, Option<String>), String> {
+    if data.is_empty() && header.uncompressed_size == 0 {
+        return Ok((Vec::new(), None));
+    }
+    if header.compression.is_empty() && data.len() as u64 != header.uncompressed_size {
+        check_crc(header, data)?;
+        let note = format!(
+            "uncompressed chunk of {} bytes declares {}; its records were read from its data",
+            data.len(),
+            header.uncompressed_size
+        );
+        return Ok((data.to_vec(), Some(note)));
+    }
     let records = decompress(header, data)?;
     if records.len() as u64 != header.uncompressed_size {
         return Err(format!(
@@ -874,16 +902,20 @@ fn open_chunk(header: &mcap::records::ChunkHeader, data: &[u8]) -> Result<Vec<u8
             header.uncompressed_size
         ));
     }
-    if header.uncompressed_crc != 0 {
-        let calculated = crc32fast::hash(&records);
-        if calculated != header.uncompressed_crc {
-            return Err(format!(
-                "CRC mismatch (saved {:#010x}, calculated {calculated:#010x})",
-                header.uncompressed_crc
-            ));
-        }
+    check_crc(header, &records)?;
+    Ok((records, None))
+}
+
+/// The chunk's CRC of its uncompressed records, where it has one (0: none).
+fn check_crc(header: &mcap::records::ChunkHeader, records: &[u8]) -> Result<(), String> {
+    let calculated = crc32fast::hash(records);
+    if header.uncompressed_crc != 0 && calculated != header.uncompressed_crc {
+        return Err(format!(
+            "CRC mismatch (saved {:#010x}, calculated {calculated:#010x})",
+            header.uncompressed_crc
+        ));
     }
-    Ok(records)
+    Ok(())
 }
 
 enum ChunkWalk {
@@ -1127,5 +1159,39 @@ mod tests {
         assert_eq!(decompress(&header, &data).unwrap().len(), 11);
         let err = open_chunk(&header, &data).unwrap_err();
         assert!(err.contains("11 or more bytes, header says 10"), "{err}");
+    }
+
+    /// An empty chunk is empty for every compression; an uncompressed chunk with a wrong
+    /// declared size gives its records with a note, unless its CRC disagrees.
+    #[test]
+    fn empty_chunks_and_wrong_sizes_of_uncompressed_chunks_lose_nothing() {
+        let header = |compression: &str, size: u64, crc: u32| mcap::records::ChunkHeader {
+            message_start_time: 0,
+            message_end_time: 0,
+            uncompressed_size: size,
+            uncompressed_crc: crc,
+            compression: compression.into(),
+            compressed_size: 0,
+        };
+        for compression in ["", "zstd", "lz4"] {
+            let (records, note) = open_chunk(&header(compression, 0, 0), &[]).unwrap();
+            assert!(records.is_empty() && note.is_none(), "{compression}");
+        }
+        let data = [1u8, 2, 3, 4, 5];
+        let (records, note) = open_chunk(&header("", 9, 0), &data).unwrap();
+        assert_eq!(records, data);
+        assert!(note.unwrap().contains("declares 9"));
+        let crc = crc32fast::hash(&data);
+        assert!(open_chunk(&header("", 9, crc), &data).is_ok());
+        let err = open_chunk(&header("", 9, crc ^ 1), &data).unwrap_err();
+        assert!(err.contains("CRC mismatch"), "{err}");
+        // A compressed chunk's declared size still decides.
+        assert!(
+            open_chunk(
+                &header("zstd", 3, 0),
+                &zstd::bulk::compress(&data, 3).unwrap()
+            )
+            .is_err()
+        );
     }
 }
