@@ -191,6 +191,10 @@ pub struct DiscriminatorConfig {
     /// Minibatch-stddev group size.
     #[config(default = 4)]
     pub mbstd_group: usize,
+    /// The input as two copies blurred [1,2,1] along elevation and along azimuth; false: the
+    /// image itself, twice (the same weights' shapes).
+    #[config(default = true)]
+    pub input_blur: bool,
     #[config(default = 1)]
     pub seed: u64,
 }
@@ -206,6 +210,8 @@ pub struct Discriminator {
     pub mbstd_group: usize,
     #[module(skip)]
     pub stem: usize,
+    #[module(skip)]
+    pub input_blur: bool,
 }
 
 impl DiscriminatorConfig {
@@ -248,6 +254,7 @@ impl DiscriminatorConfig {
             out: EqualLinearConfig::new(last, 1).init(&mut rng, device),
             mbstd_group: self.mbstd_group,
             stem,
+            input_blur: self.input_blur,
         }
     }
 }
@@ -257,13 +264,19 @@ impl Discriminator {
     /// - x: `[batch, 1, H, W]` measured image in network units -> logits `[batch, 1]`
     pub fn forward(&self, x: Tensor<4>) -> Tensor<2> {
         let b = x.dims()[0];
-        let horiz = (roll(x.clone(), 1, 3) + roll(x.clone(), -1, 3) + x.clone().mul_scalar(2.0))
+        let pair = if self.input_blur {
+            let horiz =
+                (roll(x.clone(), 1, 3) + roll(x.clone(), -1, 3) + x.clone().mul_scalar(2.0))
+                    .div_scalar(4.0); // [batch, 1, H, W]
+            let vert = (shift_replicate(x.clone(), 1, 2)
+                + shift_replicate(x.clone(), -1, 2)
+                + x.mul_scalar(2.0))
             .div_scalar(4.0); // [batch, 1, H, W]
-        let vert = (shift_replicate(x.clone(), 1, 2)
-            + shift_replicate(x.clone(), -1, 2)
-            + x.mul_scalar(2.0))
-        .div_scalar(4.0); // [batch, 1, H, W]
-        let x = space_to_depth(Tensor::cat(vec![vert, horiz], 1), self.stem); // [batch, 2*s*s, H/s, W/s]
+            vec![vert, horiz]
+        } else {
+            vec![x.clone(), x]
+        };
+        let x = space_to_depth(Tensor::cat(pair, 1), self.stem); // [batch, 2*s*s, H/s, W/s]
         let mut y = self.from_input.forward(x); // [batch, c0, H/s, W/s]
         for block in &self.blocks {
             y = block.forward(y); // [batch, c, h, w]

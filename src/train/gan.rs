@@ -251,7 +251,18 @@ pub fn load_config(path: &Path) -> Result<TrainConfig> {
 
 /// [`load_config`] on text.
 pub fn parse_config(text: &str) -> Result<TrainConfig> {
-    let saved: serde_json::Value = serde_json::from_str(text).context("not JSON")?;
+    let mut saved: serde_json::Value = serde_json::from_str(text).context("not JSON")?;
+    // Each per-stage discriminator takes the defaults of fields it predates, like the main one.
+    if let Some(stages) = saved
+        .get_mut("stage_discriminators")
+        .and_then(|v| v.as_array_mut())
+    {
+        for d in stages {
+            let mut merged = serde_json::to_value(DiscriminatorConfig::new())?;
+            crate::util::json::merge(&mut merged, d.take());
+            *d = merged;
+        }
+    }
     let mut merged = serde_json::to_value(TrainConfig::new())?;
     crate::util::json::merge(&mut merged, saved);
     Ok(serde_json::from_value(merged)?)
@@ -1382,12 +1393,18 @@ mod tests {
     fn old_configs_load_with_new_fields_defaulted() {
         let dir = tempfile::tempdir().expect("tempdir");
         let path = dir.path().join("config.json");
-        let mut v = serde_json::to_value(TrainConfig::new().with_batch_size(3)).expect("json");
+        let config = TrainConfig::new()
+            .with_batch_size(3)
+            .with_stage_discriminators(vec![DiscriminatorConfig::cpu()]);
+        let mut v = serde_json::to_value(config).expect("json");
         let obj = v.as_object_mut().expect("object");
         obj.remove("ema_rampup");
         obj.get_mut("generator")
             .and_then(|g| g.as_object_mut())
             .map(|g| g.remove("output_gain"));
+        obj.get_mut("stage_discriminators")
+            .and_then(|d| d[0].as_object_mut())
+            .map(|d| d.remove("input_blur"));
         std::fs::write(&path, v.to_string()).expect("write");
         assert!(
             TrainConfig::load(&path).is_err(),
@@ -1397,6 +1414,11 @@ mod tests {
         assert_eq!(c.batch_size, 3);
         assert_eq!(c.ema_rampup, 0.05);
         assert_eq!(c.generator.output_gain, 0.25);
+        assert!(c.stage_discriminators[0].input_blur);
+        assert_eq!(
+            c.stage_discriminators[0].channels,
+            DiscriminatorConfig::cpu().channels
+        );
     }
 
     #[test]
