@@ -113,8 +113,8 @@ fn main() -> Res<()> {
 }
 
 fn save_png(path: &Path, buf: &[u8], size: (u32, u32)) -> Res<()> {
-    let png = rangegan_mcap::report::plot::encode_png(size.0, size.1, buf)?;
-    rangegan_mcap::report::plot::write_atomic(path, &png)
+    let png = rangegan_mcap::util::png::encode_rgb(size.0, size.1, buf)?;
+    rangegan_mcap::util::fs::write_atomic(path, &png)
         .map_err(|e| format!("{}: {e}", path.display()))?;
     println!("wrote {}", path.display());
     Ok(())

@@ -823,7 +823,8 @@ impl Reliability {
 
 /// The reliability curves of the calibrated and the raw x_n against the diagonal.
 fn reliability_chart(path: &Path, calibrated: &Reliability, raw: &Reliability) -> Result<()> {
-    use rangegan_mcap::report::plot::{FITTED, LineChart, SIM, Series, line_chart, write_atomic};
+    use rangegan_mcap::report::plot::{FITTED, LineChart, SIM, Series, line_chart};
+    use rangegan_mcap::util::fs::write_atomic;
     let n = calibrated.0.len();
     let x: Vec<f64> = (0..n).map(|i| (i as f64 + 0.5) / n as f64).collect();
     let (cal, unc) = (calibrated.observed(), raw.observed());

@@ -13,7 +13,9 @@ use plotters::prelude::*;
 use rangegan_mcap::decode::{DecodeOptions, Decoder, Quality, scan_seed};
 use rangegan_mcap::lidar::{self, SensorProfile, Strategy};
 use rangegan_mcap::model::weights::Model;
-use rangegan_mcap::report::plot::{encode_png, register_font, viridis, write_atomic};
+use rangegan_mcap::report::plot::{register_font, viridis};
+use rangegan_mcap::util::fs::write_atomic;
+use rangegan_mcap::util::png::encode_rgb;
 
 /// Panel width in pixels; the 64-row images are drawn with 2x2 pixels per range-image pixel.
 const WIDTH: u32 = 1024;
@@ -141,7 +143,7 @@ fn main() -> Result<()> {
         }
         root.present()?;
     }
-    write_atomic(&out, &encode_png(WIDTH, height, &buf)?)
+    write_atomic(&out, &encode_rgb(WIDTH, height, &buf)?)
         .with_context(|| format!("failed to write {}", out.display()))?;
     eprintln!("wrote {}", out.display());
     Ok(())

@@ -123,8 +123,8 @@ fn main() -> Res<()> {
         }
         root.present()?;
     }
-    let png = rangegan_mcap::report::plot::encode_png(size.0, size.1, &buf)?;
-    rangegan_mcap::report::plot::write_atomic(&out, &png)
+    let png = rangegan_mcap::util::png::encode_rgb(size.0, size.1, &buf)?;
+    rangegan_mcap::util::fs::write_atomic(&out, &png)
         .map_err(|e| format!("{}: {e}", out.display()))?;
     println!("wrote {}", out.display());
     Ok(())

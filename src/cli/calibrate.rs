@@ -72,9 +72,7 @@ pub fn run(global: &GlobalArgs, args: CalibrateArgs) -> Result<Outcome> {
     }
     let (before, after) = (before / pixels as f64, after / pixels as f64);
     let text = serde_json::to_string_pretty(&calibration)?;
-    let tmp = args.out.with_extension("json.tmp");
-    std::fs::write(&tmp, &text).with_context(|| format!("failed to write '{}'", tmp.display()))?;
-    std::fs::rename(&tmp, &args.out)
+    crate::util::fs::write_atomic(&args.out, text.as_bytes())
         .with_context(|| format!("failed to write '{}'", args.out.display()))?;
     if global.json {
         let summary = serde_json::json!({

@@ -12,7 +12,8 @@ use std::path::{Path, PathBuf};
 use anyhow::Context;
 
 use crate::diagnose::report::{Curve, Diagnosis};
-use plot::{FITTED, LineChart, REAL, SIM, Series, line_chart, viridis, write_atomic};
+use crate::util::fs::write_atomic;
+use plot::{FITTED, LineChart, REAL, SIM, Series, line_chart, viridis};
 
 /// Where the inputs came from, for the HTML header.
 #[derive(Debug, Clone, Default)]

@@ -4,7 +4,6 @@
 //! encodes both. Also owns the font registration the examples and benches share,
 //! and the atomic file write every report file goes through.
 
-use std::io::Write;
 use std::sync::OnceLock;
 
 use anyhow::Context;
@@ -128,7 +127,7 @@ pub fn line_chart(chart: &LineChart) -> anyhow::Result<Vec<u8>> {
             .draw()?;
         root.present()?;
     }
-    encode_png(w, h, &buf)
+    crate::util::png::encode_rgb(w, h, &buf)
 }
 
 /// A range-image map with axes (azimuth along x, beam row down y), a title and,
@@ -208,7 +207,7 @@ pub fn map_chart(map: &MapChart) -> anyhow::Result<Vec<u8>> {
         }
         root.present()?;
     }
-    encode_png(w, h, &buf)
+    crate::util::png::encode_rgb(w, h, &buf)
 }
 
 /// Viridis (dark purple 0, yellow 1) for `v` clamped to [0, 1]; NaN is white.
@@ -237,34 +236,7 @@ pub fn image(
         }
     }
     let size = |n: usize| u32::try_from(n).context("image too large");
-    encode_png(size(w)?, size(h * row_scale)?, &buf)
-}
-
-/// PNG bytes of an 8-bit RGB buffer (`w` x `h`, row-major).
-pub fn encode_png(w: u32, h: u32, rgb: &[u8]) -> anyhow::Result<Vec<u8>> {
-    let mut out = Vec::new();
-    let mut enc = png::Encoder::new(&mut out, w, h);
-    enc.set_color(png::ColorType::Rgb);
-    enc.set_depth(png::BitDepth::Eight);
-    let mut writer = enc.write_header()?;
-    writer.write_image_data(rgb)?;
-    writer.finish()?;
-    Ok(out)
-}
-
-/// Writes `bytes` to `path` atomically (temporary file in the same folder, then rename).
-pub fn write_atomic(path: &std::path::Path, bytes: &[u8]) -> std::io::Result<()> {
-    let tmp = path.with_extension(format!(
-        "{}.tmp{}",
-        path.extension().and_then(|e| e.to_str()).unwrap_or(""),
-        std::process::id()
-    ));
-    {
-        let mut f = std::fs::File::create(&tmp)?;
-        f.write_all(bytes)?;
-        f.sync_all()?;
-    }
-    std::fs::rename(&tmp, path)
+    crate::util::png::encode_rgb(size(w)?, size(h * row_scale)?, &buf)
 }
 
 #[cfg(test)]

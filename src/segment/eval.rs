@@ -16,7 +16,9 @@ use super::classes::{CAR_PERSON, CLASSES, IGNORE, NUM_CLASSES, SCORED, color};
 use super::data::{CHANNELS, SegDataset};
 use super::net::SegNet;
 use crate::model::rng::{tensor_from, tensor_to_vec};
-use crate::report::plot::{encode_png, register_font, viridis, write_atomic};
+use crate::report::plot::{register_font, viridis};
+use crate::util::fs::write_atomic;
+use crate::util::png::encode_rgb;
 
 /// Counts of (true class, predicted class) over labelled returns.
 #[derive(Debug, Clone, Default)]
@@ -265,7 +267,7 @@ pub fn picture(
         }
         area.present()?;
     }
-    write_atomic(path, &encode_png(pw as u32, ph as u32, &buf)?)?;
+    write_atomic(path, &encode_rgb(pw as u32, ph as u32, &buf)?)?;
     Ok(())
 }
 

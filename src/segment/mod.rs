@@ -89,7 +89,7 @@ impl SegModel {
             .save_file(&tmp)
             .map_err(|e| anyhow::anyhow!("cannot save {}: {e}", tmp.display()))?;
         std::fs::rename(&tmp, dir.join(Self::WEIGHTS))?;
-        crate::report::plot::write_atomic(
+        crate::util::fs::write_atomic(
             &dir.join(Self::INFO),
             serde_json::to_string_pretty(info)?.as_bytes(),
         )?;

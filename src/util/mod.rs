@@ -2,7 +2,11 @@
 //!
 //! - [`bounds`]: checks that sizes read from files and flags lie in a sane range, before
 //!   anything is allocated from them.
+//! - [`fs`]: atomic file writes.
 //! - [`json`]: merging a saved JSON config over the current defaults.
+//! - [`png`]: PNG encoding.
 
 pub mod bounds;
+pub mod fs;
 pub mod json;
+pub mod png;
