@@ -421,12 +421,25 @@ where
             }
         };
         let mut damage = None;
-        let walked = for_each_record(&records, |rec| {
-            self.emit(rec).map_err(|e| match e {
-                ReadError::Visitor(e) => e,
-                other => anyhow::anyhow!("{other}"),
-            })
-        });
+        let mut skipped = Vec::new();
+        let walked = for_each_record(
+            &records,
+            |rec| {
+                self.emit(rec).map_err(|e| match e {
+                    ReadError::Visitor(e) => e,
+                    other => anyhow::anyhow!("{other}"),
+                })
+            },
+            |at, opcode, error| skipped.push((at, opcode, error)),
+        );
+        for (at, opcode, reason) in skipped {
+            self.damaged_record(BadRecord {
+                offset,
+                record: format!("{} at byte {at} of the chunk", record_kind(opcode)),
+                reason,
+                skipped_bytes: 0,
+            })?;
+        }
         match walked {
             Ok(()) => {}
             Err(ChunkWalk::Visitor(e)) => return Err(ReadError::Visitor(e)),
@@ -811,11 +824,18 @@ impl Summary {
             start,
             ..Default::default()
         };
-        for_each_record(&bytes, |rec| {
-            summary.add(rec);
-            Ok(())
-        })
-        .map_err(|_| "unreadable summary record".to_string())?;
+        let mut unreadable = false;
+        for_each_record(
+            &bytes,
+            |rec| {
+                summary.add(rec);
+                Ok(())
+            },
+            |_, _, _| unreadable = true,
+        )
+        .ok()
+        .filter(|_| !unreadable)
+        .ok_or_else(|| "unreadable summary record".to_string())?;
         summary.chunk_offsets = summary
             .chunks
             .iter()
@@ -931,6 +951,7 @@ enum ChunkWalk {
 fn for_each_record(
     buf: &[u8],
     mut f: impl FnMut(&Record<'_>) -> anyhow::Result<()>,
+    mut skip: impl FnMut(usize, u8, String),
 ) -> Result<(), ChunkWalk> {
     let mut at = 0usize;
     while at < buf.len() {
@@ -957,11 +978,12 @@ fn for_each_record(
                 ),
             });
         };
-        let rec = parse_record(opcode, &rest[9..end]).map_err(|e| ChunkWalk::Record {
-            at,
-            error: format!("{}: {e}", record_kind(opcode)),
-        })?;
-        f(&rec).map_err(ChunkWalk::Visitor)?;
+        // Framing intact, contents not: that record alone is lost; the next one starts
+        // where its length says.
+        match parse_record(opcode, &rest[9..end]) {
+            Ok(rec) => f(&rec).map_err(ChunkWalk::Visitor)?,
+            Err(e) => skip(at, opcode, e),
+        }
         at += end;
     }
     Ok(())
@@ -980,19 +1002,25 @@ fn describe_bad_chunk(
     let mut own_topics = HashMap::new();
     // A CRC mismatch still decompresses: look inside. Broken compression yields nothing.
     if let Ok(records) = decompress(header, data) {
-        let _ = for_each_record(&records, |rec| {
-            match rec {
-                Record::Message { header, .. } => {
-                    channels.insert(header.channel_id);
-                    messages += 1;
+        let mut unparsed_messages = 0u64;
+        let _ = for_each_record(
+            &records,
+            |rec| {
+                match rec {
+                    Record::Message { header, .. } => {
+                        channels.insert(header.channel_id);
+                        messages += 1;
+                    }
+                    Record::Channel(c) => {
+                        own_topics.insert(c.id, c.topic.clone());
+                    }
+                    _ => {}
                 }
-                Record::Channel(c) => {
-                    own_topics.insert(c.id, c.topic.clone());
-                }
-                _ => {}
-            }
-            Ok(())
-        });
+                Ok(())
+            },
+            |_, opcode, _| unparsed_messages += u64::from(opcode == op::MESSAGE),
+        );
+        messages += unparsed_messages;
     }
     let topics = channels
         .iter()
@@ -1142,6 +1170,74 @@ mod tests {
         ] {
             assert!(message.contains(&needle), "{needle} missing: {message}");
         }
+    }
+
+    /// A message too short to parse inside a chunk whose framing is intact: that record
+    /// alone is reported, the messages after it are read.
+    #[test]
+    fn a_short_record_inside_a_chunk_costs_only_itself() {
+        let mut file = std::io::Cursor::new(Vec::new());
+        let mut w = mcap::WriteOptions::new()
+            .use_chunks(false)
+            .create(&mut file)
+            .unwrap();
+        let schema = w.add_schema("custom/Thing", "jsonschema", b"{}").unwrap();
+        let channel = w
+            .add_channel(schema, "/a", "json", &Default::default())
+            .unwrap();
+        w.finish().unwrap();
+        drop(w);
+        let mut records = Vec::new();
+        for body in [
+            message_body(channel, 1),
+            vec![0u8; 5], // a message record needs 22 bytes before its data
+            message_body(channel, 3),
+        ] {
+            records.push(op::MESSAGE);
+            records.extend_from_slice(&(body.len() as u64).to_le_bytes());
+            records.extend_from_slice(&body);
+        }
+        let mut chunk = Vec::new();
+        for v in [1u64, 3, records.len() as u64] {
+            chunk.extend_from_slice(&v.to_le_bytes());
+        }
+        chunk.extend_from_slice(&crc32fast::hash(&records).to_le_bytes());
+        chunk.extend_from_slice(&0u32.to_le_bytes()); // no compression
+        chunk.extend_from_slice(&(records.len() as u64).to_le_bytes());
+        chunk.extend_from_slice(&records);
+        let bytes = splice_before_data_end(&file.into_inner(), &[(op::CHUNK, chunk)]);
+        let len = bytes.len() as u64;
+        let mut times = Vec::new();
+        let report = read_records(
+            std::io::Cursor::new(&bytes),
+            Some(len),
+            OnError::Skip,
+            |rec| {
+                if let Record::Message { header, .. } = rec {
+                    times.push(header.log_time);
+                }
+                Ok(())
+            },
+            |_| {},
+        )
+        .unwrap();
+        assert_eq!(times, [1, 3]);
+        assert!(report.bad_chunks.is_empty(), "{:?}", report.bad_chunks);
+        assert_eq!(report.bad_records.len(), 1);
+        assert!(
+            report.bad_records[0].record.contains("of the chunk"),
+            "{:?}",
+            report.bad_records
+        );
+        // Without --on-error skip the read stops, naming the record.
+        let failed = read_records(
+            std::io::Cursor::new(&bytes),
+            Some(len),
+            OnError::Fail,
+            |_| Ok(()),
+            |_| {},
+        );
+        assert!(matches!(failed, Err(ReadError::BadRecord(_))), "{failed:?}");
     }
 
     /// A chunk that inflates past its declared size is cut at the size plus one byte.
