@@ -389,12 +389,21 @@ where
                 self.pending_bad = Some((bad, BTreeSet::new(), 0));
                 Ok(())
             }
-            Err(e) => self.damaged_record(BadRecord {
-                offset,
-                record: record_kind(opcode),
-                reason: e,
-                skipped_bytes: 0,
-            }),
+            Err(e) => match lenient::parse(opcode, data) {
+                Some((rec, note)) => {
+                    self.report.repaired.push(format!(
+                        "{} at offset {offset}: {note}",
+                        record_kind(opcode)
+                    ));
+                    self.emit(&rec)
+                }
+                None => self.damaged_record(BadRecord {
+                    offset,
+                    record: record_kind(opcode),
+                    reason: e,
+                    skipped_bytes: 0,
+                }),
+            },
         }
     }
 
@@ -1042,6 +1051,89 @@ fn describe_bad_chunk(
     }
 }
 
+/// What the reference readers still read where the mcap crate's parser refuses: a metadata
+/// record with a repeated key (the last value wins, as Python's reader keeps it) and an
+/// attachment whose CRC does not match (its contents are returned; the copy gets a CRC of its
+/// own). Each comes with a note for the report.
+mod lenient {
+    use std::borrow::Cow;
+    use std::collections::BTreeMap;
+
+    use mcap::records::{AttachmentHeader, Metadata, Record, op};
+
+    pub fn parse(opcode: u8, data: &[u8]) -> Option<(Record<'_>, String)> {
+        let mut c = Cursor(data);
+        match opcode {
+            op::METADATA => {
+                let name = c.string()?;
+                let map_len = usize::try_from(c.u32()?).ok()?;
+                let mut map = Cursor(c.take(map_len)?);
+                let (mut metadata, mut repeated) = (BTreeMap::new(), Vec::new());
+                while !map.0.is_empty() {
+                    let (k, v) = (map.string()?, map.string()?);
+                    if let Some(old) = metadata.insert(k.clone(), v) {
+                        repeated.push(format!("{k:?} (dropped value {old:?})"));
+                    }
+                }
+                (c.0.is_empty() && !repeated.is_empty()).then(|| {
+                    let note = format!(
+                        "repeated keys in metadata {name:?}, the last value kept: {}",
+                        repeated.join(", ")
+                    );
+                    (Record::Metadata(Metadata { name, metadata }), note)
+                })
+            }
+            op::ATTACHMENT => {
+                let (log_time, create_time) = (c.u64()?, c.u64()?);
+                let (name, media_type) = (c.string()?, c.string()?);
+                let len = usize::try_from(c.u64()?).ok()?;
+                let body = c.take(len)?;
+                let crc = c.u32()?;
+                let calculated = crc32fast::hash(&data[..data.len() - c.0.len() - 4]);
+                (c.0.is_empty() && crc != 0 && crc != calculated).then(|| {
+                    let note = format!(
+                        "attachment {name:?}: CRC mismatch (saved {crc:#010x}, calculated {calculated:#010x}); copied as read"
+                    );
+                    let header = AttachmentHeader {
+                        log_time,
+                        create_time,
+                        name,
+                        media_type,
+                    };
+                    let rec = Record::Attachment {
+                        header,
+                        data: Cow::Borrowed(body),
+                        crc: calculated,
+                    };
+                    (rec, note)
+                })
+            }
+            _ => None,
+        }
+    }
+
+    /// Little-endian fields off the front of a byte slice.
+    struct Cursor<'a>(&'a [u8]);
+
+    impl<'a> Cursor<'a> {
+        fn take(&mut self, n: usize) -> Option<&'a [u8]> {
+            let (head, rest) = (self.0.get(..n)?, self.0.get(n..)?);
+            self.0 = rest;
+            Some(head)
+        }
+        fn u32(&mut self) -> Option<u32> {
+            Some(u32::from_le_bytes(self.take(4)?.try_into().ok()?))
+        }
+        fn u64(&mut self) -> Option<u64> {
+            Some(u64::from_le_bytes(self.take(8)?.try_into().ok()?))
+        }
+        fn string(&mut self) -> Option<String> {
+            let n = usize::try_from(self.u32()?).ok()?;
+            String::from_utf8(self.take(n)?.to_vec()).ok()
+        }
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -1238,6 +1330,75 @@ mod tests {
             |_| {},
         );
         assert!(matches!(failed, Err(ReadError::BadRecord(_))), "{failed:?}");
+    }
+
+    fn string_field(b: &mut Vec<u8>, text: &str) {
+        b.extend_from_slice(&(text.len() as u32).to_le_bytes());
+        b.extend_from_slice(text.as_bytes());
+    }
+
+    /// A metadata record with a repeated key keeps the last value, an attachment with a
+    /// wrong CRC is returned as read; both are reported as repaired, and nothing fails.
+    #[test]
+    fn repeated_metadata_keys_and_attachment_crcs_are_read_as_reference_readers_do() {
+        let mut file = std::io::Cursor::new(Vec::new());
+        let mut w = mcap::WriteOptions::new()
+            .use_chunks(false)
+            .create(&mut file)
+            .unwrap();
+        w.finish().unwrap();
+        drop(w);
+        let mut map = Vec::new();
+        for text in ["k", "first", "k", "last"] {
+            string_field(&mut map, text);
+        }
+        let mut metadata = Vec::new();
+        string_field(&mut metadata, "calib");
+        metadata.extend_from_slice(&(map.len() as u32).to_le_bytes());
+        metadata.extend_from_slice(&map);
+        let mut attachment = Vec::new();
+        attachment.extend_from_slice(&5u64.to_le_bytes());
+        attachment.extend_from_slice(&6u64.to_le_bytes());
+        string_field(&mut attachment, "a.txt");
+        string_field(&mut attachment, "text/plain");
+        attachment.extend_from_slice(&3u64.to_le_bytes());
+        attachment.extend_from_slice(b"abc");
+        attachment.extend_from_slice(&0xdead_beefu32.to_le_bytes());
+        let bytes = splice_before_data_end(
+            &file.into_inner(),
+            &[(op::METADATA, metadata), (op::ATTACHMENT, attachment)],
+        );
+        let len = bytes.len() as u64;
+        let (mut value, mut data) = (None, None);
+        let report = read_records(
+            std::io::Cursor::new(bytes),
+            Some(len),
+            OnError::Fail,
+            |rec| {
+                match rec {
+                    Record::Metadata(m) => value = m.metadata.get("k").cloned(),
+                    Record::Attachment { data: d, .. } => data = Some(d.to_vec()),
+                    _ => {}
+                }
+                Ok(())
+            },
+            |_| {},
+        )
+        .unwrap();
+        assert_eq!(value.as_deref(), Some("last"));
+        assert_eq!(data.as_deref(), Some(&b"abc"[..]));
+        assert_eq!(report.repaired.len(), 2, "{:?}", report.repaired);
+        assert!(
+            report.repaired[0].contains("\"k\""),
+            "{:?}",
+            report.repaired
+        );
+        assert!(
+            report.repaired[1].contains("CRC mismatch"),
+            "{:?}",
+            report.repaired
+        );
+        assert!(!report.damaged());
     }
 
     /// A chunk that inflates past its declared size is cut at the size plus one byte.
