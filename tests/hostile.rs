@@ -748,6 +748,30 @@ fn import_reads_labels_beside_scans_and_reports_what_it_leaves_out() {
     );
     let cloud = first_cloud(&output);
     assert_eq!(cloud.scan.label.unwrap()[..3], [40, 41, 42]);
+    // A scan of an odd size costs only itself; --strict leaves no output and exits 3.
+    std::fs::write(data.join("000002.bin"), &scan_bytes[..30]).unwrap();
+    let o = bin()
+        .args(["import", "--json", "--force"])
+        .args([&data, &output])
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", stderr(&o));
+    let s = json(&o);
+    assert_eq!(
+        (s["scans"].as_u64(), s["unreadable"].as_u64()),
+        (Some(1), Some(1)),
+        "{s}"
+    );
+    assert!(s["warnings"].to_string().contains("000002.bin"), "{s}");
+    let strict = dir.path().join("strict.mcap");
+    let o = bin()
+        .args(["import", "--strict"])
+        .args([&data, &strict])
+        .output()
+        .unwrap();
+    assert_eq!(o.status.code(), Some(3), "{}", stderr(&o));
+    assert!(stderr(&o).contains("000002.bin"), "{}", stderr(&o));
+    assert!(!strict.exists());
 }
 
 /// The first message of a recording, decoded as a ROS 2 point cloud.

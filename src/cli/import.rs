@@ -19,6 +19,10 @@ pub struct ImportArgs {
     pub dir: PathBuf,
     #[command(flatten)]
     pub out: super::CloudOutputArgs,
+    /// Leave no OUT and exit 3 if any scan could not be read (otherwise each is a warning
+    /// and the other scans are written).
+    #[arg(long)]
+    pub strict: bool,
 }
 
 /// A dataset folder's scans, sorted, each with its label file if present, and
@@ -116,8 +120,18 @@ pub fn run(global: &GlobalArgs, args: ImportArgs) -> anyhow::Result<Outcome> {
     let channel = out.own_channel(&args.out.topic, Family::Ros2, Kind::Cloud)?;
     let bar = super::progress_bar(global, files.len() as u64);
     let mut written = 0u64;
+    let mut unreadable = 0usize;
     for (bin, label) in &files {
-        let mut scan = kitti::read_scan(bin, label.as_deref())?;
+        let mut scan = match kitti::read_scan(bin, label.as_deref()) {
+            Ok(scan) => scan,
+            Err(e) => {
+                // One bad file does not cost the others (errors name the file).
+                warnings.push(format!("{e}; scan not written"));
+                unreadable += 1;
+                bar.inc(1);
+                continue;
+            }
+        };
         if scan.returns() == 0 {
             warnings.push(format!(
                 "{}: no point with a return; scan not written",
@@ -140,15 +154,23 @@ pub fn run(global: &GlobalArgs, args: ImportArgs) -> anyhow::Result<Outcome> {
         bar.inc(1);
     }
     bar.finish_and_clear();
-    out.finish()?;
-    let labelled = files.iter().filter(|f| f.1.is_some()).count();
     for w in &warnings {
         eprintln!("warning: {w}");
     }
+    if args.strict && unreadable > 0 {
+        out.discard();
+        eprintln!(
+            "{}: not written (--strict: {unreadable} scans could not be read)",
+            args.out.output.display()
+        );
+        return Ok(Outcome::DataSkipped);
+    }
+    out.finish()?;
+    let labelled = files.iter().filter(|f| f.1.is_some()).count();
     if global.json {
         println!(
             "{}",
-            serde_json::json!({ "output": args.out.output, "scans": written, "labelled": labelled, "topic": args.out.topic, "warnings": warnings })
+            serde_json::json!({ "output": args.out.output, "scans": written, "unreadable": unreadable, "labelled": labelled, "topic": args.out.topic, "warnings": warnings })
         );
     } else if !global.quiet {
         eprintln!(
