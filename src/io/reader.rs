@@ -190,6 +190,8 @@ pub fn read_records<R: Read + Seek>(
         seen_channels: HashSet::new(),
         definitions: HashMap::new(),
         offset: 0,
+        chunks_read: HashSet::new(),
+        recovery_tried: HashSet::new(),
         pending_bad: None,
         in_summary_section: false,
         visit,
@@ -214,6 +216,10 @@ struct Walk<V, P> {
     definitions: HashMap<(Definition, u16), (String, u64)>,
     /// File offset of the record (or chunk) being visited.
     offset: u64,
+    /// Offsets of the chunk records read (or found broken) so far.
+    chunks_read: HashSet<u64>,
+    /// Chunk offsets already used to recover from damage, so recovery never loops.
+    recovery_tried: HashSet<u64>,
     /// A broken chunk is completed from the message indexes that follow it (they
     /// list its messages per channel) before it is reported or fails the read.
     pending_bad: Option<(BadChunk, BTreeSet<u16>, u64)>,
@@ -264,6 +270,21 @@ where
                 Ok(LinearReadEvent::Record { opcode, data }) => {
                     seen_any = true;
                     let len = 9 + data.len() as u64;
+                    if opcode == op::CHUNK
+                        && let Some(indexed) = self.indexed_chunk_length(next_record)
+                        && indexed != len
+                        && self.read_chunk_by_index(&mut src, next_record, indexed)?
+                    {
+                        // The length field disagrees with the CRC-checked index: the index wins.
+                        self.report.repaired.push(format!(
+                            "chunk at offset {next_record}: its record length says {len} bytes, the summary's chunk index {indexed}; read by the index"
+                        ));
+                        let at = next_record + indexed;
+                        src.seek(SeekFrom::Start(at))?;
+                        reader = linear_reader(true, limit);
+                        (fed, next_record) = (at, at);
+                        continue;
+                    }
                     self.record(next_record, opcode, data)?;
                     next_record += len;
                     self.report.bytes_read += len + if opcode == op::FOOTER { 8 } else { 0 };
@@ -277,14 +298,35 @@ where
                 return Err(ReadError::NotMcap(failure));
             }
             self.settle_bad_chunk()?;
+            // A chunk the index knows starts here, framed wrong: read it by the index's length.
+            if let Some(indexed) = self.indexed_chunk_length(next_record)
+                && self.recovery_tried.insert(next_record)
+                && self.read_chunk_by_index(&mut src, next_record, indexed)?
+            {
+                self.report.repaired.push(format!(
+                    "chunk at offset {next_record}: unreadable as framed ({failure}); read by the summary's chunk index ({indexed} bytes)"
+                ));
+                let at = next_record + indexed;
+                src.seek(SeekFrom::Start(at))?;
+                reader = linear_reader(true, limit);
+                (fed, next_record) = (at, at);
+                continue;
+            }
             match self.resync_target(next_record) {
                 Some(target) => {
                     let record = peek_record_kind(&mut src, next_record);
+                    let reason = if target < next_record {
+                        format!(
+                            "{failure}; the record before it was framed wrong, and reading resumed at the chunk at offset {target} of the summary's chunk index"
+                        )
+                    } else {
+                        failure
+                    };
                     self.damaged_record(BadRecord {
                         offset: next_record,
                         record,
-                        reason: failure,
-                        skipped_bytes: target - next_record,
+                        reason,
+                        skipped_bytes: target.saturating_sub(next_record),
                     })?;
                     src.seek(SeekFrom::Start(target))?;
                     reader = linear_reader(true, limit);
@@ -329,15 +371,63 @@ where
         Ok(Ok(got as u64))
     }
 
-    /// Where reading can go on after damage at `offset`: the next chunk of the
-    /// summary's chunk index, else the summary section itself.
-    fn resync_target(&self, offset: u64) -> Option<u64> {
+    /// Where reading can go on after damage at `offset`: the first chunk of the summary's
+    /// chunk index after the last chunk read that has not been read, even one before
+    /// `offset` (a record framed too long swallows what follows it), else the summary
+    /// section itself. Each chunk serves as a target once, so recovery cannot loop.
+    fn resync_target(&mut self, offset: u64) -> Option<u64> {
         let s = self.summary.as_ref()?;
-        s.chunk_offsets
+        let floor = self.chunks_read.iter().copied().max().unwrap_or(0);
+        let target = s
+            .chunk_offsets
             .iter()
             .copied()
-            .find(|&o| o > offset)
-            .or((s.start > offset).then_some(s.start))
+            .find(|&o| {
+                o > floor
+                    && o != offset
+                    && !self.chunks_read.contains(&o)
+                    && !self.recovery_tried.contains(&o)
+            })
+            .or((s.start > offset).then_some(s.start))?;
+        self.recovery_tried.insert(target);
+        Some(target)
+    }
+
+    /// The whole record length (opcode and length field included) that the summary's chunk
+    /// index gives the chunk starting at `offset`.
+    fn indexed_chunk_length(&self, offset: u64) -> Option<u64> {
+        self.summary
+            .as_ref()?
+            .chunks
+            .iter()
+            .find(|c| c.chunk_start_offset == offset)
+            .map(|c| c.chunk_length)
+    }
+
+    /// Reads the chunk at `offset` as `length` bytes (from the chunk index) and visits it;
+    /// false when those bytes are not a chunk record the file can hold.
+    fn read_chunk_by_index<R: Read + Seek>(
+        &mut self,
+        src: &mut R,
+        offset: u64,
+        length: u64,
+    ) -> Result<bool, ReadError> {
+        let fits = self
+            .file_len
+            .is_some_and(|len| offset.checked_add(length).is_some_and(|end| end <= len));
+        if !(9..=MAX_RECORD_BYTES).contains(&length) || !fits {
+            return Ok(false);
+        }
+        src.seek(SeekFrom::Start(offset))?;
+        let mut buf = vec![0u8; length as usize];
+        src.read_exact(&mut buf)?;
+        if buf[0] != op::CHUNK || parse_record(op::CHUNK, &buf[9..]).is_err() {
+            return Ok(false);
+        }
+        self.record(offset, op::CHUNK, &buf[9..])?;
+        self.report.bytes_read += length;
+        (self.progress)(self.report.bytes_read);
+        Ok(true)
     }
 
     fn stop(&mut self, offset: u64, why: String) {
@@ -366,6 +456,9 @@ where
     /// One framed record at file offset `offset`.
     fn record(&mut self, offset: u64, opcode: u8, data: &[u8]) -> Result<(), ReadError> {
         self.offset = offset;
+        if opcode == op::CHUNK {
+            self.chunks_read.insert(offset);
+        }
         if opcode == op::MESSAGE_INDEX {
             if let Some((_, channels, indexed)) = self.pending_bad.as_mut()
                 && let Ok(Record::MessageIndex(index)) = parse_record(opcode, data)
