@@ -19,15 +19,15 @@ use mcap::records::Record;
 use super::{GlobalArgs, Outcome};
 use crate::decode::{sample_masks, scan_seed};
 use crate::diagnose::completion::par_gan_render;
-use crate::diagnose::features::{FeatureOptions, ScanFeatures};
+use crate::diagnose::real_scan::as_sim_scan;
 use crate::io::encoders::encode_scan;
 use crate::io::{ChannelTable, DecodedCloud, McapOutput, OnError, decode_cloud, read_records};
 use crate::lidar::projection::choose_strategy;
-use crate::lidar::{RangeImage, SensorProfile, project};
-use crate::physics::{Effect, Physics, PhysicsConfig, RayFeatures};
+use crate::lidar::{SensorProfile, project};
+use crate::physics::dropout::DropMap;
+use crate::physics::{Physics, PhysicsConfig};
 use crate::recording::{self, Grid};
-use crate::sim::geometry::v3;
-use crate::sim::{Material, SensorPose, SimScan, SweepTiming, label};
+use crate::sim::SimScan;
 
 /// A baseline ray-drop model.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
@@ -81,28 +81,6 @@ pub struct RenderArgs {
 }
 
 /// Drop probability per pixel of the grid (row-major), from real data.
-#[derive(Debug)]
-struct DropMap {
-    id: &'static str,
-    width: usize,
-    prob: Vec<f32>,
-}
-
-impl Effect for DropMap {
-    fn id(&self) -> &'static str {
-        self.id
-    }
-    fn drops(&self) -> bool {
-        true
-    }
-    fn drop_prob(&self, f: &RayFeatures) -> f32 {
-        self.prob
-            .get(f.row * self.width + f.column)
-            .copied()
-            .unwrap_or(0.0)
-    }
-}
-
 /// Drops each return of `scan` with its probability in `drop_prob` (row-major on
 /// the scan's grid): one Bernoulli draw per pixel from `seed`.
 fn drop_bernoulli(scan: &mut SimScan, drop_prob: &[f32], seed: u64) {
@@ -113,71 +91,6 @@ fn drop_bernoulli(scan: &mut SimScan, drop_prob: &[f32], seed: u64) {
         if !keep && scan.is_return(k) {
             scan.drop_return(k);
         }
-    }
-}
-
-/// A typical material for a semantic class (effects keyed on material need one).
-fn material_of(class: u32) -> Material {
-    match class {
-        label::ROAD => Material::Asphalt,
-        label::SIDEWALK => Material::Concrete,
-        label::BUILDING => Material::Brick,
-        label::CAR => Material::BrightPaint,
-        label::VEGETATION => Material::Foliage,
-        label::TRUNK => Material::Bark,
-        label::TERRAIN => Material::Grass,
-        label::POLE | label::BICYCLE => Material::Metal,
-        label::TRAFFIC_SIGN => Material::RetroReflector,
-        label::FENCE => Material::Wood,
-        label::PERSON | label::BICYCLIST => Material::Cloth,
-        _ => Material::Concrete,
-    }
-}
-
-/// A projected scan as a [`SimScan`] the physics can act on: true range and label
-/// = the measured ones, incidence from the completed normals, time from the
-/// sweep, the ego moving straight ahead at `speed_mps`.
-fn as_sim_scan(image: RangeImage, index: u32, profile: &SensorProfile, speed_mps: f32) -> SimScan {
-    let f = ScanFeatures::from_image(&image, &FeatureOptions::default());
-    let n = image.len();
-    let timing = SweepTiming::default();
-    let class: Vec<u32> = image.label.iter().map(|l| l & 0xffff).collect();
-    SimScan {
-        material: (0..n)
-            .map(|k| {
-                if image.range_m[k] > 0.0 {
-                    material_of(class[k])
-                } else {
-                    Material::None
-                }
-            })
-            .collect(),
-        incidence_rad: f
-            .incidence_rad
-            .iter()
-            .map(|a| if a.is_finite() { *a } else { 0.0 })
-            .collect(),
-        reflectivity: image.intensity.iter().map(|i| i.clamp(0.0, 1.0)).collect(),
-        time_s: image
-            .angles
-            .azimuth_rad
-            .iter()
-            .map(|a| timing.time_at(*a))
-            .collect(),
-        true_range_m: image.range_m.clone(),
-        true_label: image.label.clone(),
-        index,
-        start_time_s: 0.1 * f64::from(index),
-        pose: SensorPose {
-            origin: v3(0.0, 0.0, 0.0),
-            axes: [v3(1.0, 0.0, 0.0), v3(0.0, 1.0, 0.0), v3(0.0, 0.0, 1.0)],
-            velocity_mps: [speed_mps, 0.0, 0.0],
-            yaw_rate_rps: 0.0,
-            yaw_rad: 0.0,
-        },
-        min_range_m: profile.min_range_m,
-        max_range_m: profile.max_range_m,
-        image,
     }
 }
 

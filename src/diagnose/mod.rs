@@ -28,6 +28,7 @@
 //! - [`fit`]: the joint drop model and the forward selection (*which*).
 //! - [`drop`]: the drop candidates, one [`fit::DropFamily`] each.
 //! - [`residual`]: the range-residual candidates.
+//! - [`real_scan`]: a real scan as a simulated one, for effects applied to real data.
 //! - [`report`]: the whole diagnosis and the numbers the report shows; writing
 //!   the files is [`crate::report`]'s job.
 
@@ -35,6 +36,7 @@ pub mod completion;
 pub mod drop;
 pub mod features;
 pub mod fit;
+pub mod real_scan;
 pub mod report;
 pub mod residual;
 pub mod stats;

@@ -310,6 +310,31 @@ impl Effect for IntensityDropout {
     }
 }
 
+/// A drop probability per pixel of a grid (row-major), e.g. measured on real data: the
+/// baseline ray-drop models of the Sim2Real table (global and per-pixel frequency).
+#[derive(Debug)]
+pub struct DropMap {
+    pub id: &'static str,
+    /// Columns of the grid.
+    pub width: usize,
+    pub prob: Vec<f32>,
+}
+
+impl Effect for DropMap {
+    fn id(&self) -> &'static str {
+        self.id
+    }
+    fn drops(&self) -> bool {
+        true
+    }
+    fn drop_prob(&self, f: &RayFeatures) -> f32 {
+        self.prob
+            .get(f.row * self.width + f.column)
+            .copied()
+            .unwrap_or(0.0)
+    }
+}
+
 #[cfg(test)]
 pub(crate) mod tests {
     use super::super::{Effect, Physics};

@@ -210,3 +210,20 @@ pub const SURFACES: [Surface; 26] = [
     },
     solid(label::CAR, Material::RetroReflector, 0.9),
 ];
+/// A typical material for a semantic class (effects keyed on material need one).
+pub fn typical_material(class: u32) -> Material {
+    match class {
+        label::ROAD => Material::Asphalt,
+        label::SIDEWALK => Material::Concrete,
+        label::BUILDING => Material::Brick,
+        label::CAR => Material::BrightPaint,
+        label::VEGETATION => Material::Foliage,
+        label::TRUNK => Material::Bark,
+        label::TERRAIN => Material::Grass,
+        label::POLE | label::BICYCLE => Material::Metal,
+        label::TRAFFIC_SIGN => Material::RetroReflector,
+        label::FENCE => Material::Wood,
+        label::PERSON | label::BICYCLIST => Material::Cloth,
+        _ => Material::Concrete,
+    }
+}
