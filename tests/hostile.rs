@@ -759,11 +759,15 @@ fn import_reads_labels_beside_scans_and_reports_what_it_leaves_out() {
     std::fs::write(data.join("000001.bin"), b"").unwrap();
     std::fs::write(data.join("000009.label"), &labels).unwrap();
     let output = dir.path().join("out.mcap");
-    let o = bin()
-        .args(["import", "--json"])
-        .args([&data, &output])
-        .output()
-        .unwrap();
+    let import = |flags: &[&str], out: &Path| {
+        bin()
+            .arg("import")
+            .args(flags)
+            .args([&data, out])
+            .output()
+            .unwrap()
+    };
+    let o = import(&["--json"], &output);
     assert!(o.status.success(), "{}", stderr(&o));
     let s = json(&o);
     assert_eq!(
@@ -780,11 +784,7 @@ fn import_reads_labels_beside_scans_and_reports_what_it_leaves_out() {
     assert_eq!(cloud.scan.label.unwrap()[..3], [40, 41, 42]);
     // A scan of an odd size costs only itself; --strict leaves no output and exits 3.
     std::fs::write(data.join("000002.bin"), &scan_bytes[..30]).unwrap();
-    let o = bin()
-        .args(["import", "--json", "--force"])
-        .args([&data, &output])
-        .output()
-        .unwrap();
+    let o = import(&["--json", "--force"], &output);
     assert!(o.status.success(), "{}", stderr(&o));
     let s = json(&o);
     assert_eq!(
@@ -794,11 +794,7 @@ fn import_reads_labels_beside_scans_and_reports_what_it_leaves_out() {
     );
     assert!(s["warnings"].to_string().contains("000002.bin"), "{s}");
     let strict = dir.path().join("strict.mcap");
-    let o = bin()
-        .args(["import", "--strict"])
-        .args([&data, &strict])
-        .output()
-        .unwrap();
+    let o = import(&["--strict"], &strict);
     assert_eq!(o.status.code(), Some(3), "{}", stderr(&o));
     assert!(stderr(&o).contains("000002.bin"), "{}", stderr(&o));
     assert!(!strict.exists());

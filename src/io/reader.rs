@@ -1274,6 +1274,23 @@ mod tests {
         out
     }
 
+    /// An unchunked MCAP file with one JSON channel `/a` and no messages: its bytes, schema
+    /// id and channel id.
+    fn one_channel_file() -> (Vec<u8>, u16, u16) {
+        let mut file = std::io::Cursor::new(Vec::new());
+        let mut w = mcap::WriteOptions::new()
+            .use_chunks(false)
+            .create(&mut file)
+            .unwrap();
+        let schema = w.add_schema("custom/Thing", "jsonschema", b"{}").unwrap();
+        let channel = w
+            .add_channel(schema, "/a", "json", &Default::default())
+            .unwrap();
+        w.finish().unwrap();
+        drop(w);
+        (file.into_inner(), schema, channel)
+    }
+
     fn channel_body(id: u16, schema: u16, topic: &str, encoding: &str) -> Vec<u8> {
         let mut b = Vec::new();
         b.extend_from_slice(&id.to_le_bytes());
@@ -1301,18 +1318,7 @@ mod tests {
     /// The same definition repeated is read as one channel.
     #[test]
     fn a_channel_id_redefined_for_another_topic_stops_the_read() {
-        let mut file = std::io::Cursor::new(Vec::new());
-        let mut w = mcap::WriteOptions::new()
-            .use_chunks(false)
-            .create(&mut file)
-            .unwrap();
-        let schema = w.add_schema("custom/Thing", "jsonschema", b"{}").unwrap();
-        let channel = w
-            .add_channel(schema, "/a", "json", &Default::default())
-            .unwrap();
-        w.finish().unwrap();
-        drop(w);
-        let bytes = file.into_inner();
+        let (bytes, schema, channel) = one_channel_file();
         let read = |extra: &[(u8, Vec<u8>)]| {
             let bytes = splice_before_data_end(&bytes, extra);
             let mut topics = Vec::new();
@@ -1361,17 +1367,7 @@ mod tests {
     /// alone is reported, the messages after it are read.
     #[test]
     fn a_short_record_inside_a_chunk_costs_only_itself() {
-        let mut file = std::io::Cursor::new(Vec::new());
-        let mut w = mcap::WriteOptions::new()
-            .use_chunks(false)
-            .create(&mut file)
-            .unwrap();
-        let schema = w.add_schema("custom/Thing", "jsonschema", b"{}").unwrap();
-        let channel = w
-            .add_channel(schema, "/a", "json", &Default::default())
-            .unwrap();
-        w.finish().unwrap();
-        drop(w);
+        let (file, _, channel) = one_channel_file();
         let mut records = Vec::new();
         for body in [
             message_body(channel, 1),
@@ -1390,7 +1386,7 @@ mod tests {
         chunk.extend_from_slice(&0u32.to_le_bytes()); // no compression
         chunk.extend_from_slice(&(records.len() as u64).to_le_bytes());
         chunk.extend_from_slice(&records);
-        let bytes = splice_before_data_end(&file.into_inner(), &[(op::CHUNK, chunk)]);
+        let bytes = splice_before_data_end(&file, &[(op::CHUNK, chunk)]);
         let len = bytes.len() as u64;
         let mut times = Vec::new();
         let report = read_records(
