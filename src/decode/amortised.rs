@@ -198,17 +198,20 @@ impl TrainedEncoder {
     /// (`config.json` with an `encoder` entry, `checkpoint/encoder.bpk`).
     pub fn from_dir(dir: &Path, device: &Device) -> Result<Self> {
         let direct = dir.join("encoder.bpk");
-        let (config, weights) = if direct.is_file() {
-            let text = std::fs::read_to_string(dir.join("config.json")).with_context(|| {
-                format!("failed to read '{}'", dir.join("config.json").display())
-            })?;
-            let config: EncoderConfig = serde_json::from_str(&text)
-                .with_context(|| format!("bad encoder config in '{}'", dir.display()))?;
-            (config, direct)
+        let config_path = dir.join("config.json");
+        let text = std::fs::read_to_string(&config_path)
+            .with_context(|| format!("failed to read '{}'", config_path.display()))?;
+        let saved: serde_json::Value = serde_json::from_str(&text)
+            .with_context(|| format!("bad config '{}'", config_path.display()))?;
+        // A training run keeps the encoder's shape under `encoder`, beside its settings.
+        let (saved, weights) = if direct.is_file() {
+            (saved, direct)
         } else {
-            let run = super::encoder_train::load_config(&dir.join("config.json"))?;
-            (run.encoder, dir.join("checkpoint").join("encoder.bpk"))
+            let entry = saved.get("encoder").cloned().unwrap_or_default();
+            (entry, dir.join("checkpoint").join("encoder.bpk"))
         };
+        let config: EncoderConfig = serde_json::from_value(saved)
+            .with_context(|| format!("bad encoder config in '{}'", config_path.display()))?;
         config.check().with_context(|| {
             format!("{}: bad encoder config", dir.join("config.json").display())
         })?;
