@@ -11,7 +11,6 @@ use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use anyhow::{Context, bail};
 use clap::ValueEnum;
 
-use super::convert_dataset::{self, DatasetArgs};
 use super::{GlobalArgs, Outcome};
 use crate::dataset::manifest::{self, Entry, Status};
 use crate::decode::amortised::TrainedEncoder;
@@ -118,6 +117,35 @@ pub struct ConvertArgs {
     /// in.
     #[arg(long, value_enum, default_value_t = Fill::DEFAULT)]
     pub upsample_method: Fill,
+}
+
+/// Flags of dataset mode (several inputs, a folder, or an existing output folder).
+#[derive(Debug, clap::Args)]
+pub struct DatasetArgs {
+    /// Files converted at once; the threads (`--threads`, default one per core) are split
+    /// between them and the scans inside each file. Outputs are the same bytes whatever N.
+    #[arg(long, default_value_t = 1)]
+    pub jobs: usize,
+    /// Convert only shard I of N (0-based, e.g. `--shard 3/8`): a fixed subset chosen by a
+    /// hash of each file's relative path, so N machines each run one shard into a shared
+    /// OUT; each writes `rangegan-manifest.shard-I-of-N.jsonl`.
+    #[arg(long)]
+    pub shard: Option<String>,
+    /// List each file with what a run would do (convert, or skip as up to date) and stop.
+    #[arg(long)]
+    pub dry_run: bool,
+}
+
+impl DatasetArgs {
+    /// The flags that only mean something for a dataset.
+    pub fn refuse_in_one_file_form(&self) -> anyhow::Result<()> {
+        if self.shard.is_some() || self.dry_run || self.jobs != 1 {
+            bail!(
+                "--shard, --dry-run and --jobs convert datasets: give a folder, several inputs or an existing output folder"
+            );
+        }
+        Ok(())
+    }
 }
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
@@ -608,10 +636,8 @@ pub(crate) fn print_file_summary(global: &GlobalArgs, input: &Path, output: &Pat
     }
 }
 
+/// One file to one file; [`super::convert_dataset`] takes the dataset form.
 pub fn run(global: &GlobalArgs, args: ConvertArgs) -> anyhow::Result<Outcome> {
-    if convert_dataset::is_dataset(&args) {
-        return convert_dataset::run(global, &args);
-    }
     args.dataset.refuse_in_one_file_form()?;
     let input = &args.inputs[0];
     crate::io::writer::refuse_overwriting_inputs(&args.output, &[input])?;

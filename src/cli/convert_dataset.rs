@@ -15,35 +15,6 @@ use super::{GlobalArgs, Outcome};
 use crate::dataset::manifest::{self, Entry, ManifestWriter, Status};
 use crate::dataset::{self, DatasetFile, Shard};
 
-/// Flags of dataset mode (several inputs, a folder, or an existing output folder).
-#[derive(Debug, clap::Args)]
-pub struct DatasetArgs {
-    /// Files converted at once; the threads (`--threads`, default one per core) are split
-    /// between them and the scans inside each file. Outputs are the same bytes whatever N.
-    #[arg(long, default_value_t = 1)]
-    pub jobs: usize,
-    /// Convert only shard I of N (0-based, e.g. `--shard 3/8`): a fixed subset chosen by a
-    /// hash of each file's relative path, so N machines each run one shard into a shared
-    /// OUT; each writes `rangegan-manifest.shard-I-of-N.jsonl`.
-    #[arg(long)]
-    pub shard: Option<String>,
-    /// List each file with what a run would do (convert, or skip as up to date) and stop.
-    #[arg(long)]
-    pub dry_run: bool,
-}
-
-impl DatasetArgs {
-    /// The flags that only mean something for a dataset.
-    pub fn refuse_in_one_file_form(&self) -> anyhow::Result<()> {
-        if self.shard.is_some() || self.dry_run || self.jobs != 1 {
-            bail!(
-                "--shard, --dry-run and --jobs convert datasets: give a folder, several inputs or an existing output folder"
-            );
-        }
-        Ok(())
-    }
-}
-
 /// Dataset mode: several inputs, a folder, or an output folder that exists.
 pub fn is_dataset(args: &ConvertArgs) -> bool {
     args.inputs.len() > 1 || args.inputs[0].is_dir() || args.output.is_dir()

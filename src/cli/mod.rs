@@ -164,6 +164,9 @@ pub fn run(args: Args) -> anyhow::Result<Outcome> {
             .build_global()?;
     }
     match args.command {
+        Command::Convert(a) if convert_dataset::is_dataset(&a) => {
+            convert_dataset::run(&args.global, &a)
+        }
         Command::Convert(a) => convert::run(&args.global, a),
         Command::CalibrateRaydrop(a) => calibrate::run(&args.global, a),
         Command::Diagnose(a) => diagnose::run(&args.global, a),
