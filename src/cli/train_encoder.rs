@@ -5,7 +5,7 @@
 use std::path::PathBuf;
 
 use super::{GlobalArgs, Outcome};
-use crate::decode::encoder_train::{EncoderTrainConfig, EncoderTrainOptions, run};
+use crate::train::encoder::{EncoderTrainConfig, EncoderTrainOptions, run};
 
 #[derive(Debug, clap::Args)]
 pub struct TrainEncoderArgs {

@@ -3,7 +3,7 @@
 //!
 //! A small strided CNN (circular padding along azimuth, replicate along elevation) from the
 //! observed inverse depth and its validity mask to w - w_avg. Trained against the frozen
-//! generator by [`super::encoder_train`]; the shipped weights are compiled in from
+//! generator by [`crate::train::encoder`]; the shipped weights are compiled in from
 //! `models/encoder/`.
 
 use std::path::Path;

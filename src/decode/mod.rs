@@ -18,7 +18,6 @@
 
 pub mod amortised;
 pub mod calibrate;
-pub mod encoder_train;
 pub mod fill;
 pub mod fit;
 pub mod invert;

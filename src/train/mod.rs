@@ -2,10 +2,13 @@
 //! modules ([`crate::model`], [`crate::decode`], [`crate::segment`]) load.
 //!
 //! - [`gan`]: the range-image GAN's training loop, with checkpoints and resume.
+//! - [`encoder`]: the amortised encoder of `convert --quality fast`, trained against a
+//!   frozen generator (`train-encoder`).
 //! - [`growth`]: coarse-to-fine training: the generator's synthesis pyramid grown a level at
 //!   a time, each level with its own discriminator, on real scans sampled at that level.
 //! - [`reconstruct`]: reconstruction-assisted training: an encoder in the generator's loop.
 
+pub mod encoder;
 pub mod gan;
 pub mod growth;
 pub mod reconstruct;

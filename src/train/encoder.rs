@@ -22,16 +22,16 @@ use burn::optim::{AdamConfig, GradientsParams, ModuleOptimizer};
 use burn::tensor::Device;
 use serde::{Deserialize, Serialize};
 
-use super::Sparsify;
-use super::amortised::{Encoder, EncoderConfig};
-use super::loss::reconstruction_loss;
+use super::Backend;
+use crate::decode::Sparsify;
+use crate::decode::amortised::{Encoder, EncoderConfig};
+use crate::decode::loss::reconstruction_loss;
 use crate::model::AnyGenerator;
 use crate::model::data::RangeDataset;
 use crate::model::generator::Generator;
 use crate::model::measurement::MeasurementConfig;
 use crate::model::rng::{Rng, tensor_from, tensor_to_vec};
 use crate::model::weights::Model;
-use crate::train::Backend;
 
 /// Everything that defines an encoder run; saved as `config.json` before training starts.
 #[derive(Config, Debug)]
@@ -176,7 +176,7 @@ impl Trainer {
             step: 0,
             rng: Rng::new(config.seed),
         };
-        let ck = run_dir.join(crate::train::CHECKPOINT);
+        let ck = run_dir.join(super::CHECKPOINT);
         if ck.join("state.json").exists() {
             encoder = encoder
                 .try_load_file(ck.join("encoder.bpk"))
@@ -365,7 +365,7 @@ impl Trainer {
     /// Write the checkpoint to a temp folder and swap it in; refresh `export/`.
     fn checkpoint(&self, run_dir: &Path) -> Result<()> {
         let err = |e: burn::store::RecordError| anyhow::anyhow!("failed to save checkpoint: {e}");
-        crate::train::write_checkpoint(run_dir, |tmp| {
+        super::write_checkpoint(run_dir, |tmp| {
             self.encoder
                 .clone()
                 .save_file(tmp.join("encoder.bpk"))
