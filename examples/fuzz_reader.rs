@@ -1,8 +1,9 @@
 //! A bounded, reproducible fuzzer for the MCAP reader and the point-cloud decoders:
 //! small valid recordings (ROS 2, ROS 1, Foxglove protobuf and JSON clouds; zstd, lz4
 //! and uncompressed chunks, and no chunks) are mutated with bit flips, byte
-//! overwrites, truncations, length-field overwrites and spliced ranges, then read
-//! in-process. A panic fails the run and leaves the input in `tests/fuzz_regressions/`,
+//! overwrites, truncations, length-field overwrites (with the summary's chunk index intact),
+//! spliced ranges, a channel id redefined with another topic, and damaged record lengths
+//! inside uncompressed chunks, then read in-process. A panic fails the run and leaves the input in `tests/fuzz_regressions/`,
 //! which the test suite replays. The address space is capped so that an allocation
 //! sized by a damaged length aborts the run instead of passing unnoticed.
 //!
@@ -169,6 +170,76 @@ const INTERESTING: [u64; 9] = [
     1 << 62,
 ];
 
+/// The top-level records: (opcode, offset, length of the body).
+fn records(bytes: &[u8]) -> Vec<(u8, usize, usize)> {
+    length_fields(bytes)
+        .into_iter()
+        .filter_map(|f| {
+            let len = u64::from_le_bytes(bytes.get(f..f + 8)?.try_into().ok()?);
+            let len = usize::try_from(len)
+                .ok()
+                .filter(|&l| f + 8 + l <= bytes.len())?;
+            Some((bytes[f - 1], f - 1, len))
+        })
+        .collect()
+}
+
+/// A copy of a top-level channel record with one byte of its topic changed, inserted right
+/// after it: the same id defined twice with different contents.
+fn redefine_a_channel(b: &mut Vec<u8>, rng: &mut Rng) {
+    let channels: Vec<_> = records(b).into_iter().filter(|r| r.0 == 0x04).collect();
+    if channels.is_empty() {
+        return;
+    }
+    let (_, at, len) = channels[rng.below(channels.len())];
+    let mut copy = b[at..at + 9 + len].to_vec();
+    // Body: id (2), schema id (2), topic length (4), topic.
+    if let Some(byte) = copy.get_mut(9 + 8) {
+        *byte ^= 0x20;
+    }
+    let end = at + 9 + len;
+    b.splice(end..end, copy);
+}
+
+/// Inside an uncompressed chunk: its CRC cleared (so the records are walked) and the length
+/// of one of its records set to another value.
+fn damage_inside_a_chunk(b: &mut [u8], rng: &mut Rng) {
+    let chunks: Vec<_> = records(b).into_iter().filter(|r| r.0 == 0x06).collect();
+    if chunks.is_empty() {
+        return;
+    }
+    let (_, at, len) = chunks[rng.below(chunks.len())];
+    let body = at + 9;
+    // Body: start, end, uncompressed size (8 each), CRC (4), compression (4 + n), records (8 + n).
+    let compression_len =
+        u32::from_le_bytes(b[body + 28..body + 32].try_into().unwrap_or_default());
+    if compression_len != 0 || len < 40 {
+        return;
+    }
+    b[body + 24..body + 28].fill(0);
+    let (start, end) = (body + 40, body + len);
+    let mut inner = Vec::new();
+    let mut pos = start;
+    while pos + 9 <= end {
+        inner.push(pos + 1);
+        let l = u64::from_le_bytes(b[pos + 1..pos + 9].try_into().unwrap_or_default());
+        match usize::try_from(l)
+            .ok()
+            .and_then(|l| (pos + 9).checked_add(l))
+        {
+            Some(next) if next > pos && next <= end => pos = next,
+            _ => break,
+        }
+    }
+    if inner.is_empty() {
+        return;
+    }
+    let field = inner[rng.below(inner.len())];
+    let old = u64::from_le_bytes(b[field..field + 8].try_into().unwrap_or_default());
+    let new = [old / 2, old.saturating_sub(1), old + 1, 0][rng.below(4)];
+    b[field..field + 8].copy_from_slice(&new.to_le_bytes());
+}
+
 /// One to four mutations of `input`.
 fn mutate(input: &[u8], rng: &mut Rng) -> Vec<u8> {
     let mut b = input.to_vec();
@@ -176,7 +247,9 @@ fn mutate(input: &[u8], rng: &mut Rng) -> Vec<u8> {
         if b.is_empty() {
             break;
         }
-        match rng.below(6) {
+        match rng.below(8) {
+            6 => redefine_a_channel(&mut b, rng),
+            7 => damage_inside_a_chunk(&mut b, rng),
             0 => {
                 let at = rng.below(b.len());
                 b[at] ^= 1 << rng.below(8);
