@@ -331,6 +331,13 @@ fn no_command_writes_over_its_inputs() {
     write_recording(&sim, &[Family::Ros2], 2, None);
     write_recording(&real, &[Family::Ros2], 2, None);
     let before = (std::fs::read(&sim).unwrap(), std::fs::read(&real).unwrap());
+    let model = p("model");
+    std::fs::create_dir(&model).unwrap();
+    let shipped = Path::new(env!("CARGO_MANIFEST_DIR")).join("models/dusty2");
+    for name in ["config.json", "g_ema.bpk"] {
+        std::fs::copy(shipped.join(name), model.join(name)).unwrap();
+    }
+    let weights = std::fs::read(model.join("g_ema.bpk")).unwrap();
     std::os::unix::fs::symlink(&sim, p("sim_link.mcap")).unwrap();
     std::fs::hard_link(&sim, p("sim_hard.mcap")).unwrap();
     let s = |path: &PathBuf| path.to_str().unwrap().to_string();
@@ -367,6 +374,23 @@ fn no_command_writes_over_its_inputs() {
         ],
         vec!["convert".into(), s(&sim), s(&p("sim_hard.mcap"))],
         vec!["convert".into(), s(&p("sim_link.mcap")), s(&sim)],
+        // A model's files are inputs too.
+        vec![
+            "convert".into(),
+            "--model".into(),
+            s(&model),
+            s(&sim),
+            s(&model.join("g_ema.bpk")),
+        ],
+        vec![
+            "render".into(),
+            "--raydrop".into(),
+            "gan".into(),
+            "--model".into(),
+            s(&model),
+            s(&sim),
+            s(&model.join("g_ema.bpk")),
+        ],
     ];
     for args in attempts {
         let o = bin().args(&args).arg("--force").output().unwrap();
@@ -381,6 +405,7 @@ fn no_command_writes_over_its_inputs() {
         (std::fs::read(&sim).unwrap(), std::fs::read(&real).unwrap()),
         before
     );
+    assert_eq!(std::fs::read(model.join("g_ema.bpk")).unwrap(), weights);
     // Dataset form: an output file that is a hard link of its input.
     let (inputs, outputs) = (p("inputs"), p("outputs"));
     std::fs::create_dir_all(&inputs).unwrap();

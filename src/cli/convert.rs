@@ -640,7 +640,15 @@ pub(crate) fn print_file_summary(global: &GlobalArgs, input: &Path, output: &Pat
 pub fn run(global: &GlobalArgs, args: ConvertArgs) -> anyhow::Result<Outcome> {
     args.dataset.refuse_in_one_file_form()?;
     let input = &args.inputs[0];
-    crate::io::writer::refuse_overwriting_inputs(&args.output, &[input])?;
+    // Every file the conversion reads is an input: the recording, model, encoder and a
+    // sensor profile given as a file.
+    let sensor_file = Some(Path::new(&args.sensor)).filter(|p| p.is_file());
+    let inputs: Vec<&Path> = std::iter::once(input.as_path())
+        .chain(args.model.as_deref())
+        .chain(args.encoder.as_deref())
+        .chain(sensor_file)
+        .collect();
+    crate::io::writer::refuse_overwriting_inputs(&args.output, &inputs)?;
     if let Some(c) = args.columns {
         crate::lidar::profile::check_columns(c).map_err(anyhow::Error::msg)?;
     }

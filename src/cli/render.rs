@@ -167,9 +167,17 @@ pub fn run(global: &GlobalArgs, args: RenderArgs) -> anyhow::Result<Outcome> {
         .as_deref()
         .map(Path::new)
         .filter(|p| p.is_file());
+    let sensor_file = args
+        .sensor
+        .as_deref()
+        .map(Path::new)
+        .filter(|p| p.is_file());
     let inputs: Vec<&Path> = std::iter::once(args.input.as_path())
         .chain(args.real.as_deref())
         .chain(physics_file)
+        .chain(args.gan.model.as_deref())
+        .chain(args.gan.encoder.as_deref())
+        .chain(sensor_file)
         .collect();
     crate::io::writer::refuse_overwriting_inputs(&args.output, &inputs)?;
     if let Some(c) = args.columns {
