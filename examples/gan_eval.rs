@@ -20,56 +20,32 @@
 
 use std::path::PathBuf;
 
-use anyhow::{Context, Result, bail};
+use anyhow::{Context, Result};
 use burn::tensor::Device;
 use rangegan_mcap::model::data::{RangeDataset, kitti_heldout_files, kitti_validation_split};
 use rangegan_mcap::model::metrics::{
     SwdConfig, SwdReport, one_nna, point_sets, swd_between, swd_of_model,
 };
 use rangegan_mcap::model::sample::{SampleOptions, sample};
-use rangegan_mcap::model::weights::Model;
+use rangegan_mcap::model::weights::{Model, parse_labelled_model};
 use rangegan_mcap::train::write_png;
 
+#[derive(clap::Parser)]
 struct Args {
+    #[arg(long, default_value = "../shared/real_lidar")]
     data: PathBuf,
+    #[arg(long)]
     cache: Option<PathBuf>,
+    #[arg(long)]
     png: Option<PathBuf>,
     /// SWD repeated with this many projection/patch seeds (mean and spread reported).
+    #[arg(long, default_value_t = 3)]
     seeds: u64,
+    #[arg(long = "validation-drive")]
     validation_drives: Vec<String>,
+    /// LABEL=MODEL_DIR (or `shipped`).
+    #[arg(required = true, value_parser = parse_labelled_model)]
     models: Vec<(String, Option<PathBuf>)>,
-}
-
-fn parse_args() -> Result<Args> {
-    let mut it = std::env::args().skip(1);
-    let mut args = Args {
-        data: "../shared/real_lidar".into(),
-        cache: None,
-        png: None,
-        seeds: 3,
-        validation_drives: Vec::new(),
-        models: Vec::new(),
-    };
-    while let Some(a) = it.next() {
-        match a.as_str() {
-            "--data" => args.data = it.next().context("--data needs a value")?.into(),
-            "--cache" => args.cache = Some(it.next().context("--cache needs a value")?.into()),
-            "--png" => args.png = Some(it.next().context("--png needs a value")?.into()),
-            "--validation-drive" => args
-                .validation_drives
-                .push(it.next().context("--validation-drive needs a value")?),
-            "--seeds" => args.seeds = it.next().context("--seeds needs a value")?.parse()?,
-            m => {
-                let (label, dir) = m.split_once('=').unwrap_or((m, m));
-                let dir = (dir != "shipped").then(|| PathBuf::from(dir));
-                args.models.push((label.to_string(), dir));
-            }
-        }
-    }
-    if args.models.is_empty() {
-        bail!("usage: gan_eval [--data DIR] [--cache FILE] [--png FILE] LABEL=MODEL_DIR ...");
-    }
-    Ok(args)
 }
 
 /// Mean and standard deviation over seeds of the mean SWD, and the per-level means.
@@ -115,7 +91,7 @@ fn keep_rate(images: &[f32]) -> f64 {
 }
 
 fn main() -> Result<()> {
-    let args = parse_args()?;
+    let args = <Args as clap::Parser>::parse();
     let device = Device::flex();
     let (train_files, validation) = kitti_validation_split(&args.data, &args.validation_drives)?;
     let mut heldout_files = kitti_heldout_files(&args.data)?;

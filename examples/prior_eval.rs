@@ -36,54 +36,31 @@ use rangegan_mcap::model::sample::{SampleOptions, sample};
 use rangegan_mcap::model::two_sample::{
     C2stConfig, C2stReport, blur_returns, c2st, frechet_distance, texture_features,
 };
-use rangegan_mcap::model::weights::Model;
+use rangegan_mcap::model::weights::{Model, parse_labelled_model};
 use rangegan_mcap::train::growth::{Level, Stage};
 use rangegan_mcap::train::write_png;
 
+#[derive(clap::Parser)]
 struct Args {
+    #[arg(long, default_value = "../shared/real_lidar")]
     data: PathBuf,
+    /// Held-out KITTI raw drives.
+    #[arg(long = "validation-drive", default_value = "kitti_raw_drive_d")]
     validation_drives: Vec<String>,
+    /// Judge the first K synthesis blocks on their own grid.
+    #[arg(long)]
     blocks: Option<usize>,
+    /// L2 weight of the two-sample classifier.
+    #[arg(long, default_value_t = C2stConfig::default().l2)]
     l2: f64,
+    /// Every this many training and validation scans (1: all).
+    #[arg(long, default_value_t = 1)]
     frame_stride: usize,
+    #[arg(long)]
     png: Option<PathBuf>,
+    /// LABEL=MODEL_DIR (or `shipped`).
+    #[arg(required = true, value_parser = parse_labelled_model)]
     models: Vec<(String, Option<PathBuf>)>,
-}
-
-fn parse_args() -> Result<Args> {
-    let mut it = std::env::args().skip(1);
-    let mut args = Args {
-        data: "../shared/real_lidar".into(),
-        validation_drives: Vec::new(),
-        blocks: None,
-        l2: C2stConfig::default().l2,
-        frame_stride: 1,
-        png: None,
-        models: Vec::new(),
-    };
-    while let Some(a) = it.next() {
-        match a.as_str() {
-            "--data" => args.data = it.next().context("--data needs a value")?.into(),
-            "--validation-drive" => args
-                .validation_drives
-                .push(it.next().context("--validation-drive needs a value")?),
-            "--blocks" => args.blocks = Some(it.next().context("--blocks needs a value")?.parse()?),
-            "--l2" => args.l2 = it.next().context("--l2 needs a value")?.parse()?,
-            "--frame-stride" => {
-                args.frame_stride = it.next().context("--frame-stride needs a value")?.parse()?
-            }
-            "--png" => args.png = Some(it.next().context("--png needs a value")?.into()),
-            m => {
-                let (label, dir) = m.split_once('=').unwrap_or((m, m));
-                let dir = (dir != "shipped").then(|| PathBuf::from(dir));
-                args.models.push((label.to_string(), dir));
-            }
-        }
-    }
-    if args.validation_drives.is_empty() {
-        args.validation_drives.push("kitti_raw_drive_d".into());
-    }
-    Ok(args)
 }
 
 /// Blocks of the generator this evaluation assumes when no model says otherwise.
@@ -177,7 +154,7 @@ fn samples(
 }
 
 fn main() -> Result<()> {
-    let args = parse_args()?;
+    let args = <Args as clap::Parser>::parse();
     let device = Device::flex();
     let (train_files, validation_files) =
         kitti_validation_split(&args.data, &args.validation_drives)?;

@@ -13,6 +13,16 @@ use burn::tensor::{Bytes, Device};
 use super::calibration::RaydropCalibration;
 use super::{AnyGenerator, ModelConfig};
 
+/// A `LABEL=MODEL_DIR` argument of the evaluation tools (`shipped` as the directory, or a
+/// bare `shipped`, is the compiled-in model; a bare path labels itself).
+pub fn parse_labelled_model(text: &str) -> Result<(String, Option<std::path::PathBuf>), String> {
+    let (label, dir) = text.split_once('=').unwrap_or((text, text));
+    if label.is_empty() || dir.is_empty() {
+        return Err(format!("{text:?}: expected LABEL=MODEL_DIR"));
+    }
+    Ok((label.to_string(), (dir != "shipped").then(|| dir.into())))
+}
+
 /// The folder of a training run's latest checkpoint (`g_ema.bpk` and the rest).
 pub const CHECKPOINT: &str = "checkpoint";
 
@@ -102,6 +112,19 @@ impl Model {
 mod tests {
     use super::*;
     use crate::model::rng::{Rng, tensor_to_vec};
+
+    #[test]
+    fn labelled_models_parse() {
+        assert_eq!(
+            parse_labelled_model("shipped"),
+            Ok(("shipped".into(), None))
+        );
+        assert_eq!(
+            parse_labelled_model("run=runs/a"),
+            Ok(("run".into(), Some("runs/a".into())))
+        );
+        assert!(parse_labelled_model("=x").is_err());
+    }
 
     #[test]
     fn shipped_weights_load_and_match_the_model_directory() {
