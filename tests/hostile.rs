@@ -406,6 +406,26 @@ fn no_command_writes_over_its_inputs() {
         before
     );
     assert_eq!(std::fs::read(model.join("g_ema.bpk")).unwrap(), weights);
+    // A diagnosis report folder holding an input under a name the report writes.
+    let report = p("report");
+    std::fs::create_dir(&report).unwrap();
+    std::fs::copy(&sim, report.join("report.json")).unwrap();
+    let o = bin()
+        .args(["diagnose", "--force", "--sim"])
+        .arg(report.join("report.json"))
+        .arg("--real")
+        .arg(&real)
+        .arg("--report")
+        .arg(&report)
+        .output()
+        .unwrap();
+    assert_eq!(o.status.code(), Some(1), "{}", stderr(&o));
+    assert!(
+        stderr(&o).contains("would replace the input"),
+        "{}",
+        stderr(&o)
+    );
+    assert_eq!(std::fs::read(report.join("report.json")).unwrap(), before.0);
     // Dataset form: an output file that is a hard link of its input.
     let (inputs, outputs) = (p("inputs"), p("outputs"));
     std::fs::create_dir_all(&inputs).unwrap();

@@ -148,8 +148,33 @@ fn features(
     }
 }
 
+/// Refuses a report folder where the report would replace one of the files the diagnosis
+/// reads (`report.json`, `report.html`, `fitted_physics.json`, `*.png`), `--force` or not.
+fn refuse_report_over_inputs(args: &DiagnoseArgs) -> anyhow::Result<()> {
+    let sensor_file = Some(std::path::Path::new(&args.sensor)).filter(|p| p.is_file());
+    let inputs = [args.sim.as_path(), args.real.as_path()]
+        .into_iter()
+        .chain(sensor_file);
+    for input in inputs {
+        let name = input.file_name().map(|n| n.to_string_lossy().into_owned());
+        let written = name.as_deref().is_some_and(|n| {
+            ["report.json", "report.html", "fitted_physics.json"].contains(&n)
+                || n.ends_with(".png")
+        });
+        if written && crate::io::writer::lies_in(input, &args.report) {
+            anyhow::bail!(
+                "{}: the report would replace the input {}; choose another --report folder (inputs are never modified)",
+                args.report.display(),
+                input.display()
+            );
+        }
+    }
+    Ok(())
+}
+
 pub fn run(global: &GlobalArgs, args: DiagnoseArgs) -> anyhow::Result<Outcome> {
     crate::lidar::profile::check_columns(args.columns).map_err(anyhow::Error::msg)?;
+    refuse_report_over_inputs(&args)?;
     let occupied = args.report.exists()
         && std::fs::read_dir(&args.report).map_or(true, |mut d| d.next().is_some());
     if occupied && !args.force {
