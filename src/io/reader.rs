@@ -239,6 +239,12 @@ fn linear_reader(skip_start_magic: bool, limit: u64) -> LinearReader {
     )
 }
 
+/// A fresh reader for the records from file offset `at` on (the file's magic is behind).
+fn reader_at<R: Seek>(src: &mut R, at: u64, limit: u64) -> Result<LinearReader, ReadError> {
+    src.seek(SeekFrom::Start(at))?;
+    Ok(linear_reader(true, limit))
+}
+
 impl<V, P> Walk<V, P>
 where
     V: FnMut(&Record<'_>) -> anyhow::Result<()>,
@@ -280,8 +286,7 @@ where
                             "chunk at offset {next_record}: its record length says {len} bytes, the summary's chunk index {indexed}; read by the index"
                         ));
                         let at = next_record + indexed;
-                        src.seek(SeekFrom::Start(at))?;
-                        reader = linear_reader(true, limit);
+                        reader = reader_at(&mut src, at, limit)?;
                         (fed, next_record) = (at, at);
                         continue;
                     }
@@ -307,8 +312,7 @@ where
                     "chunk at offset {next_record}: unreadable as framed ({failure}); read by the summary's chunk index ({indexed} bytes)"
                 ));
                 let at = next_record + indexed;
-                src.seek(SeekFrom::Start(at))?;
-                reader = linear_reader(true, limit);
+                reader = reader_at(&mut src, at, limit)?;
                 (fed, next_record) = (at, at);
                 continue;
             }
@@ -328,8 +332,7 @@ where
                         reason,
                         skipped_bytes: target.saturating_sub(next_record),
                     })?;
-                    src.seek(SeekFrom::Start(target))?;
-                    reader = linear_reader(true, limit);
+                    reader = reader_at(&mut src, target, limit)?;
                     (fed, next_record) = (target, target);
                 }
                 None => {
