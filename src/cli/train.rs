@@ -84,8 +84,13 @@ impl RunArgs {
             .unwrap_or_else(|| self.run_dir.join("dataset.bin"))
     }
 
-    /// The real scans to train on: every training folder but the validation drives.
+    /// The real scans to build the dataset cache from: every training folder but the
+    /// validation drives. None where the cache exists already, so a machine that holds only
+    /// the cache (a GPU host, say) needs no scans.
     pub(crate) fn training_files(&self) -> anyhow::Result<Vec<PathBuf>> {
+        if self.cache_path().exists() {
+            return Ok(Vec::new());
+        }
         Ok(kitti_validation_split(&self.data, &self.validation_drive)?.0)
     }
 
@@ -229,4 +234,31 @@ fn build_simulated_cache(global: &GlobalArgs, cache: &Path, scans: usize) -> any
             .with_context(|| format!("failed to create '{}'", dir.display()))?;
     }
     data.save(cache)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn run_args(dir: &Path) -> RunArgs {
+        RunArgs {
+            run_dir: dir.join("run"),
+            data: dir.join("no-such-scans"),
+            cache: Some(dir.join("dataset.bin")),
+            max_minutes: None,
+            seed: None,
+            validation_drive: vec!["kitti_raw_drive_d".into()],
+            backend: BackendArg::Flex,
+        }
+    }
+
+    #[test]
+    fn an_existing_cache_needs_no_scan_folder() {
+        let dir = tempfile::tempdir().unwrap();
+        let args = run_args(dir.path());
+        let err = args.training_files().unwrap_err().to_string();
+        assert!(err.contains("no-such-scans"), "{err}");
+        std::fs::write(dir.path().join("dataset.bin"), b"cache").unwrap();
+        assert!(args.training_files().unwrap().is_empty());
+    }
 }
