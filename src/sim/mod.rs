@@ -15,6 +15,7 @@
 //! assert!(scan.keep_rate() > 0.5);
 //! ```
 
+mod builder;
 pub mod bvh;
 pub mod geometry;
 pub mod material;
@@ -22,6 +23,7 @@ pub mod raycast;
 pub mod realism;
 pub mod rng;
 pub mod scene;
+mod street;
 pub mod trajectory;
 
 pub use material::{Material, label};

@@ -1,16 +1,24 @@
 //! Training, kept apart from inference: everything here produces weights that the inference
 //! modules ([`crate::model`], [`crate::decode`], [`crate::segment`]) load.
 //!
+//! - [`run_dir`]: what every run directory shares: the backend, the atomic checkpoint swap.
+//! - [`config`]: a GAN run's saved settings, options and checkpointed state.
 //! - [`gan`]: the range-image GAN's training loop, with checkpoints and resume.
+//! - [`update`]: gradient means and masks, the generator's EMA, adaptive augmentation.
 //! - [`encoder`]: the amortised encoder of `convert --quality fast`, trained against a
 //!   frozen generator (`train-encoder`).
 //! - [`growth`]: coarse-to-fine training: the generator's synthesis pyramid grown a level at
 //!   a time, each level with its own discriminator, on real scans sampled at that level.
 //! - [`reconstruct`]: reconstruction-assisted training: an encoder in the generator's loop.
 
+pub mod config;
 pub mod encoder;
 pub mod gan;
 pub mod growth;
 pub mod reconstruct;
+pub mod run_dir;
+pub mod update;
 
+pub use config::*;
 pub use gan::*;
+pub use run_dir::*;

@@ -1,0 +1,254 @@
+//! A GAN training run's settings: [`TrainConfig`] (saved as `config.json` before training
+//! starts, and loaded with defaults for fields added since), the options of one invocation
+//! and the state saved with each checkpoint.
+
+use std::path::{Path, PathBuf};
+use std::time::Duration;
+
+use anyhow::{Context, Result};
+use burn::config::Config;
+use burn::tensor::Device;
+use serde::{Deserialize, Serialize};
+
+use crate::model::baseline::ConvGeneratorConfig;
+use crate::model::discriminator::DiscriminatorConfig;
+use crate::model::generator::GeneratorConfig;
+use crate::model::measurement::MeasurementConfig;
+use crate::model::rng::Rng;
+use crate::model::{AnyGenerator, Arch, ModelConfig};
+
+use super::growth::Stage;
+use super::reconstruct::ReconstructionConfig;
+use super::run_dir::Backend;
+
+/// Everything that defines a training run; saved as `config.json` before training starts.
+#[derive(Config, Debug)]
+pub struct TrainConfig {
+    #[config(default = "Arch::Dusty2")]
+    pub arch: Arch,
+    #[config(default = "GeneratorConfig::cpu()")]
+    pub generator: GeneratorConfig,
+    /// Used by `dusty1` (2 output channels) and `vanilla` (1).
+    #[config(default = "ConvGeneratorConfig::cpu(2)")]
+    pub conv_generator: ConvGeneratorConfig,
+    #[config(default = "DiscriminatorConfig::cpu()")]
+    pub discriminator: DiscriminatorConfig,
+    #[config(default = "MeasurementConfig::new()")]
+    pub measurement: MeasurementConfig,
+    #[config(default = 8)]
+    pub batch_size: usize,
+    /// Adam, paper values: lr 0.002, betas (0, 0.99).
+    #[config(default = 0.002)]
+    pub lr: f64,
+    /// The generator's own learning rate where it differs from the discriminator's `lr`
+    /// (two time-scale updates): a generator that moves as fast as a small discriminator
+    /// erases every difference the discriminator finds within a step.
+    pub g_lr: Option<f64>,
+    /// The generator takes a step on every this many discriminator steps (one batch of
+    /// real scans each): a slow discriminator gets the time to find differences.
+    #[config(default = 1)]
+    pub g_every: usize,
+    #[config(default = 0.0)]
+    pub beta1: f32,
+    #[config(default = 0.99)]
+    pub beta2: f32,
+    /// Weight of the (finite-difference) R1 penalty at full resolution, paper gamma = 1; a
+    /// coarse-to-fine stage scales it with its pixel count.
+    #[config(default = 1.0)]
+    pub r1_gamma: f32,
+    /// Lazy regularisation: every this many D steps, weighted by the interval.
+    #[config(default = 16)]
+    pub r1_interval: usize,
+    /// Step of the finite difference, network units per pixel.
+    #[config(default = 0.01)]
+    pub r1_fd_step: f32,
+    /// Generator EMA half-life in images.
+    #[config(default = 10000.0)]
+    pub ema_half_life_images: f64,
+    /// EMA ramp-up: the half-life is at most this fraction of the images seen (StyleGAN2-ADA),
+    /// so the EMA model is not stuck near the initial weights early on.
+    #[config(default = 0.05)]
+    pub ema_rampup: f64,
+    /// Adaptive augmentation target of E[sign(D(real))].
+    #[config(default = 0.6)]
+    pub ada_target: f32,
+    #[config(default = 4)]
+    pub ada_interval: usize,
+    /// Images for p to move by 1.
+    #[config(default = 100000.0)]
+    pub ada_speed_images: f64,
+    /// Early random pixel dropout: initial probability, decaying linearly to 0.
+    #[config(default = 0.5)]
+    pub pixel_drop_start: f32,
+    #[config(default = 50000.0)]
+    pub pixel_drop_images: f64,
+    /// Random azimuth phase in generator training (subgrid training, dusty2 only).
+    #[config(default = true)]
+    pub subgrid: bool,
+    /// Stop after this many real images shown to D.
+    #[config(default = 2000000)]
+    pub total_images: u64,
+    /// PNG snapshot (and checkpoint) interval; ~10 minutes at the CPU size.
+    #[config(default = 2000)]
+    pub snapshot_every_images: u64,
+    #[config(default = 300)]
+    pub checkpoint_every_secs: u64,
+    #[config(default = 10)]
+    pub log_every_steps: u64,
+    #[config(default = 2)]
+    pub seed: u64,
+    /// Train only the generator's ray-drop logit (the second output of every block's
+    /// head); its depth, synthesis layers and mapping stay frozen. For fine-tuning the
+    /// drop model of a pretrained generator on real drop masks without touching x_d.
+    #[config(default = false)]
+    pub drop_head_only: bool,
+    /// Coarse-to-fine stages (dusty2 only), in order; after the last, every block renders
+    /// the full grid. Empty: the full grid from the start.
+    #[config(default = "vec![]")]
+    pub stages: Vec<Stage>,
+    /// After each growth, the fresh discriminator trains alone for this many images before
+    /// the generator takes its gradients again.
+    #[config(default = 2000)]
+    pub d_warmup_images: u64,
+    /// The discriminator of each coarse-to-fine stage, where it differs from
+    /// `discriminator` (which also serves the full grid): entry i for stage i.
+    #[config(default = "vec![]")]
+    pub stage_discriminators: Vec<DiscriminatorConfig>,
+    /// Reconstruction-assisted training (dusty2): an encoder in the generator's loop.
+    #[config(default = "None")]
+    pub reconstruction: Option<ReconstructionConfig>,
+}
+
+/// How to run training (not part of the saved config).
+#[derive(Debug, Clone)]
+pub struct TrainOptions {
+    pub run_dir: PathBuf,
+    /// Dataset cache file (built from `scans` if missing).
+    pub dataset_cache: PathBuf,
+    /// KITTI `.bin` scans to build the cache from.
+    pub scans: Vec<PathBuf>,
+    /// Used when the run directory has no config.json yet; otherwise the saved one wins.
+    pub config: TrainConfig,
+    pub backend: Backend,
+    /// Overrides the (saved) total image budget, e.g. to extend a finished run.
+    pub total_images: Option<u64>,
+    /// Stop after this much wall time (checkpointing first).
+    pub max_duration: Option<Duration>,
+    pub progress: bool,
+    /// Start a new run from these weights (fine-tuning): a training run (its checkpoint's
+    /// G, EMA G and D) or a model directory (EMA G only; D starts fresh).
+    pub init_from: Option<PathBuf>,
+}
+
+/// Mutable training state saved with each checkpoint.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct TrainState {
+    pub step: u64,
+    pub images: u64,
+    pub ada_p: f32,
+    pub rng: Rng,
+    /// Sum of sign(D(real)) over the current ADA interval.
+    pub ada_acc: f32,
+    pub ada_count: u64,
+    /// The coarse-to-fine stage the discriminator in the checkpoint belongs to.
+    #[serde(default)]
+    pub stage: usize,
+    /// Images seen when that stage began.
+    #[serde(default)]
+    pub stage_start_images: u64,
+}
+
+/// Build the generator of `config.arch`.
+pub fn init_generator(config: &TrainConfig, device: &Device) -> AnyGenerator {
+    config.model().init_generator(device)
+}
+
+/// Load the EMA generator of a run (inference); returns it with the run's config.
+pub fn load_generator(run_dir: &Path, device: &Device) -> Result<(AnyGenerator, TrainConfig)> {
+    let m = crate::model::weights::Model::from_dir(run_dir, device)?;
+    Ok((m.generator, load_config(&run_dir.join("config.json"))?))
+}
+
+/// Read a run's `config.json`; fields added to [`TrainConfig`] after the run started take
+/// their defaults (burn's `Config::load` rejects missing fields), so old runs stay resumable.
+pub fn load_config(path: &Path) -> Result<TrainConfig> {
+    let text = std::fs::read_to_string(path)
+        .with_context(|| format!("failed to read '{}'", path.display()))?;
+    parse_config(&text).with_context(|| format!("bad config '{}'", path.display()))
+}
+
+/// [`load_config`] on text.
+pub fn parse_config(text: &str) -> Result<TrainConfig> {
+    let mut saved: serde_json::Value = serde_json::from_str(text).context("not JSON")?;
+    // Each per-stage discriminator takes the defaults of fields it predates, like the main one.
+    if let Some(stages) = saved
+        .get_mut("stage_discriminators")
+        .and_then(|v| v.as_array_mut())
+    {
+        for d in stages {
+            let mut merged = serde_json::to_value(DiscriminatorConfig::new())?;
+            crate::util::json::merge(&mut merged, d.take());
+            *d = merged;
+        }
+    }
+    let mut merged = serde_json::to_value(TrainConfig::new())?;
+    crate::util::json::merge(&mut merged, saved);
+    Ok(serde_json::from_value(merged)?)
+}
+
+impl TrainConfig {
+    /// The generator this run trains, as its model folder's config describes it.
+    pub fn model(&self) -> ModelConfig {
+        ModelConfig {
+            arch: self.arch,
+            generator: self.generator.clone(),
+            conv_generator: self.conv_generator.clone(),
+            measurement: self.measurement.clone(),
+        }
+    }
+
+    /// The discriminator configuration of coarse-to-fine stage `stage`.
+    pub fn discriminator_of(&self, stage: usize) -> &DiscriminatorConfig {
+        self.stage_discriminators
+            .get(stage)
+            .filter(|_| stage < self.stages.len())
+            .unwrap_or(&self.discriminator)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn old_configs_load_with_new_fields_defaulted() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        let path = dir.path().join("config.json");
+        let config = TrainConfig::new()
+            .with_batch_size(3)
+            .with_stage_discriminators(vec![DiscriminatorConfig::cpu()]);
+        let mut v = serde_json::to_value(config).expect("json");
+        let obj = v.as_object_mut().expect("object");
+        obj.remove("ema_rampup");
+        obj.get_mut("generator")
+            .and_then(|g| g.as_object_mut())
+            .map(|g| g.remove("output_gain"));
+        obj.get_mut("stage_discriminators")
+            .and_then(|d| d[0].as_object_mut())
+            .map(|d| d.remove("input_blur"));
+        std::fs::write(&path, v.to_string()).expect("write");
+        assert!(
+            TrainConfig::load(&path).is_err(),
+            "burn's loader needs every field"
+        );
+        let c = load_config(&path).expect("load");
+        assert_eq!(c.batch_size, 3);
+        assert_eq!(c.ema_rampup, 0.05);
+        assert_eq!(c.generator.output_gain, 0.25);
+        assert!(c.stage_discriminators[0].input_blur);
+        assert_eq!(
+            c.stage_discriminators[0].channels,
+            DiscriminatorConfig::cpu().channels
+        );
+    }
+}

@@ -1,0 +1,394 @@
+//! The GAN loop end to end on tiny networks and synthetic scans: training, checkpoints,
+//! resume, coarse-to-fine growth and the baselines.
+
+use super::*;
+use std::path::PathBuf;
+
+use crate::lidar::SensorProfile;
+use crate::model::baseline::ConvGeneratorConfig;
+use crate::model::discriminator::DiscriminatorConfig;
+use crate::model::generator::GeneratorConfig;
+use crate::train::growth::Stage;
+use crate::train::reconstruct::ReconstructionConfig;
+use crate::train::{Backend, load_generator};
+use burn::module::ParamId;
+use burn::module::{ModuleVisitor, Param};
+
+/// Every float parameter of a generator, in visiting order, with its id.
+/// A two-block generator and a small discriminator on the synthetic 64 x 64 scans,
+/// batch 2, lazy R1 every 2 steps: runs that take well under a second.
+fn tiny_run_config() -> TrainConfig {
+    let generator = GeneratorConfig::new()
+        .with_mapping(
+            crate::model::generator::MappingConfig::new()
+                .with_d_z(8)
+                .with_d_w(8),
+        )
+        .with_channels(vec![8, 8])
+        .with_n_freq(vec![4, 4])
+        .with_lh(vec![4, 5])
+        .with_lw(vec![3, 4]);
+    TrainConfig::new()
+        .with_generator(generator)
+        .with_discriminator(DiscriminatorConfig::new().with_channels(vec![4, 8, 8]))
+        .with_batch_size(2)
+        .with_r1_interval(2)
+}
+
+/// Every float parameter's values, in module order (ids left out).
+fn module_values<M: Module>(m: &M) -> Vec<Vec<f32>> {
+    struct Values(Vec<Vec<f32>>);
+    impl ModuleVisitor for Values {
+        fn visit_float<const D: usize>(&mut self, param: &Param<Tensor<D>>) {
+            self.0.push(tensor_to_vec(param.val()));
+        }
+    }
+    let mut v = Values(Vec::new());
+    m.visit(&mut v);
+    v.0
+}
+
+fn generator_values(g: &AnyGenerator) -> Vec<(ParamId, Vec<f32>)> {
+    struct Values(Vec<(ParamId, Vec<f32>)>);
+    impl ModuleVisitor for Values {
+        fn visit_float<const D: usize>(&mut self, param: &Param<Tensor<D>>) {
+            self.0.push((param.id, tensor_to_vec(param.val().inner())));
+        }
+    }
+    let mut v = Values(Vec::new());
+    g.visit(&mut v);
+    v.0
+}
+
+#[test]
+fn a_batch_splits_in_two_parts_when_it_can() {
+    assert_eq!(batch_parts(8), 2);
+    assert_eq!(batch_parts(5), 1);
+}
+
+/// A dataset cache of `n` 64 x 64 images in `dir`: each pixel dropped (-1) with
+/// probability 0.2, else `value(pixel index, rng)`.
+fn synthetic_cache(
+    dir: &Path,
+    n: usize,
+    seed: u64,
+    value: impl Fn(usize, &mut Rng) -> f32,
+) -> PathBuf {
+    let grid = SensorProfile::kitti_hdl64e().with_columns(64).angle_grid();
+    let (h, w) = (grid.height, grid.width);
+    let mut rng = Rng::new(seed);
+    let images: Vec<f32> = (0..n * h * w)
+        .map(|i| {
+            if rng.uniform() < 0.2 {
+                -1.0
+            } else {
+                value(i, &mut rng)
+            }
+        })
+        .collect();
+    let data = RangeDataset {
+        height: h,
+        width: w,
+        images,
+        angles: grid,
+    };
+    let cache = dir.join("ds.bin");
+    data.save(&cache).expect("cache");
+    cache
+}
+
+/// The baselines run through the same loop (fixed 64x64 output here).
+#[test]
+fn baselines_train_a_few_steps() {
+    for arch in [Arch::Dusty1, Arch::Vanilla] {
+        let dir = tempfile::tempdir().expect("tempdir");
+        let (h, w) = (64, 64);
+        let cache = synthetic_cache(dir.path(), 4, 4, |_, rng| rng.uniform() - 0.5);
+        let config = TrainConfig::new()
+            .with_arch(arch)
+            .with_conv_generator(
+                ConvGeneratorConfig::new()
+                    .with_d_z(8)
+                    .with_channels(vec![8, 8, 8, 8, 8])
+                    .with_base_width(4),
+            )
+            .with_discriminator(DiscriminatorConfig::new().with_channels(vec![4, 8, 8]))
+            .with_batch_size(2)
+            .with_r1_interval(1)
+            .with_total_images(4)
+            .with_snapshot_every_images(4);
+        let opts = TrainOptions {
+            run_dir: dir.path().join("run"),
+            dataset_cache: cache,
+            scans: vec![],
+            config,
+            backend: Backend::Flex,
+            total_images: None,
+            max_duration: None,
+            progress: false,
+            init_from: None,
+        };
+        run(&opts).expect("train");
+        let (g, c) = load_generator(&opts.run_dir, &Device::flex()).expect("load");
+        assert_eq!(c.arch, arch);
+        let AnyGenerator::Conv(g) = g else {
+            panic!("conv generator expected")
+        };
+        let z = Rng::new(1).normal_tensor([1, 8], &Device::flex());
+        let channels = if arch == Arch::Vanilla { 1 } else { 2 };
+        assert_eq!(g.forward(z).dims(), [1, channels, h, w]);
+    }
+}
+
+/// A few steps on synthetic data, a checkpoint, and a resume that continues the count.
+#[test]
+fn trains_checkpoints_and_resumes() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let cache = synthetic_cache(dir.path(), 8, 3, |i, _| (i % 64) as f32 / 64.0 - 0.5);
+    let data = RangeDataset::load(&cache).expect("cache");
+    let (h, w) = (data.height, data.width);
+    let config = tiny_run_config()
+        .with_total_images(8)
+        .with_snapshot_every_images(4)
+        .with_ada_interval(1)
+        .with_ada_speed_images(10.0);
+    let mut opts = TrainOptions {
+        run_dir: dir.path().join("run"),
+        dataset_cache: cache,
+        scans: vec![],
+        config,
+        backend: Backend::Flex,
+        total_images: None,
+        max_duration: None,
+        progress: false,
+        init_from: None,
+    };
+    run(&opts).expect("train");
+    let state: TrainState = serde_json::from_str(
+        &std::fs::read_to_string(opts.run_dir.join("checkpoint/state.json")).expect("state"),
+    )
+    .expect("json");
+    assert_eq!(state.images, 8);
+    let log = std::fs::read_to_string(opts.run_dir.join("log.jsonl")).expect("log");
+    assert!(log.lines().count() >= 1 || state.step < 10);
+    // Resume with a larger budget: continues from 8, not from 0.
+    opts.total_images = Some(12);
+    run(&opts).expect("resume");
+    let state: TrainState = serde_json::from_str(
+        &std::fs::read_to_string(opts.run_dir.join("checkpoint/state.json")).expect("state"),
+    )
+    .expect("json");
+    assert_eq!(state.images, 12);
+    // A compact checkpoint without the discriminator's optimiser state resumes too.
+    std::fs::remove_file(opts.run_dir.join("checkpoint/opt_d.bpk")).expect("rm opt_d");
+    opts.total_images = Some(16);
+    run(&opts).expect("resume without opt_d");
+    assert!(opts.run_dir.join("checkpoint/opt_d.bpk").exists());
+    assert!(
+        std::fs::read_dir(opts.run_dir.join("snapshots"))
+            .expect("snapshots")
+            .count()
+            >= 2
+    );
+    let (g, _) = load_generator(&opts.run_dir, &Device::flex()).expect("load ema");
+    assert_eq!(g.d_z(), 8);
+    // Fine-tuning: a new run initialised from this one starts from its weights, at 0 images.
+    let ft = TrainOptions {
+        run_dir: dir.path().join("fine-tune"),
+        init_from: Some(opts.run_dir.clone()),
+        ..opts.clone()
+    };
+    std::fs::create_dir_all(&ft.run_dir).expect("mkdir");
+    let t = Trainer::new(&ft.config, &ft, &data).expect("init from run");
+    assert_eq!(t.state.images, 0);
+    t.g_ema
+        .clone()
+        .save_file(ft.run_dir.join("start.bpk"))
+        .expect("save");
+    assert_eq!(
+        std::fs::read(ft.run_dir.join("start.bpk")).expect("read"),
+        std::fs::read(opts.run_dir.join("checkpoint/g_ema.bpk")).expect("read"),
+        "the fine-tuning run starts from the source's EMA generator"
+    );
+    assert!(ft.run_dir.join("init_from.json").exists());
+    // A discriminator of another shape starts fresh instead of failing to load.
+    let other = TrainOptions {
+        run_dir: dir.path().join("fine-tune-half-resolution-d"),
+        ..ft.clone()
+    };
+    std::fs::create_dir_all(&other.run_dir).expect("mkdir");
+    let half_d = ft.config.clone().with_discriminator(
+        DiscriminatorConfig::new()
+            .with_stem(2)
+            .with_channels(vec![4, 8]),
+    );
+    Trainer::new(&half_d, &other, &data).expect("init from run with another discriminator");
+    // Fine-tuning the ray-drop logit alone: a few steps change the second row of the
+    // heads and nothing else of the generator.
+    let drop_only = TrainOptions {
+        run_dir: dir.path().join("fine-tune-drop-head"),
+        ..ft.clone()
+    };
+    std::fs::create_dir_all(&drop_only.run_dir).expect("mkdir");
+    let cfg = ft.config.clone().with_drop_head_only(true).with_lr(0.05);
+    let mut t = Trainer::new(&cfg, &drop_only, &data).expect("init from run");
+    let before = generator_values(&t.g);
+    for _ in 0..3 {
+        t.step(&data).expect("step");
+    }
+    let after = generator_values(&t.g);
+    let AnyGenerator::Implicit(generator) = &t.g else {
+        panic!("dusty2 run")
+    };
+    let heads: Vec<ParamId> = generator
+        .blocks
+        .iter()
+        .flat_map(|b| [b.head.weight.id, b.head.bias.id])
+        .collect();
+    let mut drop_rows_moved = false;
+    for ((id, a), (_, b)) in before.iter().zip(&after) {
+        if !heads.contains(id) {
+            assert_eq!(a, b, "a frozen parameter moved");
+            continue;
+        }
+        // [2, d] or [2]: the first half is the depth row, the second the drop logit.
+        let half = a.len() / 2;
+        assert_eq!(a[..half], b[..half], "the depth output of a head moved");
+        drop_rows_moved |= a[half..] != b[half..];
+    }
+    assert!(drop_rows_moved, "the drop logit did not train");
+    // Sampling from the run, on the training grid and on a 2x denser one.
+    let mut sopts = crate::model::sample::SampleOptions {
+        n: 3,
+        seed: 1,
+        truncation: 1.0,
+        grid: Some(data.angles.clone()),
+    };
+    let model =
+        crate::model::weights::Model::from_dir(&opts.run_dir, &Device::flex()).expect("model");
+    let scans = crate::model::sample::sample(&model, &sopts, &Device::flex()).expect("sample");
+    assert_eq!(scans.len(), 3);
+    let s = &scans[0];
+    assert_eq!(s.range_m.len(), h * w);
+    assert!(s.drop_prob.iter().all(|p| (0.0..=1.0).contains(p)));
+    assert!(s.range_m.iter().zip(&s.mask).all(|(r, m)| (*r > 0.0) == *m));
+    assert_eq!(s.points().len(), s.mask.iter().filter(|m| **m).count());
+    sopts.grid = Some(crate::model::layers::AngleGridExt::resample(
+        &data.angles,
+        2 * h,
+        2 * w,
+    ));
+    let dense = crate::model::sample::sample(&model, &sopts, &Device::flex()).expect("dense");
+    assert_eq!(dense[0].range_m.len(), 4 * h * w);
+    // SWD of the run against the real set, and the real set against itself (floor 0).
+    let cfg = crate::model::metrics::SwdConfig {
+        patches_per_image: 16,
+        projections: 8,
+        ..Default::default()
+    };
+    let report =
+        crate::model::metrics::swd_of_model(&model, &data, 4, &cfg, &Device::flex()).expect("swd");
+    assert_eq!(report.per_level.len(), 3);
+    assert!(report.mean > 0.0 && report.mean.is_finite());
+    let floor = crate::model::metrics::swd_between(&data, &data, &cfg);
+    assert!(
+        floor.mean < report.mean,
+        "floor {} run {}",
+        floor.mean,
+        report.mean
+    );
+}
+
+/// A coarse-to-fine, reconstruction-assisted run grows at its stage boundary (a fresh
+/// discriminator and encoder of the finer grid), and a run stopped right after the growth
+/// and resumed ends with the same weights as one that ran through.
+#[test]
+fn a_staged_assisted_run_grows_and_resumes_as_if_uninterrupted() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let cache = synthetic_cache(dir.path(), 8, 5, |i, _| (i % 64) as f32 / 64.0 - 0.5);
+    let config = tiny_run_config()
+        .with_total_images(10)
+        .with_snapshot_every_images(100)
+        .with_stages(vec![Stage::new(1, 4)])
+        // The first stage's discriminator differs from the full grid's.
+        .with_stage_discriminators(vec![
+            DiscriminatorConfig::new().with_channels(vec![4, 4, 8]),
+        ])
+        .with_d_warmup_images(2)
+        .with_log_every_steps(1)
+        .with_reconstruction(Some(ReconstructionConfig::new()));
+    let opts = |name: &str, total: u64| TrainOptions {
+        run_dir: dir.path().join(name),
+        dataset_cache: cache.clone(),
+        scans: vec![],
+        config: config.clone(),
+        backend: Backend::Flex,
+        total_images: Some(total),
+        max_duration: None,
+        progress: false,
+        init_from: None,
+    };
+    let state = |o: &TrainOptions| -> TrainState {
+        let text = std::fs::read_to_string(o.run_dir.join("checkpoint/state.json"));
+        serde_json::from_str(&text.expect("state")).expect("json")
+    };
+    // Weight files carry random parameter ids, so the values are compared.
+    let device = Device::flex();
+    let weights = |o: &TrainOptions| {
+        let ck = o.run_dir.join("checkpoint");
+        let (g_ema, _) = load_generator(&o.run_dir, &device).expect("g_ema");
+        let d = stage_discriminator(&config, 1, &Level::of(&[], 0, 2, 64, 64), &device)
+            .try_load_file(ck.join("d.bpk"))
+            .expect("d");
+        let level = Level::of(&[], 0, 2, 64, 64);
+        let e = InLoopEncoder::new(&ReconstructionConfig::new(), &level, 8, &device)
+            .encoder
+            .try_load_file(ck.join("e.bpk"))
+            .expect("e");
+        let state = std::fs::read_to_string(ck.join("state.json")).expect("state");
+        (
+            module_values(&g_ema),
+            module_values(&d),
+            module_values(&e),
+            state,
+        )
+    };
+    let through = opts("through", 10);
+    run(&through).expect("train");
+    let stopped = opts("stopped", 4);
+    run(&stopped).expect("train to the boundary");
+    let at_boundary = state(&stopped);
+    assert_eq!((at_boundary.images, at_boundary.stage), (4, 1));
+    assert!(stopped.run_dir.join("checkpoint/e.bpk").exists());
+    let at_four = weights(&stopped);
+    run(&opts("stopped", 10)).expect("resume");
+    assert_eq!(state(&through).stage, 1);
+    assert!(
+        weights(&through) == weights(&stopped),
+        "a resumed run ends elsewhere than one that ran through"
+    );
+    assert!(
+        at_four != weights(&stopped),
+        "the resumed steps changed nothing"
+    );
+    // The log shows both grids, and the generator sitting out the warm-up after growing.
+    let log = std::fs::read_to_string(through.run_dir.join("log.jsonl")).expect("log");
+    let lines: Vec<serde_json::Value> = log
+        .lines()
+        .map(|l| serde_json::from_str(l).expect("json line"))
+        .collect();
+    let grids: Vec<&serde_json::Value> = lines.iter().map(|l| &l["grid"]).collect();
+    assert_eq!(grids[0], &serde_json::json!([32, 32]));
+    assert_eq!(grids[lines.len() - 1], &serde_json::json!([64, 64]));
+    let grown = lines.iter().position(|l| l["stage"] == 1).expect("grew");
+    assert!(
+        lines[grown + 1]["loss_g"].is_null(),
+        "the generator waits out the warm-up"
+    );
+    assert!(lines[grown + 2]["loss_g"].is_number());
+    assert!(
+        lines
+            .iter()
+            .all(|l| l["reconstruction"].is_number() || l["loss_g"].is_null())
+    );
+}
