@@ -162,75 +162,17 @@ fn resolve_physics(
 }
 
 pub fn run(global: &GlobalArgs, args: RenderArgs) -> anyhow::Result<Outcome> {
-    let physics_file = args
-        .physics
-        .as_deref()
-        .map(Path::new)
-        .filter(|p| p.is_file());
-    let sensor_file = args
-        .sensor
-        .as_deref()
-        .map(Path::new)
-        .filter(|p| p.is_file());
-    let inputs: Vec<&Path> = std::iter::once(args.input.as_path())
-        .chain(args.real.as_deref())
-        .chain(physics_file)
-        .chain(args.gan.model.as_deref())
-        .chain(args.gan.encoder.as_deref())
-        .chain(sensor_file)
-        .collect();
-    crate::io::writer::refuse_overwriting_inputs(&args.output, &inputs)?;
-    if let Some(c) = args.columns {
-        crate::lidar::profile::check_columns(c).map_err(anyhow::Error::msg)?;
-    }
+    check_args(&args)?;
     let gan = args.raydrop == Some(RayDrop::Gan);
-    anyhow::ensure!(
-        gan || !args.gan.given(),
-        "--model, --encoder and --tune-steps are for --raydrop gan"
-    );
-    anyhow::ensure!(
-        !gan || args.real.is_none(),
-        "--raydrop gan takes no --real (the drop probability comes from each simulated scan)"
-    );
-    let grid = match &args.sensor {
-        Some(s) => {
-            let p = SensorProfile::resolve(s).with_context(|| format!("--sensor {s}"))?;
-            Grid::Fixed(match args.columns {
-                Some(c) => p.with_columns(c),
-                None => p,
-            })
-        }
-        None => Grid::FromRecording {
-            columns: args.columns,
-        },
-    };
+    let grid = grid(&args)?;
     let input = recording::read(&args.input, args.topic.as_deref(), &grid)
         .with_context(|| format!("reading {}", args.input.display()))?;
     let profile = input.profile.clone();
     let (physics, mut words) = resolve_physics(&args, &profile)?;
     // --raydrop gan: x_n of every scan, decoded up front (rayon over scans), by log time.
-    let mut gan_drop: HashMap<u64, VecDeque<Result<Vec<f32>, String>>> = HashMap::new();
+    let mut gan_drop = HashMap::new();
     if gan {
-        let decoder = args.gan.decoder(None).context("--raydrop gan")?;
-        let seeds: Vec<u64> = input
-            .log_times
-            .iter()
-            .map(|t| scan_seed(&input.topic, *t))
-            .collect();
-        let probs = par_gan_render(&decoder, &input.images, &seeds, |_, r| r.drop_prob);
-        let (mut sum, mut n) = (0f64, 0usize);
-        for p in probs.iter().flatten() {
-            sum += p.iter().map(|v| f64::from(*v)).sum::<f64>();
-            n += p.len();
-        }
-        words = format!(
-            "raydrop_gan: x_n of each scan from {} (fast auto-decoding; mean drop probability {:.1} %)",
-            decoder.source(),
-            100.0 * sum / n.max(1) as f64
-        );
-        for (t, p) in input.log_times.iter().zip(probs) {
-            gan_drop.entry(*t).or_default().push_back(p);
-        }
+        (gan_drop, words) = gan_drop_probabilities(&args, &input)?;
     }
     let speed = input.speed_mps().unwrap_or(0.0) as f32;
 
@@ -314,7 +256,114 @@ pub fn run(global: &GlobalArgs, args: RenderArgs) -> anyhow::Result<Outcome> {
         |_| {},
     )
     .map_err(|e| e.for_strict_reader(&args.input))?;
-    for s in &skipped {
+    finish(
+        global,
+        &args,
+        &input.topic,
+        out,
+        (scans, kept as f64 / pixels.max(1) as f64),
+        &words,
+        &skipped,
+    )
+}
+
+/// Refuses arguments that cannot work before anything is read: an output that would replace
+/// an input, a bad column count, GAN options without `--raydrop gan`, and `--real` with it.
+fn check_args(args: &RenderArgs) -> anyhow::Result<()> {
+    let physics_file = args
+        .physics
+        .as_deref()
+        .map(Path::new)
+        .filter(|p| p.is_file());
+    let sensor_file = args
+        .sensor
+        .as_deref()
+        .map(Path::new)
+        .filter(|p| p.is_file());
+    let inputs: Vec<&Path> = std::iter::once(args.input.as_path())
+        .chain(args.real.as_deref())
+        .chain(physics_file)
+        .chain(args.gan.model.as_deref())
+        .chain(args.gan.encoder.as_deref())
+        .chain(sensor_file)
+        .collect();
+    crate::io::writer::refuse_overwriting_inputs(&args.output, &inputs)?;
+    if let Some(c) = args.columns {
+        crate::lidar::profile::check_columns(c).map_err(anyhow::Error::msg)?;
+    }
+    let gan = args.raydrop == Some(RayDrop::Gan);
+    anyhow::ensure!(
+        gan || !args.gan.given(),
+        "--model, --encoder and --tune-steps are for --raydrop gan"
+    );
+    anyhow::ensure!(
+        !gan || args.real.is_none(),
+        "--raydrop gan takes no --real (the drop probability comes from each simulated scan)"
+    );
+    Ok(())
+}
+
+/// The grid to project on: `--sensor` (with `--columns`), else estimated from the recording.
+fn grid(args: &RenderArgs) -> anyhow::Result<Grid> {
+    Ok(match &args.sensor {
+        Some(s) => {
+            let p = SensorProfile::resolve(s).with_context(|| format!("--sensor {s}"))?;
+            Grid::Fixed(match args.columns {
+                Some(c) => p.with_columns(c),
+                None => p,
+            })
+        }
+        None => Grid::FromRecording {
+            columns: args.columns,
+        },
+    })
+}
+
+/// Each scan's x_n (or why it could not be decoded), queued by log time.
+type DropQueues = HashMap<u64, VecDeque<Result<Vec<f32>, String>>>;
+
+/// `--raydrop gan`: x_n of every scan, auto-decoded up front (rayon over scans), queued by log
+/// time; and the words that describe what was applied.
+fn gan_drop_probabilities(
+    args: &RenderArgs,
+    input: &recording::Recording,
+) -> anyhow::Result<(DropQueues, String)> {
+    let mut gan_drop = DropQueues::new();
+    let decoder = args.gan.decoder(None).context("--raydrop gan")?;
+    let seeds: Vec<u64> = input
+        .log_times
+        .iter()
+        .map(|t| scan_seed(&input.topic, *t))
+        .collect();
+    let probs = par_gan_render(&decoder, &input.images, &seeds, |_, r| r.drop_prob);
+    let (mut sum, mut n) = (0f64, 0usize);
+    for p in probs.iter().flatten() {
+        sum += p.iter().map(|v| f64::from(*v)).sum::<f64>();
+        n += p.len();
+    }
+    let words = format!(
+        "raydrop_gan: x_n of each scan from {} (fast auto-decoding; mean drop probability {:.1} %)",
+        decoder.source(),
+        100.0 * sum / n.max(1) as f64
+    );
+    for (t, p) in input.log_times.iter().zip(probs) {
+        gan_drop.entry(*t).or_default().push_back(p);
+    }
+    Ok((gan_drop, words))
+}
+
+/// Warns of every skipped scan, then finishes the output (or, under `--strict` with scans
+/// skipped, drops it unwritten) and prints the summary.
+fn finish(
+    global: &GlobalArgs,
+    args: &RenderArgs,
+    topic: &str,
+    out: McapOutput,
+    (scans, keep): (u64, f64),
+    words: &str,
+    skipped: &[String],
+) -> anyhow::Result<Outcome> {
+    for s in skipped {
         if !global.quiet {
             eprintln!("warning: {s}");
         }
@@ -330,7 +379,6 @@ pub fn run(global: &GlobalArgs, args: RenderArgs) -> anyhow::Result<Outcome> {
         return Ok(Outcome::DataSkipped);
     }
     out.finish()?;
-    let keep = kept as f64 / pixels.max(1) as f64;
     if global.json {
         println!(
             "{}",
@@ -340,7 +388,7 @@ pub fn run(global: &GlobalArgs, args: RenderArgs) -> anyhow::Result<Outcome> {
         eprintln!(
             "{}: {scans} scans of {} rendered with {words}; {:.1} % of pixels keep a return",
             args.output.display(),
-            input.topic,
+            topic,
             100.0 * keep
         );
     }

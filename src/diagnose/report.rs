@@ -13,7 +13,7 @@ use super::drop;
 use super::features::ScanFeatures;
 use super::fit::{self, Baseline, DropFamily, DropSelection, FitError, Pixels};
 use super::residual::{self, ResidualContext, ResidualFit};
-use super::stats::{BinOptions, DropCounts, Feature, TestOptions, compare};
+use super::stats::{BinOptions, Comparison, DropCounts, Feature, TestOptions, compare};
 
 /// Settings of a diagnosis.
 #[derive(Debug, Clone, PartialEq)]
@@ -202,24 +202,7 @@ pub fn diagnose(
     completion: &str,
     options: &DiagnoseOptions,
 ) -> Result<Diagnosis, DiagnoseError> {
-    let (Some(s0), Some(r0)) = (sim.first(), real.first()) else {
-        return Err(if sim.is_empty() {
-            DiagnoseError::NoSimScans
-        } else {
-            DiagnoseError::TooFewRealScans(0)
-        });
-    };
-    if real.len() < 2 {
-        return Err(DiagnoseError::TooFewRealScans(real.len()));
-    }
-    if (s0.height, s0.width) != (r0.height, r0.width) {
-        return Err(DiagnoseError::GridMismatch {
-            sim_h: s0.height,
-            sim_w: s0.width,
-            real_h: r0.height,
-            real_w: r0.width,
-        });
-    }
+    let r0 = check_inputs(sim, real)?;
     let train: Vec<ScanFeatures> = real.iter().step_by(2).cloned().collect();
     let test: Vec<ScanFeatures> = real.iter().skip(1).step_by(2).cloned().collect();
     let reach_m = fit::reach_m(sim);
@@ -286,91 +269,19 @@ pub fn diagnose(
     )?;
 
     let test_pixels = px_test.len().max(1) as f64;
-    let mut effects = Vec::new();
     let mut fitted_physics = sim_physics.clone();
-    // The rows motion empties are part of the motion effect the seam found.
-    let mut motion_coverage_part: Option<(f64, String)> = None;
-    for s in &selection.selected {
-        if s.id == MOTION {
-            motion_coverage_part = Some((s.gain(), s.fit.location.clone()));
-            continue;
-        }
-        let mut location = s.fit.location.clone();
-        if let Some(t) = stats_feature(s.id).and_then(|f| comparison.strongest_of(f)) {
-            location.push_str(&format!(
-                "; strongest divergence of this feature: {} (real {:.1} % vs sim {:.1} % dropped)",
-                t.description,
-                100.0 * t.rate_real,
-                100.0 * t.rate_sim
-            ));
-        }
-        effects.push(EffectReport {
-            id: s.id.to_string(),
-            confidence: confidence(s.gain(), s.penalty),
-            location,
-            params: s.fit.params.clone(),
-            fit: FitMetric {
-                metric: "drop_mask_nll_per_pixel".into(),
-                before: selection.before_nll,
-                after: s.nll_with,
-            },
-            gain_nats_per_pixel: s.gain(),
-        });
-        fitted_physics.extend(s.fit.physics.clone());
-    }
+    let (mut effects, motion_coverage_part) =
+        drop_effects(&selection, &comparison, &mut fitted_physics);
     adjust_uniform(&mut fitted_physics, selection.keep_scale);
-    let mut residual_before = 0.0;
-    let mut residual_after = 0.0;
-    for r in &residual_fits {
-        let n = r.test_obs as f64;
-        residual_before += r.before_nll * n;
-        if r.significant() {
-            residual_after += r.after_nll * n;
-            let mut location = r.location.clone();
-            let mut gain = r.gain() * n / test_pixels;
-            if let Some((coverage_gain, coverage_location)) =
-                motion_coverage_part.take().filter(|_| r.id == MOTION)
-            {
-                location.push_str(&format!("; {coverage_location}"));
-                gain += coverage_gain;
-            }
-            effects.push(EffectReport {
-                id: r.id.to_string(),
-                confidence: confidence(r.gain(), r.penalty),
-                location,
-                params: r.params.clone(),
-                fit: FitMetric {
-                    metric: format!("{}_nll_per_observation", r.id),
-                    before: r.before_nll,
-                    after: r.after_nll,
-                },
-                gain_nats_per_pixel: gain,
-            });
-            fitted_physics.extend(r.physics.clone());
-        } else {
-            residual_after += r.before_nll * n;
-        }
-    }
+    let residual = residual_effects(
+        &residual_fits,
+        motion_coverage_part,
+        test_pixels,
+        &mut fitted_physics,
+    );
+    effects.extend(residual.effects);
     effects.sort_by(|a, b| b.gain_nats_per_pixel.total_cmp(&a.gain_nats_per_pixel));
-
-    let mut candidates: Vec<CandidateReport> = selection
-        .tried
-        .iter()
-        .filter(|t| t.id != MOTION)
-        .map(|t| CandidateReport {
-            id: t.id.to_string(),
-            gain: t.gain,
-            penalty: t.penalty,
-            significant: selection.selected.iter().any(|s| s.id == t.id),
-        })
-        .collect();
-    candidates.extend(residual_fits.iter().map(|r| CandidateReport {
-        id: r.id.to_string(),
-        gain: r.gain(),
-        penalty: r.penalty,
-        significant: r.significant(),
-    }));
-
+    let candidates = candidates(&selection, &residual_fits);
     let mismatch = comparison
         .significant()
         .take(12)
@@ -385,8 +296,8 @@ pub fn diagnose(
 
     let fit = FitMetric {
         metric: "nll_per_pixel (held-out real drop masks + range-residual statistics)".into(),
-        before: selection.before_nll + residual_before / test_pixels,
-        after: selection.after_nll + residual_after / test_pixels,
+        before: selection.before_nll + residual.before_nats / test_pixels,
+        after: selection.after_nll + residual.after_nats / test_pixels,
     };
     let drop_rate =
         |s: &[ScanFeatures]| s.iter().map(|f| f.drop_rate()).sum::<f64>() / s.len().max(1) as f64;
@@ -440,6 +351,149 @@ pub fn diagnose(
         curves,
         maps,
     })
+}
+
+/// The first real scan, once both sides are usable: scans on both, two real ones at least
+/// (one to fit on, one to test on), and the same grid.
+fn check_inputs<'a>(
+    sim: &[ScanFeatures],
+    real: &'a [ScanFeatures],
+) -> Result<&'a ScanFeatures, DiagnoseError> {
+    let (Some(s0), Some(r0)) = (sim.first(), real.first()) else {
+        return Err(if sim.is_empty() {
+            DiagnoseError::NoSimScans
+        } else {
+            DiagnoseError::TooFewRealScans(0)
+        });
+    };
+    if real.len() < 2 {
+        return Err(DiagnoseError::TooFewRealScans(real.len()));
+    }
+    if (s0.height, s0.width) != (r0.height, r0.width) {
+        return Err(DiagnoseError::GridMismatch {
+            sim_h: s0.height,
+            sim_w: s0.width,
+            real_h: r0.height,
+            real_w: r0.width,
+        });
+    }
+    Ok(r0)
+}
+
+/// The reports of the selected drop effects, their physics added to `physics`. The drop
+/// side of motion distortion is returned apart (gain, location): it joins the motion effect
+/// the seam's range steps found.
+fn drop_effects(
+    selection: &DropSelection,
+    comparison: &Comparison,
+    physics: &mut Map<String, Value>,
+) -> (Vec<EffectReport>, Option<(f64, String)>) {
+    let mut effects = Vec::new();
+    let mut motion_part = None;
+    for s in &selection.selected {
+        if s.id == MOTION {
+            motion_part = Some((s.gain(), s.fit.location.clone()));
+            continue;
+        }
+        let mut location = s.fit.location.clone();
+        if let Some(t) = stats_feature(s.id).and_then(|f| comparison.strongest_of(f)) {
+            location.push_str(&format!(
+                "; strongest divergence of this feature: {} (real {:.1} % vs sim {:.1} % dropped)",
+                t.description,
+                100.0 * t.rate_real,
+                100.0 * t.rate_sim
+            ));
+        }
+        effects.push(EffectReport {
+            id: s.id.to_string(),
+            confidence: confidence(s.gain(), s.penalty),
+            location,
+            params: s.fit.params.clone(),
+            fit: FitMetric {
+                metric: "drop_mask_nll_per_pixel".into(),
+                before: selection.before_nll,
+                after: s.nll_with,
+            },
+            gain_nats_per_pixel: s.gain(),
+        });
+        physics.extend(s.fit.physics.clone());
+    }
+    (effects, motion_part)
+}
+
+/// The range-residual effects that were significant, and the held-out NLL in nats summed
+/// over observations before and after them.
+struct ResidualEffects {
+    effects: Vec<EffectReport>,
+    before_nats: f64,
+    after_nats: f64,
+}
+
+/// The reports of the significant range-residual effects, their physics added to
+/// `physics`; `motion_part` (the drop side of motion) joins the motion effect.
+fn residual_effects(
+    fits: &[ResidualFit],
+    mut motion_part: Option<(f64, String)>,
+    test_pixels: f64,
+    physics: &mut Map<String, Value>,
+) -> ResidualEffects {
+    let mut out = ResidualEffects {
+        effects: Vec::new(),
+        before_nats: 0.0,
+        after_nats: 0.0,
+    };
+    for r in fits {
+        let n = r.test_obs as f64;
+        out.before_nats += r.before_nll * n;
+        if !r.significant() {
+            out.after_nats += r.before_nll * n;
+            continue;
+        }
+        out.after_nats += r.after_nll * n;
+        let mut location = r.location.clone();
+        let mut gain = r.gain() * n / test_pixels;
+        if let Some((coverage_gain, coverage_location)) =
+            motion_part.take().filter(|_| r.id == MOTION)
+        {
+            location.push_str(&format!("; {coverage_location}"));
+            gain += coverage_gain;
+        }
+        out.effects.push(EffectReport {
+            id: r.id.to_string(),
+            confidence: confidence(r.gain(), r.penalty),
+            location,
+            params: r.params.clone(),
+            fit: FitMetric {
+                metric: format!("{}_nll_per_observation", r.id),
+                before: r.before_nll,
+                after: r.after_nll,
+            },
+            gain_nats_per_pixel: gain,
+        });
+        physics.extend(r.physics.clone());
+    }
+    out
+}
+
+/// Every candidate tried, drop and range-residual, with its gain and penalty.
+fn candidates(selection: &DropSelection, residual_fits: &[ResidualFit]) -> Vec<CandidateReport> {
+    let drop = selection
+        .tried
+        .iter()
+        .filter(|t| t.id != MOTION)
+        .map(|t| CandidateReport {
+            id: t.id.to_string(),
+            gain: t.gain,
+            penalty: t.penalty,
+            significant: selection.selected.iter().any(|s| s.id == t.id),
+        });
+    let residual = residual_fits.iter().map(|r| CandidateReport {
+        id: r.id.to_string(),
+        gain: r.gain(),
+        penalty: r.penalty,
+        significant: r.significant(),
+    });
+    drop.chain(residual).collect()
 }
 
 const MOTION: &str = "motion_distortion";

@@ -50,7 +50,9 @@ pub fn read_pcd(path: &Path) -> Result<Scan, DatasetError> {
     parse(&bytes).map_err(|reason| DatasetError::Format { path: name, reason })
 }
 
-/// Parses PCD bytes; errors are plain reasons, [`read_pcd`] adds the path.
+/// Parses PCD bytes; errors are plain reasons, [`read_pcd`] adds the path. Header and data
+/// in one pass because the header decides how the data is laid out (ascii, binary, field
+/// sizes and counts), and every length is checked against the bytes before use.
 fn parse(bytes: &[u8]) -> Result<Scan, String> {
     let mut pos = 0usize;
     let (mut names, mut sizes, mut kinds, mut counts) =

@@ -267,7 +267,9 @@ impl PhysicsConfig {
     }
 
     /// Checks every parameter's range; `beams` (if known) checks per-beam lists.
-    /// `origin` names the file (or preset) in errors.
+    /// `origin` names the file (or preset) in errors. One flat check per field, in the
+    /// order of `schemas/physics.schema.json`, so the two are read side by side: long, not
+    /// deep.
     pub fn validate(&self, origin: &str, beams: Option<usize>) -> Result<(), PhysicsError> {
         let o = origin;
         if let Some(e) = &self.self_occlusion {

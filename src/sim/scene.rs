@@ -112,6 +112,9 @@ pub struct Scene {
 }
 
 impl Scene {
+    /// The scene of `config.seed`. One function on purpose: every random draw comes from one
+    /// sequence in the order read here (layout, streets, blocks, actors, route), and that
+    /// order is what makes a seed's scene the same on every version that keeps it.
     pub fn generate(config: SceneConfig) -> Scene {
         let seed = config.seed;
         let mut rng = Rng::new(seed, 1);
