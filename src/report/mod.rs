@@ -136,9 +136,10 @@ fn escape(s: &str) -> String {
         .replace('>', "&gt;")
 }
 
-/// Writes the whole report into `dir` (created if missing); returns the files. The HTML is
-/// written top to bottom in the order a reader sees it (summary, effects, plots, maps), so
-/// the function follows the page rather than being cut into pieces that each write a part.
+/// Writes the whole report into `dir` (created if missing); returns the files. The plots
+/// first, then the HTML top to bottom in the order a reader sees it (summary, effects,
+/// candidates, divergences, plots): the function follows the page rather than being cut into
+/// pieces that each write a part of it.
 pub fn write(dir: &Path, d: &Diagnosis, provenance: &Provenance) -> anyhow::Result<Vec<PathBuf>> {
     std::fs::create_dir_all(dir).with_context(|| format!("cannot create {}", dir.display()))?;
     let mut files = Vec::new();
