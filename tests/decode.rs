@@ -162,37 +162,53 @@ fn bad_decoding_flags_are_clear_errors() {
     assert!(!output.exists(), "no partial output");
 }
 
+/// Each shipped Foxglove layout, with the `convert` flags of the recording it is made for:
+/// every panel names a topic, and that command writes every topic named.
 #[test]
-fn the_foxglove_layout_names_only_written_channels() {
-    let layout: serde_json::Value = serde_json::from_str(
-        &std::fs::read_to_string("layouts/rangegan.foxglove-layout.json").unwrap(),
-    )
-    .unwrap();
-    let mut wanted = std::collections::BTreeSet::new();
-    for panel in layout["configById"].as_object().unwrap().values() {
-        if let Some(t) = panel["imageMode"]["imageTopic"].as_str() {
-            wanted.insert(t.to_string());
-        }
-        if let Some(topics) = panel["topics"].as_object() {
-            wanted.extend(topics.keys().cloned());
-        }
-    }
-    assert!(wanted.len() >= 8, "{wanted:?}");
+fn every_panel_of_the_foxglove_layouts_is_filled_by_its_command() {
+    let layouts: [(&str, &[&str]); 2] = [
+        ("layouts/rangegan.foxglove-layout.json", &[]),
+        (
+            "layouts/rangegan-resampled.foxglove-layout.json",
+            &["--upsample", "2", "--target-sensor", "vlp32c"],
+        ),
+    ];
     let dir = tempfile::tempdir().unwrap();
-    let output = dir.path().join("out.mcap");
-    convert(
-        Path::new("sample_logs/drive_realistic.mcap"),
-        &output,
-        &["--upsample", "2", "--target-sensor", "vlp32c"],
-        "2",
-    );
-    let bytes = std::fs::read(&output).unwrap();
-    let written: std::collections::BTreeSet<String> = mcap::MessageStream::new(&bytes)
-        .unwrap()
-        .map(|m| m.unwrap().channel.topic.clone())
-        .collect();
-    let missing: Vec<_> = wanted.difference(&written).collect();
-    assert!(missing.is_empty(), "layout topics not written: {missing:?}");
+    for (k, (file, flags)) in layouts.iter().enumerate() {
+        let layout: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(file).unwrap()).unwrap();
+        let mut wanted = std::collections::BTreeSet::new();
+        for (id, panel) in layout["configById"].as_object().unwrap() {
+            let mut topics: Vec<String> = panel["imageMode"]["imageTopic"]
+                .as_str()
+                .map(String::from)
+                .into_iter()
+                .collect();
+            if let Some(t) = panel["topics"].as_object() {
+                topics.extend(t.keys().cloned());
+            }
+            assert!(!topics.is_empty(), "{file}: panel {id} names no topic");
+            wanted.extend(topics);
+        }
+        assert!(wanted.len() >= 3, "{file}: {wanted:?}");
+        let output = dir.path().join(format!("out{k}.mcap"));
+        convert(
+            Path::new("sample_logs/drive_realistic.mcap"),
+            &output,
+            flags,
+            "2",
+        );
+        let bytes = std::fs::read(&output).unwrap();
+        let written: std::collections::BTreeSet<String> = mcap::MessageStream::new(&bytes)
+            .unwrap()
+            .map(|m| m.unwrap().channel.topic.clone())
+            .collect();
+        let missing: Vec<_> = wanted.difference(&written).collect();
+        assert!(
+            missing.is_empty(),
+            "{file}: topics not written: {missing:?}"
+        );
+    }
 }
 
 /// A scan with nothing to decode (every return beyond the model's 80 m) still gets its range
