@@ -26,7 +26,7 @@ use burn::optim::{AdamConfig, GradientsParams};
 use burn::tensor::{Device, Tensor};
 use rangegan_mcap::lidar::SensorProfile;
 use rangegan_mcap::model::generator::{Generator, GeneratorConfig, GridCache};
-use rangegan_mcap::model::rng::Rng;
+use rangegan_mcap::util::rng::Rng;
 
 const ALL_OPS: [&str; 6] = [
     "fwd_b1",

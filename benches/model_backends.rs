@@ -13,7 +13,7 @@ use burn::tensor::{Device, Tensor};
 use rangegan_mcap::lidar::SensorProfile;
 use rangegan_mcap::model::discriminator::DiscriminatorConfig;
 use rangegan_mcap::model::generator::{GeneratorConfig, MappingConfig};
-use rangegan_mcap::model::rng::Rng;
+use rangegan_mcap::util::rng::Rng;
 
 fn median_secs(reps: usize, mut f: impl FnMut()) -> f64 {
     f(); // warm-up

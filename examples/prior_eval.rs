@@ -31,7 +31,6 @@ use rangegan_mcap::model::data::{RangeDataset, kitti_heldout_files, kitti_valida
 use rangegan_mcap::model::generator::Generator;
 use rangegan_mcap::model::layers::AngleGridExt;
 use rangegan_mcap::model::metrics::{SwdConfig, swd};
-use rangegan_mcap::model::rng::Rng;
 use rangegan_mcap::model::sample::{SampleOptions, sample};
 use rangegan_mcap::model::two_sample::{
     C2stConfig, C2stReport, blur_returns, c2st, frechet_distance, texture_features,
@@ -39,6 +38,7 @@ use rangegan_mcap::model::two_sample::{
 use rangegan_mcap::model::weights::{Model, parse_labelled_model};
 use rangegan_mcap::train::growth::{Level, Stage};
 use rangegan_mcap::train::write_png;
+use rangegan_mcap::util::rng::Rng;
 
 #[derive(clap::Parser)]
 struct Args {

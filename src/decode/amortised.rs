@@ -19,7 +19,7 @@ use burn::tensor::{Bytes, Device, Tensor};
 
 use crate::model::discriminator::pad_circular;
 use crate::model::layers::{EqualLinear, EqualLinearConfig};
-use crate::model::rng::Rng;
+use crate::util::rng::Rng;
 
 /// The shipped encoder's configuration and weights (trained against `models/dusty2`).
 const SHIPPED_CONFIG: &str = include_str!("../../models/encoder/config.json");

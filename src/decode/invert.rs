@@ -10,7 +10,7 @@ use burn::tensor::{Device, Tensor};
 
 use super::loss::reconstruction_loss;
 use crate::model::generator::{Generator, GridCache};
-use crate::model::rng::{tensor_from, tensor_to_vec};
+use crate::util::tensor::{tensor_from, tensor_to_vec};
 
 /// Steps and learning rates of one inversion.
 #[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
@@ -211,7 +211,7 @@ mod tests {
     use super::*;
     use crate::model::generator::{GeneratorConfig, MappingConfig};
     use crate::model::layers::kitti_like_grid;
-    use crate::model::rng::Rng;
+    use crate::util::rng::Rng;
 
     #[test]
     fn ramp_rises_then_falls_to_zero() {

@@ -112,7 +112,7 @@ pub fn network_to_depth(x_net: &[f32]) -> Vec<f32> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::model::rng::{tensor_from, tensor_to_vec};
+    use crate::util::tensor::{tensor_from, tensor_to_vec};
     use burn::tensor::Device;
 
     fn t(v: Vec<f32>, h: usize, w: usize) -> Tensor<4> {

@@ -666,7 +666,7 @@ mod tests {
     /// Second differences of `n` returns at 5-60 m with range noise `sigma(d)` on top of a
     /// scene roughness of 2 mm.
     fn second_differences(n: usize, seed: u64, sigma: impl Fn(f32) -> f32) -> Obs {
-        let mut rng = crate::model::rng::Rng::new(seed);
+        let mut rng = crate::util::rng::Rng::new(seed);
         (0..n)
             .map(|_| {
                 let d = 5.0 + 55.0 * rng.uniform();
@@ -679,7 +679,7 @@ mod tests {
     /// Motion observations of `scans` scans: per scan 40 seam steps (the first `moved` of
     /// them `shift` m nearer) and 480 control steps, every step Gaussian with `sigma` m.
     fn seam_steps(scans: usize, seed: u64, sigma: f32, moved: usize, shift: f32) -> Obs {
-        let mut rng = crate::model::rng::Rng::new(seed);
+        let mut rng = crate::util::rng::Rng::new(seed);
         let mut obs = Vec::new();
         for _ in 0..scans {
             for k in 0..40 {

@@ -358,7 +358,7 @@ pub fn erfc(x: f64) -> f64 {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::sim::rng::uniform;
+    use crate::util::rng::uniform;
 
     /// A synthetic "scan" of `n` pixels with features drawn from `seed`, each
     /// dropped with probability `drop_prob(range_m)`. Row, azimuth, class and

@@ -23,7 +23,7 @@ use crate::physics::dropout::{
 };
 use crate::physics::perturb::{MixedPixels, MotionDistortion, RangeNoise};
 use crate::sim::Material;
-use crate::sim::rng::uniform;
+use crate::util::rng::uniform;
 
 const SCANS: u32 = 6;
 

@@ -11,7 +11,7 @@ use burn::tensor::{Device, Tensor};
 
 use super::discriminator::{EqualConv, EqualConvConfig};
 use super::layers::{EqualLinear, EqualLinearConfig};
-use super::rng::Rng;
+use crate::util::rng::Rng;
 
 #[derive(Config, Debug)]
 pub struct ConvGeneratorConfig {

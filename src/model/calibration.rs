@@ -206,7 +206,7 @@ fn logistic_fit(s: &BeamSamples) -> BeamCalibration {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::model::rng::Rng;
+    use crate::util::rng::Rng;
 
     fn samples(map: BeamCalibration, n: usize, seed: u64) -> BeamSamples {
         let mut rng = Rng::new(seed);

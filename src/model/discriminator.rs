@@ -9,7 +9,7 @@ use burn::tensor::ops::ConvOptions;
 use burn::tensor::{Device, Tensor, TensorData};
 
 use super::layers::{EqualLinear, EqualLinearConfig, lrelu_gain, roll, shift_replicate};
-use super::rng::Rng;
+use crate::util::rng::Rng;
 
 /// Pad `[batch, ch, H, W]` by `p` on every side: circular along W, replicate along H.
 pub fn pad_circular(x: Tensor<4>, p: usize) -> Tensor<4> {
@@ -324,8 +324,8 @@ pub fn minibatch_stddev(x: Tensor<4>, group: usize) -> Tensor<4> {
 
 #[cfg(test)]
 mod tests {
-    use super::super::rng::tensor_to_vec;
     use super::*;
+    use crate::util::tensor::tensor_to_vec;
 
     #[test]
     fn downsample_keeps_constants_and_matches_filter() {
@@ -336,7 +336,7 @@ mod tests {
         assert!(tensor_to_vec(y).iter().all(|v| (v - 1.0).abs() < 1e-6));
         // One row, columns 0..8 as values: out[0] = (x[7] + 3x[0] + 3x[1] + x[2]) / 8 (circular)
         let v: Vec<f32> = (0..16).map(|i| (i % 8) as f32).collect();
-        let x = super::super::rng::tensor_from(v, [1, 1, 2, 8], &dev);
+        let x = crate::util::tensor::tensor_from(v, [1, 1, 2, 8], &dev);
         let y = tensor_to_vec(downsample2x(x));
         assert!((y[0] - (7.0 + 0.0 + 3.0 + 2.0) / 8.0).abs() < 1e-6, "{y:?}");
     }
@@ -346,7 +346,7 @@ mod tests {
         let (h, w) = (6, 10);
         let mut rng = Rng::new(8);
         let x: Vec<f32> = rng.normal_vec(2 * h * w);
-        let y = tensor_to_vec(downsample2x(super::super::rng::tensor_from(
+        let y = tensor_to_vec(downsample2x(crate::util::tensor::tensor_from(
             x.clone(),
             [1, 2, h, w],
             &Device::flex(),
@@ -373,7 +373,7 @@ mod tests {
     #[test]
     fn space_to_depth_folds_each_block_into_channels() {
         let v: Vec<f32> = (0..16).map(|i| i as f32).collect();
-        let x = super::super::rng::tensor_from(v, [1, 1, 2, 8], &Device::flex());
+        let x = crate::util::tensor::tensor_from(v, [1, 1, 2, 8], &Device::flex());
         let y = space_to_depth(x, 2);
         assert_eq!(y.dims(), [1, 4, 1, 4]);
         // Channel (r, c) of the block holds pixel (r, 2j + c) of column block j.

@@ -16,8 +16,9 @@ use super::layers::{
     AngleGridExt, EqualLinear, EqualLinearConfig, FourierFeatures, FourierFeaturesConfig,
     ModulatedLinear, ModulatedLinearConfig, fixed_param, upsample2x,
 };
-use super::rng::{Rng, tensor_from};
 use crate::lidar::AngleGrid;
+use crate::util::rng::Rng;
+use crate::util::tensor::tensor_from;
 
 // ---------------------------------------------------------------------------------------------
 // Mapping network
@@ -443,8 +444,8 @@ pub fn subgrid_offset_rad(s: f32) -> f32 {
 #[cfg(test)]
 mod tests {
     use super::super::layers::{kitti_like_grid, roll};
-    use super::super::rng::tensor_to_vec;
     use super::*;
+    use crate::util::tensor::tensor_to_vec;
     use burn::module::ModuleVisitor;
 
     fn tiny(blocks: usize) -> GeneratorConfig {

@@ -13,8 +13,10 @@ use burn::module::{Module, Param};
 use burn::tensor::activation::relu;
 use burn::tensor::{Device, Tensor};
 
-use super::rng::{Rng, tensor_from, tensor_to_vec};
+use crate::util::rng::Rng;
+
 use crate::lidar::AngleGrid;
+use crate::util::tensor::{tensor_from, tensor_to_vec};
 
 /// LeakyReLU(0.2) scaled by sqrt(2) to keep unit variance (StyleGAN2).
 ///

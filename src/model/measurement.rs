@@ -6,7 +6,7 @@ use burn::config::Config;
 use burn::tensor::activation::sigmoid;
 use burn::tensor::{Device, Tensor};
 
-use super::rng::Rng;
+use crate::util::rng::Rng;
 
 /// Reference section 3: mask ~ Bernoulli(keep_prob), temperature 1.
 #[derive(Config, Debug)]
@@ -60,8 +60,8 @@ pub fn expected_measurement(x_d: Tensor<4>, keep_logit: Tensor<4>) -> Tensor<4> 
 
 #[cfg(test)]
 mod tests {
-    use super::super::rng::tensor_to_vec;
     use super::*;
+    use crate::util::tensor::tensor_to_vec;
 
     #[test]
     fn mask_is_binary_with_the_keep_frequency_and_passes_gradients() {

@@ -2,7 +2,7 @@
 //! pyramid (3 levels), 7x7 patches, 128 patches per image per level, descriptors normalised per
 //! set, 4 x 128 random projections, mean |sorted(a) - sorted(b)|. Host code, no burn.
 
-use super::rng::Rng;
+use crate::util::rng::Rng;
 
 /// SWD settings (defaults are the paper's).
 #[derive(Debug, Clone)]

@@ -22,7 +22,6 @@ pub mod generator;
 pub mod layers;
 pub mod measurement;
 pub mod metrics;
-pub mod rng;
 pub mod sample;
 pub mod two_sample;
 pub mod weights;

@@ -8,9 +8,10 @@ use burn::tensor::activation::sigmoid;
 
 use super::AnyGenerator;
 use super::data::{MAX_DEPTH_M, MIN_DEPTH_M, RangeDataset};
-use super::rng::{Rng, tensor_to_vec};
 use super::weights::Model;
 use crate::lidar::{AngleGrid, SensorProfile};
+use crate::util::rng::Rng;
+use crate::util::tensor::tensor_to_vec;
 
 /// One generated scan, row-major `[H, W]`.
 #[derive(Debug, Clone)]

@@ -14,7 +14,7 @@
 
 use nalgebra::{DMatrix, DVector};
 
-use super::rng::Rng;
+use crate::util::rng::Rng;
 
 /// A pixel at or below this is a dropped ray.
 const DROPPED: f32 = -1.0 + 1e-4;

@@ -111,7 +111,8 @@ impl Model {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::model::rng::{Rng, tensor_to_vec};
+    use crate::util::rng::Rng;
+    use crate::util::tensor::tensor_to_vec;
 
     #[test]
     fn labelled_models_parse() {

@@ -16,7 +16,7 @@ use super::perturb::{
 };
 use super::{Effect, Physics};
 use crate::sim::Material;
-use crate::sim::rng::gaussian;
+use crate::util::rng::gaussian;
 
 /// Errors loading or checking physics; each names the file or the parameter.
 #[derive(Debug, thiserror::Error)]

@@ -7,7 +7,7 @@ use serde::{Deserialize, Serialize};
 
 use super::{Effect, RayFeatures};
 use crate::sim::Material;
-use crate::sim::rng::gaussian;
+use crate::util::rng::gaussian;
 
 fn yes() -> bool {
     true

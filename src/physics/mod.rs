@@ -23,8 +23,8 @@ pub mod pretraining;
 
 pub use config::{PhysicsConfig, PhysicsError, Preset};
 
-use crate::sim::rng::{gaussian, key_hash, uniform};
 use crate::sim::{Material, SimScan};
+use crate::util::rng::{gaussian, key_hash, uniform};
 
 /// What a drop model may look at for one ray: its ideal (pre-physics) features.
 #[derive(Debug, Clone, Copy, PartialEq)]

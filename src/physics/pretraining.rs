@@ -11,8 +11,8 @@ use rayon::prelude::*;
 use super::{PhysicsConfig, Preset};
 use crate::lidar::SensorProfile;
 use crate::model::data::{RangeDataset, range_to_network};
-use crate::sim::rng::{key_hash, uniform};
 use crate::sim::{SceneConfig, Simulator};
+use crate::util::rng::{key_hash, uniform};
 
 /// What to simulate.
 #[derive(Debug, Clone, Copy, PartialEq)]

@@ -9,8 +9,8 @@ use anyhow::{Result, bail};
 
 use super::classes::{IGNORE, NUM_CLASSES, class_of};
 use crate::lidar::{RangeImage, SensorProfile};
-use crate::model::rng::Rng;
 use crate::recording::{self, Grid};
+use crate::util::rng::Rng;
 
 /// Input channels: x, y, z, range, return mask.
 pub const CHANNELS: usize = 5;

@@ -15,10 +15,10 @@ use super::SegModel;
 use super::classes::{CAR_PERSON, CLASSES, IGNORE, NUM_CLASSES, SCORED, color};
 use super::data::{CHANNELS, SegDataset};
 use super::net::SegNet;
-use crate::model::rng::{tensor_from, tensor_to_vec};
 use crate::report::plot::{register_font, viridis};
 use crate::util::fs::write_atomic;
 use crate::util::png::encode_rgb;
+use crate::util::tensor::{tensor_from, tensor_to_vec};
 
 /// Counts of (true class, predicted class) over labelled returns.
 #[derive(Debug, Clone, Default)]

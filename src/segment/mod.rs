@@ -75,7 +75,7 @@ impl SegModel {
         let net = info
             .net
             // The loaded weights replace the drawn ones: the seed does not matter.
-            .init(&mut crate::model::rng::Rng::new(0), device)
+            .init(&mut crate::util::rng::Rng::new(0), device)
             .try_load_file(dir.join(Self::WEIGHTS))
             .map_err(|e| anyhow::anyhow!("{}: cannot load weights: {e}", dir.display()))?;
         Ok(SegModel { info, net })

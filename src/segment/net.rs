@@ -14,7 +14,8 @@ use burn::tensor::{Device, Tensor};
 
 use super::classes::NUM_CLASSES;
 use super::data::CHANNELS;
-use crate::model::rng::{Rng, tensor_from};
+use crate::util::rng::Rng;
+use crate::util::tensor::tensor_from;
 
 #[derive(Config, Debug)]
 pub struct SegNetConfig {
@@ -195,7 +196,7 @@ fn upsample2(x: Tensor<4>) -> Tensor<4> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::model::rng::tensor_to_vec;
+    use crate::util::tensor::tensor_to_vec;
 
     #[test]
     fn logits_have_the_input_grid_and_whole_scans_are_shift_equivariant() {

@@ -24,8 +24,9 @@ use super::classes::{CLASSES, IGNORE, NUM_CLASSES};
 use super::data::{CHANNELS, SegDataset, batch, benchmark_profile};
 use super::net::{SegNet, SegNetConfig};
 use super::{SegModel, SegModelInfo};
-use crate::model::rng::{Rng, tensor_from};
 use crate::train::{CHECKPOINT, write_checkpoint};
+use crate::util::rng::Rng;
+use crate::util::tensor::tensor_from;
 
 /// Everything that defines a run; saved as `config.json` before training starts.
 #[derive(Config, Debug)]

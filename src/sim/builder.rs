@@ -4,7 +4,7 @@
 
 use super::geometry::{Primitive, Shape, Vec3, v3};
 use super::material::surface as S;
-use super::rng::Rng;
+use crate::util::rng::Rng;
 
 /// Ranges (low, high) of a tree's random dimensions.
 pub(super) struct TreeShape {

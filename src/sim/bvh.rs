@@ -225,12 +225,12 @@ fn build_node(
 #[cfg(test)]
 mod tests {
     use super::super::geometry::{Shape, v3};
-    use super::super::rng::Rng;
     use super::*;
+    use crate::util::rng::Rng;
 
     #[test]
     fn bvh_finds_the_same_nearest_hit_as_brute_force() {
-        let mut rng = Rng::new(1, 0);
+        let mut rng = Rng::keyed(1, 0);
         let prims: Vec<Primitive> = (0..2000)
             .map(|k| {
                 let c = v3(

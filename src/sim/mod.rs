@@ -4,7 +4,7 @@
 //! Every scan carries per-pixel ground truth (label, material, incidence angle,
 //! reflectivity, time) for the physics layer ([`crate::physics`]), which turns the
 //! ideal scan into a realistic one. Randomness is keyed, never sequential across
-//! threads ([`rng`]). Comparison with real KITTI scans lives in [`realism`].
+//! threads ([`crate::util::rng`]). Comparison with real KITTI scans lives in [`realism`].
 //!
 //! ```
 //! use rangegan_mcap::lidar::SensorProfile;
@@ -21,7 +21,6 @@ pub mod geometry;
 pub mod material;
 pub mod raycast;
 pub mod realism;
-pub mod rng;
 pub mod scene;
 mod street;
 pub mod trajectory;

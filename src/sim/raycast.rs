@@ -8,9 +8,9 @@ use rayon::prelude::*;
 
 use super::geometry::{Ray, Vec3, v3};
 use super::material::Material;
-use super::rng::key_hash;
 use super::scene::Scene;
 use crate::lidar::{RangeImage, Scan, SensorProfile};
+use crate::util::rng::key_hash;
 
 /// When each column is measured within a sweep.
 #[derive(Debug, Clone, Copy, PartialEq)]

@@ -8,8 +8,8 @@
 use super::bvh::Bvh;
 use super::geometry::{Primitive, Ray, Shape, Vec3, v3};
 use super::material::{SURFACES, Surface};
-use super::rng::{Rng, key_hash, unit_f32};
 use super::trajectory::{PlanarPose, Trajectory};
+use crate::util::rng::{Rng, key_hash, unit_f32};
 
 use super::builder::{Builder, car_template, cyclist_template};
 use super::street::{block, intersection, road_strip};
@@ -117,7 +117,7 @@ impl Scene {
     /// order is what makes a seed's scene the same on every version that keeps it.
     pub fn generate(config: SceneConfig) -> Scene {
         let seed = config.seed;
-        let mut rng = Rng::new(seed, 1);
+        let mut rng = Rng::keyed(seed, 1);
         let road_half_width_m = rng.range(3.6, 6.2);
         let layout = Layout {
             block_m: [rng.range(70.0, 130.0), rng.range(60.0, 110.0)],
@@ -131,7 +131,7 @@ impl Scene {
         };
         let length = config.speed_mps.max(0.0) * config.duration_s.max(0.0);
         let trajectory = Trajectory::on_grid(
-            &mut Rng::new(seed, 2),
+            &mut Rng::keyed(seed, 2),
             layout.block_m,
             layout.lane_offset_m,
             8.0,
@@ -159,7 +159,7 @@ impl Scene {
         let (k0, k1) = ((lo[1] / by).floor() as i32, (hi[1] / by).ceil() as i32);
         let hw = layout.road_half_width_m;
         let mut b = Builder::new(layout.slope);
-        let mut srng = Rng::new(seed, 3);
+        let mut srng = Rng::keyed(seed, 3);
         let mut actors = Vec::new();
 
         // Roads: street segments between intersections, and the intersections.

@@ -7,8 +7,8 @@ use std::f32::consts::{FRAC_PI_2, PI};
 use super::builder::{Builder, TreeShape, car_template, pedestrian_template};
 use super::geometry::{Primitive, Shape, Vec3, v3};
 use super::material::surface as S;
-use super::rng::Rng;
 use super::scene::{Actor, Layout};
+use crate::util::rng::Rng;
 
 /// One side of a block: points are `origin + along * s + inward * u`.
 pub(super) struct BlockSide {
@@ -325,7 +325,7 @@ pub(super) fn lift_template(p: &mut Primitive, dz: f32) {
 /// gardens, or open green with bushes and trees.
 pub(super) fn frontage(b: &mut Builder, rng: &mut Rng, layout: &Layout, side: &BlockSide) {
     let (curb, sw) = (layout.curb_m, layout.sidewalk_m);
-    let style = rng.unit();
+    let style = rng.uniform();
     let max_depth = (side.depth - sw - 1.0).max(2.0);
     let facades = [S::PLASTER, S::BRICK, S::CONCRETE_WALL];
     let buildings = |b: &mut Builder, rng: &mut Rng, setback: [f32; 2]| {

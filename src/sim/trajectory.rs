@@ -2,7 +2,7 @@
 //! 90-degree turns at intersections, in the right-hand lane, at constant speed.
 //! Gives the planar pose (x, y, yaw) and yaw rate at any time.
 
-use super::rng::Rng;
+use crate::util::rng::Rng;
 
 /// A planar pose in the world frame: position in meters, heading in radians
 /// (counter-clockwise from +x).
@@ -66,7 +66,7 @@ impl Trajectory {
             let next = [node[0] + d[0], node[1] + d[1]];
             street_segments.push((node, next));
             node = next;
-            let draw = rng.unit();
+            let draw = rng.uniform();
             // Never turn twice in a row, so the route does not circle one block.
             let turn = if turned_last || draw < 0.55 {
                 0
@@ -187,7 +187,7 @@ mod tests {
     #[test]
     fn route_is_continuous_and_moves_at_speed() {
         for seed in 0..5 {
-            let mut rng = Rng::new(seed, 9);
+            let mut rng = Rng::keyed(seed, 9);
             let traj = Trajectory::on_grid(&mut rng, [90.0, 70.0], 1.7, 8.0, 400.0, 10.0);
             assert!(traj.length_m() >= 400.0);
             let mut prev = traj.pose_at(0.0);
@@ -202,7 +202,7 @@ mod tests {
             }
         }
         // Heading +x at the start, in the right (y < 0) lane.
-        let traj = Trajectory::on_grid(&mut Rng::new(0, 9), [90.0, 70.0], 1.7, 8.0, 100.0, 10.0);
+        let traj = Trajectory::on_grid(&mut Rng::keyed(0, 9), [90.0, 70.0], 1.7, 8.0, 100.0, 10.0);
         let p = traj.pose_at(0.0);
         assert!(p.yaw.abs() < 1e-3 && (p.y + 1.7).abs() < 1e-3);
     }

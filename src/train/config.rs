@@ -14,8 +14,8 @@ use crate::model::baseline::ConvGeneratorConfig;
 use crate::model::discriminator::DiscriminatorConfig;
 use crate::model::generator::GeneratorConfig;
 use crate::model::measurement::MeasurementConfig;
-use crate::model::rng::Rng;
 use crate::model::{AnyGenerator, Arch, ModelConfig};
+use crate::util::rng::Rng;
 
 use super::growth::Stage;
 use super::reconstruct::ReconstructionConfig;

@@ -30,8 +30,9 @@ use crate::model::AnyGenerator;
 use crate::model::data::RangeDataset;
 use crate::model::generator::Generator;
 use crate::model::measurement::MeasurementConfig;
-use crate::model::rng::{Rng, tensor_from, tensor_to_vec};
 use crate::model::weights::Model;
+use crate::util::rng::Rng;
+use crate::util::tensor::{tensor_from, tensor_to_vec};
 
 /// Everything that defines an encoder run; saved as `config.json` before training starts.
 #[derive(Config, Debug)]

@@ -14,7 +14,7 @@
 use burn::config::Config;
 
 use crate::model::generator::GridCache;
-use crate::model::rng::Rng;
+use crate::util::rng::Rng;
 
 /// One stage of coarse-to-fine training.
 #[derive(Config, Debug, PartialEq)]

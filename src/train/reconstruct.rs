@@ -115,7 +115,7 @@ mod tests {
     use super::*;
     use crate::model::generator::GeneratorConfig;
     use crate::model::layers::kitti_like_grid;
-    use crate::model::rng::Rng;
+    use crate::util::rng::Rng;
     use burn::optim::GradientsParams;
 
     /// A few steps on the reconstruction loss alone bring the rendering of an encoded scan
@@ -152,7 +152,7 @@ mod tests {
                 }
             })
             .collect();
-        let real = crate::model::rng::tensor_from(real, [2, 1, 16, 64], &device);
+        let real = crate::util::tensor::tensor_from(real, [2, 1, 16, 64], &device);
         let z = rng.normal_tensor([2, g.d_z()], &device);
         let mut first = None;
         let mut last = 0.0;

@@ -7,7 +7,8 @@ use burn::optim::GradientsParams;
 use burn::tensor::Tensor;
 
 use crate::model::AnyGenerator;
-use crate::model::rng::{Rng, tensor_from};
+use crate::util::rng::Rng;
+use crate::util::tensor::tensor_from;
 
 /// The keep logit's output row in a generator head (row 0 is x_d before tanh).
 const KEEP_LOGIT: usize = 1;
@@ -183,8 +184,8 @@ mod tests {
     use crate::model::Arch;
     use crate::model::baseline::ConvGeneratorConfig;
     use crate::model::generator::GeneratorConfig;
-    use crate::model::rng::tensor_to_vec;
     use crate::train::{TrainConfig, init_generator};
+    use crate::util::tensor::tensor_to_vec;
     use burn::tensor::Device;
 
     #[test]

@@ -5,8 +5,12 @@
 //! - [`fs`]: atomic file writes.
 //! - [`json`]: merging a saved JSON config over the current defaults.
 //! - [`png`]: PNG encoding.
+//! - [`rng`]: deterministic random numbers, keyed or sequential.
+//! - [`tensor`]: host vectors <-> burn tensors.
 
 pub mod bounds;
 pub mod fs;
 pub mod json;
 pub mod png;
+pub mod rng;
+pub mod tensor;

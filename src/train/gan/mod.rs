@@ -24,8 +24,9 @@ use crate::model::data::RangeDataset;
 use crate::model::discriminator::Discriminator;
 use crate::model::generator::{Generator, GridCache, random_subgrid_shift};
 use crate::model::measurement::MeasurementConfig;
-use crate::model::rng::{Rng, tensor_from, tensor_to_vec};
 use crate::model::{AnyGenerator, Arch, Generated};
+use crate::util::rng::Rng;
+use crate::util::tensor::{tensor_from, tensor_to_vec};
 
 use super::config::{TrainConfig, TrainOptions, TrainState, init_generator, load_config};
 use super::growth::{Level, stage_at};
