@@ -317,3 +317,29 @@ pub(super) fn cyclist_template(rng: &mut Rng, b: &mut Builder, instance: u16) {
         instance,
     );
 }
+
+/// A moving thing: a local-frame mesh (x forward, z up from the ground) driven
+/// along a straight line, wrapping within its span.
+#[derive(Debug, Clone)]
+pub struct Actor {
+    pub(super) template: Vec<Primitive>,
+    pub(super) start: [f32; 2],
+    pub(super) dir: [f32; 2],
+    pub(super) speed_mps: f32,
+    pub(super) phase_m: f32,
+    pub(super) span_m: f32,
+}
+
+impl Actor {
+    pub(super) fn position(&self, t_s: f32) -> [f32; 2] {
+        let s = if self.span_m > 0.0 {
+            (self.phase_m + self.speed_mps * t_s).rem_euclid(self.span_m)
+        } else {
+            0.0
+        };
+        [
+            self.start[0] + self.dir[0] * s,
+            self.start[1] + self.dir[1] * s,
+        ]
+    }
+}

@@ -11,7 +11,8 @@ use super::material::{SURFACES, Surface};
 use super::trajectory::{PlanarPose, Trajectory};
 use crate::util::rng::{Rng, key_hash, unit_f32};
 
-use super::builder::{Builder, car_template, cyclist_template};
+use super::builder::{Actor, Builder, car_template, cyclist_template};
+pub use super::street::Layout;
 use super::street::{block, intersection, road_strip};
 
 /// What to generate: the seed, and the drive the scene must cover.
@@ -37,57 +38,6 @@ impl Default for SceneConfig {
             max_range_m: 80.0,
             sensor_height_m: 1.73,
         }
-    }
-}
-
-/// The street grid's dimensions, drawn per seed.
-#[derive(Debug, Clone, PartialEq)]
-pub struct Layout {
-    /// Street spacing along x and y (streets at `x = i * block_m[0]`, `y = k * block_m[1]`).
-    pub block_m: [f32; 2],
-    /// Half the carriageway width, curb to curb.
-    pub road_half_width_m: f32,
-    pub sidewalk_m: f32,
-    pub curb_m: f32,
-    /// Cross slope of the road from crown to gutter (e.g. 0.02 = 2 %).
-    pub camber: f32,
-    /// Global ground slope dz/dx, dz/dy.
-    pub slope: [f32; 2],
-    /// Lateral offset of a driving lane's centre from the street centreline.
-    pub lane_offset_m: f32,
-    /// Whether streets have parking lanes along the curbs.
-    pub parking: bool,
-}
-
-impl Layout {
-    pub fn ground_z(&self, x: f32, y: f32) -> f32 {
-        self.slope[0] * x + self.slope[1] * y
-    }
-}
-
-/// A moving thing: a local-frame mesh (x forward, z up from the ground) driven
-/// along a straight line, wrapping within its span.
-#[derive(Debug, Clone)]
-pub struct Actor {
-    pub(super) template: Vec<Primitive>,
-    pub(super) start: [f32; 2],
-    pub(super) dir: [f32; 2],
-    pub(super) speed_mps: f32,
-    pub(super) phase_m: f32,
-    pub(super) span_m: f32,
-}
-
-impl Actor {
-    fn position(&self, t_s: f32) -> [f32; 2] {
-        let s = if self.span_m > 0.0 {
-            (self.phase_m + self.speed_mps * t_s).rem_euclid(self.span_m)
-        } else {
-            0.0
-        };
-        [
-            self.start[0] + self.dir[0] * s,
-            self.start[1] + self.dir[1] * s,
-        ]
     }
 }
 

@@ -4,11 +4,35 @@
 
 use std::f32::consts::{FRAC_PI_2, PI};
 
-use super::builder::{Builder, TreeShape, car_template, pedestrian_template};
+use super::builder::{Actor, Builder, TreeShape, car_template, pedestrian_template};
 use super::geometry::{Primitive, Shape, Vec3, v3};
 use super::material::surface as S;
-use super::scene::{Actor, Layout};
 use crate::util::rng::Rng;
+
+/// The street grid's dimensions, drawn per seed.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Layout {
+    /// Street spacing along x and y (streets at `x = i * block_m[0]`, `y = k * block_m[1]`).
+    pub block_m: [f32; 2],
+    /// Half the carriageway width, curb to curb.
+    pub road_half_width_m: f32,
+    pub sidewalk_m: f32,
+    pub curb_m: f32,
+    /// Cross slope of the road from crown to gutter (e.g. 0.02 = 2 %).
+    pub camber: f32,
+    /// Global ground slope dz/dx, dz/dy.
+    pub slope: [f32; 2],
+    /// Lateral offset of a driving lane's centre from the street centreline.
+    pub lane_offset_m: f32,
+    /// Whether streets have parking lanes along the curbs.
+    pub parking: bool,
+}
+
+impl Layout {
+    pub fn ground_z(&self, x: f32, y: f32) -> f32 {
+        self.slope[0] * x + self.slope[1] * y
+    }
+}
 
 /// One side of a block: points are `origin + along * s + inward * u`.
 pub(super) struct BlockSide {
