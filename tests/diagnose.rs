@@ -113,6 +113,13 @@ fn diagnose_names_a_concealed_range_dropout_and_render_applies_it() {
     }
     let html = std::fs::read_to_string(report.join("report.html")).unwrap();
     assert!(html.contains("range_dropout") && html.contains("drop_vs_range.png"));
+    // The summary names the effect in words and says how the fit checks against the
+    // held-out scans feature by feature.
+    let summary = &html[html.find("id='summary'").unwrap()..html.find("</section>").unwrap()];
+    assert!(summary.contains("rays lost with distance"), "{summary}");
+    assert!(summary.contains("of the real drop rate in"), "{summary}");
+    assert!(r["check"].as_array().unwrap().len() >= 3, "{r}");
+    assert!(r["check"][0]["bins"].as_u64().unwrap() > 0, "{r}");
     // As a reader sees it: every image loads, no script error.
     if let Some(page) = browser::render(&report.join("report.html"), d) {
         assert_eq!(page.title, "rangegan-mcap diagnose");
@@ -120,6 +127,10 @@ fn diagnose_names_a_concealed_range_dropout_and_render_applies_it() {
         assert!(page.broken.is_empty(), "images that did not load: {page:?}");
         assert!(page.min_width >= 400, "{page:?}");
         assert!(page.script_errors.is_empty(), "{page:?}");
+        // At a laptop's width the answer is on the first screen and nothing runs off the
+        // right edge.
+        assert!(page.scroll_width <= 1280, "{page:?}");
+        assert!(page.summary_top.is_some_and(|top| top < 400.0), "{page:?}");
         // The check sees a missing image.
         let broken = d.join("report_broken");
         std::fs::create_dir(&broken).unwrap();

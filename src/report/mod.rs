@@ -11,7 +11,7 @@ use std::path::{Path, PathBuf};
 
 use anyhow::Context;
 
-use crate::diagnose::report::{Curve, Diagnosis};
+use crate::diagnose::report::{CLOSE, Curve, Diagnosis, EffectReport, FeatureCheck, Report};
 use crate::util::fs::write_atomic;
 use plot::{FITTED, LineChart, REAL, SIM, Series, line_chart, viridis};
 
@@ -136,10 +136,8 @@ fn escape(s: &str) -> String {
         .replace('>', "&gt;")
 }
 
-/// Writes the whole report into `dir` (created if missing); returns the files. The plots
-/// first, then the HTML top to bottom in the order a reader sees it (summary, effects,
-/// candidates, divergences, plots): the function follows the page rather than being cut into
-/// pieces that each write a part of it.
+/// Writes the whole report into `dir` (created if missing); returns the files. The JSON, the
+/// plots in the order the page shows them, then the page.
 pub fn write(dir: &Path, d: &Diagnosis, provenance: &Provenance) -> anyhow::Result<Vec<PathBuf>> {
     std::fs::create_dir_all(dir).with_context(|| format!("cannot create {}", dir.display()))?;
     let mut files = Vec::new();
@@ -216,80 +214,240 @@ pub fn write(dir: &Path, d: &Diagnosis, provenance: &Provenance) -> anyhow::Resu
         caption: "One held-out real scan: grey by range (light near, dark far), black where dropped, red where the fitted effects located the mismatch (extra drop probability; the scan seam for motion distortion).".into(),
     });
 
-    let r = &d.report;
-    let mut html = String::new();
+    for f in &figures {
+        files.push(dir.join(&f.file));
+    }
+    let html = html(&d.report, &figures, provenance);
+    write_atomic(&dir.join("report.html"), html.as_bytes())
+        .with_context(|| format!("cannot write {}/report.html", dir.display()))?;
+    files.push(dir.join("report.html"));
+    Ok(files)
+}
+
+const STYLE: &str = "body{font-family:sans-serif;max-width:1100px;margin:auto;padding:0 12px}\
+    table{border-collapse:collapse;width:100%;table-layout:fixed}\
+    td,th{border:1px solid #ccc;padding:3px 6px;vertical-align:top;overflow-wrap:anywhere}\
+    img{max-width:100%;border:1px solid #ccc}\
+    #summary{background:#f4f6f8;padding:4px 16px;border-radius:6px}\
+    .plots{display:grid;grid-template-columns:repeat(auto-fill,minmax(460px,1fr));gap:8px}\
+    figure{margin:0}figcaption{font-size:90%}details{margin:10px 0}summary{cursor:pointer}";
+
+/// The page: the answer first (what differs, which physics is missing, how much the fit
+/// improves, where it still misses), the plots, then the details folded away.
+fn html(r: &Report, figures: &[Figure], provenance: &Provenance) -> String {
+    let mut html = format!(
+        "<!doctype html><html><head><meta charset='utf-8'>\
+         <meta name='viewport' content='width=device-width'>\
+         <title>rangegan-mcap diagnose</title><style>{STYLE}</style></head><body>\
+         <h1>Sim2Real diagnosis</h1>"
+    );
+    html.push_str(&summary(r));
+    let i = &r.inputs;
     let _ = write!(
         html,
-        "<!doctype html><html><head><meta charset='utf-8'><title>rangegan-mcap diagnose</title>\
-         <style>body{{font-family:sans-serif;max-width:1100px;margin:auto}}td,th{{border:1px solid #ccc;padding:3px 6px}}table{{border-collapse:collapse}}img{{max-width:100%;border:1px solid #ccc}}</style></head><body>\
-         <h1>Sim2Real diagnosis</h1><p>sim: <code>{}</code> ({}), real: <code>{}</code> ({}), sensor {}; {} sim scans, {} real scans ({} fit, {} held out), {}x{} grid, completion: {}. \
-         Drop rate sim {:.1} %, real {:.1} %; pixels completed beyond {:.0} m left out.</p>",
+        "<p>sim: <code>{}</code> ({}), real: <code>{}</code> ({}), sensor {}; {} sim scans, \
+         {} real scans ({} fit, {} held out), {}x{} grid, completion: {}; pixels completed \
+         beyond {:.0} m left out.</p>",
         escape(&provenance.sim),
         escape(&provenance.topic_sim),
         escape(&provenance.real),
         escape(&provenance.topic_real),
         escape(&provenance.sensor),
-        r.inputs.sim_scans,
-        r.inputs.real_scans,
-        r.inputs.real_train_scans,
-        r.inputs.real_test_scans,
-        r.inputs.rows,
-        r.inputs.columns,
-        escape(&r.inputs.completion),
-        100.0 * r.inputs.drop_rate_sim,
-        100.0 * r.inputs.drop_rate_real,
-        r.inputs.reach_m
+        i.sim_scans,
+        i.real_scans,
+        i.real_train_scans,
+        i.real_test_scans,
+        i.rows,
+        i.columns,
+        escape(&i.completion),
+        i.reach_m
     );
-    for why in &r.inputs.left_out {
+    for why in &i.left_out {
         let _ = write!(html, "<p>Left out: {}.</p>", escape(why));
     }
-    let _ = write!(
-        html,
-        "<h2>Fit on held-out real scans</h2><p>{}: before {:.5}, after {:.5} (lower is better).</p><h2>Effects found</h2>",
-        escape(&r.fit.metric),
-        r.fit.before,
-        r.fit.after
-    );
-    if r.effects.is_empty() {
-        html.push_str("<p>None: no candidate beats the null on held-out scans.</p>");
-    } else {
-        html.push_str("<table><tr><th>effect</th><th>confidence</th><th>where</th><th>parameters</th><th>fit before → after</th></tr>");
-        for e in &r.effects {
-            let params = serde_json::to_string(&e.params).unwrap_or_default();
-            let params = if params.len() > 400 {
-                format!(
-                    "{}…",
-                    &params[..params.char_indices().nth(400).map_or(params.len(), |c| c.0)]
-                )
-            } else {
-                params
-            };
-            let _ = write!(
-                html,
-                "<tr><td><b>{}</b></td><td>{:.2}</td><td>{}</td><td><code>{}</code></td><td>{}: {:.5} → {:.5}</td></tr>",
-                e.id,
-                e.confidence,
-                escape(&e.location),
-                escape(&params),
-                escape(&e.fit.metric),
-                e.fit.before,
-                e.fit.after
-            );
-        }
-        html.push_str("</table>");
-    }
-    html.push_str("<h2>Candidates (held-out gain vs penalty)</h2><table><tr><th>id</th><th>gain</th><th>penalty</th><th>significant</th></tr>");
-    for c in &r.candidates {
+    html.push_str("<h2>Plots</h2><div class='plots'>");
+    for f in figures {
         let _ = write!(
             html,
+            "<figure id='{}'><img src='{}' alt='{}'><figcaption>{}</figcaption></figure>",
+            f.file.trim_end_matches(".png"),
+            f.file,
+            f.file,
+            f.caption
+        );
+    }
+    html.push_str("</div>");
+    html.push_str(&details(r));
+    html.push_str(
+        "<p>Apply the fit to simulated data: <code>rangegan-mcap render --physics \
+         fitted_physics.json SIM.mcap OUT.mcap</code>.</p></body></html>",
+    );
+    html
+}
+
+/// What an effect is, in words, and the plot that shows it best.
+fn effect_words(id: &str) -> (&'static str, Option<&'static str>) {
+    match id {
+        "range_dropout" => ("rays lost with distance", Some("drop_vs_range")),
+        "incidence_dropout" => ("rays lost at grazing incidence", Some("drop_vs_incidence")),
+        "beam_dropout" => ("weak or dead beams", Some("drop_vs_row")),
+        "self_occlusion" => ("the ego vehicle blocking rays", Some("fitted_extra_drop")),
+        "material_dropout" => ("rays lost on dark or glass surfaces", None),
+        "range_noise" => ("noise on the measured range", None),
+        "mixed_pixels" => ("mixed returns at depth edges", None),
+        "motion_distortion" => ("the sensor moving during a sweep", Some("example_scan")),
+        _ => ("a sensor effect", None),
+    }
+}
+
+/// The first clause of an effect's location (up to a `;` outside parentheses), at most
+/// `max` characters.
+fn first_clause(location: &str, max: usize) -> String {
+    let mut depth = 0i32;
+    let end = location
+        .char_indices()
+        .find(|&(_, c)| {
+            depth += match c {
+                '(' | '[' => 1,
+                ')' | ']' => -1,
+                _ => 0,
+            };
+            c == ';' && depth == 0
+        })
+        .map_or(location.len(), |(i, _)| i);
+    let clause = location[..end].trim();
+    match clause.char_indices().nth(max) {
+        Some((cut, _)) => format!("{}…", &clause[..cut]),
+        None => clause.to_string(),
+    }
+}
+
+fn effect_line(e: &EffectReport) -> String {
+    let (words, plot) = effect_words(&e.id);
+    let link = plot.map_or(String::new(), |p| format!(" <a href='#{p}'>plot</a>"));
+    format!(
+        "<li><b>{words}</b> (<code>{}</code>, confidence {:.2}): {}.{link}</li>",
+        e.id,
+        e.confidence,
+        escape(&first_clause(&e.location, 160))
+    )
+}
+
+/// One sentence on where the fitted model still misses the held-out real drop rate.
+fn check_sentence(checks: &[FeatureCheck]) -> String {
+    let (bins, close) = checks
+        .iter()
+        .fold((0, 0), |(b, c), f| (b + f.bins, c + f.close));
+    let features: Vec<&str> = checks.iter().map(|c| c.feature.as_str()).collect();
+    let mut s = format!(
+        "Along {}, the sim with the fitted effects is within {CLOSE} of the real drop rate in \
+         {close} of {bins} bins",
+        features.join(", ")
+    );
+    let worse: Vec<String> = checks
+        .iter()
+        .flat_map(|c| {
+            c.worse_than_sim.iter().take(2).map(move |m| {
+                format!(
+                    "{} {:.1}{} (real {:.2}, sim {:.2}, fitted {:.2})",
+                    c.feature, m.at, c.unit, m.real, m.sim, m.fitted
+                )
+            })
+        })
+        .collect();
+    let n_worse: usize = checks.iter().map(|c| c.worse_than_sim.len()).sum();
+    if n_worse == 0 {
+        s.push_str(", and nowhere farther from it than the raw simulator.");
+    } else {
+        let _ = write!(
+            s,
+            "; it is farther from it than the raw simulator in {n_worse} bins: {}.",
+            worse.join("; ")
+        );
+    }
+    s
+}
+
+/// The first screen: what differs, the missing physics, the fit and the check.
+fn summary(r: &Report) -> String {
+    let i = &r.inputs;
+    let mut s = format!(
+        "<section id='summary'><p><b>What differs:</b> the real scans drop {:.1} % of rays, the \
+         simulated ones {:.1} %",
+        100.0 * i.drop_rate_real,
+        100.0 * i.drop_rate_sim
+    );
+    if let Some(t) = r.mismatch.first() {
+        let _ = write!(
+            s,
+            "; the largest divergence: {} (real {:.1} % vs sim {:.1} % dropped)",
+            escape(&t.location),
+            100.0 * t.rate_real,
+            100.0 * t.rate_sim
+        );
+    }
+    s.push_str(".</p><p><b>Missing physics:</b></p>");
+    if r.effects.is_empty() {
+        s.push_str("<p>none found: no candidate beats the null on held-out scans.</p>");
+    } else {
+        s.push_str("<ul>");
+        for e in &r.effects {
+            s.push_str(&effect_line(e));
+        }
+        s.push_str("</ul>");
+    }
+    let _ = write!(
+        s,
+        "<p><b>Fit on held-out real scans:</b> {:.3} → {:.3} nats per pixel (lower is better).</p>\
+         <p><b>Check:</b> {}</p></section>",
+        r.fit.before,
+        r.fit.after,
+        escape(&check_sentence(&r.check))
+    );
+    s
+}
+
+/// The effects' parameters and fits, the candidates and the divergences, folded.
+fn details(r: &Report) -> String {
+    let mut s = String::from(
+        "<details><summary>Effects in detail: where, parameters, fit</summary>\
+         <table><tr><th style='width:14%'>effect</th><th style='width:40%'>where</th>\
+         <th style='width:30%'>parameters</th><th>fit before → after</th></tr>",
+    );
+    for e in &r.effects {
+        let params = serde_json::to_string(&e.params).unwrap_or_default();
+        let _ = write!(
+            s,
+            "<tr><td><b>{}</b><br>confidence {:.2}</td><td>{}</td><td><code>{}</code></td>\
+             <td>{}: {:.5} → {:.5}</td></tr>",
+            e.id,
+            e.confidence,
+            escape(&e.location),
+            escape(&first_clause(&params, 400)),
+            escape(&e.fit.metric),
+            e.fit.before,
+            e.fit.after
+        );
+    }
+    s.push_str(
+        "</table></details><details><summary>Candidates: held-out gain against penalty</summary>\
+         <table><tr><th>id</th><th>gain</th><th>penalty</th><th>significant</th></tr>",
+    );
+    for c in &r.candidates {
+        let _ = write!(
+            s,
             "<tr><td>{}</td><td>{:.5}</td><td>{:.5}</td><td>{}</td></tr>",
             c.id, c.gain, c.penalty, c.significant
         );
     }
-    html.push_str("</table><h2>Largest significant drop-rate divergences (Benjamini-Hochberg)</h2><table><tr><th>feature</th><th>where</th><th>sim</th><th>real</th><th>q</th></tr>");
+    s.push_str(
+        "</table></details><details><summary>Largest significant drop-rate divergences \
+         (Benjamini-Hochberg)</summary><table><tr><th>feature</th><th>where</th><th>sim</th>\
+         <th>real</th><th>q</th></tr>",
+    );
     for t in &r.mismatch {
         let _ = write!(
-            html,
+            s,
             "<tr><td>{}</td><td>{}</td><td>{:.3}</td><td>{:.3}</td><td>{:.1e}</td></tr>",
             t.feature,
             escape(&t.location),
@@ -298,18 +456,21 @@ pub fn write(dir: &Path, d: &Diagnosis, provenance: &Provenance) -> anyhow::Resu
             t.q_value
         );
     }
-    html.push_str("</table><h2>Plots</h2>");
-    for f in &figures {
-        let _ = write!(
-            html,
-            "<figure><img src='{}' alt='{}'><figcaption>{}</figcaption></figure>",
-            f.file, f.file, f.caption
+    s.push_str("</table></details>");
+    s
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_first_clause_ends_at_a_semicolon_outside_parentheses() {
+        assert_eq!(
+            first_clause("angles above 86 deg (grazing; real 31 %); more", 100),
+            "angles above 86 deg (grazing; real 31 %)"
         );
-        files.push(dir.join(&f.file));
+        assert_eq!(first_clause("rows 52-63; sides", 100), "rows 52-63");
+        assert_eq!(first_clause("abcdef", 3), "abc…");
     }
-    html.push_str("<p>Apply the fit to simulated data: <code>rangegan-mcap render --physics fitted_physics.json SIM.mcap OUT.mcap</code>.</p></body></html>");
-    write_atomic(&dir.join("report.html"), html.as_bytes())
-        .with_context(|| format!("cannot write {}/report.html", dir.display()))?;
-    files.push(dir.join("report.html"));
-    Ok(files)
 }

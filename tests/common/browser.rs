@@ -17,6 +17,12 @@ pub struct Rendered {
     pub min_width: u64,
     /// Console lines with an uncaught error.
     pub script_errors: Vec<String>,
+    /// Width of the laid-out page in a 1280 x 800 window, pixels: over 1280, the reader
+    /// scrolls sideways.
+    pub scroll_width: u64,
+    /// Top of the element `id="summary"` in that window, pixels (None: no such element);
+    /// under 800, it is on the first screen.
+    pub summary_top: Option<f64>,
 }
 
 /// The browser: `RANGEGAN_CHROMIUM`, else `chromium` or `chromium-browser` on PATH.
@@ -53,17 +59,20 @@ pub fn render(html: &Path, scratch: &Path) -> Option<Rendered> {
     std::fs::write(
         &page,
         format!(
-            r#"<!doctype html><html><body><iframe id="f" src='{src}'></iframe><script>
+            r#"<!doctype html><html><body><iframe id="f" style="width:1280px;height:800px;border:0" src='{src}'></iframe><script>
 const f = document.getElementById('f');
 f.onload = () => {{
   const d = f.contentDocument;
   const imgs = [...d.images];
   const broken = imgs.filter(i => !(i.complete && i.naturalWidth > 0)).map(i => i.getAttribute('src'));
   const widths = imgs.filter(i => i.naturalWidth > 0).map(i => i.naturalWidth);
+  const summary = d.getElementById('summary');
   const out = document.createElement('pre');
   out.id = 'result';
   out.textContent = JSON.stringify({{title: d.title, images: imgs.length, broken,
-    min_width: widths.length ? Math.min(...widths) : 0}});
+    min_width: widths.length ? Math.min(...widths) : 0,
+    scroll_width: d.documentElement.scrollWidth,
+    summary_top: summary ? summary.getBoundingClientRect().top : null}});
   document.body.appendChild(out);
 }};
 </script></body></html>"#
@@ -110,6 +119,8 @@ f.onload = () => {{
             })
             .unwrap_or_default(),
         min_width: v["min_width"].as_u64().unwrap_or(0),
+        scroll_width: v["scroll_width"].as_u64().unwrap_or(0),
+        summary_top: v["summary_top"].as_f64(),
         script_errors: log
             .lines()
             .filter(|l| l.contains("CONSOLE") && l.contains("Uncaught"))
