@@ -7,7 +7,8 @@
 //! ```text
 //! cargo run --release --example diagnose_eval [-- --seed 7 --only 0,5,9]
 //! ```
-//! Prints one row per pair and the summary as a Markdown table.
+//! Prints one row per pair, the summary, and the summary per sensor family (beams,
+//! organized or not) as Markdown tables, so a gap shows where it is.
 
 #[path = "../tests/common/testgen.rs"]
 mod testgen;
@@ -17,6 +18,8 @@ use rayon::prelude::*;
 
 struct Outcome {
     line: String,
+    /// Sensor family: beams, organized or not.
+    family: String,
     first_ok: bool,
     all_named: bool,
     null_clean: Option<bool>,
@@ -63,6 +66,15 @@ fn judge(p: &testgen::Pair, d: &Diagnosis, seconds: f64) -> Outcome {
     );
     Outcome {
         line,
+        family: format!(
+            "{} beams, {}",
+            p.sensor.profile.beams(),
+            if p.sensor.organized {
+                "organized"
+            } else {
+                "unorganized"
+            }
+        ),
         first_ok,
         all_named,
         null_clean: null.then_some(named.is_empty()),
@@ -171,10 +183,49 @@ fn main() {
         count(&|o| o.fit_better, &with_effect),
         with_effect.len()
     );
+    print_families(&outcomes);
     println!(
         "\n{} pairs in {:.0} s wall ({} threads)",
         outcomes.len(),
         started.elapsed().as_secs_f64(),
         rayon::current_num_threads()
     );
+}
+
+/// The summary per sensor family: pairs, a true effect named first, every true effect
+/// named (pairs with effects), null pairs clean.
+fn print_families(outcomes: &[(usize, Outcome)]) {
+    let mut families: Vec<&str> = outcomes.iter().map(|(_, o)| o.family.as_str()).collect();
+    families.sort_by_key(|f| {
+        let beams: usize = f
+            .split(' ')
+            .next()
+            .and_then(|b| b.parse().ok())
+            .unwrap_or(0);
+        (beams, f.to_string())
+    });
+    families.dedup();
+    println!();
+    println!(
+        "| sensor family | pairs | true effect first | every true effect named | null pairs clean |"
+    );
+    println!("|---|---|---|---|---|");
+    for family in families {
+        let of: Vec<&Outcome> = outcomes
+            .iter()
+            .map(|(_, o)| o)
+            .filter(|o| o.family == family)
+            .collect();
+        let effects: Vec<&&Outcome> = of.iter().filter(|o| o.null_clean.is_none()).collect();
+        let nulls = of.len() - effects.len();
+        println!(
+            "| {family} | {} | {} / {} | {} / {} | {} / {nulls} |",
+            of.len(),
+            effects.iter().filter(|o| o.first_ok).count(),
+            effects.len(),
+            effects.iter().filter(|o| o.all_named).count(),
+            effects.len(),
+            of.iter().filter(|o| o.null_clean == Some(true)).count(),
+        );
+    }
 }
