@@ -155,7 +155,23 @@ impl Decoded {
         }
         let mut source = RangeImage::empty(self.model.grid.clone());
         source.range_m = self.interpolate_restored(fill, rule);
+        self.mark_measured(&mut source);
         resample(&source, &self.model.depth_m, rendered, fill, rule)
+    }
+
+    /// Gives the observed pixels of `source` (model grid) their measured points, where the
+    /// scan was observed on the model grid: a finer grid then keeps each return in the pixel
+    /// it was measured in.
+    fn mark_measured(&self, source: &mut RangeImage) {
+        let Some(points) = &self.observed_points else {
+            return;
+        };
+        for k in 0..source.range_m.len().min(points.range_m.len()) {
+            if self.observed_m[k] > 0.0 && source.range_m[k] == self.observed_m[k] {
+                source.xyz[k] = points.xyz[k];
+                source.point_index[k] = points.point_index[k];
+            }
+        }
     }
 
     /// What `convert` writes on the model grid: the rendering x_d, or after `--restore-*`

@@ -248,6 +248,9 @@ pub struct Decoded {
     pub model: Rendered,
     /// The observation used (model grid, meters, 0 = not observed), after [`Sparsify`].
     pub observed_m: Vec<f32>,
+    /// The observed scan itself where it was on the model grid: its measured points (xyz,
+    /// point index) put each return where it was measured on finer grids.
+    observed_points: Option<RangeImage>,
     /// Measured pixels of the full observation that decoding did not see (restoration).
     pub held_out_m: Vec<f32>,
     /// Mean |d - d_obs| / d_obs over the observed pixels.
@@ -395,7 +398,7 @@ impl Decoder {
     }
 
     /// Observation on the model grid: network units and validity mask.
-    fn observe(&self, observed: &RangeImage) -> (Vec<f32>, Vec<f32>) {
+    fn observe(&self, observed: &RangeImage) -> (Vec<f32>, Vec<f32>, bool) {
         let grid = &self.model.grid;
         let same = observed.height == grid.height
             && observed.width == grid.width
@@ -417,7 +420,7 @@ impl Decoder {
             .iter()
             .map(|v| if *v > -1.0 { 1.0 } else { 0.0 })
             .collect();
-        (net, mask)
+        (net, mask, same)
     }
 
     /// Decode one observed scan (any grid; its returns are reprojected onto the model grid). `seed` drives
@@ -440,7 +443,7 @@ impl Decoder {
         let grid = &self.model.grid;
         let (h, w) = (grid.height, grid.width);
         let mut rng = Rng::new(seed);
-        let (net, full_mask) = self.observe(observed);
+        let (net, full_mask, on_model_grid) = self.observe(observed);
         let mut mask = full_mask.clone();
         if let Some(s) = &self.opts.restore {
             s.apply(&mut mask, h, w, &mut rng.fork());
@@ -490,6 +493,7 @@ impl Decoder {
                 drop_prob: Vec::new(),
             },
             observed_m,
+            observed_points: on_model_grid.then(|| observed.clone()),
             held_out_m,
             error: None,
             held_out_error: None,

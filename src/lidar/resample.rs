@@ -245,8 +245,9 @@ pub fn resample_image(image: &RangeImage, target: &AngleGrid, method: Interpolat
 /// but a new pixel blends only the corners on its own surface ([`SurfaceRule`]): the
 /// nearest corner's, or with a `guide` (e.g. the decoded scene's completed depth on both
 /// grids) the one the guide puts the new pixel on. No range is averaged across a depth
-/// edge, and a target pixel on a source pixel's direction keeps that measured return
-/// exactly (xyz, intensity, label and point index included).
+/// edge, and a target pixel where a measured return lies keeps that return exactly (xyz,
+/// intensity, label and point index included): a target pixel on a source pixel's
+/// direction, or, on a finer azimuth grid, the pixel the return's own azimuth falls in.
 pub fn resample_by_surface(
     image: &RangeImage,
     target: &AngleGrid,
@@ -289,8 +290,16 @@ fn resample_with(image: &RangeImage, target: &AngleGrid, read: Read<'_>) -> Rang
         return out;
     }
     let locate = Locator::new(&image.angles);
+    let placed = match read {
+        Read::Surface(..) => place_measured(image, target),
+        Read::Nearest | Read::Bilinear => Vec::new(),
+    };
     let mut corners: Vec<Neighbour> = Vec::with_capacity(4);
     for k in 0..target.len() {
+        if let Some(&Some(from)) = placed.get(k) {
+            copy_pixel(image, from, &mut out, k);
+            continue;
+        }
         let Some(u) = locate.row(target.elevation_rad[k]) else {
             continue;
         };
@@ -339,6 +348,42 @@ fn resample_with(image: &RangeImage, target: &AngleGrid, read: Read<'_>) -> Rang
         out.point_index[k] = NO_POINT;
     }
     out
+}
+
+/// For each target pixel, the measured return that lies in it, if any: a return on a source
+/// row that is also a target row goes to the target column its measured azimuth falls in,
+/// the nearest return winning, as projection decides a pixel. A source pixel holds the
+/// nearest of the returns anywhere in its (wider) azimuth span, so this puts it where it
+/// was measured instead of blending it into every finer pixel of that span.
+fn place_measured(image: &RangeImage, target: &AngleGrid) -> Vec<Option<usize>> {
+    let mut placed: Vec<Option<usize>> = vec![None; target.len()];
+    let (h, w) = (target.height, target.width);
+    if h == 0 || w == 0 {
+        return placed;
+    }
+    let locate = Locator::new(target);
+    let source_rows = image.angles.row_elevations();
+    for i in 0..image.range_m.len() {
+        if !image.is_valid(i) || image.point_index[i] == NO_POINT {
+            continue;
+        }
+        let Some(u) = source_rows
+            .get(i / image.width)
+            .and_then(|&phi| locate.row(phi))
+        else {
+            continue;
+        };
+        let [x, y, _] = image.xyz[i];
+        if (u - u.round()).abs() > ON_SOURCE_PIXEL || (x == 0.0 && y == 0.0) {
+            continue;
+        }
+        let v = locate.column(y.atan2(x));
+        let k = (u.round() as usize).min(h - 1) * w + (v.round() as usize) % w;
+        if placed[k].is_none_or(|j| image.range_m[i] < image.range_m[j]) {
+            placed[k] = Some(i);
+        }
+    }
+    placed
 }
 
 /// Copies source pixel `from` (the measured return as is) to target pixel `to`.
@@ -707,5 +752,48 @@ mod tests {
                 assert_eq!(out.point_index[k], NO_POINT);
             }
         }
+    }
+
+    #[test]
+    fn a_finer_azimuth_grid_keeps_each_return_where_it_was_measured() {
+        // 8 x 128, each return measured 0.3 of a pixel clockwise of its pixel's centre, as a
+        // projected scan's nearest return lies anywhere inside its pixel.
+        let p = uniform_profile(8, 128, 7.0, -7.0);
+        let mut img = smooth_image(&p);
+        let shift = 0.3 * std::f32::consts::TAU / 128.0;
+        for k in 0..img.len() {
+            let (phi, theta) = (
+                img.angles.elevation_rad[k],
+                img.angles.azimuth_rad[k] - shift,
+            );
+            let d = img.range_m[k];
+            img.xyz[k] = [
+                d * phi.cos() * theta.cos(),
+                d * phi.cos() * theta.sin(),
+                d * phi.sin(),
+            ];
+        }
+        let fine = p.angle_grid().resized(8, 512);
+        let out = resample_by_surface(&img, &fine, &SurfaceRule::default(), None);
+        let bilinear = resample_image(&img, &fine, Interpolation::Bilinear);
+        let mut blended = 0;
+        for k in 0..img.len() {
+            let [x, y, _] = img.xyz[k];
+            let measured = y.atan2(x);
+            let row = k / 128;
+            let at = (0..512)
+                .map(|c| row * 512 + c)
+                .min_by(|&a, &b| {
+                    angle_diff(fine.azimuth_rad[a], measured)
+                        .total_cmp(&angle_diff(fine.azimuth_rad[b], measured))
+                })
+                .unwrap();
+            assert_eq!(out.range_m[at].to_bits(), img.range_m[k].to_bits(), "{k}");
+            assert_eq!((out.point_index[at], out.xyz[at]), (k as u32, img.xyz[k]));
+            blended += usize::from(bilinear.range_m[at] != img.range_m[k]);
+        }
+        assert!(blended > img.len() / 2, "bilinear blends them: {blended}");
+        // The pixels between measured returns are still filled.
+        assert_eq!(out.valid_count(), bilinear.valid_count());
     }
 }
