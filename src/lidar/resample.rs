@@ -290,9 +290,12 @@ fn resample_with(image: &RangeImage, target: &AngleGrid, read: Read<'_>) -> Rang
         return out;
     }
     let locate = Locator::new(&image.angles);
-    let placed = match read {
-        Read::Surface(..) => place_measured(image, target),
-        Read::Nearest | Read::Bilinear => Vec::new(),
+    let (placed, measured_v) = match read {
+        Read::Surface(..) => (
+            place_measured(image, target),
+            measured_columns(image, &locate),
+        ),
+        Read::Nearest | Read::Bilinear => (Vec::new(), Vec::new()),
     };
     let mut corners: Vec<Neighbour> = Vec::with_capacity(4);
     for k in 0..target.len() {
@@ -320,7 +323,7 @@ fn resample_with(image: &RangeImage, target: &AngleGrid, read: Read<'_>) -> Rang
             copy_pixel(image, nearest, &mut out, k);
             continue;
         }
-        valid_corners(image, u, v, &mut corners);
+        valid_corners(image, u, v, &measured_v, &mut corners);
         let mut inverse = false;
         if let Read::Surface(rule, guide) = &read {
             for c in corners.iter_mut() {
@@ -397,21 +400,68 @@ fn copy_pixel(image: &RangeImage, from: usize, out: &mut RangeImage, to: usize) 
 
 const MIN_CORNER_WEIGHT: f32 = 1e-4;
 
+/// Fractional source column of each source pixel's measured return (its own azimuth), NaN
+/// where the pixel holds no measured point.
+fn measured_columns(image: &RangeImage, locate: &Locator) -> Vec<f32> {
+    (0..image.range_m.len())
+        .map(|i| {
+            let [x, y, _] = image.xyz[i];
+            let measured =
+                image.is_valid(i) && image.point_index[i] != NO_POINT && (x != 0.0 || y != 0.0);
+            if measured {
+                locate.column(y.atan2(x))
+            } else {
+                f32::NAN
+            }
+        })
+        .collect()
+}
+
+/// Where target column `v` lies between the returns of source pixels `a` (column `c0`) and
+/// `b` (the next column), 0 at `a`'s return and 1 at `b`'s: by their measured azimuths where
+/// both have one (`measured_v`), else by their pixel centres.
+fn column_share(measured_v: &[f32], a: usize, b: usize, c0: usize, v: f32, w: usize) -> f32 {
+    let s = v - v.floor();
+    let (Some(&ma), Some(&mb)) = (measured_v.get(a), measured_v.get(b)) else {
+        return s;
+    };
+    if !(ma.is_finite() && mb.is_finite()) {
+        return s;
+    }
+    // Offsets of the returns from their pixel centres, in columns (circular).
+    let wrap = |d: f32| (d + w as f32 / 2.0).rem_euclid(w as f32) - w as f32 / 2.0;
+    let (da, db) = (wrap(ma - c0 as f32), wrap(mb - (c0 + 1) as f32));
+    let span = 1.0 + db - da;
+    if span < 1e-3 {
+        return s;
+    }
+    ((s - da) / span).clamp(0.0, 1.0)
+}
+
 /// The valid ones of the four source pixels around `(u, v)` with their bilinear weights,
-/// renormalised to sum 1 (columns circular, rows clamped).
-fn valid_corners(image: &RangeImage, u: f32, v: f32, corners: &mut Vec<Neighbour>) {
+/// renormalised to sum 1 (columns circular, rows clamped). Along a row the weights follow the
+/// returns' measured azimuths where `measured_v` has them.
+fn valid_corners(
+    image: &RangeImage,
+    u: f32,
+    v: f32,
+    measured_v: &[f32],
+    corners: &mut Vec<Neighbour>,
+) {
     let (h, w) = (image.height, image.width);
     let r0 = (u.floor() as usize).min(h - 1);
     let r1 = (r0 + 1).min(h - 1);
     let c0 = (v.floor() as usize) % w;
     let c1 = (c0 + 1) % w;
-    let (t, s) = (u - r0 as f32, v - v.floor());
+    let t = u - r0 as f32;
+    let s0 = column_share(measured_v, r0 * w + c0, r0 * w + c1, c0, v, w);
+    let s1 = column_share(measured_v, r1 * w + c0, r1 * w + c1, c0, v, w);
     corners.clear();
     for (index, weight) in [
-        (r0 * w + c0, (1.0 - t) * (1.0 - s)),
-        (r0 * w + c1, (1.0 - t) * s),
-        (r1 * w + c0, t * (1.0 - s)),
-        (r1 * w + c1, t * s),
+        (r0 * w + c0, (1.0 - t) * (1.0 - s0)),
+        (r0 * w + c1, (1.0 - t) * s0),
+        (r1 * w + c0, t * (1.0 - s1)),
+        (r1 * w + c1, t * s1),
     ] {
         // Weights of float noise (a target row on a source row) would add a corner of
         // another beam, so a corner needs a real share.
@@ -795,5 +845,23 @@ mod tests {
         assert!(blended > img.len() / 2, "bilinear blends them: {blended}");
         // The pixels between measured returns are still filled.
         assert_eq!(out.valid_count(), bilinear.valid_count());
+    }
+
+    #[test]
+    fn column_weights_follow_the_measured_azimuths() {
+        // Returns of columns 3 and 4 measured 0.4 left of and 0.2 right of their centres
+        // (in columns, so 1.6 columns apart): a target at 3.5 lies 0.9 / 1.6 of the way.
+        let mut measured = vec![f32::NAN; 8];
+        measured[3] = 2.6;
+        measured[4] = 4.2;
+        let s = column_share(&measured, 3, 4, 3, 3.5, 8);
+        assert!((s - 0.9 / 1.6).abs() < 1e-5, "{s}");
+        // Without a measured azimuth on both sides: the pixel centres.
+        assert_eq!(column_share(&measured, 3, 5, 3, 3.25, 8), 0.25);
+        // Across the seam (columns 7 and 0 of 8).
+        measured[7] = 7.3;
+        measured[0] = 7.9;
+        let s = column_share(&measured, 7, 0, 7, 7.6, 8);
+        assert!((s - 0.5).abs() < 1e-5, "{s}");
     }
 }
