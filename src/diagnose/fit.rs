@@ -144,6 +144,8 @@ pub struct Pixels {
     /// interpolates one surface rather than extrapolating from an object's
     /// outline into open space.
     pub enclosure_px: Vec<u8>,
+    /// Pixels (4-connected steps) to the nearest depth edge of the completed range, capped.
+    pub edge_px: Vec<u8>,
     /// Elevation of each row, radians (from the first scan).
     pub row_elevation_rad: Vec<f32>,
     /// Azimuth of each column, radians.
@@ -188,6 +190,8 @@ impl Pixels {
                 px.class.push((f.class[k] & 0xffff) as u16);
                 px.kept.push(f.kept[k]);
                 px.enclosure_px.push(enclosure);
+                px.edge_px
+                    .push(f.edge_px.get(k).copied().unwrap_or(u8::MAX));
                 px.scan.push(scan);
             }
         }

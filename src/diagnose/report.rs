@@ -654,7 +654,7 @@ fn adjust_uniform(physics: &mut Map<String, Value>, c: f64) {
 /// Binned drop rates of sim, real (held-out) and the fitted model.
 fn curves(sim: &Pixels, test: &Pixels, keep_after: &[f64]) -> Vec<Curve> {
     type Binner = fn(&Pixels, usize) -> Option<usize>;
-    let specs: [(&'static str, &'static str, usize, f64, Binner); 4] = [
+    let specs: [(&'static str, &'static str, usize, f64, Binner); 5] = [
         ("range", "m", 32, 2.5, |p, i| {
             let r = p.range_m[i];
             r.is_finite().then(|| ((r / 2.5) as usize).min(31))
@@ -665,6 +665,9 @@ fn curves(sim: &Pixels, test: &Pixels, keep_after: &[f64]) -> Vec<Curve> {
                 .then(|| ((c.clamp(0.0, 1.0).acos().to_degrees() / 5.0) as usize).min(17))
         }),
         ("row", "", 0, 1.0, |p, i| Some(p.row[i] as usize)),
+        ("edge_distance", "px", 9, 1.0, |p, i| {
+            Some(usize::from(p.edge_px.get(i).copied().unwrap_or(u8::MAX)).min(8))
+        }),
         ("azimuth", "deg", 36, 10.0, |p, i| {
             let a = p
                 .column_azimuth_rad
@@ -695,7 +698,7 @@ fn curves(sim: &Pixels, test: &Pixels, keep_after: &[f64]) -> Vec<Curve> {
             }
             let x0 = if feature == "azimuth" { -180.0 } else { 0.0 };
             let centre = |b: usize| {
-                if feature == "row" {
+                if feature == "row" || feature == "edge_distance" {
                     b as f64
                 } else {
                     x0 + (b as f64 + 0.5) * step

@@ -33,13 +33,14 @@ struct Figure {
 
 fn curve_figure(dir: &Path, curve: &Curve) -> anyhow::Result<Figure> {
     let file = format!("drop_vs_{}.png", curve.feature);
+    let name = curve.feature.replace('_', " ");
     let x_label = if curve.unit.is_empty() {
-        curve.feature.to_string()
+        name.clone()
     } else {
-        format!("{} ({})", curve.feature, curve.unit)
+        format!("{name} ({})", curve.unit)
     };
     let png = line_chart(&LineChart {
-        title: &format!("Drop rate against {}", curve.feature),
+        title: &format!("Drop rate against {name}"),
         x_label: &x_label,
         y_label: "drop rate",
         x: &curve.x,
@@ -338,7 +339,7 @@ fn check_sentence(checks: &[FeatureCheck]) -> String {
     let (bins, close) = checks
         .iter()
         .fold((0, 0), |(b, c), f| (b + f.bins, c + f.close));
-    let features: Vec<&str> = checks.iter().map(|c| c.feature.as_str()).collect();
+    let features: Vec<String> = checks.iter().map(|c| c.feature.replace('_', " ")).collect();
     let mut s = format!(
         "Along {}, the sim with the fitted effects is within {CLOSE} of the real drop rate in \
          {close} of {bins} bins",
@@ -350,7 +351,12 @@ fn check_sentence(checks: &[FeatureCheck]) -> String {
             c.worse_than_sim.iter().take(2).map(move |m| {
                 format!(
                     "{} {:.1}{} (real {:.2}, sim {:.2}, fitted {:.2})",
-                    c.feature, m.at, c.unit, m.real, m.sim, m.fitted
+                    c.feature.replace('_', " "),
+                    m.at,
+                    c.unit,
+                    m.real,
+                    m.sim,
+                    m.fitted
                 )
             })
         })
