@@ -291,10 +291,11 @@ fn resample_with(image: &RangeImage, target: &AngleGrid, read: Read<'_>) -> Rang
     }
     let locate = Locator::new(&image.angles);
     let (placed, measured_v) = match read {
-        Read::Surface(..) => (
-            place_measured(image, target),
-            measured_columns(image, &locate),
-        ),
+        Read::Surface(..) => {
+            let azimuths = measured_azimuths(image);
+            let columns = azimuths.iter().map(|&a| locate.column(a)).collect();
+            (place_measured(image, &azimuths, target), columns)
+        }
         Read::Nearest | Read::Bilinear => (Vec::new(), Vec::new()),
     };
     let mut corners: Vec<Neighbour> = Vec::with_capacity(4);
@@ -358,7 +359,7 @@ fn resample_with(image: &RangeImage, target: &AngleGrid, read: Read<'_>) -> Rang
 /// the nearest return winning, as projection decides a pixel. A source pixel holds the
 /// nearest of the returns anywhere in its (wider) azimuth span, so this puts it where it
 /// was measured instead of blending it into every finer pixel of that span.
-fn place_measured(image: &RangeImage, target: &AngleGrid) -> Vec<Option<usize>> {
+fn place_measured(image: &RangeImage, azimuths: &[f32], target: &AngleGrid) -> Vec<Option<usize>> {
     let mut placed: Vec<Option<usize>> = vec![None; target.len()];
     let (h, w) = (target.height, target.width);
     if h == 0 || w == 0 {
@@ -366,8 +367,8 @@ fn place_measured(image: &RangeImage, target: &AngleGrid) -> Vec<Option<usize>> 
     }
     let locate = Locator::new(target);
     let source_rows = image.angles.row_elevations();
-    for i in 0..image.range_m.len() {
-        if !image.is_valid(i) || image.point_index[i] == NO_POINT {
+    for (i, &azimuth) in azimuths.iter().enumerate() {
+        if azimuth.is_nan() {
             continue;
         }
         let Some(u) = source_rows
@@ -376,11 +377,10 @@ fn place_measured(image: &RangeImage, target: &AngleGrid) -> Vec<Option<usize>> 
         else {
             continue;
         };
-        let [x, y, _] = image.xyz[i];
-        if (u - u.round()).abs() > ON_SOURCE_PIXEL || (x == 0.0 && y == 0.0) {
+        if (u - u.round()).abs() > ON_SOURCE_PIXEL {
             continue;
         }
-        let v = locate.column(y.atan2(x));
+        let v = locate.column(azimuth);
         let k = (u.round() as usize).min(h - 1) * w + (v.round() as usize) % w;
         if placed[k].is_none_or(|j| image.range_m[i] < image.range_m[j]) {
             placed[k] = Some(i);
@@ -400,19 +400,15 @@ fn copy_pixel(image: &RangeImage, from: usize, out: &mut RangeImage, to: usize) 
 
 const MIN_CORNER_WEIGHT: f32 = 1e-4;
 
-/// Fractional source column of each source pixel's measured return (its own azimuth), NaN
-/// where the pixel holds no measured point.
-fn measured_columns(image: &RangeImage, locate: &Locator) -> Vec<f32> {
+/// The azimuth of each source pixel's measured return, NaN where the pixel holds no
+/// measured point.
+fn measured_azimuths(image: &RangeImage) -> Vec<f32> {
     (0..image.range_m.len())
         .map(|i| {
             let [x, y, _] = image.xyz[i];
             let measured =
                 image.is_valid(i) && image.point_index[i] != NO_POINT && (x != 0.0 || y != 0.0);
-            if measured {
-                locate.column(y.atan2(x))
-            } else {
-                f32::NAN
-            }
+            if measured { y.atan2(x) } else { f32::NAN }
         })
         .collect()
 }

@@ -301,6 +301,14 @@ fn effect_words(id: &str) -> (&'static str, Option<&'static str>) {
     }
 }
 
+/// `text` cut to at most `max` characters, with an ellipsis where it was cut.
+fn truncate(text: &str, max: usize) -> String {
+    match text.char_indices().nth(max) {
+        Some((cut, _)) => format!("{}…", &text[..cut]),
+        None => text.to_string(),
+    }
+}
+
 /// The first clause of an effect's location (up to a `;` outside parentheses), at most
 /// `max` characters.
 fn first_clause(location: &str, max: usize) -> String {
@@ -316,11 +324,7 @@ fn first_clause(location: &str, max: usize) -> String {
             c == ';' && depth == 0
         })
         .map_or(location.len(), |(i, _)| i);
-    let clause = location[..end].trim();
-    match clause.char_indices().nth(max) {
-        Some((cut, _)) => format!("{}…", &clause[..cut]),
-        None => clause.to_string(),
-    }
+    truncate(location[..end].trim(), max)
 }
 
 fn effect_line(e: &EffectReport) -> String {
@@ -429,7 +433,7 @@ fn details(r: &Report) -> String {
             e.id,
             e.confidence,
             escape(&e.location),
-            escape(&first_clause(&params, 400)),
+            escape(&truncate(&params, 400)),
             escape(&e.fit.metric),
             e.fit.before,
             e.fit.after

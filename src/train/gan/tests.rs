@@ -117,17 +117,7 @@ fn baselines_train_a_few_steps() {
             .with_r1_interval(1)
             .with_total_images(4)
             .with_snapshot_every_images(4);
-        let opts = TrainOptions {
-            run_dir: dir.path().join("run"),
-            dataset_cache: cache,
-            scans: vec![],
-            config,
-            backend: Backend::Flex,
-            total_images: None,
-            max_duration: None,
-            progress: false,
-            init_from: None,
-        };
+        let opts = options(dir.path().join("run"), cache, config);
         run(&opts).expect("train");
         let (g, c) = load_generator(&opts.run_dir, &Device::flex()).expect("load");
         assert_eq!(c.arch, arch);
@@ -137,6 +127,21 @@ fn baselines_train_a_few_steps() {
         let z = Rng::new(1).normal_tensor([1, 8], &Device::flex());
         let channels = if arch == Arch::Vanilla { 1 } else { 2 };
         assert_eq!(g.forward(z).dims(), [1, channels, h, w]);
+    }
+}
+
+/// Options of a quiet CPU run in `run_dir` on the dataset cache `cache`.
+fn options(run_dir: PathBuf, cache: PathBuf, config: TrainConfig) -> TrainOptions {
+    TrainOptions {
+        run_dir,
+        dataset_cache: cache,
+        scans: vec![],
+        config,
+        backend: Backend::Flex,
+        total_images: None,
+        max_duration: None,
+        progress: false,
+        init_from: None,
     }
 }
 
@@ -152,17 +157,7 @@ fn trains_checkpoints_and_resumes() {
         .with_snapshot_every_images(4)
         .with_ada_interval(1)
         .with_ada_speed_images(10.0);
-    let mut opts = TrainOptions {
-        run_dir: dir.path().join("run"),
-        dataset_cache: cache,
-        scans: vec![],
-        config,
-        backend: Backend::Flex,
-        total_images: None,
-        max_duration: None,
-        progress: false,
-        init_from: None,
-    };
+    let mut opts = options(dir.path().join("run"), cache, config);
     run(&opts).expect("train");
     let state: TrainState = serde_json::from_str(
         &std::fs::read_to_string(opts.run_dir.join("checkpoint/state.json")).expect("state"),
@@ -318,15 +313,8 @@ fn a_staged_assisted_run_grows_and_resumes_as_if_uninterrupted() {
         .with_log_every_steps(1)
         .with_reconstruction(Some(ReconstructionConfig::new()));
     let opts = |name: &str, total: u64| TrainOptions {
-        run_dir: dir.path().join(name),
-        dataset_cache: cache.clone(),
-        scans: vec![],
-        config: config.clone(),
-        backend: Backend::Flex,
         total_images: Some(total),
-        max_duration: None,
-        progress: false,
-        init_from: None,
+        ..options(dir.path().join(name), cache.clone(), config.clone())
     };
     let state = |o: &TrainOptions| -> TrainState {
         let text = std::fs::read_to_string(o.run_dir.join("checkpoint/state.json"));
