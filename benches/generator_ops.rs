@@ -3,7 +3,7 @@
 //! PyTorch code (`benches/vs_pytorch.sh`, which alternates this with
 //! `benches/reference_pytorch.py`).
 //!
-//! `cargo bench --bench generator_ops -- [--reps N] [--ops fwd_b1,fwd_b8,...]`
+//! `cargo bench --bench generator_ops -- [--reps N] [--ops fwd_b1,fwd_b8,...] [--model DIR]`
 //!
 //! Operations (same names and same work as `reference_pytorch.py`; the generator always runs
 //! from w on the cached grid, mapping excluded):
@@ -143,7 +143,15 @@ fn main() {
     let ops: Vec<String> = arg("--ops")
         .map(|s| s.split(',').map(str::to_string).collect())
         .unwrap_or_else(|| ALL_OPS.iter().map(|s| s.to_string()).collect());
-    let cfg = GeneratorConfig::new();
+    // `--model DIR` times that model's generator (its `config.json`) instead of the reference size.
+    let cfg = match arg("--model") {
+        Some(dir) => {
+            let text = std::fs::read_to_string(format!("{dir}/config.json")).expect("config.json");
+            let json: serde_json::Value = serde_json::from_str(&text).expect("config.json is JSON");
+            serde_json::from_value(json["generator"].clone()).expect("a generator config")
+        }
+        None => GeneratorConfig::new(),
+    };
     let mut fields = vec![
         "\"impl\": \"rangegan-mcap (burn flex)\"".to_string(),
         format!("\"threads\": {}", rayon::current_num_threads()),

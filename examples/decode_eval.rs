@@ -46,7 +46,9 @@ struct Args {
     encoder: Option<PathBuf>,
     model: Option<PathBuf>,
     out: Option<PathBuf>,
-    /// `w_steps,w_lr,tune_steps,tune_lr,tune_decay,tune_w_lr` of the fast path (default: `Schedule::fast()`).
+    /// `w_steps,w_lr,tune_steps,tune_lr,tune_decay,tune_w_lr[,coarse_steps]` of the fast path
+    /// (default: `Schedule::fast()`); coarse steps `..:quarter:half` (coarsest first) bring the full-resolution
+    /// steps' rate decay to 0.
     fast_schedule: Option<Schedule>,
     /// Stop after the reconstruction numbers (for tuning the fast schedule).
     only_reconstruction: bool,
@@ -103,11 +105,16 @@ fn parse_args() -> Result<Args> {
             "--fast-schedule" => {
                 let v = value()?;
                 let p: Vec<&str> = v.split(',').collect();
-                if p.len() != 6 {
+                if p.len() != 6 && p.len() != 7 {
                     bail!(
-                        "--fast-schedule w_steps,w_lr,tune_steps,tune_lr,tune_decay(0|1),tune_w_lr"
+                        "--fast-schedule w_steps,w_lr,tune_steps,tune_lr,tune_decay(0|1),tune_w_lr[,coarse_steps[:coarser..]]"
                     );
                 }
+                let coarse_steps: Vec<usize> = p
+                    .get(6)
+                    .map(|c| c.split(':').map(str::parse).collect::<Result<_, _>>())
+                    .transpose()?
+                    .unwrap_or_default();
                 a.fast_schedule = Some(Schedule {
                     w_steps: p[0].parse()?,
                     w_lr: p[1].parse()?,
@@ -116,6 +123,8 @@ fn parse_args() -> Result<Args> {
                     tune_decay: p[4] == "1",
                     tune_w_lr: p[5].parse()?,
                     pyramid_levels: 2,
+                    fine_decay: !coarse_steps.is_empty(),
+                    coarse_steps,
                 });
             }
             other => bail!("unknown flag {other}"),

@@ -87,6 +87,11 @@ pub struct ConvertArgs {
     /// Override the pivotal-tuning steps on the generator weights (fast: 33, paper: 500).
     #[arg(long)]
     pub tune_steps: Option<usize>,
+    /// Tune coarse to fine first: steps at 1/8, 1/4 and 1/2 of the model grid's resolution
+    /// (coarsest first, e.g. `48,48,4`), each a fraction of a full-resolution step's cost; the
+    /// `--tune-steps` that follow (default 5) then decay their rate to 0.
+    #[arg(long, value_delimiter = ',')]
+    pub coarse_steps: Vec<usize>,
     /// Write the generator's own x_n, without the per-beam calibration shipped with the model
     /// (`calibration.json`; `rangegan-mcap calibrate-raydrop` fits one).
     #[arg(long)]
@@ -193,7 +198,11 @@ pub(crate) fn resolve_decoding(
         opts.schedule.w_steps = n;
     }
     if let Some(n) = args.tune_steps {
-        opts.schedule.tune_steps = n;
+        opts.schedule.set_tune_steps(n);
+    }
+    if !args.coarse_steps.is_empty() {
+        let fine = args.tune_steps.unwrap_or(5);
+        opts.schedule = opts.schedule.with_coarse_steps(&args.coarse_steps, fine);
     }
     opts.restore = match (args.restore_lines, args.restore_fraction) {
         (Some(n), _) if n == 0 || n > 64 => bail!("--restore-lines {n}: give 1 to 64 rows"),
@@ -430,10 +439,7 @@ impl<'d> FileConverter<'d> {
             let schedule = &decoder.options().schedule;
             metadata.extend([
                 ("decode_model".to_string(), decoder.source()),
-                (
-                    "decode_steps".to_string(),
-                    format!("{} w + {} tuning", schedule.w_steps, schedule.tune_steps),
-                ),
+                ("decode_steps".to_string(), schedule.describe()),
                 (
                     "raydrop_calibration".to_string(),
                     decoder.calibration_source().unwrap_or("none").to_string(),

@@ -107,7 +107,7 @@ impl GanArgs {
         let model = Model::load(self.model.as_deref(), &device)?;
         let mut opts = DecodeOptions::new(Quality::Fast);
         if let Some(n) = self.tune_steps.or(default_tune_steps) {
-            opts.schedule.tune_steps = n;
+            opts.schedule.set_tune_steps(n);
         }
         let mut decoder = Decoder::new(model, opts)?;
         if let Some(dir) = &self.encoder {

@@ -61,7 +61,7 @@ mod tests {
         let device = burn::tensor::Device::flex();
         let mut opts = DecodeOptions::new(Quality::Paper);
         opts.schedule.w_steps = 0;
-        opts.schedule.tune_steps = 0;
+        opts.schedule.set_tune_steps(0);
         let decoder = Decoder::new(Model::shipped(&device).unwrap(), opts).unwrap();
         let grid = model_grid();
         let scans: Vec<RangeImage> = (0..2)

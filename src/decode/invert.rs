@@ -8,7 +8,7 @@ use burn::module::Module;
 use burn::optim::{AdamConfig, GradientsParams};
 use burn::tensor::{Device, Tensor};
 
-use super::loss::reconstruction_loss;
+use super::loss::{pool_masked, reconstruction_loss};
 use crate::model::generator::{Generator, GridCache};
 use crate::util::tensor::{tensor_from, tensor_to_vec};
 
@@ -31,6 +31,17 @@ pub struct Schedule {
     pub tune_w_lr: f64,
     /// Masked 2x2-pooled pyramid levels added to the loss.
     pub pyramid_levels: usize,
+    /// Tuning steps before `tune_steps`, coarsest first: the last entry renders with all but
+    /// the generator's finest block, at half the model grid's resolution, each earlier one with
+    /// one block fewer at half the next's, against the observation pooled to it
+    /// ([`pool_masked`]). A coarse step costs a fraction of a full-resolution one (most of the
+    /// generator's work is in its finest blocks).
+    #[serde(default)]
+    pub coarse_steps: Vec<usize>,
+    /// Linear decay of the learning rate to 0 over the `tune_steps` at full resolution: a few
+    /// steps after coarse ones end mid-oscillation at a constant rate.
+    #[serde(default)]
+    pub fine_decay: bool,
 }
 
 impl Schedule {
@@ -48,6 +59,8 @@ impl Schedule {
             tune_decay: true,
             tune_w_lr: 0.0,
             pyramid_levels: 2,
+            coarse_steps: Vec::new(),
+            fine_decay: false,
         }
     }
 
@@ -62,6 +75,8 @@ impl Schedule {
             tune_decay: false,
             tune_w_lr: 0.0,
             pyramid_levels: 2,
+            coarse_steps: Vec::new(),
+            fine_decay: false,
         }
     }
 
@@ -70,6 +85,9 @@ impl Schedule {
     /// on 2 quiet cores (a step costs ~25 ms per scan and core; BENCHMARKS.md); the learning
     /// rate was chosen on a KITTI drive left out of training (1e-2 among 3.5e-3..2e-2, a cosine
     /// decay worse). Steps on w after the encoder made the result worse.
+    ///
+    /// [`Schedule::with_coarse_steps`] trades it for a faster coarse-to-fine schedule: better on
+    /// that drive, worse on the held-out scans (BENCHMARKS.md), so not the default.
     pub fn fast() -> Self {
         Schedule {
             w_steps: 0,
@@ -79,12 +97,42 @@ impl Schedule {
             tune_decay: false,
             tune_w_lr: 0.0,
             pyramid_levels: 2,
+            coarse_steps: Vec::new(),
+            fine_decay: false,
         }
+    }
+
+    /// Coarse-to-fine tuning: `coarse` steps (coarsest first, e.g. `[48, 48, 4]` at 8 x 64,
+    /// 16 x 128 and 32 x 256 on the model grid) before `fine` full-resolution steps whose rate
+    /// decays to 0. An empty `coarse` leaves `fine` constant-rate steps.
+    pub fn with_coarse_steps(mut self, coarse: &[usize], fine: usize) -> Self {
+        self.tune_steps = fine;
+        self.coarse_steps = coarse.to_vec();
+        self.fine_decay = !coarse.is_empty();
+        self
+    }
+
+    /// `n` pivotal-tuning steps, all at full resolution at a constant (or cosine) rate: an
+    /// explicit step count replaces the coarse-to-fine schedule.
+    pub fn set_tune_steps(&mut self, n: usize) {
+        self.tune_steps = n;
+        self.coarse_steps.clear();
+        self.fine_decay = false;
+    }
+
+    /// The step counts in words, e.g. `0 w + 5 tuning (after 48/48/4 coarse)`.
+    pub fn describe(&self) -> String {
+        let text = format!("{} w + {} tuning", self.w_steps, self.tune_steps);
+        if self.coarse_steps.is_empty() {
+            return text;
+        }
+        let coarse: Vec<String> = self.coarse_steps.iter().map(usize::to_string).collect();
+        format!("{text} (after {} coarse)", coarse.join("/"))
     }
 
     /// Total optimisation steps (each one forward + backward pass of the generator).
     pub fn steps(&self) -> usize {
-        self.w_steps + self.tune_steps
+        self.w_steps + self.coarse_steps.iter().sum::<usize>() + self.tune_steps
     }
 }
 
@@ -136,6 +184,46 @@ impl LatentAdam {
     }
 }
 
+/// What one tuning step is fitted to: a grid and the observation on it.
+struct Fit {
+    cache: GridCache,
+    target: Tensor<4>,
+    mask: Tensor<4>,
+}
+
+/// The tuning steps of `schedule` and what each group is fitted to, coarsest first.
+fn fits(
+    cache: &GridCache,
+    target: Tensor<4>,
+    mask: Tensor<4>,
+    schedule: &Schedule,
+) -> Vec<(usize, Fit)> {
+    let blocks = cache.levels.len();
+    let mut stages = vec![(
+        schedule.tune_steps,
+        Fit {
+            cache: cache.clone(),
+            target,
+            mask,
+        },
+    )];
+    for (k, steps) in schedule.coarse_steps.iter().rev().enumerate() {
+        if k + 1 >= blocks {
+            break; // nothing coarser than the first block
+        }
+        let finer = &stages.last().expect("the full-resolution fit").1;
+        let (target, mask) = pool_masked(finer.target.clone(), finer.mask.clone());
+        let fit = Fit {
+            cache: cache.first_blocks(blocks - k - 1),
+            target,
+            mask,
+        };
+        stages.push((*steps, fit));
+    }
+    stages.reverse();
+    stages
+}
+
 /// Invert one observation.
 ///
 /// `generator` lives on the inference device, `cache_ad` is its grid cache on `ad` (the
@@ -173,23 +261,30 @@ pub fn invert(
         }
     }
 
-    // Step 2: pivotal tuning of every weight with w frozen.
+    // Step 2: pivotal tuning of every weight with w frozen; the coarse steps first.
+    let stages = fits(cache_ad, target, mask, schedule);
+    let total: usize = stages.iter().map(|(steps, _)| steps).sum();
     let mut tuned = generator.clone().fork(ad).train();
-    if schedule.tune_steps > 0 {
-        let joint = schedule.tune_w_lr > 0.0;
-        let mut adam_w = LatentAdam::new(d_w);
-        let mut opt = AdamConfig::new().with_epsilon(1e-8).init();
-        for step in 0..schedule.tune_steps {
+    let joint = schedule.tune_w_lr > 0.0;
+    let mut adam_w = LatentAdam::new(d_w);
+    let mut opt = AdamConfig::new().with_epsilon(1e-8).init();
+    let mut step = 0;
+    for (steps, fit) in &stages {
+        let full_resolution = fit.cache.height == cache_ad.height;
+        for i in 0..*steps {
             let lr = if schedule.tune_decay {
-                let t = step as f64 / schedule.tune_steps as f64;
+                let t = step as f64 / total as f64;
                 schedule.tune_lr * 0.5 * (1.0 + (std::f64::consts::PI * t).cos())
+            } else if schedule.fine_decay && full_resolution {
+                schedule.tune_lr * (1.0 - i as f64 / *steps as f64)
             } else {
                 schedule.tune_lr
             };
+            step += 1;
             let w_t = tensor_from(w.clone(), [1, d_w], ad); // [1, d_w]
             let w_t = if joint { w_t.require_grad() } else { w_t };
-            let x_d = tuned.render(w_t.clone(), cache_ad, None).x_d; // [1, 1, H, W]
-            let loss = reconstruction_loss(x_d, target.clone(), mask.clone(), levels).sum();
+            let x_d = tuned.render(w_t.clone(), &fit.cache, None).x_d; // [1, 1, h, w]
+            let loss = reconstruction_loss(x_d, fit.target.clone(), fit.mask.clone(), levels).sum();
             losses.push(loss.clone().inner().into_scalar::<f32>());
             let mut grads = loss.backward();
             if joint && let Some(g) = w_t.grad_remove(&mut grads) {
@@ -221,8 +316,8 @@ mod tests {
         assert!(lr_ramp(1.0).abs() < 1e-12);
     }
 
-    #[test]
-    fn both_stages_lower_the_loss_and_leave_the_input_generator_alone() {
+    /// A two-block generator, its grid caches (inference, autodiff) and a reachable target.
+    fn toy() -> (Generator, GridCache, GridCache, Tensor<4>) {
         let dev = Device::flex();
         let ad = dev.clone().autodiff();
         let g = GeneratorConfig::new()
@@ -240,6 +335,13 @@ mod tests {
         let mut rng = Rng::new(4);
         let w_true = g.mapping.forward(rng.normal_tensor([1, 8], &dev));
         let target = g.render(w_true, &cache, None).x_d;
+        (g, cache, cache_ad, target)
+    }
+
+    #[test]
+    fn both_stages_lower_the_loss_and_leave_the_input_generator_alone() {
+        let (g, cache, cache_ad, target) = toy();
+        let (dev, ad) = (Device::flex(), Device::flex().autodiff());
         let before = tensor_to_vec(g.render(Tensor::zeros([1, 8], &dev), &cache, None).x_d);
         let mask = target.ones_like();
         let sched = Schedule {
@@ -250,6 +352,8 @@ mod tests {
             tune_decay: false,
             tune_w_lr: 0.0,
             pyramid_levels: 1,
+            coarse_steps: Vec::new(),
+            fine_decay: false,
         };
         let inv = invert(
             &g,
@@ -266,5 +370,62 @@ mod tests {
         assert!(l[59] < l[30], "tuning stage: {} -> {}", l[30], l[59]);
         let after = tensor_to_vec(g.render(Tensor::zeros([1, 8], &dev), &cache, None).x_d);
         assert_eq!(before, after, "the shared generator must not be tuned");
+    }
+
+    #[test]
+    fn coarse_steps_fit_the_pooled_observation_and_help_the_full_grid() {
+        let (g, _, cache_ad, target) = toy();
+        let ad = Device::flex().autodiff();
+        let mask = target.ones_like().autodiff();
+        let base = Schedule {
+            tune_lr: 3e-3,
+            pyramid_levels: 1,
+            ..Schedule::fast()
+        };
+        let run = |sched: &Schedule| {
+            let inv = invert(
+                &g,
+                &cache_ad,
+                target.clone().autodiff(),
+                mask.clone(),
+                vec![0.0; 8],
+                sched,
+                &ad,
+            );
+            inv.losses
+        };
+        let plain = run(&base.clone().with_coarse_steps(&[], 4));
+        let c2f = run(&base.clone().with_coarse_steps(&[40], 4));
+        assert_eq!(c2f.len(), 44);
+        // The coarse steps see the 4 x 16 half grid (first block only) and fit it.
+        assert!(
+            c2f[39] < 0.5 * c2f[0],
+            "coarse stage: {} -> {}",
+            c2f[0],
+            c2f[39]
+        );
+        // Starting from them, the full grid is fitted better than by its own 4 steps.
+        assert!(
+            c2f[43] < plain[3],
+            "coarse to fine {} vs plain {}",
+            c2f[43],
+            plain[3]
+        );
+    }
+
+    #[test]
+    fn schedules_say_what_they_run() {
+        let fast = Schedule::fast();
+        assert_eq!(fast.describe(), "0 w + 33 tuning");
+        let c2f = fast.clone().with_coarse_steps(&[48, 48, 4], 5);
+        assert_eq!(c2f.describe(), "0 w + 5 tuning (after 48/48/4 coarse)");
+        assert_eq!(c2f.steps(), 105);
+        assert!(c2f.fine_decay);
+        let mut back = c2f;
+        back.set_tune_steps(33);
+        assert_eq!(
+            back, fast,
+            "an explicit step count replaces the coarse schedule"
+        );
     }
 }

@@ -35,7 +35,7 @@ fn level_loss(x_gen: Tensor<4>, x_obs: Tensor<4>, mask: Tensor<4>) -> Tensor<1> 
 ///
 /// # Shapes
 /// - x, mask: `[batch, 1, H, W]` -> `[batch, 1, H/2, W/2]` each
-fn pool_masked(x: Tensor<4>, mask: Tensor<4>) -> (Tensor<4>, Tensor<4>) {
+pub fn pool_masked(x: Tensor<4>, mask: Tensor<4>) -> (Tensor<4>, Tensor<4>) {
     let [b, c, h, w] = x.dims();
     let pool = |t: Tensor<4>| {
         t.reshape([b * c * (h / 2), 2, w / 2, 2])

@@ -293,6 +293,15 @@ impl Decoder {
                 model.config.arch
             );
         };
+        let coarse_levels = opts.schedule.coarse_steps.len();
+        if coarse_levels >= generator.blocks.len() {
+            bail!(
+                "{coarse_levels} coarse tuning levels asked for; model '{}' has {} blocks, so at most {}",
+                model.source,
+                generator.blocks.len(),
+                generator.blocks.len() - 1
+            );
+        }
         let device = Device::flex();
         let ad = device.clone().autodiff();
         let generator = generator.to_device(&device);

@@ -69,7 +69,7 @@ fn decoder(w_steps: usize, tune_steps: usize, restore: Option<Sparsify>) -> Deco
     let mut opts = DecodeOptions::new(Quality::Paper);
     opts.schedule = Schedule::reference();
     opts.schedule.w_steps = w_steps;
-    opts.schedule.tune_steps = tune_steps;
+    opts.schedule.set_tune_steps(tune_steps);
     opts.restore = restore;
     Decoder::new(model, opts)
         .expect("decoder")
@@ -142,7 +142,7 @@ fn decoding_starts_from_the_encoder_unless_told_otherwise() {
     let model = Model::shipped(&Device::flex()).expect("shipped model");
     let scan = generated_scan(&model, 5);
     let mut opts = DecodeOptions::new(Quality::Paper);
-    opts.schedule.tune_steps = 0;
+    opts.schedule.set_tune_steps(0);
     let d = Decoder::new(model, opts).expect("decoder");
     let shipped = TrainedEncoder::shipped(&Device::flex()).expect("shipped encoder");
     let d = d.with_encoder(shipped).expect("same sizes");
@@ -250,9 +250,9 @@ fn fast_decoding_of_a_held_out_kitti_scan_improves_on_the_encoder() {
     .expect("project");
     let model = || Model::shipped(&Device::flex()).expect("shipped model");
     let mut opts = DecodeOptions::new(Quality::Fast);
-    opts.schedule.tune_steps = 0;
+    opts.schedule.set_tune_steps(0);
     let encoder_only = Decoder::new(model(), opts.clone()).expect("decoder");
-    opts.schedule.tune_steps = 6;
+    opts.schedule.set_tune_steps(6);
     let refined = Decoder::new(model(), opts).expect("decoder");
     let a = encoder_only.decode(&image, 1).expect("decode");
     let b = refined.decode(&image, 1).expect("decode");

@@ -135,7 +135,7 @@ pub(crate) fn test_decoder(tune_steps: usize) -> &'static Decoder {
     slot.get_or_init(|| {
         let device = burn::tensor::Device::flex();
         let mut opts = crate::decode::DecodeOptions::new(crate::decode::Quality::Fast);
-        opts.schedule.tune_steps = tune_steps;
+        opts.schedule.set_tune_steps(tune_steps);
         Decoder::new(
             crate::model::weights::Model::shipped(&device).expect("shipped model"),
             opts,

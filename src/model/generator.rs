@@ -163,6 +163,20 @@ pub struct GridCache {
     pub levels: Vec<LevelBasis>,
 }
 
+impl GridCache {
+    /// The cache cut to its first `blocks` levels: the generator renders with those blocks
+    /// alone, at the finest kept level's resolution (the low-pass part of the full image).
+    pub fn first_blocks(&self, blocks: usize) -> GridCache {
+        let levels = self.levels[..blocks.clamp(1, self.levels.len())].to_vec();
+        let finest = levels.last().expect("a grid has at least one level");
+        GridCache {
+            height: finest.height,
+            width: finest.width,
+            levels,
+        }
+    }
+}
+
 // ---------------------------------------------------------------------------------------------
 // Generator
 // ---------------------------------------------------------------------------------------------

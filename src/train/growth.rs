@@ -60,13 +60,7 @@ impl Level {
 
     /// The generator's grid cache cut to this level's blocks.
     pub fn grid(&self, full: &GridCache) -> GridCache {
-        let levels = full.levels[..self.blocks.min(full.levels.len())].to_vec();
-        let finest = levels.last().expect("a grid has at least one level");
-        GridCache {
-            height: finest.height,
-            width: finest.width,
-            levels,
-        }
+        full.first_blocks(self.blocks)
     }
 
     /// `image` (`[H, W]` row-major, full resolution) sampled at this level: the pixel at
