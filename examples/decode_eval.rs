@@ -7,6 +7,7 @@
 //!         [--paper-scans 2] [--fast-scans 26] [--encoder DIR] [--model DIR] [--out eval.json]
 //!         [--png docs/img/raydrop_reliability.png] [--sparse-paper-scans 4] [--only-sparse]
 //!         [--tune N] [--validation kitti_raw_drive_d] [--fast-schedule ...] [--only-reconstruction]
+//!         [--only-raydrop]
 //!         [--reference-scans 4]
 //!
 //! The upsampling and restoration cases also measure the library's fills that `convert
@@ -52,6 +53,7 @@ struct Args {
     fast_schedule: Option<Schedule>,
     /// Stop after the reconstruction numbers (for tuning the fast schedule).
     only_reconstruction: bool,
+    only_raydrop: bool,
     /// Write the ray-drop reliability curves here (PNG).
     png: Option<PathBuf>,
     /// Also run the row upsampling / restoration cases with `paper` decodes on this many scans.
@@ -78,6 +80,7 @@ fn parse_args() -> Result<Args> {
         out: None,
         fast_schedule: None,
         only_reconstruction: false,
+        only_raydrop: false,
         png: None,
         sparse_paper_scans: 0,
         reference_scans: 0,
@@ -99,6 +102,7 @@ fn parse_args() -> Result<Args> {
             "--sparse-paper-scans" => a.sparse_paper_scans = value()?.parse()?,
             "--reference-scans" => a.reference_scans = value()?.parse()?,
             "--only-reconstruction" => a.only_reconstruction = true,
+            "--only-raydrop" => a.only_raydrop = true,
             "--only-sparse" => a.only_sparse = true,
             "--validation" => a.validation = Some(value()?),
             "--tune" => a.tune = Some(value()?.parse()?),
@@ -751,6 +755,10 @@ fn main() -> Result<()> {
     eprintln!("calibration: {calibration}");
     if let Some(png) = &args.png {
         reliability_chart(png, &rel, &rel_raw)?;
+    }
+    if args.only_raydrop {
+        println!("{}", serde_json::to_string_pretty(&calibration)?);
+        return Ok(());
     }
 
     // ---- Upsampling and restoration (fast decoding from sparse observations) -------------

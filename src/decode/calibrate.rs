@@ -7,41 +7,56 @@ use rayon::prelude::*;
 
 use super::{Decoder, scan_seed};
 use crate::lidar::RangeImage;
-use crate::model::calibration::BeamSamples;
+use crate::model::calibration::{BeamSamples, depth_edges};
+
+/// One decoded scan's model-grid pixels: keep logit, completed depth, its edge strength and
+/// whether the ray returned.
+struct ScanPixels {
+    logits: Vec<f32>,
+    depth: Vec<f32>,
+    edge: Vec<f32>,
+    returned: Vec<bool>,
+}
 
 /// Decode `scans` (in parallel; seeds from their index) and collect, per beam of the model
-/// grid, the uncalibrated keep logits and the observed returns.
+/// grid, the uncalibrated keep logits, the completed depth and its edges, and the observed
+/// returns.
 pub fn raydrop_samples(decoder: &Decoder, scans: &[RangeImage]) -> Result<Vec<BeamSamples>> {
     let grid = decoder.model_grid();
-    let (h, w) = (grid.height, grid.width);
-    let per_scan: Vec<(Vec<f32>, Vec<f32>, Vec<f32>)> = scans
+    let w = grid.width;
+    let per_scan: Vec<ScanPixels> = scans
         .par_iter()
         .enumerate()
-        .map(|(i, scan)| -> Result<(Vec<f32>, Vec<f32>, Vec<f32>)> {
+        .map(|(i, scan)| -> Result<ScanPixels> {
             let decoded = decoder.decode(scan, scan_seed("calibration", i as u64))?;
             let (depth, logits) = decoded.depth_and_keep_logits(decoder);
             // A ray returned where the decoder saw it or held it out (restoration).
             let returned = (decoded.observed_m.iter().zip(&decoded.held_out_m))
-                .map(|(seen, held)| if *seen > 0.0 || *held > 0.0 { 1.0 } else { 0.0 })
+                .map(|(seen, held)| *seen > 0.0 || *held > 0.0)
                 .collect();
-            Ok((logits, depth, returned))
+            Ok(ScanPixels {
+                edge: depth_edges(&depth, w),
+                logits,
+                depth,
+                returned,
+            })
         })
         .collect::<Result<_>>()?;
-    let elevations = grid.row_elevations();
-    let mut beams: Vec<BeamSamples> = elevations
+    let mut beams: Vec<BeamSamples> = grid
+        .row_elevations()
         .iter()
         .map(|e| BeamSamples {
             elevation_rad: *e,
             ..Default::default()
         })
         .collect();
-    for (logits, depth, returned) in &per_scan {
-        for r in 0..h {
-            let beam = &mut beams[r];
-            beam.logits.extend_from_slice(&logits[r * w..(r + 1) * w]);
-            beam.depth_m.extend_from_slice(&depth[r * w..(r + 1) * w]);
-            beam.kept
-                .extend(returned[r * w..(r + 1) * w].iter().map(|m| *m > 0.0));
+    for scan in &per_scan {
+        for (r, beam) in beams.iter_mut().enumerate() {
+            let row = r * w..(r + 1) * w;
+            beam.logits.extend_from_slice(&scan.logits[row.clone()]);
+            beam.depth_m.extend_from_slice(&scan.depth[row.clone()]);
+            beam.edge.extend_from_slice(&scan.edge[row.clone()]);
+            beam.kept.extend_from_slice(&scan.returned[row]);
         }
     }
     Ok(beams)
@@ -83,7 +98,11 @@ mod tests {
         let c = RaydropCalibration::fit(&samples, "test".into()).unwrap();
         for (r, beam) in samples.iter().enumerate() {
             let drop: f32 = (0..beam.logits.len())
-                .map(|i| 1.0 / (1.0 + c.keep_logit(beam.logits[i], beam.depth_m[i], rows[r]).exp()))
+                .map(|i| {
+                    1.0 / (1.0
+                        + c.keep_logit(beam.logits[i], beam.depth_m[i], beam.edge[i], rows[r])
+                            .exp())
+                })
                 .sum::<f32>()
                 / beam.logits.len() as f32;
             if r < 15 {

@@ -1,10 +1,12 @@
 //! Post-hoc calibration of the ray-drop probability x_n (Platt scaling per beam).
 //!
-//! The generator's keep logit l (x_n = 1 - sigmoid(l)) becomes a(φ) l + b(φ) + c(φ) ln(d / 10 m),
-//! with d the completed depth x_d: one (a, b, c) per beam of the model grid, fitted by logistic
-//! regression on decoded training scans against their actual drops, and linearly interpolated
-//! in elevation φ for other grids. The depth term lets the calibration use what the decoded
-//! scene says about range (far surfaces and open sky drop more). It travels
+//! The generator's keep logit l (x_n = 1 - sigmoid(l)) becomes
+//! a(φ) l + b(φ) + c(φ) ln(d / 10 m) + e(φ) g, with d the completed depth x_d and g its depth
+//! edge strength ([`depth_edges`]): one (a, b, c, e) per beam of the model grid, fitted by
+//! logistic regression on decoded training scans against their actual drops, and linearly
+//! interpolated in elevation φ for other grids. The depth and edge terms let the calibration
+//! use what the decoded scene says about range (far surfaces and open sky drop more) and about
+//! depth edges (a beam split between two surfaces often returns nothing). It travels
 //! with the weights (`calibration.json` beside `g_ema.bpk`), because it belongs to the
 //! generator (and to the decode that produced the logits it was fitted on).
 
@@ -20,7 +22,8 @@ pub struct RaydropCalibration {
     pub fitted_on: String,
 }
 
-/// The map of one beam: keep logit -> `scale * logit + bias + depth_slope * ln(depth / 10 m)`.
+/// The map of one beam: keep logit ->
+/// `scale * logit + bias + depth_slope * ln(depth / 10 m) + edge_slope * edge`.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct BeamCalibration {
     pub elevation_rad: f32,
@@ -28,6 +31,8 @@ pub struct BeamCalibration {
     pub bias: f32,
     #[serde(default)]
     pub depth_slope: f32,
+    #[serde(default)]
+    pub edge_slope: f32,
 }
 
 impl BeamCalibration {
@@ -37,15 +42,57 @@ impl BeamCalibration {
         scale: 1.0,
         bias: 0.0,
         depth_slope: 0.0,
+        edge_slope: 0.0,
     };
 
-    fn apply(&self, logit: f32, depth_m: f32) -> f32 {
-        self.scale * logit + self.bias + self.depth_slope * depth_feature(depth_m)
+    fn apply(&self, logit: f32, depth_m: f32, edge: f32) -> f32 {
+        self.scale * logit
+            + self.bias
+            + self.depth_slope * depth_feature(depth_m)
+            + self.edge_slope * edge
     }
 }
 
 fn depth_feature(depth_m: f32) -> f32 {
     (depth_m.max(0.1) / 10.0).ln()
+}
+
+/// Largest depth jump at which the edge strength saturates (|ln ratio| = 1: 2.7x).
+const EDGE_CAP: f32 = 1.0;
+
+/// Depth edge strength of every pixel of a row-major depth image `width` wide: the largest
+/// |ln(d / d_neighbour)| over its four neighbours (columns wrap around), capped at 1. Pixels
+/// without a depth (0) neither have nor make an edge.
+pub fn depth_edges(depth_m: &[f32], width: usize) -> Vec<f32> {
+    let height = depth_m.len() / width.max(1);
+    let ln: Vec<f32> = depth_m
+        .iter()
+        .map(|d| if *d > 0.0 { d.ln() } else { f32::NAN })
+        .collect();
+    (0..depth_m.len())
+        .map(|k| {
+            let (r, c) = (k / width, k % width);
+            let here = ln[k];
+            if here.is_nan() {
+                return 0.0;
+            }
+            let mut neighbours = [(c + 1) % width, (c + width - 1) % width]
+                .map(|j| r * width + j)
+                .to_vec();
+            if r > 0 {
+                neighbours.push(k - width);
+            }
+            if r + 1 < height {
+                neighbours.push(k + width);
+            }
+            neighbours
+                .into_iter()
+                .map(|n| (ln[n] - here).abs())
+                .filter(|g| !g.is_nan())
+                .fold(0.0f32, f32::max)
+                .min(EDGE_CAP)
+        })
+        .collect()
 }
 
 /// Fitting data of one beam: the decoded keep logits and depths, and whether the ray
@@ -55,6 +102,8 @@ pub struct BeamSamples {
     pub elevation_rad: f32,
     pub logits: Vec<f32>,
     pub depth_m: Vec<f32>,
+    /// [`depth_edges`] of the decoded depth.
+    pub edge: Vec<f32>,
     pub kept: Vec<bool>,
 }
 
@@ -64,7 +113,7 @@ impl BeamSamples {
         let n = self.logits.len().max(1) as f64;
         (0..self.logits.len())
             .map(|i| {
-                let z = map.apply(self.logits[i], self.depth_m[i]);
+                let z = map.apply(self.logits[i], self.depth_m[i], self.edge[i]);
                 bernoulli_nll(f64::from(z), self.kept[i])
             })
             .sum::<f64>()
@@ -121,13 +170,14 @@ impl RaydropCalibration {
             scale: lerp(lo.scale, hi.scale),
             bias: lerp(lo.bias, hi.bias),
             depth_slope: lerp(lo.depth_slope, hi.depth_slope),
+            edge_slope: lerp(lo.edge_slope, hi.edge_slope),
         }
     }
 
     /// The calibrated keep logit of a pixel looking at `elevation_rad` with completed depth
-    /// `depth_m`.
-    pub fn keep_logit(&self, logit: f32, depth_m: f32, elevation_rad: f32) -> f32 {
-        self.params(elevation_rad).apply(logit, depth_m)
+    /// `depth_m` and depth edge strength `edge` ([`depth_edges`]).
+    pub fn keep_logit(&self, logit: f32, depth_m: f32, edge: f32, elevation_rad: f32) -> f32 {
+        self.params(elevation_rad).apply(logit, depth_m, edge)
     }
 
     pub fn from_json(text: &str, source: &str) -> Result<Self> {
@@ -140,21 +190,22 @@ impl RaydropCalibration {
     }
 }
 
-/// Logistic regression of `kept` on [logit, 1, ln(depth / 10 m)] by Newton's method, with a
+/// Logistic regression of `kept` on [logit, 1, ln(depth / 10 m), edge] by Newton's method, with a
 /// weak ridge towards the identity map so that a beam that always (or never) returns stays
 /// finite.
 fn logistic_fit(s: &BeamSamples) -> BeamCalibration {
-    use nalgebra::{Matrix3, Vector3};
+    use nalgebra::{Matrix4, Vector4};
     const RIDGE: f64 = 1.0;
-    let prior = Vector3::new(1.0, 0.0, 0.0);
+    let prior = Vector4::new(1.0, 0.0, 0.0, 0.0);
     let features = |i: usize| {
-        Vector3::new(
+        Vector4::new(
             f64::from(s.logits[i]),
             1.0,
             f64::from(depth_feature(s.depth_m[i])),
+            f64::from(s.edge[i]),
         )
     };
-    let objective = |theta: &Vector3<f64>| {
+    let objective = |theta: &Vector4<f64>| {
         (0..s.logits.len())
             .map(|i| bernoulli_nll(theta.dot(&features(i)), s.kept[i]))
             .sum::<f64>()
@@ -164,7 +215,7 @@ fn logistic_fit(s: &BeamSamples) -> BeamCalibration {
     let mut current = objective(&theta);
     for _ in 0..100 {
         let mut grad = RIDGE * (theta - prior);
-        let mut hess = Matrix3::identity() * RIDGE;
+        let mut hess = Matrix4::identity() * RIDGE;
         for i in 0..s.logits.len() {
             let x = features(i);
             let p = 1.0 / (1.0 + (-theta.dot(&x)).exp());
@@ -200,6 +251,7 @@ fn logistic_fit(s: &BeamSamples) -> BeamCalibration {
         scale: theta[0] as f32,
         bias: theta[1] as f32,
         depth_slope: theta[2] as f32,
+        edge_slope: theta[3] as f32,
     }
 }
 
@@ -217,9 +269,15 @@ mod tests {
         for _ in 0..n {
             let l = rng.uniform() * 8.0 - 2.0;
             let d = 2.0 + rng.uniform() * 70.0;
-            let p = 1.0 / (1.0 + (-map.apply(l, d)).exp());
+            let g = if rng.uniform() < 0.2 {
+                rng.uniform()
+            } else {
+                0.0
+            };
+            let p = 1.0 / (1.0 + (-map.apply(l, d, g)).exp());
             s.logits.push(l);
             s.depth_m.push(d);
+            s.edge.push(g);
             s.kept.push(rng.uniform() < p);
         }
         s
@@ -231,19 +289,25 @@ mod tests {
             scale,
             bias,
             depth_slope,
+            edge_slope: 0.0,
         }
     }
 
     #[test]
     fn fit_recovers_the_map_that_generated_the_drops() {
-        let truth = [map(-0.3, 0.5, -1.0, -1.5), map(0.0, 2.0, 0.5, 0.0)];
+        let edgy = BeamCalibration {
+            edge_slope: -3.0,
+            ..map(0.0, 2.0, 0.5, 0.0)
+        };
+        let truth = [map(-0.3, 0.5, -1.0, -1.5), edgy];
         let beams = [samples(truth[0], 40_000, 1), samples(truth[1], 40_000, 2)];
         let c = RaydropCalibration::fit(&beams, "test".into()).unwrap();
         assert_eq!(c.beams.len(), 2);
         for (fit, t) in c.beams.iter().zip(&truth) {
             let close = (fit.scale - t.scale).abs() < 0.1 * t.scale
                 && (fit.bias - t.bias).abs() < 0.15
-                && (fit.depth_slope - t.depth_slope).abs() < 0.15;
+                && (fit.depth_slope - t.depth_slope).abs() < 0.15
+                && (fit.edge_slope - t.edge_slope).abs() < 0.3;
             assert!(close, "fitted {fit:?}, truth {t:?}");
         }
         // the fit is never worse than the identity map on its own data
@@ -261,7 +325,7 @@ mod tests {
         assert!(fit.scale.is_finite() && fit.bias.is_finite() && fit.depth_slope.is_finite());
         // the calibrated keep probability is near 1 on average (the ridge keeps it below)
         let mean_keep = (0..s.logits.len())
-            .map(|i| 1.0 / (1.0 + (-c.keep_logit(s.logits[i], s.depth_m[i], 0.1)).exp()))
+            .map(|i| 1.0 / (1.0 + (-c.keep_logit(s.logits[i], s.depth_m[i], s.edge[i], 0.1)).exp()))
             .sum::<f32>()
             / s.logits.len() as f32;
         assert!(mean_keep > 0.98, "{fit:?}: mean keep {mean_keep}");
@@ -279,10 +343,26 @@ mod tests {
         assert!((mid.scale - 2.0).abs() < 1e-6 && (mid.bias + 1.0).abs() < 1e-6);
         assert!((mid.depth_slope - 0.5).abs() < 1e-6);
         // at 10 m the depth term vanishes: 2 * 2 - 1
-        assert!((c.keep_logit(2.0, 10.0, -0.1) - 3.0).abs() < 1e-5);
+        assert!((c.keep_logit(2.0, 10.0, 0.0, -0.1) - 3.0).abs() < 1e-5);
         let json = serde_json::to_string(&c).unwrap();
         assert_eq!(RaydropCalibration::from_json(&json, "x").unwrap(), c);
         assert!(RaydropCalibration::from_json("{\"beams\":[],\"fitted_on\":\"\"}", "x").is_err());
+    }
+
+    #[test]
+    fn depth_edges_mark_both_sides_of_a_jump_and_wrap_around() {
+        // 2 rows x 4 columns: a wall at 10 m with a post at 5 m in column 1; row 1 is empty
+        // but for column 3.
+        let depth = [10.0, 5.0, 10.0, 10.0, 0.0, 0.0, 0.0, 40.0];
+        let g = depth_edges(&depth, 4);
+        let jump = 2f32.ln();
+        assert!((g[0] - jump).abs() < 1e-6 && (g[1] - jump).abs() < 1e-6);
+        assert!((g[2] - jump).abs() < 1e-6, "the post's other side");
+        // column 3's neighbours in its row: 10 m (column 2) and, wrapping, 10 m (column 0);
+        // below it 40 m: capped.
+        assert_eq!(g[3], EDGE_CAP);
+        assert_eq!(&g[4..7], &[0.0, 0.0, 0.0], "no depth, no edge");
+        assert_eq!(g[7], EDGE_CAP);
     }
 
     #[test]
