@@ -8,6 +8,7 @@
 //! | `incidence_dropout` | cos(incidence) of the completed normal, 0.02 bins | log-logistic in cos (cos_50, softness) |
 //! | `beam_dropout` | row | one free rate per row |
 //! | `material_dropout` | semantic class (labels, else neighbours' labels) | one free rate per class |
+//! | `edge_dropout` | pixels along the row to the nearest depth edge of the completed range, 0-8 | a free rate for 0-3 px above the rate far from edges |
 //! | `self_occlusion` | (row, azimuth sector) in the lower half | per sector a "skyline" of blocked bottom rows and a probability |
 //! | `motion_distortion` (coverage) | distance to the nearest moved return along the pixel's column and along its row, in half pixels | a logistic curve per axis; only where the seam step found motion |
 
@@ -19,6 +20,7 @@ use rayon::prelude::*;
 use serde_json::{Map, Value, json};
 
 use super::fit::{DropFamily, DropFit, Pixels, QTable, golden};
+use crate::lidar::edges::MAX_EDGE_PX;
 use crate::physics::dropout::{IncidenceDropout, RangeDropout};
 use crate::physics::{Effect, RayFeatures};
 use crate::sim::Material;
@@ -32,6 +34,7 @@ pub fn families() -> Vec<Box<dyn DropFamily>> {
         Box::new(BeamFamily),
         Box::new(ClassFamily),
         Box::new(SelfOcclusionFamily),
+        Box::new(EdgeFamily),
     ]
 }
 
@@ -47,6 +50,7 @@ fn ray(range_m: f32, incidence_rad: f32) -> RayFeatures {
         intensity: 0.5,
         azimuth_rad: 0.0,
         elevation_rad: 0.0,
+        edge_px: MAX_EDGE_PX,
     }
 }
 
@@ -262,6 +266,62 @@ impl DropFamily for BeamFamily {
             params,
             physics,
             location: format!("per-laser rates; weakest rows: {}", strongest(&items, 6)),
+        })
+    }
+}
+
+/// `edge_dropout`: extra drops on and beside depth edges.
+pub struct EdgeFamily;
+/// Distances from an edge (0 = on it) that get a rate of their own; beyond them the rate of
+/// the pixels far from any edge is the reference.
+const EDGE_FIT_PX: usize = 4;
+
+impl DropFamily for EdgeFamily {
+    fn id(&self) -> &'static str {
+        "edge_dropout"
+    }
+    fn bins(&self, _: &Pixels) -> usize {
+        usize::from(MAX_EDGE_PX) + 1
+    }
+    /// Pixels with a surface only (a completed range): edges are between surfaces.
+    fn bin(&self, px: &Pixels, i: usize) -> Option<usize> {
+        (px.range_m[i].is_finite() && px.enclosure_px[i] <= BEAM_ENCLOSURE_PX)
+            .then(|| usize::from(px.row_edge_px[i].min(MAX_EDGE_PX)))
+    }
+    fn fit(&self, table: &QTable, _: &Pixels) -> Option<DropFit> {
+        if table.bins <= EDGE_FIT_PX {
+            return None;
+        }
+        // What the rest of the model leaves unexplained near edges, above what it leaves
+        // far from them (that is the keep scale's).
+        let free: Vec<f64> = (0..table.bins).map(|b| table.best_bin_prob(b)).collect();
+        let far = free[EDGE_FIT_PX..].iter().sum::<f64>() / (table.bins - EDGE_FIT_PX) as f64;
+        let drop_prob: Vec<f64> = (0..table.bins)
+            .map(|d| {
+                if d < EDGE_FIT_PX {
+                    ((free[d] - far) / (1.0 - far).max(1e-6)).max(0.0)
+                } else {
+                    0.0
+                }
+            })
+            .collect();
+        let by_px: Vec<f64> = drop_prob[..EDGE_FIT_PX]
+            .iter()
+            .map(|p| round3(*p))
+            .collect();
+        let mut params = Map::new();
+        params.insert("drop_prob_by_px".into(), json!(by_px));
+        let mut physics = Map::new();
+        physics.insert("edge_dropout".into(), json!({ "drop_prob_by_px": by_px }));
+        Some(DropFit {
+            n_params: EDGE_FIT_PX,
+            drop_prob,
+            params,
+            physics,
+            location: format!(
+                "depth edges: {:.2} of the rays on an edge drop, {:.2} one pixel off",
+                by_px[0], by_px[1]
+            ),
         })
     }
 }

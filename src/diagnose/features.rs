@@ -10,6 +10,7 @@
 //! label among valid neighbours). It does no statistics (see `stats`) and no I/O.
 
 use crate::lidar::RangeImage;
+use crate::lidar::edges::{EDGE_RELATIVE_JUMP, EdgeAxes, MAX_EDGE_PX, edge_proximity};
 
 /// Settings for [`ScanFeatures::from_image`].
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -33,8 +34,8 @@ impl Default for FeatureOptions {
     fn default() -> Self {
         FeatureOptions {
             fill_passes: 3,
-            edge_relative_jump: 0.1,
-            max_edge_px: 8,
+            edge_relative_jump: EDGE_RELATIVE_JUMP,
+            max_edge_px: MAX_EDGE_PX,
             wrap_azimuth: true,
             bridge_gap_px: 16,
         }
@@ -61,6 +62,8 @@ pub struct ScanFeatures {
     /// Pixel distance to the nearest depth edge, capped at
     /// [`FeatureOptions::max_edge_px`]; the cap where no edge is near or no geometry.
     pub edge_px: Vec<u8>,
+    /// The same along the row only ([`EdgeAxes::Row`]: object silhouettes, not far ground).
+    pub row_edge_px: Vec<u8>,
     /// Semantic class (the low 16 bits of a SemanticKITTI label, the instance id
     /// dropped); 0 = unknown.
     pub class: Vec<u32>,
@@ -146,12 +149,17 @@ impl ScanFeatures {
         }
         let dirs: Vec<[f32; 3]> = (0..n).map(|k| image.angles.direction(k)).collect();
         let incidence_rad = incidence(&grid, &range_m, &dirs);
-        let edge_px = edge_proximity(
-            &grid,
-            &range_m,
-            options.edge_relative_jump,
-            options.max_edge_px,
-        );
+        let edges = |axes| {
+            edge_proximity(
+                &range_m,
+                w,
+                options.wrap_azimuth,
+                axes,
+                options.edge_relative_jump,
+                options.max_edge_px,
+            )
+        };
+        let (edge_px, row_edge_px) = (edges(EdgeAxes::Both), edges(EdgeAxes::Row));
         ScanFeatures {
             height: h,
             width: w,
@@ -161,6 +169,7 @@ impl ScanFeatures {
             range_m,
             incidence_rad,
             edge_px,
+            row_edge_px,
             class,
             kept,
         }
@@ -507,44 +516,6 @@ fn incidence(grid: &Grid, range: &[f32], dirs: &[[f32; 3]]) -> Vec<f32> {
             (dot(normal, dirs[k]).abs() / norm).clamp(0.0, 1.0).acos()
         })
         .collect()
-}
-
-/// Pixel distance (4-connected steps) to the nearest depth-edge pixel, capped.
-fn edge_proximity(grid: &Grid, range: &[f32], relative_jump: f32, cap: u8) -> Vec<u8> {
-    let four = [(-1, 0), (1, 0), (0, -1), (0, 1)];
-    let n = range.len();
-    let mut dist = vec![cap; n];
-    for k in 0..n {
-        if range[k].is_nan() {
-            continue;
-        }
-        let (i, j) = (k / grid.w, k % grid.w);
-        let on_edge = four.iter().any(|&(di, dj)| {
-            grid.at(i, j, di, dj).is_some_and(|m| {
-                !range[m].is_nan()
-                    && (range[m] - range[k]).abs() > relative_jump * range[m].min(range[k])
-            })
-        });
-        if on_edge {
-            dist[k] = 0;
-        }
-    }
-    for d in 1..cap {
-        let prev = dist.clone();
-        for k in 0..n {
-            if prev[k] <= d || range[k].is_nan() {
-                continue;
-            }
-            let (i, j) = (k / grid.w, k % grid.w);
-            if four
-                .iter()
-                .any(|&(di, dj)| grid.at(i, j, di, dj).is_some_and(|m| prev[m] == d - 1))
-            {
-                dist[k] = d;
-            }
-        }
-    }
-    dist
 }
 
 /// Features of scans `0..scans` of a simulated drive (HDL-64E at 64 x 512) from

@@ -146,6 +146,8 @@ pub struct Pixels {
     pub enclosure_px: Vec<u8>,
     /// Pixels (4-connected steps) to the nearest depth edge of the completed range, capped.
     pub edge_px: Vec<u8>,
+    /// The same along the row only (object silhouettes, not far ground).
+    pub row_edge_px: Vec<u8>,
     /// Elevation of each row, radians (from the first scan).
     pub row_elevation_rad: Vec<f32>,
     /// Azimuth of each column, radians.
@@ -192,6 +194,8 @@ impl Pixels {
                 px.enclosure_px.push(enclosure);
                 px.edge_px
                     .push(f.edge_px.get(k).copied().unwrap_or(u8::MAX));
+                px.row_edge_px
+                    .push(f.row_edge_px.get(k).copied().unwrap_or(u8::MAX));
                 px.scan.push(scan);
             }
         }

@@ -262,6 +262,7 @@ fn stats_feature(id: &str) -> Option<Feature> {
         "beam_dropout" => Some(Feature::Row),
         "material_dropout" => Some(Feature::Class),
         "self_occlusion" => Some(Feature::Azimuth),
+        "edge_dropout" => Some(Feature::EdgeProximity),
         _ => None,
     }
 }

@@ -374,6 +374,7 @@ mod tests {
             range_m: Vec::new(),
             incidence_rad: Vec::new(),
             edge_px: Vec::new(),
+            row_edge_px: Vec::new(),
             class: Vec::new(),
             kept: Vec::new(),
         };
@@ -386,6 +387,7 @@ mod tests {
             f.range_m.push(range_m);
             f.incidence_rad.push(1.5 * u(k, 4));
             f.edge_px.push((u(k, 5) * 8.0) as u8 % 8);
+            f.row_edge_px.push((u(k, 5) * 8.0) as u8 % 8);
             f.class.push(1 + (u(k, 6) * 4.0) as u32 % 4);
             f.kept.push(u(k, 7) >= drop_prob(range_m));
         }

@@ -18,8 +18,8 @@ use crate::decode::scan_seed;
 use crate::lidar::{RangeImage, SensorProfile};
 use crate::physics::Effect;
 use crate::physics::dropout::{
-    BeamDropout, IncidenceDropout, MaterialDropout, OcclusionSector, RangeDropout, SelfOcclusion,
-    UniformDropout,
+    BeamDropout, EdgeDropout, IncidenceDropout, MaterialDropout, OcclusionSector, RangeDropout,
+    SelfOcclusion, UniformDropout,
 };
 use crate::physics::perturb::{MixedPixels, MotionDistortion, RangeNoise};
 use crate::sim::Material;
@@ -288,6 +288,29 @@ fn concealed_beam_dropout() {
     };
     for (_, d) in diagnose_cases(131, 232, effect) {
         assert_named_first(&d, "beam_dropout");
+    }
+}
+
+#[test]
+fn concealed_edge_dropout() {
+    let on_edge = |case| 0.25 + 0.25 * u(case, 21);
+    let effect = |case| -> Vec<Box<dyn Effect>> {
+        let p0 = on_edge(case);
+        vec![Box::new(EdgeDropout {
+            enabled: true,
+            drop_prob_by_px: vec![p0, 0.3 * p0],
+        })]
+    };
+    for (case, d) in diagnose_cases(141, 242, effect) {
+        assert_named_first(&d, "edge_dropout");
+        let fitted = d.report.effects[0].params["drop_prob_by_px"][0]
+            .as_f64()
+            .unwrap();
+        let truth = f64::from(on_edge(case));
+        assert!(
+            (fitted - truth).abs() < 0.12,
+            "on-edge drop {fitted} vs {truth}"
+        );
     }
 }
 

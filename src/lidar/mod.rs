@@ -5,6 +5,7 @@
 //! images ([`resample`]). Readers for dataset files on disk (KITTI, nuScenes, PCD)
 //! live here too; MCAP is left to `io`, models to later modules.
 
+pub mod edges;
 pub mod estimate;
 pub mod kitti;
 pub mod nuscenes;

@@ -8,7 +8,7 @@ use std::path::Path;
 use serde::{Deserialize, Serialize};
 
 use super::dropout::{
-    BeamDropout, IncidenceDropout, IntensityDropout, MaterialDropout, OcclusionSector,
+    BeamDropout, EdgeDropout, IncidenceDropout, IntensityDropout, MaterialDropout, OcclusionSector,
     RangeDropout, SelfOcclusion, UniformDropout,
 };
 use super::perturb::{
@@ -61,6 +61,8 @@ pub struct PhysicsConfig {
     pub incidence_dropout: Option<IncidenceDropout>,
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub material_dropout: Option<MaterialDropout>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub edge_dropout: Option<EdgeDropout>,
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub uniform_dropout: Option<UniformDropout>,
     #[serde(default, skip_serializing_if = "Option::is_none")]
@@ -181,6 +183,7 @@ fn realistic(beams: usize) -> PhysicsConfig {
         }),
         range_dropout: Some(RangeDropout { enabled: true, range_50_m: 150.0, softness: 0.6 }),
         incidence_dropout: Some(IncidenceDropout { enabled: true, cos_50: 0.03, softness: 0.3 }),
+        edge_dropout: None,
         material_dropout: Some(MaterialDropout { enabled: true, drop_prob: material, drop_prob_by_class: BTreeMap::new() }),
         // KITTI's HDL-64E fires ~2010 times per turn: at 512 columns ~2 % of the
         // pixels stay empty whatever the scene.
@@ -382,6 +385,24 @@ impl PhysicsConfig {
                 "must be > 0",
             )?;
         }
+        if let Some(e) = &self.edge_dropout {
+            check(
+                e.drop_prob_by_px.len() <= usize::from(crate::lidar::edges::MAX_EDGE_PX),
+                o,
+                "edge_dropout.drop_prob_by_px",
+                e.drop_prob_by_px.len(),
+                "lists at most 8 distances (0-7 pixels from the edge)",
+            )?;
+            for (d, p) in e.drop_prob_by_px.iter().enumerate() {
+                check(
+                    prob(*p),
+                    o,
+                    &format!("edge_dropout.drop_prob_by_px[{d}]"),
+                    p,
+                    "must be in [0, 1]",
+                )?;
+            }
+        }
         if let Some(e) = &self.material_dropout {
             for (m, p) in &e.drop_prob {
                 check(
@@ -525,6 +546,7 @@ impl PhysicsConfig {
             range_dropout,
             incidence_dropout,
             material_dropout,
+            edge_dropout,
             uniform_dropout,
             intensity_dropout,
             atmosphere,

@@ -72,6 +72,33 @@ impl Effect for IncidenceDropout {
     }
 }
 
+/// `edge_dropout`: rays on and beside depth edges return nothing more often: the beam's
+/// footprint straddles two surfaces, and the split echo is too weak or too wide for the
+/// detector. `drop_prob_by_px[d]` is the drop probability `d` pixels along the row from the
+/// nearest depth edge of the ideal scan (0 = on the edge); farther rays never drop.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct EdgeDropout {
+    #[serde(default = "yes")]
+    pub enabled: bool,
+    pub drop_prob_by_px: Vec<f32>,
+}
+
+impl Effect for EdgeDropout {
+    fn id(&self) -> &'static str {
+        "edge_dropout"
+    }
+    fn drops(&self) -> bool {
+        true
+    }
+    fn drop_prob(&self, f: &RayFeatures) -> f32 {
+        self.drop_prob_by_px
+            .get(usize::from(f.edge_px))
+            .copied()
+            .unwrap_or(0.0)
+    }
+}
+
 /// `material_dropout`: a drop probability per material (glass transmits, dark
 /// paint and rubber absorb); materials not listed never drop.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -354,7 +381,38 @@ pub(crate) mod tests {
             intensity: 0.2,
             azimuth_rad: 0.0,
             elevation_rad: 0.0,
+            edge_px: crate::lidar::edges::MAX_EDGE_PX,
         }
+    }
+
+    #[test]
+    fn edge_dropout_drops_by_distance_to_the_edge_and_only_there() {
+        let e = EdgeDropout {
+            enabled: true,
+            drop_prob_by_px: vec![0.4, 0.1],
+        };
+        let at = |edge_px| RayFeatures {
+            edge_px,
+            ..features(10.0, 0.0, Material::Concrete, 10)
+        };
+        assert_eq!((e.drop_prob(&at(0)), e.drop_prob(&at(1))), (0.4, 0.1));
+        assert_eq!(e.drop_prob(&at(2)), 0.0);
+        // In a simulated scan: the drops concentrate where the ideal scan has depth edges.
+        let (before, after) = before_after(Box::new(e), 5);
+        let edges = crate::physics::ideal_edges(&before);
+        let rate = |near: bool| {
+            let (mut n, mut lost) = (0, 0);
+            for (k, edge) in edges.iter().enumerate() {
+                if before.is_return(k) && (*edge == 0) == near {
+                    n += 1;
+                    lost += usize::from(!after.is_return(k));
+                }
+            }
+            lost as f64 / n.max(1) as f64
+        };
+        let (on, off) = (rate(true), rate(false));
+        assert!((on - 0.4).abs() < 0.05, "on the edge {on}");
+        assert!(off < 0.1, "off the edge {off}");
     }
 
     /// An ideal scan, and the same scan after `effect` (drop rates per pixel set).

@@ -6,7 +6,7 @@
 //! Two kinds of effect, both with a likelihood-friendly form for diagnosis:
 //! - **drop models** give a drop probability per ray from its ideal features
 //!   ([`RayFeatures`]: row, column, true range, incidence, material, reflectivity,
-//!   intensity, azimuth, elevation). Each draws independently, so a ray's keep
+//!   intensity, azimuth, elevation, distance to a depth edge). Each draws independently, so a ray's keep
 //!   probability is the product of `1 - p` over the enabled drop effects.
 //! - **perturbations** move kept returns (range noise, quantisation, mixed pixels
 //!   at depth edges, motion distortion), change intensity, or add clutter returns.
@@ -23,6 +23,7 @@ pub mod pretraining;
 
 pub use config::{PhysicsConfig, PhysicsError, Preset};
 
+use crate::lidar::edges::{EDGE_RELATIVE_JUMP, EdgeAxes, MAX_EDGE_PX, edge_proximity};
 use crate::sim::{Material, SimScan};
 use crate::util::rng::{gaussian, key_hash, uniform};
 
@@ -44,11 +45,15 @@ pub struct RayFeatures {
     /// Ray azimuth (0 = ahead, counter-clockwise) and elevation, radians.
     pub azimuth_rad: f32,
     pub elevation_rad: f32,
+    /// Pixels along the row to the nearest depth edge of the ideal scan (0 = on one; capped
+    /// at [`MAX_EDGE_PX`]; [`EdgeAxes::Row`]).
+    pub edge_px: u8,
 }
 
 impl RayFeatures {
-    /// Features of pixel `k` of an ideal scan.
-    pub fn of(scan: &SimScan, k: usize) -> Self {
+    /// Features of pixel `k` of an ideal scan whose depth-edge distances are `edge_px`
+    /// ([`ideal_edges`]).
+    pub fn of(scan: &SimScan, k: usize, edge_px: &[u8]) -> Self {
         let w = scan.width();
         RayFeatures {
             row: k / w,
@@ -61,8 +66,27 @@ impl RayFeatures {
             intensity: scan.image.intensity[k],
             azimuth_rad: scan.image.angles.azimuth_rad[k],
             elevation_rad: scan.image.angles.elevation_rad[k],
+            edge_px: edge_px[k],
         }
     }
+}
+
+/// Depth-edge distance along the row of every pixel of an ideal scan, from its true
+/// first-hit ranges (columns wrap: the simulator casts a full turn).
+pub fn ideal_edges(scan: &SimScan) -> Vec<u8> {
+    let range: Vec<f32> = scan
+        .true_range_m
+        .iter()
+        .map(|r| if *r > 0.0 { *r } else { f32::NAN })
+        .collect();
+    edge_proximity(
+        &range,
+        scan.width(),
+        true,
+        EdgeAxes::Row,
+        EDGE_RELATIVE_JUMP,
+        MAX_EDGE_PX,
+    )
 }
 
 /// Keys for an effect's random draws within one scan.
@@ -159,11 +183,12 @@ impl Physics {
             .map(|e| (e.as_ref(), salt(e.id())))
             .collect();
         if !drops.is_empty() {
+            let edges = ideal_edges(scan);
             for k in 0..scan.len() {
                 if !scan.is_return(k) {
                     continue;
                 }
-                let f = RayFeatures::of(scan, k);
+                let f = RayFeatures::of(scan, k, &edges);
                 // Every model draws, so each effect's draws are independent of the others.
                 let mut dropped = false;
                 for (effect, salt) in &drops {

@@ -296,6 +296,7 @@ fn effect_words(id: &str) -> (&'static str, Option<&'static str>) {
         "material_dropout" => ("rays lost on dark or glass surfaces", None),
         "range_noise" => ("noise on the measured range", None),
         "mixed_pixels" => ("mixed returns at depth edges", None),
+        "edge_dropout" => ("rays lost at depth edges", Some("drop_vs_edge_distance")),
         "motion_distortion" => ("the sensor moving during a sweep", Some("example_scan")),
         _ => ("a sensor effect", None),
     }
