@@ -127,7 +127,6 @@ fn parse_args() -> Result<Args> {
                     tune_decay: p[4] == "1",
                     tune_w_lr: p[5].parse()?,
                     pyramid_levels: 2,
-                    fine_decay: !coarse_steps.is_empty(),
                     coarse_steps,
                 });
             }

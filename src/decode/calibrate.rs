@@ -7,7 +7,8 @@ use rayon::prelude::*;
 
 use super::{Decoder, scan_seed};
 use crate::lidar::RangeImage;
-use crate::model::calibration::{BeamSamples, depth_edges};
+use crate::lidar::edges::edge_strength;
+use crate::model::calibration::BeamSamples;
 
 /// One decoded scan's model-grid pixels: keep logit, completed depth, its edge strength and
 /// whether the ray returned.
@@ -35,7 +36,7 @@ pub fn raydrop_samples(decoder: &Decoder, scans: &[RangeImage]) -> Result<Vec<Be
                 .map(|(seen, held)| *seen > 0.0 || *held > 0.0)
                 .collect();
             Ok(ScanPixels {
-                edge: depth_edges(&depth, w),
+                edge: edge_strength(&depth, w),
                 logits,
                 depth,
                 returned,

@@ -38,10 +38,6 @@ pub struct Schedule {
     /// generator's work is in its finest blocks).
     #[serde(default)]
     pub coarse_steps: Vec<usize>,
-    /// Linear decay of the learning rate to 0 over the `tune_steps` at full resolution: a few
-    /// steps after coarse ones end mid-oscillation at a constant rate.
-    #[serde(default)]
-    pub fine_decay: bool,
 }
 
 impl Schedule {
@@ -60,7 +56,6 @@ impl Schedule {
             tune_w_lr: 0.0,
             pyramid_levels: 2,
             coarse_steps: Vec::new(),
-            fine_decay: false,
         }
     }
 
@@ -76,7 +71,6 @@ impl Schedule {
             tune_w_lr: 0.0,
             pyramid_levels: 2,
             coarse_steps: Vec::new(),
-            fine_decay: false,
         }
     }
 
@@ -98,18 +92,23 @@ impl Schedule {
             tune_w_lr: 0.0,
             pyramid_levels: 2,
             coarse_steps: Vec::new(),
-            fine_decay: false,
         }
     }
 
     /// Coarse-to-fine tuning: `coarse` steps (coarsest first, e.g. `[48, 48, 4]` at 8 x 64,
     /// 16 x 128 and 32 x 256 on the model grid) before `fine` full-resolution steps whose rate
-    /// decays to 0. An empty `coarse` leaves `fine` constant-rate steps.
+    /// decays to 0 ([`Schedule::fine_decay`]). An empty `coarse` leaves `fine` constant-rate
+    /// steps.
     pub fn with_coarse_steps(mut self, coarse: &[usize], fine: usize) -> Self {
         self.tune_steps = fine;
         self.coarse_steps = coarse.to_vec();
-        self.fine_decay = !coarse.is_empty();
         self
+    }
+
+    /// Whether the full-resolution steps decay their rate linearly to 0: they do after coarse
+    /// steps, since a few steps after coarse ones end mid-oscillation at a constant rate.
+    pub fn fine_decay(&self) -> bool {
+        !self.coarse_steps.is_empty()
     }
 
     /// `n` pivotal-tuning steps, all at full resolution at a constant (or cosine) rate: an
@@ -117,7 +116,6 @@ impl Schedule {
     pub fn set_tune_steps(&mut self, n: usize) {
         self.tune_steps = n;
         self.coarse_steps.clear();
-        self.fine_decay = false;
     }
 
     /// The step counts in words, e.g. `0 w + 5 tuning (after 48/48/4 coarse)`.
@@ -275,7 +273,7 @@ pub fn invert(
             let lr = if schedule.tune_decay {
                 let t = step as f64 / total as f64;
                 schedule.tune_lr * 0.5 * (1.0 + (std::f64::consts::PI * t).cos())
-            } else if schedule.fine_decay && full_resolution {
+            } else if schedule.fine_decay() && full_resolution {
                 schedule.tune_lr * (1.0 - i as f64 / *steps as f64)
             } else {
                 schedule.tune_lr
@@ -353,7 +351,6 @@ mod tests {
             tune_w_lr: 0.0,
             pyramid_levels: 1,
             coarse_steps: Vec::new(),
-            fine_decay: false,
         };
         let inv = invert(
             &g,
@@ -420,7 +417,7 @@ mod tests {
         let c2f = fast.clone().with_coarse_steps(&[48, 48, 4], 5);
         assert_eq!(c2f.describe(), "0 w + 5 tuning (after 48/48/4 coarse)");
         assert_eq!(c2f.steps(), 105);
-        assert!(c2f.fine_decay);
+        assert!(c2f.fine_decay());
         let mut back = c2f;
         back.set_tune_steps(33);
         assert_eq!(

@@ -29,9 +29,10 @@ use anyhow::{Result, bail};
 use burn::module::Module;
 use burn::tensor::{Device, Tensor};
 
+use crate::lidar::edges::edge_strength;
 use crate::lidar::{AngleGrid, Interpolation, RangeImage, SensorProfile, resample_image};
 use crate::model::AnyGenerator;
-use crate::model::calibration::{RaydropCalibration, depth_edges};
+use crate::model::calibration::RaydropCalibration;
 use crate::model::data::range_to_network;
 use crate::model::generator::{Generator, GridCache};
 use crate::model::weights::Model;
@@ -587,17 +588,16 @@ impl Decoded {
     pub fn render_prepared(&self, grid: &PreparedGrid) -> Rendered {
         let (depth_m, keep_logit) = self.render_raw(grid);
         let elevation = &grid.render_grid.elevation_rad;
-        let edges = self
-            .calibration
-            .as_ref()
-            .map(|_| depth_edges(&depth_m, grid.render_grid.width));
+        // The calibration's edge term needs the rendered depth's edges.
+        let calibration = (self.calibration.as_ref())
+            .map(|c| (c, edge_strength(&depth_m, grid.render_grid.width)));
         let drop_prob = (0..keep_logit.len())
             .map(|k| {
-                let l = match (&self.calibration, &edges) {
-                    (Some(c), Some(edges)) => {
+                let l = match &calibration {
+                    Some((c, edges)) => {
                         c.keep_logit(keep_logit[k], depth_m[k], edges[k], elevation[k])
                     }
-                    _ => keep_logit[k],
+                    None => keep_logit[k],
                 };
                 1.0 / (1.0 + l.exp()) // x_n = sigmoid(-l)
             })

@@ -77,6 +77,12 @@ fn fit_curve(
 
 const SOFTNESS: [f32; 9] = [0.05, 0.1, 0.15, 0.2, 0.3, 0.4, 0.5, 0.7, 1.0];
 
+/// The drop probability that, on top of a `reference` drop rate, gives `rate` (0 where
+/// `rate` is below it): independent drops compose as 1 - (1 - p)(1 - reference).
+fn excess_drop(rate: f64, reference: f64) -> f64 {
+    ((rate - reference) / (1.0 - reference).max(1e-6)).max(0.0)
+}
+
 fn round3(x: f64) -> f64 {
     (x * 1000.0).round() / 1000.0
 }
@@ -247,7 +253,7 @@ impl DropFamily for BeamFamily {
                 let mut window: Vec<f64> = free[lo..hi].to_vec();
                 window.sort_by(f64::total_cmp);
                 let median = window[window.len() / 2];
-                ((free[r] - median) / (1.0 - median).max(1e-6)).max(0.0)
+                excess_drop(free[r], median)
             })
             .collect();
         let rates: Vec<f64> = drop_prob.iter().map(|p| round3(*p)).collect();
@@ -299,7 +305,7 @@ impl DropFamily for EdgeFamily {
         let drop_prob: Vec<f64> = (0..table.bins)
             .map(|d| {
                 if d < EDGE_FIT_PX {
-                    ((free[d] - far) / (1.0 - far).max(1e-6)).max(0.0)
+                    excess_drop(free[d], far)
                 } else {
                     0.0
                 }

@@ -20,6 +20,59 @@ pub enum EdgeAxes {
     Row,
 }
 
+/// The neighbours of pixel `k` of a row-major image `width` x `height` along `axes` (columns
+/// wrap around when `wrap`).
+fn neighbours(
+    k: usize,
+    width: usize,
+    height: usize,
+    wrap: bool,
+    axes: EdgeAxes,
+) -> impl Iterator<Item = usize> {
+    let (i, j) = (k / width, k % width);
+    let left = match (j, wrap) {
+        (0, true) => Some(i * width + width - 1),
+        (0, false) => None,
+        _ => Some(k - 1),
+    };
+    let right = match (j + 1 == width, wrap) {
+        (true, true) => Some(i * width),
+        (true, false) => None,
+        _ => Some(k + 1),
+    };
+    let both = axes == EdgeAxes::Both;
+    let up = (both && i > 0).then(|| k - width);
+    let down = (both && i + 1 < height).then(|| k + width);
+    [left, right, up, down].into_iter().flatten()
+}
+
+/// Largest depth jump at which [`edge_strength`] saturates (|ln ratio| = 1: 2.7x).
+pub const EDGE_STRENGTH_CAP: f32 = 1.0;
+
+/// Depth-edge strength of every pixel of a row-major depth image `width` wide: the largest
+/// |ln(d / d_neighbour)| over its four neighbours (columns wrap around), capped at
+/// [`EDGE_STRENGTH_CAP`]. Pixels without a depth (0) neither have nor make an edge.
+pub fn edge_strength(depth_m: &[f32], width: usize) -> Vec<f32> {
+    let height = depth_m.len() / width.max(1);
+    let ln: Vec<f32> = depth_m
+        .iter()
+        .map(|d| if *d > 0.0 { d.ln() } else { f32::NAN })
+        .collect();
+    (0..depth_m.len())
+        .map(|k| {
+            let here = ln[k];
+            if here.is_nan() {
+                return 0.0;
+            }
+            neighbours(k, width, height, true, EdgeAxes::Both)
+                .map(|m| (ln[m] - here).abs())
+                .filter(|g| !g.is_nan())
+                .fold(0.0f32, f32::max)
+                .min(EDGE_STRENGTH_CAP)
+        })
+        .collect()
+}
+
 /// Pixel distance (steps through returns) from every pixel of a row-major `range_m` image
 /// `width` wide to the nearest depth-edge pixel along `axes`, capped at `cap`. NaN marks no
 /// return (never an edge, never a step); columns wrap around when `wrap` (a full-turn scan).
@@ -33,23 +86,7 @@ pub fn edge_proximity(
 ) -> Vec<u8> {
     let n = range_m.len();
     let height = n / width.max(1);
-    let neighbours = |k: usize| {
-        let (i, j) = (k / width, k % width);
-        let left = match (j, wrap) {
-            (0, true) => Some(i * width + width - 1),
-            (0, false) => None,
-            _ => Some(k - 1),
-        };
-        let right = match (j + 1 == width, wrap) {
-            (true, true) => Some(i * width),
-            (true, false) => None,
-            _ => Some(k + 1),
-        };
-        let both = axes == EdgeAxes::Both;
-        let up = (both && i > 0).then(|| k - width);
-        let down = (both && i + 1 < height).then(|| k + width);
-        [left, right, up, down].into_iter().flatten()
-    };
+    let neighbours = |k: usize| neighbours(k, width, height, wrap, axes);
     let mut dist = vec![cap; n];
     for k in 0..n {
         let r = range_m[k];
@@ -121,6 +158,22 @@ mod tests {
         );
         let row = edge_proximity(&range, 4, true, EdgeAxes::Row, EDGE_RELATIVE_JUMP, 4);
         assert!(row.iter().all(|d| *d == 4), "no row has a jump");
+    }
+
+    #[test]
+    fn strength_marks_both_sides_of_a_jump_and_wrap_around() {
+        // 2 rows x 4 columns: a wall at 10 m with a post at 5 m in column 1; row 1 is empty
+        // but for column 3.
+        let depth = [10.0, 5.0, 10.0, 10.0, 0.0, 0.0, 0.0, 40.0];
+        let g = edge_strength(&depth, 4);
+        let jump = 2f32.ln();
+        assert!((g[0] - jump).abs() < 1e-6 && (g[1] - jump).abs() < 1e-6);
+        assert!((g[2] - jump).abs() < 1e-6, "the post's other side");
+        // column 3's neighbours in its row: 10 m (column 2) and, wrapping, 10 m (column 0);
+        // below it 40 m: capped.
+        assert_eq!(g[3], EDGE_STRENGTH_CAP);
+        assert_eq!(&g[4..7], &[0.0, 0.0, 0.0], "no depth, no edge");
+        assert_eq!(g[7], EDGE_STRENGTH_CAP);
     }
 
     #[test]

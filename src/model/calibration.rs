@@ -2,7 +2,7 @@
 //!
 //! The generator's keep logit l (x_n = 1 - sigmoid(l)) becomes
 //! a(φ) l + b(φ) + c(φ) ln(d / 10 m) + e(φ) g, with d the completed depth x_d and g its depth
-//! edge strength ([`depth_edges`]): one (a, b, c, e) per beam of the model grid, fitted by
+//! edge strength ([`edge_strength`](crate::lidar::edges::edge_strength)): one (a, b, c, e) per beam of the model grid, fitted by
 //! logistic regression on decoded training scans against their actual drops, and linearly
 //! interpolated in elevation φ for other grids. The depth and edge terms let the calibration
 //! use what the decoded scene says about range (far surfaces and open sky drop more) and about
@@ -57,44 +57,6 @@ fn depth_feature(depth_m: f32) -> f32 {
     (depth_m.max(0.1) / 10.0).ln()
 }
 
-/// Largest depth jump at which the edge strength saturates (|ln ratio| = 1: 2.7x).
-const EDGE_CAP: f32 = 1.0;
-
-/// Depth edge strength of every pixel of a row-major depth image `width` wide: the largest
-/// |ln(d / d_neighbour)| over its four neighbours (columns wrap around), capped at 1. Pixels
-/// without a depth (0) neither have nor make an edge.
-pub fn depth_edges(depth_m: &[f32], width: usize) -> Vec<f32> {
-    let height = depth_m.len() / width.max(1);
-    let ln: Vec<f32> = depth_m
-        .iter()
-        .map(|d| if *d > 0.0 { d.ln() } else { f32::NAN })
-        .collect();
-    (0..depth_m.len())
-        .map(|k| {
-            let (r, c) = (k / width, k % width);
-            let here = ln[k];
-            if here.is_nan() {
-                return 0.0;
-            }
-            let mut neighbours = [(c + 1) % width, (c + width - 1) % width]
-                .map(|j| r * width + j)
-                .to_vec();
-            if r > 0 {
-                neighbours.push(k - width);
-            }
-            if r + 1 < height {
-                neighbours.push(k + width);
-            }
-            neighbours
-                .into_iter()
-                .map(|n| (ln[n] - here).abs())
-                .filter(|g| !g.is_nan())
-                .fold(0.0f32, f32::max)
-                .min(EDGE_CAP)
-        })
-        .collect()
-}
-
 /// Fitting data of one beam: the decoded keep logits and depths, and whether the ray
 /// actually returned.
 #[derive(Debug, Clone, Default)]
@@ -102,7 +64,7 @@ pub struct BeamSamples {
     pub elevation_rad: f32,
     pub logits: Vec<f32>,
     pub depth_m: Vec<f32>,
-    /// [`depth_edges`] of the decoded depth.
+    /// [`edge_strength`](crate::lidar::edges::edge_strength) of the decoded depth.
     pub edge: Vec<f32>,
     pub kept: Vec<bool>,
 }
@@ -175,7 +137,7 @@ impl RaydropCalibration {
     }
 
     /// The calibrated keep logit of a pixel looking at `elevation_rad` with completed depth
-    /// `depth_m` and depth edge strength `edge` ([`depth_edges`]).
+    /// `depth_m` and depth edge strength `edge` ([`edge_strength`](crate::lidar::edges::edge_strength)).
     pub fn keep_logit(&self, logit: f32, depth_m: f32, edge: f32, elevation_rad: f32) -> f32 {
         self.params(elevation_rad).apply(logit, depth_m, edge)
     }
@@ -347,22 +309,6 @@ mod tests {
         let json = serde_json::to_string(&c).unwrap();
         assert_eq!(RaydropCalibration::from_json(&json, "x").unwrap(), c);
         assert!(RaydropCalibration::from_json("{\"beams\":[],\"fitted_on\":\"\"}", "x").is_err());
-    }
-
-    #[test]
-    fn depth_edges_mark_both_sides_of_a_jump_and_wrap_around() {
-        // 2 rows x 4 columns: a wall at 10 m with a post at 5 m in column 1; row 1 is empty
-        // but for column 3.
-        let depth = [10.0, 5.0, 10.0, 10.0, 0.0, 0.0, 0.0, 40.0];
-        let g = depth_edges(&depth, 4);
-        let jump = 2f32.ln();
-        assert!((g[0] - jump).abs() < 1e-6 && (g[1] - jump).abs() < 1e-6);
-        assert!((g[2] - jump).abs() < 1e-6, "the post's other side");
-        // column 3's neighbours in its row: 10 m (column 2) and, wrapping, 10 m (column 0);
-        // below it 40 m: capped.
-        assert_eq!(g[3], EDGE_CAP);
-        assert_eq!(&g[4..7], &[0.0, 0.0, 0.0], "no depth, no edge");
-        assert_eq!(g[7], EDGE_CAP);
     }
 
     #[test]
