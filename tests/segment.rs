@@ -1,8 +1,8 @@
 //! End-to-end `segment train | eval | picture` through the built binary: a network trained on
 //! a simulated recording learns (road found on held-out simulated scans), a run stopped by
 //! its time limit resumes from its checkpoint, scores on real labelled SemanticKITTI scans
-//! (skipped without the real data), the comparison picture, and clear errors for recordings
-//! without labels.
+//! (skipped without the real data), the comparison picture, validation that chooses the
+//! exported network and stops a flat run, and clear errors for recordings without labels.
 
 mod common;
 
@@ -191,6 +191,65 @@ fn trains_resumes_scores_and_draws() {
     }
     let miou = report["miou"].as_f64().unwrap();
     assert!((0.0..=1.0).contains(&miou));
+    // The frontal view is about a quarter of each revolution's returns.
+    let share = report["frontal"]["points"].as_f64().unwrap() / report["points"].as_f64().unwrap();
+    assert!((0.15..0.35).contains(&share), "{share}");
+}
+
+/// With validation recordings a run scores them on a schedule, exports the network that
+/// scored best there (not the last), and stops once validation has not improved for
+/// `--patience` validations.
+#[test]
+fn validation_chooses_the_exported_network_and_stops_a_flat_run() {
+    let dir = tempfile::tempdir().unwrap();
+    let train = dir.path().join("train.mcap");
+    let val = dir.path().join("val.mcap");
+    simulate(&train, "13", "4");
+    simulate(&val, "14", "2");
+    let run_dir = dir.path().join("run");
+    let summary = json(&[
+        "--json",
+        "segment",
+        "train",
+        run_dir.to_str().unwrap(),
+        train.to_str().unwrap(),
+        "--val",
+        val.to_str().unwrap(),
+        "--steps",
+        "400",
+        "--batch-size",
+        "2",
+        "--val-every",
+        "5",
+        "--patience",
+        "2",
+    ]);
+    let log = std::fs::read_to_string(run_dir.join("log.jsonl")).unwrap();
+    let validations: Vec<(u64, f64)> = log
+        .lines()
+        .filter_map(|l| {
+            let v: serde_json::Value = serde_json::from_str(l).unwrap();
+            let v = v.get("validation")?.clone();
+            Some((v["step"].as_u64().unwrap(), v["miou"].as_f64().unwrap()))
+        })
+        .collect();
+    assert!(validations.len() >= 3, "{log}");
+    assert!(validations.iter().all(|(step, _)| step % 5 == 0));
+    let (best_step, best) = validations
+        .iter()
+        .copied()
+        .fold((0, f64::MIN), |b, v| if v.1 > b.1 { v } else { b });
+    assert_eq!(summary["best"]["step"], best_step, "{summary}");
+    assert_eq!(summary["best"]["miou"].as_f64(), Some(best));
+    let exported: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(run_dir.join("model/segment.json")).unwrap())
+            .unwrap();
+    assert_eq!(exported["steps"], best_step);
+    // Flat: two validations after the best, and not one more.
+    assert_eq!(summary["flattened"], true, "{summary}");
+    let last = validations.last().unwrap().0;
+    assert_eq!(last, best_step + 10, "{log}");
+    assert_eq!(summary["steps"], last);
 }
 
 #[test]

@@ -6,10 +6,17 @@
 #
 #   experiments/sim2real_segmentation/run.sh [OUT]      (default OUT: target/sim2real)
 #
-# Settings (environment): SCENES (15), SCANS_PER_SCENE (40), STEPS (600), SEEDS ("0 1 2"),
+# Every network trains until its validation mean IoU flattens (PATIENCE validations without a
+# new best, one every VAL_EVERY steps) or its STEPS budget (a cosine learning-rate decay over
+# it) runs out, and exports the network that scored best on validation: VAL_SCENES more
+# simulated scenes rendered like the training ones for A-G, SemanticKITTI sequence 06 for the
+# real oracle (trained on 01-05, 09, 10 with scale and ray-drop augmentation).
+#
+# Settings (environment): SCENES (15), VAL_SCENES (2), SCANS_PER_SCENE (40), STEPS (3000),
+# PATIENCE (6), VAL_EVERY (200), WIDTHS (the network's default), SEEDS ("0 1"),
 # CONFIGS ("A B C E F G real": the training sets to train and score; after new generator
-# weights, "E F G" reruns the ones that use them), JOBS (2 trainings at once, one thread each), RANGEGAN_BIN (target/release/rangegan-mcap),
-# REAL_LIDAR (../shared/real_lidar). Every step is skipped when its output exists, so a
+# weights, "E F G" reruns the ones that use them), JOBS (2 trainings at once, one thread
+# each), RANGEGAN_BIN (target/release/rangegan-mcap), REAL_LIDAR (../shared/real_lidar). Every step is skipped when its output exists, so a
 # killed run resumes where it stopped (a training resumes from its checkpoint).
 set -euo pipefail
 
@@ -18,8 +25,12 @@ BIN=${RANGEGAN_BIN:-target/release/rangegan-mcap}
 REAL=${REAL_LIDAR:-../shared/real_lidar}
 SCENES=${SCENES:-15}
 SCANS=${SCANS_PER_SCENE:-40}
-STEPS=${STEPS:-600}
-SEEDS=${SEEDS:-"0 1 2"}
+VAL_SCENES=${VAL_SCENES:-2}
+STEPS=${STEPS:-3000}
+PATIENCE=${PATIENCE:-6}
+VAL_EVERY=${VAL_EVERY:-200}
+WIDTHS=${WIDTHS:-}
+SEEDS=${SEEDS:-"0 1"}
 CONFIGS=${CONFIGS:-"A B C E F G real"}
 JOBS=${JOBS:-2}
 HERE=$(cd "$(dirname "$0")" && pwd)
@@ -34,31 +45,38 @@ log() { echo "[$(( $(date +%s) - started )) s] $*" >&2; }
 rg() { "$BIN" --quiet "$@"; }
 
 # 1. Labelled real scans: the training sequences in one recording (the oracle's data and the
-#    real side of B, C and F), and the held-out sequences, never trained or tuned on.
+#    real side of B, C and F), the oracle's own split of them (fit and validation), and the
+#    held-out sequences, never trained or tuned on.
 mkdir -p real
-if [ ! -f real/train.mcap ]; then
-  rm -rf real/train_bins && mkdir -p real/train_bins/velodyne real/train_bins/labels
-  for s in 01 02 03 04 05 06 09 10; do
+import_sequences() { # NAME SEQUENCE...
+  local name=$1; shift
+  [ -f real/$name.mcap ] && return
+  rm -rf real/${name}_bins && mkdir -p real/${name}_bins/velodyne real/${name}_bins/labels
+  for s in "$@"; do
     for f in "$REAL"/semantickitti_mini/$s/velodyne/*.bin; do
       b=$(basename "$f" .bin)
-      ln -s "$f" real/train_bins/velodyne/${s}_$b.bin
-      ln -s "$REAL/semantickitti_mini/$s/labels/$b.label" real/train_bins/labels/${s}_$b.label
+      ln -s "$f" real/${name}_bins/velodyne/${s}_$b.bin
+      ln -s "$REAL/semantickitti_mini/$s/labels/$b.label" real/${name}_bins/labels/${s}_$b.label
     done
   done
-  rg import real/train_bins real/train.mcap
-fi
+  rg import real/${name}_bins real/$name.mcap
+}
+import_sequences train 01 02 03 04 05 06 09 10
+import_sequences oracle_fit 01 02 03 04 05 09 10
+import_sequences oracle_val 06
 for s in 00 07; do
   [ -f real/heldout_mini$s.mcap ] || rg import "$REAL/semantickitti_mini/$s" real/heldout_mini$s.mcap
 done
 [ -f real/heldout_ssv3.mcap ] || rg import "$REAL/semantickitti_ssv3" real/heldout_ssv3.mcap
 log "real recordings ready"
 
-# 2. Config A: ideal simulated scans (no ray drop), many scenes.
+# 2. Config A: ideal simulated scans (no ray drop), many scenes; the last VAL_SCENES validate.
+ALL_SCENES=$((SCENES + VAL_SCENES))
 mkdir -p sim/A
-for s in $(seq 1 "$SCENES"); do
+for s in $(seq 1 "$ALL_SCENES"); do
   [ -f sim/A/scene$s.mcap ] || rg simulate --scene "$s" --scans "$SCANS" --columns 512 --physics ideal sim/A/scene$s.mcap
 done
-log "simulated $SCENES scenes x $SCANS scans"
+log "simulated $ALL_SCENES scenes x $SCANS scans"
 
 # 3. What diagnose finds between the simulator and the real training scans (config F).
 [ -f diagnosis/fitted_physics.json ] || rg diagnose --sim sim/A/scene1.mcap --real real/train.mcap --report diagnosis --force
@@ -68,7 +86,7 @@ python3 "$HERE/physics_without_drops.py" diagnosis/fitted_physics.json > diagnos
 # 4. The rendered training sets, one recording per scene; draws seeded per scene.
 render_set() { # CONFIG ARGS...
   local c=$1; shift; mkdir -p sim/$c
-  for s in $(seq 1 "$SCENES"); do
+  for s in $(seq 1 "$ALL_SCENES"); do
     [ -f sim/$c/scene$s.mcap ] || echo "$s"
   done | xargs -r -P "$JOBS" -I{} "$BIN" --quiet --threads 1 render "$@" --seed {} sim/A/scene{}.mcap sim/$c/scene{}.mcap
 }
@@ -77,23 +95,38 @@ render_set C --raydrop pixel --real real/train.mcap
 render_set F --physics diagnosis/fitted_physics.json
 render_set E --raydrop gan
 mkdir -p sim/Fp
-for s in $(seq 1 "$SCENES"); do
+for s in $(seq 1 "$ALL_SCENES"); do
   [ -f sim/Fp/scene$s.mcap ] || rg render --physics diagnosis/perturbations_only.json --seed "$s" sim/A/scene$s.mcap sim/Fp/scene$s.mcap
 done
 mkdir -p sim/G
-for s in $(seq 1 "$SCENES"); do
+for s in $(seq 1 "$ALL_SCENES"); do
   [ -f sim/G/scene$s.mcap ] || echo "$s"
 done | xargs -r -P "$JOBS" -I{} "$BIN" --quiet --threads 1 render --raydrop gan --seed {} sim/Fp/scene{}.mcap sim/G/scene{}.mcap
 log "rendered training sets B C E F G"
 
-# 5. One network per training set and seed, the same budget each.
+# 5. One network per training set and seed, the same budget each, chosen on validation.
+#    Scenes move into train/ and val/ folders of links so that a folder is a training set.
+for c in A B C E F G; do
+  mkdir -p split/$c/train split/$c/val
+  for s in $(seq 1 "$ALL_SCENES"); do
+    part=train; [ "$s" -gt "$SCENES" ] && part=val
+    ln -sf "$PWD/sim/$c/scene$s.mcap" split/$c/$part/scene$s.mcap
+  done
+done
 mkdir -p runs
+export STEPS PATIENCE VAL_EVERY WIDTHS
 for c in $CONFIGS; do
   for seed in $SEEDS; do echo "$c $seed"; done
 done | xargs -r -P "$JOBS" -L1 bash -c '
   c=$0; seed=$1
-  if [ "$c" = real ]; then data=real/train.mcap; else data=sim/$c; fi
-  "$BIN" --quiet --threads 1 segment train runs/$c-s$seed "$data" --steps '"$STEPS"' --seed "$seed"
+  if [ "$c" = real ]; then
+    data=(real/oracle_fit.mcap --val real/oracle_val.mcap --augment)
+  else
+    data=(split/$c/train --val split/$c/val)
+  fi
+  widths=(); [ -n "$WIDTHS" ] && widths=(--widths "$WIDTHS")
+  "$BIN" --quiet --threads 1 segment train runs/$c-s$seed "${data[@]}" "${widths[@]}" \
+    --steps "$STEPS" --patience "$PATIENCE" --val-every "$VAL_EVERY" --seed "$seed"
 ' 2>&1 | tee -a train_errors.log
 log "trained $(ls runs | wc -l) networks"
 

@@ -1,6 +1,7 @@
 """Aggregate `segment eval --json` files named CONFIG-sSEED.json into a markdown table:
 mean +- sd over seeds of car and person precision/recall/IoU, their mean IoU (the paper's
-Table 4) and the mean IoU over all named classes, beside the paper's numbers."""
+Table 4) and the mean IoU over all named classes (whole revolutions, and the frontal 90 degrees
+the paper scored), beside the paper's numbers."""
 import json
 import statistics
 import sys
@@ -37,7 +38,8 @@ for path in sorted(Path(sys.argv[1]).glob("*.json")):
 
 classes = [c["class"] for c in next(iter(runs.values()))[0]["classes"] if c["class"] != "other"]
 head = ["config", "training data", "seeds", "car P", "car R", "car IoU", "person P", "person R",
-        "person IoU", "mIoU car+person", "paper car / person / mIoU", "mIoU 7 classes"]
+        "person IoU", "mIoU car+person", "paper car / person / mIoU", "mIoU 7 classes",
+        "frontal mIoU 7 classes"]
 print("| " + " | ".join(head) + " |")
 print("|" + "---|" * len(head))
 for config in [c for c in DESCRIPTION if c in runs]:
@@ -49,7 +51,8 @@ for config in [c for c in DESCRIPTION if c in runs]:
            cls("person", "precision"), cls("person", "recall"), cls("person", "iou"),
            stat([r["miou_car_person"] for r in reports]),
            " / ".join(map(str, paper)) if paper else "-",
-           stat([r["miou"] for r in reports])]
+           stat([r["miou"] for r in reports]),
+           stat([r["frontal"]["miou"] for r in reports])]
     print("| " + " | ".join(row) + " |")
 print()
 print("IoU per class (%, mean ± sd over seeds):")

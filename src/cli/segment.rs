@@ -11,6 +11,7 @@ use super::{GlobalArgs, Outcome};
 use crate::segment::SegModel;
 use crate::segment::data::{SegDataset, benchmark_profile};
 use crate::segment::eval::{EvalReport, evaluate, picture};
+use crate::segment::net::SegNetConfig;
 use crate::segment::train::{SegTrainConfig, SegTrainOptions, run};
 
 #[derive(Debug, clap::Args)]
@@ -52,6 +53,28 @@ pub struct TrainArgs {
     /// Stop after this many minutes with a checkpoint; run again to resume.
     #[arg(long)]
     pub minutes: Option<f64>,
+    /// Held-out labelled recordings (files or folders of .mcap): the run is validated on them,
+    /// exports its best network and stops when validation stops improving.
+    #[arg(long = "val")]
+    pub validation: Vec<PathBuf>,
+    /// Validations without improvement before stopping (0: run the whole budget).
+    #[arg(long, default_value_t = 6)]
+    pub patience: u64,
+    /// Steps between validations.
+    #[arg(long, default_value_t = 200)]
+    pub val_every: u64,
+    /// Scale and random ray-drop augmentation, for small real training sets.
+    #[arg(long)]
+    pub augment: bool,
+    /// Share of crops centred on a class drawn uniformly among those present.
+    #[arg(long, default_value_t = 0.5)]
+    pub balanced_crops: f32,
+    /// Weight of the Lovász-softmax loss beside the cross-entropy (0: cross-entropy only).
+    #[arg(long, default_value_t = 1.0)]
+    pub lovasz: f64,
+    /// Channels of the network's levels, comma-separated (default 16,32,48,64).
+    #[arg(long, value_delimiter = ',')]
+    pub widths: Option<Vec<usize>>,
 }
 
 #[derive(Debug, clap::Args)]
@@ -114,14 +137,13 @@ fn train(global: &GlobalArgs, a: TrainArgs) -> anyhow::Result<Outcome> {
         Some(m) => anyhow::bail!("--minutes must be > 0 (got {m})"),
         None => None,
     };
+    let config = train_config(&a)?;
     let opts = SegTrainOptions {
         run_dir: a.run_dir,
         recordings: expand(&a.recordings)?,
+        validation: expand(&a.validation)?,
+        config,
         topic: a.topic,
-        config: SegTrainConfig::new()
-            .with_total_steps(a.steps)
-            .with_seed(a.seed)
-            .with_batch_size(a.batch_size.max(1)),
         max_duration,
         progress: !global.quiet,
     };
@@ -142,8 +164,49 @@ fn train(global: &GlobalArgs, a: TrainArgs) -> anyhow::Result<Outcome> {
                 " (run again to resume)"
             }
         );
+        if let Some(b) = &summary.best {
+            eprintln!(
+                "best validation mean IoU {:.1} % at step {}{}",
+                100.0 * b.miou,
+                b.step,
+                if summary.flattened {
+                    " (stopped: validation flattened)"
+                } else {
+                    ""
+                }
+            );
+        }
     }
     Ok(Outcome::Success)
+}
+
+/// A new run's settings from the command line (a resumed run keeps its saved ones).
+fn train_config(a: &TrainArgs) -> anyhow::Result<SegTrainConfig> {
+    anyhow::ensure!(
+        (0.0..=1.0).contains(&a.balanced_crops),
+        "--balanced-crops must be within 0..1 (got {})",
+        a.balanced_crops
+    );
+    anyhow::ensure!(
+        a.lovasz.is_finite() && a.lovasz >= 0.0,
+        "--lovasz must be >= 0 (got {})",
+        a.lovasz
+    );
+    let mut net = SegNetConfig::new();
+    if let Some(w) = &a.widths {
+        net.widths = w.clone();
+    }
+    net.check()?;
+    Ok(SegTrainConfig::new()
+        .with_net(net)
+        .with_total_steps(a.steps)
+        .with_seed(a.seed)
+        .with_batch_size(a.batch_size.max(1))
+        .with_patience(a.patience)
+        .with_validate_every_steps(a.val_every.max(1))
+        .with_augment(a.augment)
+        .with_balanced_crops(a.balanced_crops)
+        .with_lovasz_weight(a.lovasz))
 }
 
 /// A model's name for tables and pictures: its folder, or the run's for RUN/model.
@@ -179,27 +242,39 @@ fn eval(global: &GlobalArgs, a: EvalArgs) -> anyhow::Result<Outcome> {
 }
 
 fn print_report(r: &EvalReport) {
-    let pct = |v: Option<f64>| v.map_or("-".to_string(), |v| format!("{:.1}", 100.0 * v));
     println!(
-        "model {}: {} scans, {} labelled returns",
-        r.model, r.scans, r.points
+        "model {}: {} scans, {} labelled returns ({} in the frontal 90 degrees)",
+        r.model, r.scans, r.scores.points, r.frontal.points
     );
     println!(
-        "{:<11} {:>9} {:>9} {:>7} {:>7}",
-        "class", "points", "precision", "recall", "IoU"
+        "{:<11} {:>9} {:>9} {:>7} {:>7} {:>11}",
+        "class", "points", "precision", "recall", "IoU", "frontal IoU"
     );
-    for c in &r.classes {
+    for (c, f) in r.scores.classes.iter().zip(&r.frontal.classes) {
         println!(
-            "{:<11} {:>9} {:>9} {:>7} {:>7}",
+            "{:<11} {:>9} {:>9} {:>7} {:>7} {:>11}",
             c.class,
             c.points,
             pct(c.precision),
             pct(c.recall),
-            pct(c.iou)
+            pct(c.iou),
+            pct(f.iou)
         );
     }
-    println!("mIoU (named classes) {}", pct(r.miou));
-    println!("mIoU (car, person)   {}", pct(r.miou_car_person));
+    println!(
+        "mIoU (named classes) {}   frontal {}",
+        pct(r.scores.miou),
+        pct(r.frontal.miou)
+    );
+    println!(
+        "mIoU (car, person)   {}   frontal {}",
+        pct(r.scores.miou_car_person),
+        pct(r.frontal.miou_car_person)
+    );
+}
+
+fn pct(v: Option<f64>) -> String {
+    v.map_or("-".to_string(), |v| format!("{:.1}", 100.0 * v))
 }
 
 fn draw(a: PictureArgs) -> anyhow::Result<Outcome> {

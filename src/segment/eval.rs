@@ -15,6 +15,7 @@ use super::SegModel;
 use super::classes::{CAR_PERSON, CLASSES, IGNORE, NUM_CLASSES, SCORED, color};
 use super::data::{CHANNELS, SegDataset};
 use super::net::SegNet;
+use crate::lidar::range_image::column_azimuth;
 use crate::report::plot::{register_font, viridis};
 use crate::util::fs::write_atomic;
 use crate::util::png::encode_rgb;
@@ -93,6 +94,17 @@ pub struct EvalReport {
     pub model: String,
     pub files: Vec<String>,
     pub scans: usize,
+    /// Whole revolutions.
+    #[serde(flatten)]
+    pub scores: Scores,
+    /// The frontal 90 degrees only (azimuth within 45 degrees of straight ahead): the view
+    /// of the paper's KITTI-frontal evaluation.
+    pub frontal: Scores,
+}
+
+/// Scores over one set of labelled returns.
+#[derive(Debug, Clone, Serialize)]
+pub struct Scores {
     /// Labelled returns scored.
     pub points: u64,
     pub classes: Vec<ClassScore>,
@@ -100,6 +112,23 @@ pub struct EvalReport {
     pub miou: Option<f64>,
     /// Mean IoU over car and person (the paper's Table 4).
     pub miou_car_person: Option<f64>,
+}
+
+impl Scores {
+    pub fn new(confusion: &Confusion) -> Self {
+        let classes = confusion.scores();
+        Scores {
+            points: classes.iter().map(|c| c.points).sum(),
+            miou: mean_iou(&classes, SCORED),
+            miou_car_person: mean_iou(&classes, CAR_PERSON),
+            classes,
+        }
+    }
+}
+
+/// Whether column `j` of `width` looks within 45 degrees of straight ahead.
+pub fn is_frontal(j: usize, width: usize) -> bool {
+    column_azimuth(j, width).abs() <= std::f32::consts::FRAC_PI_4
 }
 
 /// The predicted class of every pixel of every scan (whole revolutions, circular padding).
@@ -128,7 +157,26 @@ pub fn predict(net: &SegNet, data: &SegDataset, device: &Device) -> Vec<Vec<u8>>
     out
 }
 
-/// Scores `model` on every labelled return of `data`.
+/// The confusion matrix of `predictions` over the labelled returns of `data` in the columns
+/// `keep` accepts.
+fn tally(data: &SegDataset, predictions: &[Vec<u8>], keep: impl Fn(usize) -> bool) -> Confusion {
+    let mut confusion = Confusion::default();
+    for (scan, pred) in data.scans.iter().zip(predictions) {
+        for (k, (&t, &p)) in scan.target.iter().zip(pred).enumerate() {
+            if t != IGNORE && keep(k % data.width) {
+                confusion.add(t, p);
+            }
+        }
+    }
+    confusion
+}
+
+/// The confusion matrix of `net` over every labelled return of `data`.
+pub fn confusion(net: &SegNet, data: &SegDataset, device: &Device) -> Confusion {
+    tally(data, &predict(net, data, device), |_| true)
+}
+
+/// Scores `model` on every labelled return of `data`, and on the frontal view alone.
 pub fn evaluate(
     model: &SegModel,
     name: &str,
@@ -137,23 +185,13 @@ pub fn evaluate(
 ) -> Result<EvalReport> {
     check_grid(model, data)?;
     let predictions = predict(&model.net, data, device);
-    let mut confusion = Confusion::default();
-    for (scan, pred) in data.scans.iter().zip(&predictions) {
-        for (&t, &p) in scan.target.iter().zip(pred) {
-            if t != IGNORE {
-                confusion.add(t, p);
-            }
-        }
-    }
-    let classes = confusion.scores();
+    let w = data.width;
     Ok(EvalReport {
         model: name.to_string(),
         files: data.files.iter().map(|f| f.display().to_string()).collect(),
         scans: data.len(),
-        points: classes.iter().map(|c| c.points).sum(),
-        miou: mean_iou(&classes, SCORED),
-        miou_car_person: mean_iou(&classes, CAR_PERSON),
-        classes,
+        scores: Scores::new(&tally(data, &predictions, |_| true)),
+        frontal: Scores::new(&tally(data, &predictions, |j| is_frontal(j, w))),
     })
 }
 

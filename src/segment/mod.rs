@@ -4,6 +4,7 @@
 //!
 //! - [`classes`]: the scored classes and the SemanticKITTI ids behind them.
 //! - [`data`]: "C R M" inputs (x, y, z, range, return mask) and targets from recordings.
+//! - [`loss`]: class-weighted cross-entropy and Lovász-softmax.
 //! - [`net`]: a light U-Net with circular padding along azimuth.
 //! - [`train`]: the training loop with checkpoints, resume and the exported model.
 //! - [`eval`]: per-class precision, recall and IoU, mean IoU, and comparison pictures.
@@ -13,6 +14,7 @@
 pub mod classes;
 pub mod data;
 pub mod eval;
+pub mod loss;
 pub mod net;
 pub mod train;
 

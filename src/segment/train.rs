@@ -1,11 +1,16 @@
 //! Training the segmentation network (`rangegan-mcap segment train`): weighted cross-entropy
-//! on labelled returns (dropped rays carry no class), Adam with a cosine learning-rate decay
-//! over a fixed step budget, random azimuth crops, rolls and mirrors; checkpoints with
+//! plus Lovász-softmax on labelled returns (dropped rays carry no class), Adam with a cosine
+//! learning-rate decay over a step budget, random and class-balanced azimuth crops, rolls and
+//! mirrors (and, for small real sets, scale and ray-drop augmentation); checkpoints with
 //! resume like the GAN run.
 //!
+//! With validation recordings the run scores them every `validate_every_steps` on whole
+//! revolutions, keeps the best network by validation mean IoU and stops once that has not
+//! improved for `patience` validations: trained until it flattens, chosen on validation.
+//!
 //! Run directory: `config.json` (written first), `checkpoint/` (network, optimiser,
-//! state.json; replaced atomically), `log.jsonl`, and `model/` (the exported model folder,
-//! rewritten at every checkpoint).
+//! state.json; replaced atomically), `log.jsonl` (training loss; validation IoU per class),
+//! and `model/` (the exported model folder: the best on validation, else the last).
 
 use std::fs::OpenOptions;
 use std::io::Write;
@@ -16,17 +21,19 @@ use anyhow::{Context, Result, bail};
 use burn::config::Config;
 use burn::module::Module;
 use burn::optim::{AdamConfig, GradientsParams, ModuleOptimizer};
-use burn::tensor::activation::log_softmax;
-use burn::tensor::{Device, Tensor};
+use burn::tensor::Device;
+use burn::tensor::activation::softmax;
 use serde::{Deserialize, Serialize};
 
-use super::classes::{CLASSES, IGNORE, NUM_CLASSES};
-use super::data::{CHANNELS, SegDataset, batch, benchmark_profile};
+use super::classes::{CLASSES, NUM_CLASSES, SCORED};
+use super::data::{CHANNELS, ClassColumns, CropPlan, SegDataset, batch, benchmark_profile};
+use super::eval::{confusion, mean_iou};
+use super::loss::{lovasz_softmax, lovasz_terms, weighted_cross_entropy, weighted_one_hot};
 use super::net::{SegNet, SegNetConfig};
 use super::{SegModel, SegModelInfo};
 use crate::train::{CHECKPOINT, write_checkpoint};
 use crate::util::rng::Rng;
-use crate::util::tensor::tensor_from;
+use crate::util::tensor::{tensor_from, tensor_to_vec};
 
 /// Everything that defines a run; saved as `config.json` before training starts.
 #[derive(Config, Debug)]
@@ -50,6 +57,21 @@ pub struct SegTrainConfig {
     pub checkpoint_every_secs: u64,
     #[config(default = 20)]
     pub log_every_steps: u64,
+    /// Share of crops centred on a drawn class ([`CropPlan::balanced`]).
+    #[config(default = 0.5)]
+    pub balanced_crops: f32,
+    /// Weight of the Lovász-softmax term beside the cross-entropy (0: cross-entropy only).
+    #[config(default = 1.0)]
+    pub lovasz_weight: f64,
+    /// Scale and ray-drop augmentation ([`CropPlan::augment`]).
+    #[config(default = false)]
+    pub augment: bool,
+    /// Steps between validations (when the run has validation recordings).
+    #[config(default = 200)]
+    pub validate_every_steps: u64,
+    /// Validations without a new best mean IoU before the run stops (0: never stops early).
+    #[config(default = 6)]
+    pub patience: u64,
 }
 
 /// How to run (not saved).
@@ -57,6 +79,8 @@ pub struct SegTrainConfig {
 pub struct SegTrainOptions {
     pub run_dir: PathBuf,
     pub recordings: Vec<PathBuf>,
+    /// Held-out recordings the run is validated and chosen on (none: the last step wins).
+    pub validation: Vec<PathBuf>,
     pub topic: Option<String>,
     /// Used when the run directory has no config.json yet; otherwise the saved one wins.
     pub config: SegTrainConfig,
@@ -70,6 +94,21 @@ pub struct SegTrainOptions {
 struct SegTrainState {
     step: u64,
     rng: Rng,
+    #[serde(default)]
+    best: Option<Validation>,
+    /// Validations since the best.
+    #[serde(default)]
+    stale: u64,
+}
+
+/// One validation's result.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct Validation {
+    pub step: u64,
+    /// Mean IoU over the scored classes present in the validation scans.
+    pub miou: f64,
+    /// IoU per class (`None`: undefined).
+    pub iou: Vec<Option<f64>>,
 }
 
 /// How a call ended.
@@ -81,6 +120,10 @@ pub struct SegTrainSummary {
     pub scans: usize,
     pub seconds: f64,
     pub model_dir: PathBuf,
+    /// The validation the exported model was chosen by.
+    pub best: Option<Validation>,
+    /// Stopped because validation stopped improving.
+    pub flattened: bool,
 }
 
 /// Trains (or resumes) the run in `opts.run_dir`.
@@ -110,26 +153,43 @@ pub fn run(opts: &SegTrainOptions) -> Result<SegTrainSummary> {
             config.crop_width
         );
     }
-    let mut trainer = Trainer::new(&config, &opts.run_dir, &data)?;
-    let started = Instant::now();
-    trainer.train(opts, &data, started)?;
+    let validation = if opts.validation.is_empty() {
+        None
+    } else {
+        Some(SegDataset::from_recordings(
+            &opts.validation,
+            opts.topic.as_deref(),
+            &profile,
+        )?)
+    };
     let info = SegModelInfo {
         net: config.net.clone(),
         classes: CLASSES.iter().map(|s| s.to_string()).collect(),
         profile,
         trained_on: file_names(&opts.recordings),
-        steps: trainer.state.step,
+        steps: 0,
         seed: config.seed,
     };
+    let mut trainer = Trainer::new(&config, &opts.run_dir, &data)?;
+    let started = Instant::now();
     let model_dir = opts.run_dir.join("model");
-    SegModel::save(&info, &trainer.net.valid(), &model_dir)?;
+    let flattened = trainer.train(opts, &data, validation.as_ref(), &info, started)?;
+    if validation.is_none() {
+        let info = SegModelInfo {
+            steps: trainer.state.step,
+            ..info
+        };
+        SegModel::save(&info, &trainer.net.valid(), &model_dir)?;
+    }
     Ok(SegTrainSummary {
         steps: trainer.state.step,
         total_steps: config.total_steps,
-        finished: trainer.state.step >= config.total_steps,
+        finished: flattened || trainer.state.step >= config.total_steps,
         scans: data.len(),
         seconds: started.elapsed().as_secs_f64(),
         model_dir,
+        best: trainer.state.best.clone(),
+        flattened,
     })
 }
 
@@ -151,6 +211,8 @@ struct Trainer {
     opt: ModuleOptimizer,
     state: SegTrainState,
     weights: [f32; NUM_CLASSES],
+    plan: CropPlan,
+    columns: ClassColumns,
 }
 
 impl Trainer {
@@ -160,7 +222,12 @@ impl Trainer {
         let mut rng = Rng::new(config.seed);
         let mut net = config.net.init(&mut rng, &device);
         let mut opt = AdamConfig::new().init();
-        let mut state = SegTrainState { step: 0, rng };
+        let mut state = SegTrainState {
+            step: 0,
+            rng,
+            best: None,
+            stale: 0,
+        };
         let ck = run_dir.join(CHECKPOINT);
         if ck.join("state.json").exists() {
             let err = |what: &str, e: burn::store::RecordError| {
@@ -182,6 +249,13 @@ impl Trainer {
             opt,
             state,
             weights: data.class_weights(),
+            plan: CropPlan {
+                size: config.batch_size,
+                crop_width: config.crop_width,
+                balanced: config.balanced_crops,
+                augment: config.augment,
+            },
+            columns: ClassColumns::new(data),
         })
     }
 
@@ -190,7 +264,16 @@ impl Trainer {
         self.config.lr * 0.5 * (1.0 + (std::f64::consts::PI * t.min(1.0)).cos())
     }
 
-    fn train(&mut self, opts: &SegTrainOptions, data: &SegDataset, started: Instant) -> Result<()> {
+    /// Trains until the step budget, the time limit, or (with validation) until validation
+    /// flattens; returns whether it flattened.
+    fn train(
+        &mut self,
+        opts: &SegTrainOptions,
+        data: &SegDataset,
+        validation: Option<&SegDataset>,
+        info: &SegModelInfo,
+        started: Instant,
+    ) -> Result<bool> {
         let total = self.config.total_steps;
         let bar = if opts.progress {
             indicatif::ProgressBar::new(total)
@@ -212,7 +295,8 @@ impl Trainer {
             .with_context(|| format!("cannot open {}", log_path.display()))?;
         let mut last_ckpt = Instant::now();
         let mut window = (Instant::now(), self.state.step, 0.0f64);
-        while self.state.step < total {
+        let mut flattened = self.flattened();
+        while self.state.step < total && !flattened {
             let loss = self.step(data);
             self.state.step += 1;
             window.2 += loss as f64;
@@ -233,6 +317,18 @@ impl Trainer {
                 });
                 writeln!(log, "{line}")?;
             }
+            if let Some(val) = validation {
+                let due = self
+                    .state
+                    .step
+                    .is_multiple_of(self.config.validate_every_steps.max(1))
+                    || self.state.step == total;
+                if due {
+                    let v = self.validate(val, info, &opts.run_dir)?;
+                    writeln!(log, "{}", serde_json::json!({ "validation": v }))?;
+                    flattened = self.flattened();
+                }
+            }
             if last_ckpt.elapsed() >= Duration::from_secs(self.config.checkpoint_every_secs) {
                 self.checkpoint(&opts.run_dir)?;
                 last_ckpt = Instant::now();
@@ -243,18 +339,62 @@ impl Trainer {
         }
         self.checkpoint(&opts.run_dir)?;
         bar.finish_and_clear();
-        Ok(())
+        Ok(flattened)
+    }
+
+    fn flattened(&self) -> bool {
+        self.config.patience > 0 && self.state.stale >= self.config.patience
+    }
+
+    /// Scores the network on whole validation revolutions; a new best is exported to
+    /// `model/`.
+    fn validate(
+        &mut self,
+        val: &SegDataset,
+        info: &SegModelInfo,
+        run_dir: &Path,
+    ) -> Result<Validation> {
+        let net = self.net.valid();
+        let scores = confusion(&net, val, &Device::flex()).scores();
+        let v = Validation {
+            step: self.state.step,
+            miou: mean_iou(&scores, SCORED).unwrap_or(0.0),
+            iou: scores.iter().map(|c| c.iou).collect(),
+        };
+        if self.state.best.as_ref().is_none_or(|b| v.miou > b.miou) {
+            let info = SegModelInfo {
+                steps: self.state.step,
+                ..info.clone()
+            };
+            SegModel::save(&info, &net, &run_dir.join("model"))?;
+            self.state.best = Some(v.clone());
+            self.state.stale = 0;
+        } else {
+            self.state.stale += 1;
+        }
+        Ok(v)
     }
 
     /// One Adam step; returns the loss.
     fn step(&mut self, data: &SegDataset) -> f32 {
         let (b, cw, h) = (self.config.batch_size, self.config.crop_width, data.height);
-        let (input, target) = batch(data, b, cw, &mut self.state.rng);
+        let (input, target) = batch(data, &self.plan, &self.columns, &mut self.state.rng);
+        let shape = [b, NUM_CLASSES, h, cw];
         let x = tensor_from(input, [b, CHANNELS, h, cw], &self.device);
-        let (weights, norm) = weighted_one_hot(&target, b, h, cw, &self.weights);
-        let weights = tensor_from(weights, [b, NUM_CLASSES, h, cw], &self.device);
+        let (weights, norm) = weighted_one_hot(&target, h * cw, &self.weights);
+        let weights = tensor_from(weights, shape, &self.device);
         let logits = self.net.forward(x, false);
-        let loss = weighted_cross_entropy(logits, weights, norm);
+        let mut loss = weighted_cross_entropy(logits.clone(), weights, norm);
+        if self.config.lovasz_weight > 0.0 {
+            let probs = softmax(logits, 1);
+            let terms = lovasz_terms(&tensor_to_vec(probs.clone()), &target, h * cw);
+            let lovasz = lovasz_softmax(
+                probs,
+                tensor_from(terms.one_hot, shape, &self.device),
+                tensor_from(terms.weights, shape, &self.device),
+            );
+            loss = loss + lovasz.mul_scalar(self.config.lovasz_weight);
+        }
         let value = loss.clone().into_scalar::<f32>();
         let grads = GradientsParams::from_grads(loss.backward(), &self.net);
         self.net = self.opt.step(self.lr(), self.net.clone(), grads);
@@ -279,64 +419,5 @@ impl Trainer {
             )?;
             Ok(())
         })
-    }
-}
-
-/// Per-pixel targets `[b, H, W]` as class weight at the true class and 0 elsewhere
-/// (`[b, classes, H, W]`), and the sum of the weights (the loss's normaliser).
-fn weighted_one_hot(
-    target: &[u8],
-    b: usize,
-    h: usize,
-    w: usize,
-    class_weight: &[f32; NUM_CLASSES],
-) -> (Vec<f32>, f32) {
-    let n = h * w;
-    let mut out = vec![0.0f32; b * NUM_CLASSES * n];
-    let mut norm = 0.0f32;
-    for (idx, &t) in target.iter().enumerate() {
-        if t == IGNORE {
-            continue;
-        }
-        let (s, k) = (idx / n, idx % n);
-        let wt = class_weight[t as usize];
-        out[(s * NUM_CLASSES + t as usize) * n + k] = wt;
-        norm += wt;
-    }
-    (out, norm.max(1e-6))
-}
-
-/// Cross-entropy weighted per pixel: -sum(weights * log_softmax(logits)) / norm.
-fn weighted_cross_entropy(logits: Tensor<4>, weights: Tensor<4>, norm: f32) -> Tensor<1> {
-    log_softmax(logits, 1).mul(weights).sum().div_scalar(-norm)
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn cross_entropy_matches_the_formula_and_skips_ignored_pixels() {
-        let device = Device::flex();
-        // One image, 1x2 pixels: pixel 0 is class 2, pixel 1 is ignored.
-        let mut w = [1.0f32; NUM_CLASSES];
-        w[2] = 3.0;
-        let (weights, norm) = weighted_one_hot(&[2, IGNORE], 1, 1, 2, &w);
-        assert_eq!(norm, 3.0);
-        let logits: Vec<f32> = (0..NUM_CLASSES * 2)
-            .map(|i| (i as f32 * 0.37).sin())
-            .collect();
-        let expected = {
-            let l: Vec<f32> = (0..NUM_CLASSES).map(|c| logits[c * 2]).collect();
-            let lse = l.iter().map(|v| v.exp()).sum::<f32>().ln();
-            lse - l[2]
-        };
-        let loss = weighted_cross_entropy(
-            tensor_from(logits, [1, NUM_CLASSES, 1, 2], &device),
-            tensor_from(weights, [1, NUM_CLASSES, 1, 2], &device),
-            norm,
-        )
-        .into_scalar::<f32>();
-        assert!((loss - expected).abs() < 1e-5, "{loss} vs {expected}");
     }
 }
