@@ -12,7 +12,7 @@
 # simulated scenes rendered like the training ones for A-G, SemanticKITTI sequence 06 for the
 # real oracle (trained on 01-05, 09, 10 with scale and ray-drop augmentation).
 #
-# Settings (environment): SCENES (15), VAL_SCENES (2), SCANS_PER_SCENE (40), STEPS (3000),
+# Settings (environment): SCENES (15), VAL_SCENES (2), SCANS_PER_SCENE (40), STEPS (2000),
 # PATIENCE (6), VAL_EVERY (200), WIDTHS (the network's default), SEEDS ("0 1"),
 # CONFIGS ("A B C E F G real": the training sets to train and score; after new generator
 # weights, "E F G" reruns the ones that use them), JOBS (2 trainings at once, one thread
@@ -26,7 +26,7 @@ REAL=${REAL_LIDAR:-../shared/real_lidar}
 SCENES=${SCENES:-15}
 SCANS=${SCANS_PER_SCENE:-40}
 VAL_SCENES=${VAL_SCENES:-2}
-STEPS=${STEPS:-3000}
+STEPS=${STEPS:-2000}
 PATIENCE=${PATIENCE:-6}
 VAL_EVERY=${VAL_EVERY:-200}
 WIDTHS=${WIDTHS:-}
