@@ -207,6 +207,27 @@ fn validation_chooses_the_exported_network_and_stops_a_flat_run() {
     simulate(&train, "13", "4");
     simulate(&val, "14", "2");
     let run_dir = dir.path().join("run");
+    let early = json(&[
+        "--json",
+        "segment",
+        "train",
+        run_dir.to_str().unwrap(),
+        train.to_str().unwrap(),
+        "--val",
+        val.to_str().unwrap(),
+        "--steps",
+        "400",
+        "--batch-size",
+        "2",
+        "--val-every",
+        "5",
+        "--patience",
+        "2",
+        "--minutes",
+        "0.0001",
+    ]);
+    assert!(run_dir.join("model/segment.json").exists(), "{early}");
+    assert_eq!(early["best"]["step"], early["steps"], "{early}");
     let summary = json(&[
         "--json",
         "segment",
@@ -225,6 +246,8 @@ fn validation_chooses_the_exported_network_and_stops_a_flat_run() {
         "2",
     ]);
     let log = std::fs::read_to_string(run_dir.join("log.jsonl")).unwrap();
+    // The first call, stopped by its time limit before step 5, validated on its way out.
+    assert!(log.lines().next().unwrap().contains("validation"), "{log}");
     let validations: Vec<(u64, f64)> = log
         .lines()
         .filter_map(|l| {
@@ -234,7 +257,7 @@ fn validation_chooses_the_exported_network_and_stops_a_flat_run() {
         })
         .collect();
     assert!(validations.len() >= 3, "{log}");
-    assert!(validations.iter().all(|(step, _)| step % 5 == 0));
+    assert!(validations[1..].iter().all(|(step, _)| step % 5 == 0));
     let (best_step, best) = validations
         .iter()
         .copied()

@@ -337,6 +337,11 @@ impl Trainer {
                 break;
             }
         }
+        // A run stopped before its first validation still leaves a model to use.
+        if let (Some(val), None) = (validation, &self.state.best) {
+            let v = self.validate(val, info, &opts.run_dir)?;
+            writeln!(log, "{}", serde_json::json!({ "validation": v }))?;
+        }
         self.checkpoint(&opts.run_dir)?;
         bar.finish_and_clear();
         Ok(flattened)
