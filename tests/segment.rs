@@ -207,14 +207,19 @@ fn validation_chooses_the_exported_network_and_stops_a_flat_run() {
     simulate(&train, "13", "4");
     simulate(&val, "14", "2");
     let run_dir = dir.path().join("run");
-    let early = json(&[
+    let (r, t, v) = (
+        run_dir.to_str().unwrap(),
+        train.to_str().unwrap(),
+        val.to_str().unwrap(),
+    );
+    let train_args = [
         "--json",
         "segment",
         "train",
-        run_dir.to_str().unwrap(),
-        train.to_str().unwrap(),
+        r,
+        t,
         "--val",
-        val.to_str().unwrap(),
+        v,
         "--steps",
         "400",
         "--batch-size",
@@ -223,28 +228,11 @@ fn validation_chooses_the_exported_network_and_stops_a_flat_run() {
         "5",
         "--patience",
         "2",
-        "--minutes",
-        "0.0001",
-    ]);
+    ];
+    let early = json(&[&train_args[..], &["--minutes", "0.0001"]].concat());
     assert!(run_dir.join("model/segment.json").exists(), "{early}");
     assert_eq!(early["best"]["step"], early["steps"], "{early}");
-    let summary = json(&[
-        "--json",
-        "segment",
-        "train",
-        run_dir.to_str().unwrap(),
-        train.to_str().unwrap(),
-        "--val",
-        val.to_str().unwrap(),
-        "--steps",
-        "400",
-        "--batch-size",
-        "2",
-        "--val-every",
-        "5",
-        "--patience",
-        "2",
-    ]);
+    let summary = json(&train_args);
     let log = std::fs::read_to_string(run_dir.join("log.jsonl")).unwrap();
     // The first call, stopped by its time limit before step 5, validated on its way out.
     assert!(log.lines().next().unwrap().contains("validation"), "{log}");

@@ -324,8 +324,7 @@ impl Trainer {
                     .is_multiple_of(self.config.validate_every_steps.max(1))
                     || self.state.step == total;
                 if due {
-                    let v = self.validate(val, info, &opts.run_dir)?;
-                    writeln!(log, "{}", serde_json::json!({ "validation": v }))?;
+                    self.validate(val, info, &opts.run_dir, &mut log)?;
                     flattened = self.flattened();
                 }
             }
@@ -339,8 +338,7 @@ impl Trainer {
         }
         // A run stopped before its first validation still leaves a model to use.
         if let (Some(val), None) = (validation, &self.state.best) {
-            let v = self.validate(val, info, &opts.run_dir)?;
-            writeln!(log, "{}", serde_json::json!({ "validation": v }))?;
+            self.validate(val, info, &opts.run_dir, &mut log)?;
         }
         self.checkpoint(&opts.run_dir)?;
         bar.finish_and_clear();
@@ -351,14 +349,15 @@ impl Trainer {
         self.config.patience > 0 && self.state.stale >= self.config.patience
     }
 
-    /// Scores the network on whole validation revolutions; a new best is exported to
-    /// `model/`.
+    /// Scores the network on whole validation revolutions and logs the scores; a new best
+    /// is exported to `model/`.
     fn validate(
         &mut self,
         val: &SegDataset,
         info: &SegModelInfo,
         run_dir: &Path,
-    ) -> Result<Validation> {
+        log: &mut impl Write,
+    ) -> Result<()> {
         let net = self.net.valid();
         let scores = confusion(&net, val, &Device::flex()).scores();
         let v = Validation {
@@ -377,7 +376,8 @@ impl Trainer {
         } else {
             self.state.stale += 1;
         }
-        Ok(v)
+        writeln!(log, "{}", serde_json::json!({ "validation": v }))?;
+        Ok(())
     }
 
     /// One Adam step; returns the loss.
