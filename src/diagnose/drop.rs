@@ -276,57 +276,107 @@ impl DropFamily for BeamFamily {
     }
 }
 
-/// `edge_dropout`: extra drops on and beside depth edges.
+/// `edge_dropout`: extra drops on and beside depth edges, per range band of the pixel.
 pub struct EdgeFamily;
 /// Distances from an edge (0 = on it) that get a rate of their own; beyond them the rate of
 /// the pixels far from any edge is the reference.
 const EDGE_FIT_PX: usize = 4;
+/// Lower ends of the range bands that get edge rates of their own: how much of a beam an
+/// edge takes (and the emitter-receiver parallax behind a near edge) changes with range.
+const EDGE_BANDS_M: [f32; 4] = [0.0, 10.0, 20.0, 40.0];
+const EDGE_DISTANCES: usize = MAX_EDGE_PX as usize + 1;
+
+fn edge_band(range_m: f32) -> usize {
+    EDGE_BANDS_M
+        .iter()
+        .rposition(|&from| range_m >= from)
+        .unwrap_or(0)
+}
 
 impl DropFamily for EdgeFamily {
     fn id(&self) -> &'static str {
         "edge_dropout"
     }
     fn bins(&self, _: &Pixels) -> usize {
-        usize::from(MAX_EDGE_PX) + 1
+        EDGE_BANDS_M.len() * EDGE_DISTANCES
     }
     /// Pixels with a surface only (a completed range): edges are between surfaces.
     fn bin(&self, px: &Pixels, i: usize) -> Option<usize> {
-        (px.range_m[i].is_finite() && px.enclosure_px[i] <= BEAM_ENCLOSURE_PX)
-            .then(|| usize::from(px.row_edge_px[i].min(MAX_EDGE_PX)))
+        let r = px.range_m[i];
+        (r.is_finite() && px.enclosure_px[i] <= BEAM_ENCLOSURE_PX).then(|| {
+            edge_band(r) * EDGE_DISTANCES + usize::from(px.row_edge_px[i].min(MAX_EDGE_PX))
+        })
     }
     fn fit(&self, table: &QTable, _: &Pixels) -> Option<DropFit> {
-        if table.bins <= EDGE_FIT_PX {
+        if table.bins != EDGE_BANDS_M.len() * EDGE_DISTANCES {
             return None;
         }
         // What the rest of the model leaves unexplained near edges, above what it leaves
-        // far from them (that is the keep scale's).
-        let free: Vec<f64> = (0..table.bins).map(|b| table.best_bin_prob(b)).collect();
-        let far = free[EDGE_FIT_PX..].iter().sum::<f64>() / (table.bins - EDGE_FIT_PX) as f64;
-        let drop_prob: Vec<f64> = (0..table.bins)
-            .map(|d| {
-                if d < EDGE_FIT_PX {
-                    excess_drop(free[d], far)
-                } else {
-                    0.0
-                }
-            })
-            .collect();
-        let by_px: Vec<f64> = drop_prob[..EDGE_FIT_PX]
+        // far from them (that is the keep scale's), band by band.
+        let mut drop_prob = vec![0.0; table.bins];
+        let mut by_band = Vec::new();
+        for band in 0..EDGE_BANDS_M.len() {
+            let bins = band * EDGE_DISTANCES..(band + 1) * EDGE_DISTANCES;
+            let free: Vec<f64> = bins.clone().map(|b| table.best_bin_prob(b)).collect();
+            let weight: Vec<f64> = bins
+                .clone()
+                .map(|b| {
+                    let (kept, dropped) = table.counts(b);
+                    kept + dropped
+                })
+                .collect();
+            let far_n: f64 = weight[EDGE_FIT_PX..].iter().sum();
+            let far = if far_n > 0.0 {
+                free[EDGE_FIT_PX..]
+                    .iter()
+                    .zip(&weight[EDGE_FIT_PX..])
+                    .map(|(p, w)| p * w)
+                    .sum::<f64>()
+                    / far_n
+            } else {
+                0.0
+            };
+            let rates: Vec<f64> = (0..EDGE_FIT_PX)
+                .map(|d| {
+                    if weight[d] > 0.0 {
+                        round3(excess_drop(free[d], far))
+                    } else {
+                        0.0
+                    }
+                })
+                .collect();
+            for (d, p) in rates.iter().enumerate() {
+                drop_prob[band * EDGE_DISTANCES + d] = *p;
+            }
+            by_band.push(rates);
+        }
+        let bands: Vec<Value> = EDGE_BANDS_M
             .iter()
-            .map(|p| round3(*p))
+            .zip(&by_band)
+            .map(|(from_m, rates)| json!({ "from_m": from_m, "drop_prob_by_px": rates }))
             .collect();
         let mut params = Map::new();
-        params.insert("drop_prob_by_px".into(), json!(by_px));
+        params.insert("bands".into(), json!(bands));
         let mut physics = Map::new();
-        physics.insert("edge_dropout".into(), json!({ "drop_prob_by_px": by_px }));
+        physics.insert("edge_dropout".into(), json!({ "bands": bands }));
+        let on_edge: Vec<String> = by_band.iter().map(|r| format!("{:.2}", r[0])).collect();
+        let ranges: Vec<String> = EDGE_BANDS_M
+            .iter()
+            .enumerate()
+            .map(|(b, from)| match EDGE_BANDS_M.get(b + 1) {
+                Some(to) => format!("{from:.0}-{to:.0}"),
+                None => format!("{from:.0}+"),
+            })
+            .collect();
         Some(DropFit {
-            n_params: EDGE_FIT_PX,
+            n_params: EDGE_FIT_PX * EDGE_BANDS_M.len(),
             drop_prob,
             params,
             physics,
             location: format!(
-                "depth edges: {:.2} of the rays on an edge drop, {:.2} one pixel off",
-                by_px[0], by_px[1]
+                "depth edges: {} of the rays on an edge drop at {} m",
+                on_edge.join(" / "),
+                ranges.join(" / ")
             ),
         })
     }

@@ -235,6 +235,27 @@ fn prob(p: f32) -> bool {
     (0.0..=1.0).contains(&p)
 }
 
+/// An edge effect's rates by distance: at most 8 distances, each a probability.
+fn check_edge_rates(o: &str, parameter: &str, rates: &[f32]) -> Result<(), PhysicsError> {
+    check(
+        rates.len() <= usize::from(crate::lidar::edges::MAX_EDGE_PX),
+        o,
+        parameter,
+        rates.len(),
+        "lists at most 8 distances (0-7 pixels from the edge)",
+    )?;
+    for (d, p) in rates.iter().enumerate() {
+        check(
+            prob(*p),
+            o,
+            &format!("{parameter}[{d}]"),
+            p,
+            "must be in [0, 1]",
+        )?;
+    }
+    Ok(())
+}
+
 impl PhysicsConfig {
     /// A preset name or a path to a physics JSON file.
     pub fn resolve(name_or_path: &str) -> Result<Self, PhysicsError> {
@@ -386,20 +407,31 @@ impl PhysicsConfig {
             )?;
         }
         if let Some(e) = &self.edge_dropout {
+            check_edge_rates(o, "edge_dropout.drop_prob_by_px", &e.drop_prob_by_px)?;
             check(
-                e.drop_prob_by_px.len() <= usize::from(crate::lidar::edges::MAX_EDGE_PX),
+                e.bands.is_empty() || e.drop_prob_by_px.is_empty(),
                 o,
-                "edge_dropout.drop_prob_by_px",
-                e.drop_prob_by_px.len(),
-                "lists at most 8 distances (0-7 pixels from the edge)",
+                "edge_dropout",
+                "drop_prob_by_px and bands",
+                "gives either drop_prob_by_px or bands, not both",
             )?;
-            for (d, p) in e.drop_prob_by_px.iter().enumerate() {
+            for (b, band) in e.bands.iter().enumerate() {
+                let from_previous = if b == 0 { 0.0 } else { e.bands[b - 1].from_m };
                 check(
-                    prob(*p),
+                    if b == 0 {
+                        band.from_m == 0.0
+                    } else {
+                        band.from_m > from_previous
+                    },
                     o,
-                    &format!("edge_dropout.drop_prob_by_px[{d}]"),
-                    p,
-                    "must be in [0, 1]",
+                    &format!("edge_dropout.bands[{b}].from_m"),
+                    band.from_m,
+                    "must start at 0 and rise band by band",
+                )?;
+                check_edge_rates(
+                    o,
+                    &format!("edge_dropout.bands[{b}].drop_prob_by_px"),
+                    &band.drop_prob_by_px,
                 )?;
             }
         }

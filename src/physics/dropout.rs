@@ -74,14 +74,40 @@ impl Effect for IncidenceDropout {
 
 /// `edge_dropout`: rays on and beside depth edges return nothing more often: the beam's
 /// footprint straddles two surfaces, and the split echo is too weak or too wide for the
-/// detector. `drop_prob_by_px[d]` is the drop probability `d` pixels along the row from the
-/// nearest depth edge of the ideal scan (0 = on the edge); farther rays never drop.
+/// detector; behind a near edge the receiver, offset from the emitter, may not see the spot
+/// at all. `drop_prob_by_px[d]` is the drop probability `d` pixels along the row from the
+/// nearest depth edge of the ideal scan (0 = on the edge); farther rays never drop. How
+/// strong this is changes with range, so `bands` may give the rates per range band instead.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct EdgeDropout {
     #[serde(default = "yes")]
     pub enabled: bool,
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub drop_prob_by_px: Vec<f32>,
+    /// Rates per range band, nearest first (`from_m` ascending from 0); replaces
+    /// `drop_prob_by_px`.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub bands: Vec<EdgeBand>,
+}
+
+/// The edge drop rates of rays from `from_m` up to the next band's start.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct EdgeBand {
+    pub from_m: f32,
+    pub drop_prob_by_px: Vec<f32>,
+}
+
+impl EdgeDropout {
+    /// The drop rates by distance that apply at `range_m`.
+    fn rates(&self, range_m: f32) -> &[f32] {
+        match self.bands.iter().rposition(|b| range_m >= b.from_m) {
+            Some(b) => &self.bands[b].drop_prob_by_px,
+            None if self.bands.is_empty() => &self.drop_prob_by_px,
+            None => &[],
+        }
+    }
 }
 
 impl Effect for EdgeDropout {
@@ -92,7 +118,7 @@ impl Effect for EdgeDropout {
         true
     }
     fn drop_prob(&self, f: &RayFeatures) -> f32 {
-        self.drop_prob_by_px
+        self.rates(f.range_m)
             .get(usize::from(f.edge_px))
             .copied()
             .unwrap_or(0.0)
@@ -390,6 +416,7 @@ pub(crate) mod tests {
         let e = EdgeDropout {
             enabled: true,
             drop_prob_by_px: vec![0.4, 0.1],
+            bands: Vec::new(),
         };
         let at = |edge_px| RayFeatures {
             edge_px,
@@ -413,6 +440,32 @@ pub(crate) mod tests {
         let (on, off) = (rate(true), rate(false));
         assert!((on - 0.4).abs() < 0.05, "on the edge {on}");
         assert!(off < 0.1, "off the edge {off}");
+    }
+
+    #[test]
+    fn edge_dropout_bands_pick_the_rates_of_the_ray_range() {
+        let band = |from_m, p: f32| EdgeBand {
+            from_m,
+            drop_prob_by_px: vec![p, p / 2.0],
+        };
+        let e = EdgeDropout {
+            enabled: true,
+            drop_prob_by_px: Vec::new(),
+            bands: vec![band(0.0, 0.4), band(20.0, 0.2), band(40.0, 0.0)],
+        };
+        let at = |range_m, edge_px| RayFeatures {
+            edge_px,
+            ..features(range_m, 0.0, Material::Concrete, 10)
+        };
+        assert_eq!(e.drop_prob(&at(5.0, 0)), 0.4);
+        assert_eq!(e.drop_prob(&at(19.9, 1)), 0.2);
+        assert_eq!(e.drop_prob(&at(20.0, 0)), 0.2);
+        assert_eq!(e.drop_prob(&at(60.0, 0)), 0.0);
+        assert_eq!(
+            e.drop_prob(&at(30.0, 2)),
+            0.0,
+            "beyond the listed distances"
+        );
     }
 
     /// An ideal scan, and the same scan after `effect` (drop rates per pixel set).
