@@ -311,26 +311,6 @@ impl Baseline {
         b
     }
 
-    /// The baseline without the sim's azimuth factor where that fits the real training
-    /// scans better (keep scale refitted either way). The factor holds the sim scene's open
-    /// directions, which are the real scene's only when both record one place.
-    pub fn checked_against(mut self, real_train: &Pixels) -> Self {
-        let nll = |b: &Baseline| {
-            let keep = b.keep_of(real_train);
-            let c = best_scale(real_train, &keep);
-            let scaled: Vec<f64> = keep.iter().map(|k| c * k).collect();
-            mask_nll(real_train, &scaled)
-        };
-        let flat = Baseline {
-            azimuth: vec![1.0; self.azimuth.len()],
-            ..self.clone()
-        };
-        if nll(&flat) < nll(&self) {
-            self.azimuth = flat.azimuth;
-        }
-        self
-    }
-
     /// Baseline keep probability of every pixel of `px`.
     pub fn keep_of(&self, px: &Pixels) -> Vec<f64> {
         (0..px.len())
@@ -878,41 +858,6 @@ mod tests {
     fn golden_finds_a_parabola_minimum() {
         let (x, fx) = golden(-3.0, 5.0, 60, |x| (x - 1.25) * (x - 1.25) + 2.0);
         assert!((x - 1.25).abs() < 1e-6 && (fx - 2.0).abs() < 1e-9);
-    }
-
-    /// One row of 64 columns at 10 m, scanned `scans` times; the first quarter of the
-    /// columns drops with `open_drop` (an open direction of a scene), the rest with 0.05.
-    fn one_row(scans: usize, open_drop: f64) -> Pixels {
-        let (w, n) = (64, 64 * scans);
-        let dropped = |i: usize| {
-            let (j, s) = (i % w, i / w);
-            let rate = if j < w / 4 { open_drop } else { 0.05 };
-            // Evenly spread drops at `rate` over the scans.
-            ((s + j) as f64 * rate).floor() != ((s + j + 1) as f64 * rate).floor()
-        };
-        Pixels {
-            height: 1,
-            width: w,
-            row: vec![0; n],
-            column: (0..n).map(|i| (i % w) as u16).collect(),
-            range_m: vec![10.0; n],
-            kept: (0..n).map(|i| !dropped(i)).collect(),
-            ..Default::default()
-        }
-    }
-
-    #[test]
-    fn the_sims_azimuth_factor_stays_only_where_the_real_scans_share_it() {
-        let sim = one_row(200, 0.8);
-        let baseline = || Baseline::from_sim(&sim, 50.0);
-        assert!(
-            baseline().azimuth.iter().any(|&a| a < 0.5),
-            "the open sector is seen"
-        );
-        let same_place = baseline().checked_against(&one_row(100, 0.8));
-        assert_eq!(same_place.azimuth, baseline().azimuth);
-        let elsewhere = baseline().checked_against(&one_row(100, 0.05));
-        assert!(elsewhere.azimuth.iter().all(|&a| a == 1.0));
     }
 
     #[test]

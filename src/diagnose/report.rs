@@ -326,7 +326,7 @@ pub fn diagnose(
     let px_sim = Pixels::collect(sim, reach_m);
     let px_train = Pixels::collect(&train, reach_m);
     let px_test = Pixels::collect(&test, reach_m);
-    let baseline = Baseline::from_sim(&px_sim, reach_m).checked_against(&px_train);
+    let baseline = Baseline::from_sim(&px_sim, reach_m);
     let boxed = drop::families();
     let motion_coverage = motion_coverage(&residual_fits, &baseline, &px_train);
     let families: Vec<&dyn DropFamily> = boxed
