@@ -25,7 +25,13 @@ struct Outcome {
     null_clean: Option<bool>,
     fit_better: bool,
     single: bool,
+    /// Share of the real side's rays the left-out effects dropped, where they drop rays.
+    share: Option<f64>,
 }
+
+/// Left-out effects that dropped less than this share of the real rays are reported
+/// apart: what no method can see is not evidence about the method.
+const VISIBLE_SHARE: f64 = 0.005;
 
 fn judge(p: &testgen::Pair, d: &Diagnosis, seconds: f64) -> Outcome {
     let named: Vec<&str> = d.report.effects.iter().map(|e| e.id.as_str()).collect();
@@ -52,7 +58,10 @@ fn judge(p: &testgen::Pair, d: &Diagnosis, seconds: f64) -> Outcome {
         if null {
             "(none)".into()
         } else {
-            truth.join(", ")
+            match p.effect_share {
+                Some(share) => format!("{} ({:.1} % of rays)", truth.join(", "), 100.0 * share),
+                None => truth.join(", "),
+            }
         },
         if named.is_empty() {
             "(none)".into()
@@ -80,6 +89,7 @@ fn judge(p: &testgen::Pair, d: &Diagnosis, seconds: f64) -> Outcome {
         null_clean: null.then_some(named.is_empty()),
         fit_better,
         single: truth.len() == 1,
+        share: p.effect_share,
     }
 }
 
@@ -183,6 +193,19 @@ fn main() {
         count(&|o| o.fit_better, &with_effect),
         with_effect.len()
     );
+    for (words, faint) in [(">=", false), ("<", true)] {
+        let drops: Vec<&Outcome> = singles
+            .iter()
+            .copied()
+            .filter(|o| o.share.is_some_and(|s| (s < VISIBLE_SHARE) == faint))
+            .collect();
+        println!(
+            "| the true effect named first (single drop effects that dropped {words} {:.1} % of the rays) | {} / {} |",
+            100.0 * VISIBLE_SHARE,
+            count(&|o| o.first_ok, &drops),
+            drops.len()
+        );
+    }
     print_families(&outcomes);
     println!(
         "\n{} pairs in {:.0} s wall ({} threads)",

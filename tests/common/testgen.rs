@@ -795,12 +795,20 @@ pub struct Pair {
     /// Global drop rates after concealment.
     pub drop_rate_sim: f64,
     pub drop_rate_real: f64,
+    /// Where a left-out effect drops rays: the share of the real side's rays they dropped
+    /// (its drop rate beside the same scans with the uniform dropout alone), how visible
+    /// they are at all.
+    pub effect_share: Option<f64>,
 }
 
-fn scans(scene: &Scene, sensor: &Sensor, physics: &Physics, seed: u64) -> Vec<SimScan> {
-    (0..SCANS)
-        .map(|i| {
-            let mut s = cast_scan(scene, sensor, i);
+fn cast(scene: &Scene, sensor: &Sensor) -> Vec<SimScan> {
+    (0..SCANS).map(|i| cast_scan(scene, sensor, i)).collect()
+}
+
+fn applied(cast: &[SimScan], physics: &Physics, seed: u64) -> Vec<SimScan> {
+    cast.iter()
+        .map(|s| {
+            let mut s = s.clone();
             physics.apply(&mut s, seed);
             s
         })
@@ -848,25 +856,36 @@ pub fn pair_with(seed: u64, effects: &[&str], beams: usize, organized: Option<bo
     let real_scene = Scene::generate(kind, seed, length);
     let sim_scene = Scene::generate(kind, seed ^ 0x5151_5151, length);
     let base = rng.range(0.005, 0.03);
-    let mut real_effects: Vec<Box<dyn Effect>> = vec![Box::new(UniformDropout {
-        enabled: true,
-        prob: base,
-    })];
+    let uniform = || -> Box<dyn Effect> {
+        Box::new(UniformDropout {
+            enabled: true,
+            prob: base,
+        })
+    };
+    let mut real_effects = vec![uniform()];
     let mut truth_params = Vec::new();
+    let mut drops = false;
     for id in effects {
         let e = draw_effect(id, &mut rng, &sensor);
         truth_params.push(format!("{e:?}"));
+        drops |= e.drops();
         real_effects.push(e);
     }
-    let real = scans(
-        &real_scene,
-        &sensor,
+    let real_cast = cast(&real_scene, &sensor);
+    let real = applied(
+        &real_cast,
         &Physics {
             effects: real_effects,
         },
         seed,
     );
-    let ideal = scans(&sim_scene, &sensor, &Physics::ideal(), seed ^ 1);
+    let uniform_only = Physics {
+        effects: vec![uniform()],
+    };
+    let effect_share =
+        drops.then(|| drop_rate(&real) - drop_rate(&applied(&real_cast, &uniform_only, seed)));
+    let sim_cast = cast(&sim_scene, &sensor);
+    let ideal = applied(&sim_cast, &Physics::ideal(), seed ^ 1);
     let (r, s0) = (drop_rate(&real), drop_rate(&ideal));
     let prob = ((r - s0).max(0.0) / (1.0 - s0)) as f32;
     let sim_physics = Physics {
@@ -875,7 +894,7 @@ pub fn pair_with(seed: u64, effects: &[&str], beams: usize, organized: Option<bo
             prob: prob.max(base),
         })],
     };
-    let sim = scans(&sim_scene, &sensor, &sim_physics, seed ^ 1);
+    let sim = applied(&sim_cast, &sim_physics, seed ^ 1);
     Pair {
         seed,
         kind,
@@ -883,6 +902,7 @@ pub fn pair_with(seed: u64, effects: &[&str], beams: usize, organized: Option<bo
         truth_params,
         drop_rate_sim: drop_rate(&sim),
         drop_rate_real: r,
+        effect_share,
         sim: sim.iter().map(|s| features(s, &sensor)).collect(),
         real: real.iter().map(|s| features(s, &sensor)).collect(),
         sensor,
