@@ -293,6 +293,40 @@ fn edge_band(range_m: f32) -> usize {
         .unwrap_or(0)
 }
 
+/// One band's drop rates 0 .. [`EDGE_FIT_PX`] pixels from an edge: what the rest of the
+/// model leaves unexplained there, above what it leaves in the band's pixels far from any
+/// edge (that is the keep scale's). Distances without pixels get 0.
+fn edge_band_rates(table: &QTable, band: usize) -> Vec<f64> {
+    let bins = band * EDGE_DISTANCES..(band + 1) * EDGE_DISTANCES;
+    let free: Vec<f64> = bins.clone().map(|b| table.best_bin_prob(b)).collect();
+    let pixels: Vec<f64> = bins
+        .map(|b| {
+            let (kept, dropped) = table.counts(b);
+            kept + dropped
+        })
+        .collect();
+    let far_pixels: f64 = pixels[EDGE_FIT_PX..].iter().sum();
+    let far = if far_pixels > 0.0 {
+        let dropped: f64 = free[EDGE_FIT_PX..]
+            .iter()
+            .zip(&pixels[EDGE_FIT_PX..])
+            .map(|(p, n)| p * n)
+            .sum();
+        dropped / far_pixels
+    } else {
+        0.0
+    };
+    (0..EDGE_FIT_PX)
+        .map(|d| {
+            if pixels[d] > 0.0 {
+                round3(excess_drop(free[d], far))
+            } else {
+                0.0
+            }
+        })
+        .collect()
+}
+
 impl DropFamily for EdgeFamily {
     fn id(&self) -> &'static str {
         "edge_dropout"
@@ -311,44 +345,12 @@ impl DropFamily for EdgeFamily {
         if table.bins != EDGE_BANDS_M.len() * EDGE_DISTANCES {
             return None;
         }
-        // What the rest of the model leaves unexplained near edges, above what it leaves
-        // far from them (that is the keep scale's), band by band.
+        let by_band: Vec<Vec<f64>> = (0..EDGE_BANDS_M.len())
+            .map(|band| edge_band_rates(table, band))
+            .collect();
         let mut drop_prob = vec![0.0; table.bins];
-        let mut by_band = Vec::new();
-        for band in 0..EDGE_BANDS_M.len() {
-            let bins = band * EDGE_DISTANCES..(band + 1) * EDGE_DISTANCES;
-            let free: Vec<f64> = bins.clone().map(|b| table.best_bin_prob(b)).collect();
-            let weight: Vec<f64> = bins
-                .clone()
-                .map(|b| {
-                    let (kept, dropped) = table.counts(b);
-                    kept + dropped
-                })
-                .collect();
-            let far_n: f64 = weight[EDGE_FIT_PX..].iter().sum();
-            let far = if far_n > 0.0 {
-                free[EDGE_FIT_PX..]
-                    .iter()
-                    .zip(&weight[EDGE_FIT_PX..])
-                    .map(|(p, w)| p * w)
-                    .sum::<f64>()
-                    / far_n
-            } else {
-                0.0
-            };
-            let rates: Vec<f64> = (0..EDGE_FIT_PX)
-                .map(|d| {
-                    if weight[d] > 0.0 {
-                        round3(excess_drop(free[d], far))
-                    } else {
-                        0.0
-                    }
-                })
-                .collect();
-            for (d, p) in rates.iter().enumerate() {
-                drop_prob[band * EDGE_DISTANCES + d] = *p;
-            }
-            by_band.push(rates);
+        for (band, rates) in by_band.iter().enumerate() {
+            drop_prob[band * EDGE_DISTANCES..][..EDGE_FIT_PX].copy_from_slice(rates);
         }
         let bands: Vec<Value> = EDGE_BANDS_M
             .iter()
