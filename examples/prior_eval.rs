@@ -11,7 +11,8 @@
 //!
 //! The same sets are also told apart from the held-out scans (the validation drive, and
 //! SemanticKITTI 00 and 07), and SWD is reported against each held-out set separately, to
-//! show how much it moves with the choice of scans.
+//! show how much it moves with the choice of scans. `diversity` (how much a set's images differ
+//! from each other) shows a generator that draws one image whatever its latent.
 //!
 //! ```text
 //! cargo run --release --example prior_eval -- [--data ../shared/real_lidar] \
@@ -103,6 +104,46 @@ impl Images {
             .map(|x| x.iter().map(|v| ((v + 1.0) * 0.5).max(0.0)).collect())
             .collect()
     }
+}
+
+/// Blocks per side of the coarse layout [`diversity`] compares.
+const LAYOUT_BLOCKS: usize = 16;
+
+/// An image's layout: the mean inverse depth of its returns in each of 16 x 16 blocks (0 where
+/// a block has none), so the drop noise of single pixels does not count as variety.
+fn layout(x: &[f32], h: usize, w: usize) -> Vec<f64> {
+    let (bh, bw) = (h.div_ceil(LAYOUT_BLOCKS), w.div_ceil(LAYOUT_BLOCKS));
+    let mut sum = vec![(0.0f64, 0usize); LAYOUT_BLOCKS * LAYOUT_BLOCKS];
+    for (k, &v) in x.iter().enumerate() {
+        if v > 0.0 {
+            let cell = &mut sum[(k / w / bh) * LAYOUT_BLOCKS + (k % w) / bw];
+            cell.0 += f64::from(v);
+            cell.1 += 1;
+        }
+    }
+    sum.iter()
+        .map(|&(s, n)| if n > 0 { s / n as f64 } else { 0.0 })
+        .collect()
+}
+
+/// Mean absolute difference of the layouts of image `i` and image `i + n/2` of a set: how much
+/// its scenes differ from each other. A collapsed generator draws nearly the same scene
+/// whatever its latent and scores far below real scans (pairs half a set apart are other
+/// places).
+fn diversity(set: &Images) -> f64 {
+    let layouts: Vec<Vec<f64>> = set
+        .inverse_depth()
+        .iter()
+        .map(|x| layout(x, set.h, set.w))
+        .collect();
+    let half = layouts.len() / 2;
+    let total: f64 = (0..half)
+        .map(|i| {
+            let (a, b) = (&layouts[i], &layouts[i + half]);
+            a.iter().zip(b).map(|(x, y)| (x - y).abs()).sum::<f64>() / a.len() as f64
+        })
+        .sum();
+    total / half.max(1) as f64
 }
 
 fn slices(v: &[Vec<f32>]) -> Vec<&[f32]> {
@@ -237,7 +278,7 @@ fn main() -> Result<()> {
         serde_json::json!({
             "label": label, "c2st_vs_training": vs_training, "c2st_vs_heldout": vs_heldout,
             "ftd_vs_training": ftd, "ftd_vs_heldout": ftd_heldout,
-            "swd_vs_heldout": swd_by_set,
+            "swd_vs_heldout": swd_by_set, "diversity": diversity(set),
         })
     };
     let mut rows = vec![
