@@ -416,13 +416,12 @@ impl PhysicsConfig {
                 "gives either drop_prob_by_px or bands, not both",
             )?;
             for (b, band) in e.bands.iter().enumerate() {
-                let from_previous = if b == 0 { 0.0 } else { e.bands[b - 1].from_m };
+                let rises = match b.checked_sub(1) {
+                    None => band.from_m == 0.0,
+                    Some(previous) => band.from_m > e.bands[previous].from_m,
+                };
                 check(
-                    if b == 0 {
-                        band.from_m == 0.0
-                    } else {
-                        band.from_m > from_previous
-                    },
+                    rises,
                     o,
                     &format!("edge_dropout.bands[{b}].from_m"),
                     band.from_m,

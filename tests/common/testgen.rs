@@ -882,11 +882,11 @@ pub fn pair_with(seed: u64, effects: &[&str], beams: usize, organized: Option<bo
     let uniform_only = Physics {
         effects: vec![uniform()],
     };
-    let effect_share =
-        drops.then(|| drop_rate(&real) - drop_rate(&applied(&real_cast, &uniform_only, seed)));
+    let r = drop_rate(&real);
+    let effect_share = drops.then(|| r - drop_rate(&applied(&real_cast, &uniform_only, seed)));
     let sim_cast = cast(&sim_scene, &sensor);
     let ideal = applied(&sim_cast, &Physics::ideal(), seed ^ 1);
-    let (r, s0) = (drop_rate(&real), drop_rate(&ideal));
+    let s0 = drop_rate(&ideal);
     let prob = ((r - s0).max(0.0) / (1.0 - s0)) as f32;
     let sim_physics = Physics {
         effects: vec![Box::new(UniformDropout {
