@@ -678,4 +678,27 @@ mod tests {
                 .contains("carla-like")
         );
     }
+    #[test]
+    fn edge_bands_start_at_zero_rise_and_stand_alone() {
+        let edges = |json: &str| -> Result<(), String> {
+            let c: PhysicsConfig = serde_json::from_str(json).map_err(|e| e.to_string())?;
+            c.validate("p.json", Some(64)).map_err(|e| e.to_string())
+        };
+        let band = |from: f32, p: f32| format!(r#"{{"from_m": {from}, "drop_prob_by_px": [{p}]}}"#);
+        let banded =
+            |bands: &[String]| format!(r#"{{"edge_dropout": {{"bands": [{}]}}}}"#, bands.join(","));
+        edges(&banded(&[band(0.0, 0.2), band(20.0, 0.0)])).unwrap();
+        edges(r#"{"edge_dropout": {"drop_prob_by_px": [0.3, 0.1]}}"#).unwrap();
+        let err = edges(&banded(&[band(5.0, 0.2)])).unwrap_err();
+        assert!(err.contains("edge_dropout.bands[0].from_m"), "{err}");
+        let err = edges(&banded(&[band(0.0, 0.2), band(20.0, 0.1), band(20.0, 0.0)])).unwrap_err();
+        assert!(err.contains("edge_dropout.bands[2].from_m"), "{err}");
+        let err = edges(&banded(&[band(0.0, 1.5)])).unwrap_err();
+        assert!(
+            err.contains("edge_dropout.bands[0].drop_prob_by_px[0]"),
+            "{err}"
+        );
+        let both = r#"{"edge_dropout": {"drop_prob_by_px": [0.3], "bands": [{"from_m": 0, "drop_prob_by_px": [0.2]}]}}"#;
+        assert!(edges(both).unwrap_err().contains("not both"));
+    }
 }
