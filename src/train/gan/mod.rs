@@ -321,6 +321,8 @@ impl Trainer {
                     "reconstruction": m.assisted.map(|a| a.reconstruction),
                     "cycle": m.assisted.map(|a| a.cycle),
                     "grid": [self.level.height, self.level.width],
+                    "real": m.real.json(),
+                    "fake": m.fake.json(),
                     "elapsed_s": started.elapsed().as_secs_f64(),
                 });
                 writeln!(log, "{line}")?;
@@ -398,7 +400,7 @@ impl Trainer {
         let seeds: Vec<u64> = (0..parts).map(|_| self.state.rng.next_u64()).collect();
         let r1_gamma = self.level.r1_gamma(cfg.r1_gamma);
         let g_inner = self.g.valid();
-        let d_parts: Vec<DPart> = (0..parts)
+        let d_parts: Vec<(DPart, [BatchStats; 2])> = (0..parts)
             .into_par_iter()
             .map(|k| {
                 let mut rng = Rng::new(seeds[k]);
@@ -406,12 +408,19 @@ impl Trainer {
                 let shift = shift.as_ref().map(|s| &s[k * n..(k + 1) * n]);
                 let (fake, _) = g_inner.generate(z, self.grid_inner.as_ref(), shift);
                 let fake = measure(&cfg.measurement, fake, &mut rng).autodiff();
+                let real = real.clone().narrow(0, k * n, n);
+                let seen = [BatchStats::of(&real), BatchStats::of(&fake)];
                 let fake = view.apply(fake, &mut rng);
-                let real = view.apply(real.clone().narrow(0, k * n, n), &mut rng);
+                let real = view.apply(real, &mut rng);
                 let v = lazy.then(|| rng.normal_tensor(real.dims(), &device));
-                d_part(&self.d, &device, &cfg, r1_gamma, fake, real, v)
+                (
+                    d_part(&self.d, &device, &cfg, r1_gamma, fake, real, v),
+                    seen,
+                )
             })
             .collect();
+        let (d_parts, seen): (Vec<DPart>, Vec<[BatchStats; 2]>) = d_parts.into_iter().unzip();
+        let seen = [0, 1].map(|i| BatchStats::mean(seen.iter().map(|s| s[i])));
         let mean = |f: &dyn Fn(&DPart) -> f32| d_parts.iter().map(f).sum::<f32>() / parts as f32;
         let (loss_d, d_fake) = (mean(&|p| p.loss_d), mean(&|p| p.d_fake));
         let r1 = lazy.then(|| mean(&|p| p.r1.unwrap_or(0.0)));
@@ -448,6 +457,8 @@ impl Trainer {
             d_fake,
             pixel_drop: self.pixel_drop(),
             assisted,
+            real: seen[0],
+            fake: seen[1],
         })
     }
 
@@ -743,6 +754,59 @@ struct StepMetrics {
     pixel_drop: f32,
     /// Reconstruction-assisted runs: the reconstruction and latent-cycle losses.
     assisted: Option<Losses>,
+    /// What D was shown, before augmentation: the real batch and the generated one.
+    real: BatchStats,
+    fake: BatchStats,
+}
+
+/// Summary statistics of a measured batch, logged beside D's outputs so that a generator
+/// that fools D by moving a global statistic (the drop share, the mean depth) shows.
+#[derive(Debug, Clone, Copy, Default)]
+struct BatchStats {
+    /// Share of dropped pixels (-1 in network units).
+    drop: f32,
+    /// Mean and standard deviation of the returns' inverse depth (network units).
+    mean: f32,
+    std: f32,
+}
+
+impl BatchStats {
+    fn of(x: &Tensor<4>) -> Self {
+        let v = tensor_to_vec(x.clone().inner());
+        let returns: Vec<f64> = v
+            .iter()
+            .filter(|&&x| x > -0.999)
+            .map(|&x| x as f64)
+            .collect();
+        let n = returns.len().max(1) as f64;
+        let mean = returns.iter().sum::<f64>() / n;
+        let var = returns.iter().map(|x| (x - mean).powi(2)).sum::<f64>() / n;
+        BatchStats {
+            drop: 1.0 - returns.len() as f32 / v.len().max(1) as f32,
+            mean: mean as f32,
+            std: var.sqrt() as f32,
+        }
+    }
+
+    fn mean(all: impl Iterator<Item = BatchStats>) -> Self {
+        let (mut sum, mut k) = (BatchStats::default(), 0.0f32);
+        for s in all {
+            sum.drop += s.drop;
+            sum.mean += s.mean;
+            sum.std += s.std;
+            k += 1.0;
+        }
+        let k = k.max(1.0);
+        BatchStats {
+            drop: sum.drop / k,
+            mean: sum.mean / k,
+            std: sum.std / k,
+        }
+    }
+
+    fn json(self) -> serde_json::Value {
+        serde_json::json!({"drop": self.drop, "mean": self.mean, "std": self.std})
+    }
 }
 
 /// One part of a G step: its gradients (and the in-loop encoder's) and numbers.

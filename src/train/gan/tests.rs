@@ -66,6 +66,21 @@ fn a_batch_splits_in_two_parts_when_it_can() {
     assert_eq!(batch_parts(5), 1);
 }
 
+#[test]
+fn batch_stats_count_drops_and_describe_the_returns_alone() {
+    let x = tensor_from(
+        vec![-1.0, 0.2, -1.0, 0.6, -1.0, 0.4, 0.2, 0.6],
+        [2, 1, 2, 2],
+        &Device::flex(),
+    );
+    let s = BatchStats::of(&x);
+    assert!((s.drop - 3.0 / 8.0).abs() < 1e-6, "{s:?}");
+    assert!((s.mean - 0.4).abs() < 1e-6, "{s:?}");
+    assert!((s.std - (0.032f32).sqrt()).abs() < 1e-5, "{s:?}");
+    let m = BatchStats::mean([s, BatchStats::default()].into_iter());
+    assert!((m.drop - s.drop / 2.0).abs() < 1e-6 && (m.std - s.std / 2.0).abs() < 1e-6);
+}
+
 /// A dataset cache of `n` 64 x 64 images in `dir`: each pixel dropped (-1) with
 /// probability 0.2, else `value(pixel index, rng)`.
 fn synthetic_cache(
