@@ -21,7 +21,7 @@ use serde_json::{Map, Value, json};
 
 use super::fit::{DropFamily, DropFit, Pixels, QTable, golden};
 use crate::lidar::edges::MAX_EDGE_PX;
-use crate::physics::dropout::{IncidenceDropout, RangeDropout};
+use crate::physics::dropout::{EdgeBand, IncidenceDropout, RangeDropout};
 use crate::physics::{Effect, RayFeatures};
 use crate::sim::Material;
 use crate::sim::material::label;
@@ -352,10 +352,14 @@ impl DropFamily for EdgeFamily {
         for (band, rates) in by_band.iter().enumerate() {
             drop_prob[band * EDGE_DISTANCES..][..EDGE_FIT_PX].copy_from_slice(rates);
         }
-        let bands: Vec<Value> = EDGE_BANDS_M
+        // The simulator's own type, so `render --physics` reads back what is written here.
+        let bands: Vec<EdgeBand> = EDGE_BANDS_M
             .iter()
             .zip(&by_band)
-            .map(|(from_m, rates)| json!({ "from_m": from_m, "drop_prob_by_px": rates }))
+            .map(|(&from_m, rates)| EdgeBand {
+                from_m,
+                drop_prob_by_px: rates.iter().map(|&r| r as f32).collect(),
+            })
             .collect();
         let mut params = Map::new();
         params.insert("bands".into(), json!(bands));
