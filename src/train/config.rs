@@ -117,6 +117,13 @@ pub struct TrainConfig {
     /// Reconstruction-assisted training (dusty2): an encoder in the generator's loop.
     #[config(default = "None")]
     pub reconstruction: Option<ReconstructionConfig>,
+    /// Weight of the ray-drop anchor in the generator's step: the squared difference between
+    /// the generated scans' expected drop rate per row (1 - sigmoid(keep logit), no sampling)
+    /// and a real batch's. The straight-through mask gradient lets the generator answer a
+    /// discriminator that asks for farther returns by dropping rays; this term does not.
+    /// 0: off.
+    #[config(default = 0.0)]
+    pub drop_rate_weight: f32,
 }
 
 /// How to run training (not part of the saved config).

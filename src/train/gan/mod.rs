@@ -15,7 +15,7 @@ use anyhow::{Context, Result, bail, ensure};
 use burn::config::Config;
 use burn::module::Module;
 use burn::optim::{AdamConfig, GradientsParams, ModuleOptimizer};
-use burn::tensor::activation::softplus;
+use burn::tensor::activation::{sigmoid, softplus};
 use burn::tensor::{Device, Tensor};
 use indicatif::{ProgressBar, ProgressStyle};
 use rayon::prelude::*;
@@ -477,11 +477,13 @@ impl Trainer {
             ..view
         };
         let seeds: Vec<u64> = (0..parts).map(|_| self.state.rng.next_u64()).collect();
-        // Reconstruction-assisted runs encode a batch of real scans as well.
-        let real = self
-            .encoder
-            .is_some()
+        // Reconstruction-assisted runs encode a batch of real scans as well; the ray-drop
+        // anchor reads the same batch's drop rate per row.
+        let real = (self.encoder.is_some() || cfg.drop_rate_weight > 0.0)
             .then(|| self.real_batch(data, &device));
+        let real_row_drop = (cfg.drop_rate_weight > 0.0)
+            .then(|| real.as_ref().map(row_drop_rates))
+            .flatten();
         let rendering = self.rendering_generator();
         let mut g_parts: Vec<GPart> = (0..parts)
             .into_par_iter()
@@ -490,6 +492,12 @@ impl Trainer {
                 let z = z.clone().narrow(0, k * n, n);
                 let shift = shift.as_ref().map(|s| &s[k * n..(k + 1) * n]);
                 let (fake, w) = g.generate(z, self.grid.as_ref(), shift);
+                let anchor = match (&real_row_drop, &fake.keep_logit) {
+                    (Some(rows), Some(keep_logit)) => Some(
+                        drop_rate_anchor(keep_logit.clone(), rows).mul_scalar(cfg.drop_rate_weight),
+                    ),
+                    _ => None,
+                };
                 let mut rng = Rng::new(seeds[k]);
                 let fake = measure(&cfg.measurement, fake, &mut rng);
                 let logit = d_frozen.forward(view.apply(fake.clone(), &mut rng));
@@ -520,6 +528,10 @@ impl Trainer {
                         (loss_g + extra, Some(values))
                     }
                     _ => (loss_g, None),
+                };
+                let total = match anchor {
+                    Some(anchor) => total + anchor,
+                    None => total,
                 };
                 let mut grads = total.backward();
                 GPart {
@@ -836,6 +848,33 @@ fn measure(measurement: &MeasurementConfig, out: Generated, rng: &mut Rng) -> Te
         Some(logit) => measurement.measure(out.x_d, logit, rng).x_measured,
         None => out.x_d,
     }
+}
+
+/// The drop rate of each row of a measured batch (`[batch, 1, H, W]`, -1 = dropped).
+fn row_drop_rates(x: &Tensor<4>) -> Vec<f32> {
+    let [b, _, h, w] = x.dims();
+    let v = tensor_to_vec(x.clone().inner());
+    let per_row = (b * w).max(1) as f32;
+    (0..h)
+        .map(|r| {
+            let dropped = (0..b)
+                .flat_map(|i| &v[(i * h + r) * w..][..w])
+                .filter(|&&x| x <= -1.0 + 1e-4)
+                .count();
+            dropped as f32 / per_row
+        })
+        .collect()
+}
+
+/// Mean over rows of the squared difference between the expected drop rate of the generated
+/// batch's row (from its keep logits `[batch, 1, H, W]`) and `target` (one rate per row).
+fn drop_rate_anchor(keep_logit: Tensor<4>, target: &[f32]) -> Tensor<1> {
+    let [_, _, h, _] = keep_logit.dims();
+    let device = keep_logit.device();
+    let drop = sigmoid(keep_logit).neg().add_scalar(1.0); // [batch, 1, H, W]
+    let rows = drop.mean_dim(3).mean_dim(0); // [1, 1, H, 1]
+    let target = tensor_from(target.to_vec(), [1, 1, h, 1], &device);
+    (rows - target).powi_scalar(2).mean()
 }
 
 /// What D sees: early pixel dropout then augmentation (same for real and fake).

@@ -67,6 +67,45 @@ fn a_batch_splits_in_two_parts_when_it_can() {
 }
 
 #[test]
+fn the_drop_rate_anchor_measures_rows_and_pulls_the_keep_logits_to_the_real_rates() {
+    let device = Device::flex();
+    // Two scans of 2 rows x 4 columns: row 0 drops 3 of 8 pixels, row 1 none.
+    let real = tensor_from(
+        vec![
+            -1.0, 0.2, 0.3, -1.0, 0.1, 0.1, 0.1, 0.1, //
+            0.5, -1.0, 0.4, 0.4, 0.2, 0.2, 0.2, 0.2,
+        ],
+        [2, 1, 2, 4],
+        &device,
+    );
+    assert_eq!(row_drop_rates(&real), vec![3.0 / 8.0, 0.0]);
+    // Keep logits that give exactly those rates cost nothing ...
+    let logit = |p: f32| (p / (1.0 - p)).ln();
+    let exact: Vec<f32> = [1.0 - 3.0 / 8.0, 0.999_999]
+        .iter()
+        .flat_map(|&k| std::iter::repeat_n(logit(k), 4))
+        .collect();
+    let exact = tensor_from([exact.clone(), exact].concat(), [2, 1, 2, 4], &device);
+    let at_target = drop_rate_anchor(exact, &[3.0 / 8.0, 0.0]).into_scalar::<f32>();
+    assert!(at_target < 1e-8, "{at_target}");
+    // ... and from even odds the gradient raises row 1's keep logits and lowers row 0's.
+    let ad = device.autodiff();
+    let even = Tensor::<4>::zeros([2, 1, 2, 4], &ad).require_grad();
+    let loss = drop_rate_anchor(even.clone(), &[0.9, 0.0]);
+    assert!(loss.clone().inner().into_scalar::<f32>() > 0.1);
+    let grads = loss.backward();
+    let g = tensor_to_vec(even.grad(&grads).expect("a gradient"));
+    assert!(
+        g[..4].iter().all(|v| *v > 0.0),
+        "row 0 must drop more: {g:?}"
+    );
+    assert!(
+        g[4..8].iter().all(|v| *v < 0.0),
+        "row 1 must keep more: {g:?}"
+    );
+}
+
+#[test]
 fn batch_stats_count_drops_and_describe_the_returns_alone() {
     let x = tensor_from(
         vec![-1.0, 0.2, -1.0, 0.6, -1.0, 0.4, 0.2, 0.6],
