@@ -15,6 +15,9 @@ pub const MIN_DEPTH_M: f32 = 1.45;
 /// Largest valid depth.
 pub const MAX_DEPTH_M: f32 = 80.0;
 
+/// In network units, a pixel at or below this is a dropped ray (-1), anything above a return.
+pub const DROPPED: f32 = -1.0 + 1e-4;
+
 /// Range image (meters, 0 = no return) -> network units: 2 * 1.45 / depth - 1 for depths in
 /// [1.45, 80] m, -1 elsewhere.
 pub fn range_to_network(range_m: &[f32]) -> Vec<f32> {

@@ -14,10 +14,8 @@
 
 use nalgebra::{DMatrix, DVector};
 
+use super::data::DROPPED;
 use crate::util::rng::Rng;
-
-/// A pixel at or below this is a dropped ray.
-const DROPPED: f32 = -1.0 + 1e-4;
 
 /// Row bands the per-band statistics are taken over.
 const BANDS: usize = 4;

@@ -18,6 +18,7 @@ use burn::tensor::{Device, Tensor};
 
 use super::growth::Level;
 use crate::decode::amortised::{Encoder, EncoderConfig};
+use crate::model::data::DROPPED;
 use crate::model::generator::{Generator, GridCache};
 
 /// The weights of reconstruction-assisted training (part of the run's config).
@@ -84,7 +85,7 @@ pub fn losses(
     w: Tensor<2>,
 ) -> (Tensor<1>, Losses) {
     let w_avg = generator.mapping.w_avg.val().detach().unsqueeze::<2>(); // [1, d_w]
-    let returns = real.clone().greater_elem(-1.0 + 1e-4).float(); // [n, 1, H, W]
+    let returns = real.clone().greater_elem(DROPPED).float(); // [n, 1, H, W]
     let w_hat = encoder.forward(real.clone(), returns.clone()) + w_avg.clone(); // [n, d_w]
     let out = generator.render(w_hat, grid, None);
     let count = returns.clone().sum().add_scalar(1.0);
@@ -95,7 +96,7 @@ pub fn losses(
     .mean(); // [1]
     let reconstruction = depth + keep.mul_scalar(config.keep_weight);
     let fake = fake.detach();
-    let fake_returns = fake.clone().greater_elem(-1.0 + 1e-4).float();
+    let fake_returns = fake.clone().greater_elem(DROPPED).float();
     let [n, d_w] = w.dims();
     let target = w.detach() - w_avg; // [n, d_w]
     let cycle = (encoder.forward(fake, fake_returns) - target)

@@ -7,6 +7,7 @@ use burn::optim::GradientsParams;
 use burn::tensor::Tensor;
 
 use crate::model::AnyGenerator;
+use crate::model::data::DROPPED;
 use crate::util::rng::Rng;
 use crate::util::tensor::tensor_from;
 
@@ -121,7 +122,7 @@ pub fn augment(x: Tensor<4>, p: f32, rng: &mut Rng) -> Tensor<4> {
     }
     let a = tensor_from(rows, [b, 1, h, h], &device);
     let m = tensor_from(cols, [b, 1, w, w], &device);
-    let valid = x.clone().greater_elem(-1.0 + 1e-4).float(); // [batch, 1, H, W]
+    let valid = x.clone().greater_elem(DROPPED).float(); // [batch, 1, H, W]
     let x = a.clone().matmul(x).matmul(m.clone()); // [batch, 1, H, W]
     let valid = a.matmul(valid).matmul(m).greater_elem(0.5).float();
     let gain = tensor_from(gain, [b, 1, 1, 1], &device);

@@ -20,7 +20,7 @@ use burn::tensor::{Device, Tensor};
 use indicatif::{ProgressBar, ProgressStyle};
 use rayon::prelude::*;
 
-use crate::model::data::RangeDataset;
+use crate::model::data::{DROPPED, RangeDataset};
 use crate::model::discriminator::Discriminator;
 use crate::model::generator::{Generator, GridCache, random_subgrid_shift};
 use crate::model::measurement::MeasurementConfig;
@@ -481,9 +481,10 @@ impl Trainer {
         // anchor reads the same batch's drop rate per row.
         let real = (self.encoder.is_some() || cfg.drop_rate_weight > 0.0)
             .then(|| self.real_batch(data, &device));
-        let real_row_drop = (cfg.drop_rate_weight > 0.0)
-            .then(|| real.as_ref().map(row_drop_rates))
-            .flatten();
+        let real_row_drop = real
+            .as_ref()
+            .filter(|_| cfg.drop_rate_weight > 0.0)
+            .map(row_drop_rates);
         let rendering = self.rendering_generator();
         let mut g_parts: Vec<GPart> = (0..parts)
             .into_par_iter()
@@ -787,7 +788,7 @@ impl BatchStats {
         let v = tensor_to_vec(x.clone().inner());
         let returns: Vec<f64> = v
             .iter()
-            .filter(|&&x| x > -0.999)
+            .filter(|&&x| x > DROPPED)
             .map(|&x| x as f64)
             .collect();
         let n = returns.len().max(1) as f64;
@@ -859,7 +860,7 @@ fn row_drop_rates(x: &Tensor<4>) -> Vec<f32> {
         .map(|r| {
             let dropped = (0..b)
                 .flat_map(|i| &v[(i * h + r) * w..][..w])
-                .filter(|&&x| x <= -1.0 + 1e-4)
+                .filter(|&&x| x <= DROPPED)
                 .count();
             dropped as f32 / per_row
         })
