@@ -32,17 +32,26 @@ rm -rf /tmp/run && cp -r "$RUN" /tmp/run
 train() { # RUN_DIR MINUTES LOG
   /tmp/rg --quiet train "$1" --backend "$BACKEND" --cache /tmp/dataset.bin --max-minutes "$2" > "$3" 2>&1
 }
-last_rate() { tail -1 "$1/log.jsonl" | python3 -c "import json,sys; d=json.loads(sys.stdin.read()); print(d['images_per_s'], d['grid'])"; }
+# The rate of the last log line written after line $2 (the run's own log goes back months).
+last_rate() {
+  tail -n +"$(( $2 + 1 ))" "$1/log.jsonl" | tail -1 | python3 -c "
+import json, sys
+t = sys.stdin.read().strip()
+print(json.loads(t)['images_per_s'] if t else 'no log line in the time given')"
+}
 for b in ${BATCHES:-}; do # batch-size probes on copies of the run
   rm -rf /tmp/probe && cp -r /tmp/run /tmp/probe
-  python3 -c "import json; p='/tmp/probe/config.json'; c=json.load(open(p)); c['batch_size']=$b; open(p,'w').write(json.dumps(c, indent=2))"
-  train /tmp/probe 1 "$OUT/probe-$b.log"
-  echo "batch $b: $(last_rate /tmp/probe) images/s"
+  # A log line every step: at 64 x 512 a large batch may not reach ten steps in the minute.
+  python3 -c "import json; p='/tmp/probe/config.json'; c=json.load(open(p)); c['batch_size']=$b; c['log_every_steps']=1; open(p,'w').write(json.dumps(c, indent=2))"
+  n=$(wc -l < /tmp/probe/log.jsonl)
+  train /tmp/probe "${PROBE_MINUTES:-1.5}" "$OUT/probe-$b.log"
+  echo "batch $b: $(last_rate /tmp/probe "$n") images/s"
 done | tee "$OUT/batches.txt"
 nvidia-smi --query-gpu=utilization.gpu,memory.used --format=csv -l 20 > "$OUT/gpu.csv" 2>&1 &
 minutes=$(awk -v b="$BUDGET" -v e=$(( $(date +%s) - T0 )) 'BEGIN { printf "%.2f", (b - e) / 60 }')
+n=$(wc -l < /tmp/run/log.jsonl)
 train /tmp/run "$minutes" "$OUT/train.log"
-echo "train exit $? after $(( $(date +%s) - T0 )) s; last: $(last_rate /tmp/run) images/s"
+echo "train exit $? after $(( $(date +%s) - T0 )) s; last: $(last_rate /tmp/run "$n") images/s"
 # The discriminator's Adam state is left out: the committed checkpoint stays small.
 tar -C /tmp --exclude opt_d.bpk -cf "$OUT/run.tar" run
 ls -la "$OUT"
