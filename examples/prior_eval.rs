@@ -11,8 +11,9 @@
 //!
 //! The same sets are also told apart from the held-out scans (the validation drive, and
 //! SemanticKITTI 00 and 07), and SWD is reported against each held-out set separately, to
-//! show how much it moves with the choice of scans. `diversity` (how much a set's images differ
-//! from each other) shows a generator that draws one image whatever its latent.
+//! show how much it moves with the choice of scans. `diversity` (how much the shapes of a
+//! set's scenes differ from each other) shows a generator that draws one scene whatever its
+//! latent; its known-bad reference is one scan copied with random shifts and ray drops.
 //!
 //! ```text
 //! cargo run --release --example prior_eval -- [--data ../shared/real_lidar] \
@@ -109,9 +110,9 @@ impl Images {
 /// Blocks per side of the coarse layout [`diversity`] compares.
 const LAYOUT_BLOCKS: usize = 16;
 
-/// An image's layout: the mean inverse depth of its returns in each of 16 x 16 blocks (0 where
-/// a block has none), so the drop noise of single pixels does not count as variety.
-fn layout(x: &[f32], h: usize, w: usize) -> Vec<f64> {
+/// An image's layout: the mean inverse depth of its returns in each of 16 x 16 blocks (`None`
+/// where a block has none), so the drop noise of single pixels does not count as variety.
+fn layout(x: &[f32], h: usize, w: usize) -> Vec<Option<f64>> {
     let (bh, bw) = (h.div_ceil(LAYOUT_BLOCKS), w.div_ceil(LAYOUT_BLOCKS));
     let mut sum = vec![(0.0f64, 0usize); LAYOUT_BLOCKS * LAYOUT_BLOCKS];
     for (k, &v) in x.iter().enumerate() {
@@ -122,28 +123,65 @@ fn layout(x: &[f32], h: usize, w: usize) -> Vec<f64> {
         }
     }
     sum.iter()
-        .map(|&(s, n)| if n > 0 { s / n as f64 } else { 0.0 })
+        .map(|&(s, n)| (n > 0).then(|| s / n as f64))
         .collect()
 }
 
-/// Mean absolute difference of the layouts of image `i` and image `i + n/2` of a set: how much
-/// its scenes differ from each other. A collapsed generator draws nearly the same scene
-/// whatever its latent and scores far below real scans (pairs half a set apart are other
-/// places).
+/// How much two layouts differ in shape: the mean absolute difference over the blocks where
+/// both have returns, after each is shifted to mean zero there. A scene drawn nearer or
+/// farther as a whole, or with other blocks emptied by ray drop, is the same scene.
+fn layout_distance(a: &[Option<f64>], b: &[Option<f64>]) -> f64 {
+    let both: Vec<(f64, f64)> = a
+        .iter()
+        .zip(b)
+        .filter_map(|(x, y)| Some(((*x)?, (*y)?)))
+        .collect();
+    if both.is_empty() {
+        return 0.0;
+    }
+    let n = both.len() as f64;
+    let (ma, mb) = both
+        .iter()
+        .fold((0.0, 0.0), |(p, q), (x, y)| (p + x / n, q + y / n));
+    both.iter()
+        .map(|(x, y)| ((x - ma) - (y - mb)).abs())
+        .sum::<f64>()
+        / n
+}
+
+/// Mean [`layout_distance`] of image `i` and image `i + n/2` of a set: how much its scenes
+/// differ from each other. A collapsed generator draws nearly the same scene whatever its
+/// latent and scores near the collapsed reference, far below real scans (pairs half a set
+/// apart are other places).
 fn diversity(set: &Images) -> f64 {
-    let layouts: Vec<Vec<f64>> = set
+    let layouts: Vec<Vec<Option<f64>>> = set
         .inverse_depth()
         .iter()
         .map(|x| layout(x, set.h, set.w))
         .collect();
     let half = layouts.len() / 2;
     let total: f64 = (0..half)
-        .map(|i| {
-            let (a, b) = (&layouts[i], &layouts[i + half]);
-            a.iter().zip(b).map(|(x, y)| (x - y).abs()).sum::<f64>() / a.len() as f64
-        })
+        .map(|i| layout_distance(&layouts[i], &layouts[i + half]))
         .sum();
     total / half.max(1) as f64
+}
+
+/// What a fully collapsed generator draws: one scan, copied `n` times, each copy nearer or
+/// farther as a whole (up to 0.05 network units) and with 15 % more of its rays dropped.
+fn collapsed(scan: &[f32], n: usize, h: usize, w: usize) -> Images {
+    let images = (0..n)
+        .map(|i| {
+            let mut rng = Rng::new(1000 + i as u64);
+            let shift = (rng.uniform() - 0.5) * 0.1;
+            scan.iter()
+                .map(|&v| {
+                    let dropped = v <= -1.0 || rng.uniform() < 0.15;
+                    if dropped { -1.0 } else { (v + shift).min(1.0) }
+                })
+                .collect()
+        })
+        .collect();
+    Images { h, w, images }
 }
 
 fn slices(v: &[Vec<f32>]) -> Vec<&[f32]> {
@@ -284,6 +322,10 @@ fn main() -> Result<()> {
     let mut rows = vec![
         judge("real training scans, other half (reference)", &train_a),
         judge("3x3-blurred training scans (known bad)", &blurred),
+        judge(
+            "one training scan, copied (known bad: collapsed)",
+            &collapsed(&train_a.images[0], train_a.images.len(), level.height, level.width),
+        ),
     ];
     // The picture: per model 8 samples, then 4 held-out real scans, rendered the same way.
     let mut picture: Vec<Vec<f32>> = Vec::new();
