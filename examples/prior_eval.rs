@@ -324,7 +324,12 @@ fn main() -> Result<()> {
         judge("3x3-blurred training scans (known bad)", &blurred),
         judge(
             "one training scan, copied (known bad: collapsed)",
-            &collapsed(&train_a.images[0], train_a.images.len(), level.height, level.width),
+            &collapsed(
+                &train_a.images[0],
+                train_a.images.len(),
+                level.height,
+                level.width,
+            ),
         ),
     ];
     // The picture: per model 8 samples, then 4 held-out real scans, rendered the same way.

@@ -152,15 +152,15 @@ pub struct Inverted {
     pub losses: Vec<f32>,
 }
 
-/// Host-side Adam for the latent (one `[d_w]` vector; torch defaults beta (0.9, 0.999)).
-struct LatentAdam {
+/// Host-side Adam for latents (any number of values; torch defaults beta (0.9, 0.999)).
+pub struct LatentAdam {
     m: Vec<f32>,
     v: Vec<f32>,
     t: i32,
 }
 
 impl LatentAdam {
-    fn new(n: usize) -> Self {
+    pub fn new(n: usize) -> Self {
         LatentAdam {
             m: vec![0.0; n],
             v: vec![0.0; n],
@@ -168,7 +168,7 @@ impl LatentAdam {
         }
     }
 
-    fn step(&mut self, x: &mut [f32], grad: &[f32], lr: f32) {
+    pub fn step(&mut self, x: &mut [f32], grad: &[f32], lr: f32) {
         let (b1, b2, eps) = (0.9f32, 0.999f32, 1e-8f32);
         self.t += 1;
         let c1 = 1.0 - b1.powi(self.t);

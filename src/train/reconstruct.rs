@@ -6,9 +6,11 @@
 //! w_hat and scores the rendering against the scan: L1 on inverse depth where the scan has a
 //! return, and the keep logit against the scan's return mask (the ray-drop model is trained on
 //! what the sensor actually dropped). A latent cycle keeps the encoder's outputs where the
-//! mapping network puts random latents: E of a measured fake must give back its w. The
-//! generator takes the adversarial and the reconstruction gradients; the encoder takes the
-//! reconstruction and the cycle. `convert` inverts real scans the same way, so this trains
+//! mapping network puts random latents: E of a measured fake must give back its w. A prior
+//! match keeps the encoded real scans spread as the mapped latents are: without it the
+//! encoder can put every scan at one point, and the reconstruction then teaches the generator
+//! the mean scan there. The generator takes the adversarial and the reconstruction gradients;
+//! the encoder takes the reconstruction, the cycle and the prior match. `convert` inverts real scans the same way, so this trains
 //! for what the tool does with the generator.
 
 use burn::config::Config;
@@ -33,6 +35,10 @@ pub struct ReconstructionConfig {
     /// Weight of the encoder's latent cycle ||E(G(w)) - (w - w_avg)||^2 / d_w.
     #[config(default = 1.0)]
     pub cycle_weight: f32,
+    /// Weight of the prior match: the squared gaps between the per-dimension means and
+    /// standard deviations of the encoded real scans and of the mapped latents.
+    #[config(default = 0.0)]
+    pub prior_weight: f32,
     /// Adam learning rate of the encoder.
     #[config(default = 1e-3)]
     pub lr: f64,
@@ -67,6 +73,25 @@ impl InLoopEncoder {
 pub struct Losses {
     pub reconstruction: f32,
     pub cycle: f32,
+    pub prior: f32,
+}
+
+/// How far a batch of encoded latents lies from the mapped latents' distribution: the squared
+/// gaps between their per-dimension means and standard deviations, averaged over dimensions.
+/// A batch encoded into one tight cloud scores the mapped latents' variance however well
+/// its mean sits.
+///
+/// # Shapes
+/// - encoded, mapped: `[n, d_w]` (both relative to w_avg)
+pub fn moment_gap(encoded: Tensor<2>, mapped: Tensor<2>) -> Tensor<1> {
+    let moments = |x: Tensor<2>| {
+        let mean = x.clone().mean_dim(0); // [1, d_w]
+        let var = (x - mean.clone()).powi_scalar(2).mean_dim(0);
+        (mean, var.add_scalar(1e-8).sqrt())
+    };
+    let (mean_e, std_e) = moments(encoded);
+    let (mean_m, std_m) = moments(mapped);
+    ((mean_e - mean_m).powi_scalar(2) + (std_e - std_m).powi_scalar(2)).mean()
 }
 
 /// The reconstruction-assisted terms for one part of a batch, weighted, with their values.
@@ -86,7 +111,8 @@ pub fn losses(
 ) -> (Tensor<1>, Losses) {
     let w_avg = generator.mapping.w_avg.val().detach().unsqueeze::<2>(); // [1, d_w]
     let returns = real.clone().greater_elem(DROPPED).float(); // [n, 1, H, W]
-    let w_hat = encoder.forward(real.clone(), returns.clone()) + w_avg.clone(); // [n, d_w]
+    let encoded = encoder.forward(real.clone(), returns.clone()); // [n, d_w], relative to w_avg
+    let w_hat = encoded.clone() + w_avg.clone();
     let out = generator.render(w_hat, grid, None);
     let count = returns.clone().sum().add_scalar(1.0);
     let depth = ((out.x_d - real).abs() * returns.clone()).sum() / count; // [1]
@@ -99,6 +125,7 @@ pub fn losses(
     let fake_returns = fake.clone().greater_elem(DROPPED).float();
     let [n, d_w] = w.dims();
     let target = w.detach() - w_avg; // [n, d_w]
+    let prior = moment_gap(encoded, target.clone());
     let cycle = (encoder.forward(fake, fake_returns) - target)
         .powi_scalar(2)
         .sum()
@@ -106,8 +133,11 @@ pub fn losses(
     let values = Losses {
         reconstruction: reconstruction.clone().inner().into_scalar::<f32>(),
         cycle: cycle.clone().inner().into_scalar::<f32>(),
+        prior: prior.clone().inner().into_scalar::<f32>(),
     };
-    let total = reconstruction.mul_scalar(config.weight) + cycle.mul_scalar(config.cycle_weight);
+    let total = reconstruction.mul_scalar(config.weight)
+        + cycle.mul_scalar(config.cycle_weight)
+        + prior.mul_scalar(config.prior_weight);
     (total, values)
 }
 
@@ -118,6 +148,33 @@ mod tests {
     use crate::model::layers::kitti_like_grid;
     use crate::util::rng::Rng;
     use burn::optim::GradientsParams;
+
+    /// The gap is near zero for two samples of one distribution, large for a collapsed
+    /// batch, and its gradient spreads a collapsed batch out.
+    #[test]
+    fn moment_gap_sees_and_undoes_a_collapsed_batch() {
+        let device = Device::flex().autodiff();
+        let mut rng = Rng::new(7);
+        let mapped = rng.normal_tensor([256, 8], &device);
+        let other = rng.normal_tensor([256, 8], &device);
+        let same = moment_gap(other, mapped.clone()).into_scalar::<f32>();
+        assert!(same < 0.05, "two samples of N(0, I): {same}");
+        let collapsed = rng
+            .normal_tensor([256, 8], &device)
+            .mul_scalar(0.05)
+            .add_scalar(1.0);
+        let gap = moment_gap(collapsed.clone(), mapped.clone()).into_scalar::<f32>();
+        assert!(gap > 1.5, "a tight cloud off the mean: {gap}");
+        let mut x = collapsed;
+        for _ in 0..50 {
+            let leaf = x.detach().require_grad();
+            let grads = moment_gap(leaf.clone(), mapped.clone()).backward();
+            let step = leaf.grad(&grads).expect("x takes a gradient");
+            x = leaf.detach() - step.mul_scalar(50.0);
+        }
+        let after = moment_gap(x, mapped).into_scalar::<f32>();
+        assert!(after < 0.1 * gap, "{gap} -> {after}");
+    }
 
     /// A few steps on the reconstruction loss alone bring the rendering of an encoded scan
     /// closer to the scan: the gradients reach both the generator and the encoder.

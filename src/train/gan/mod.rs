@@ -320,6 +320,7 @@ impl Trainer {
                     "stage": self.state.stage,
                     "reconstruction": m.assisted.map(|a| a.reconstruction),
                     "cycle": m.assisted.map(|a| a.cycle),
+                    "prior": m.assisted.map(|a| a.prior),
                     "grid": [self.level.height, self.level.width],
                     "real": m.real.json(),
                     "fake": m.fake.json(),
@@ -611,6 +612,7 @@ impl Trainer {
         Some(values.fold(Losses::default(), |acc, v| Losses {
             reconstruction: acc.reconstruction + v.reconstruction / k,
             cycle: acc.cycle + v.cycle / k,
+            prior: acc.prior + v.prior / k,
         }))
     }
 
