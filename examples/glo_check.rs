@@ -11,7 +11,8 @@
 //! cargo run --release --example glo_check -- OUT.png DATASET_CACHE MODEL... [--scans 16] [--steps 300]
 //! ```
 //! MODEL: a run or model directory, `fresh-dusty2` (the CPU-size implicit generator) or
-//! `fresh-dusty1` (the transposed-convolution generator of the same widths). Prints the masked
+//! `fresh-dusty1` (the transposed-convolution generator of the same widths);
+//! `fresh-dusty2:F1,...,F5` sets the implicit generator's Fourier pairs per block. Prints the masked
 //! L1 of inverse depth (network units) every 25 steps and the relative depth error at the end;
 //! the PNG shows, per scan, the real scan, then each model's fit.
 
@@ -43,6 +44,14 @@ fn masked_l1(x_d: Tensor<4>, real: Tensor<4>, returns: Tensor<4>) -> Tensor<1> {
 
 /// The generator to fit: a trained one, or a fresh one of either family.
 fn generator(spec: &str, device: &Device) -> Result<AnyGenerator> {
+    if let Some(n_freq) = spec.strip_prefix("fresh-dusty2:") {
+        let n_freq = n_freq
+            .split(',')
+            .map(str::parse)
+            .collect::<Result<Vec<usize>, _>>()?;
+        let config = GeneratorConfig::cpu().with_n_freq(n_freq);
+        return Ok(AnyGenerator::Implicit(config.init(device)));
+    }
     Ok(match spec {
         "fresh-dusty2" => AnyGenerator::Implicit(GeneratorConfig::cpu().init(device)),
         "fresh-dusty1" => AnyGenerator::Conv(ConvGeneratorConfig::cpu(2).init(device)),
@@ -130,9 +139,13 @@ fn main() -> Result<()> {
             AnyGenerator::Implicit(implicit) => Some(implicit.prepare(&data.angles, &device)),
             AnyGenerator::Conv(_) => None,
         };
+        let start = std::time::Instant::now();
         let x = fit(spec, &g, grid.as_ref(), &real, steps, &device);
+        let secs = start.elapsed().as_secs_f64();
         let err = relative_depth_error(&network_to_depth(&x), &observed).unwrap_or(f32::NAN);
-        println!("{spec}: relative depth error {err:.4} over {n} scans after {steps} steps");
+        println!(
+            "{spec}: relative depth error {err:.4} over {n} scans after {steps} steps ({secs:.0} s)"
+        );
         fits.push(x);
     }
     let px = h * w;
