@@ -12,7 +12,8 @@
 //! ```
 //! MODEL: a run or model directory, `fresh-dusty2` (the CPU-size implicit generator) or
 //! `fresh-dusty1` (the transposed-convolution generator of the same widths);
-//! `fresh-dusty2:F1,...,F5` sets the implicit generator's Fourier pairs per block. Prints the masked
+//! `fresh-dusty2:freq=F1,...,F5;channels=C1,...,C5` sets the implicit generator's Fourier
+//! pairs and channels per block. Prints the masked
 //! L1 of inverse depth (network units) every 25 steps and the relative depth error at the end;
 //! the PNG shows, per scan, the real scan, then each model's fit.
 
@@ -44,12 +45,22 @@ fn masked_l1(x_d: Tensor<4>, real: Tensor<4>, returns: Tensor<4>) -> Tensor<1> {
 
 /// The generator to fit: a trained one, or a fresh one of either family.
 fn generator(spec: &str, device: &Device) -> Result<AnyGenerator> {
-    if let Some(n_freq) = spec.strip_prefix("fresh-dusty2:") {
-        let n_freq = n_freq
-            .split(',')
-            .map(str::parse)
-            .collect::<Result<Vec<usize>, _>>()?;
-        let config = GeneratorConfig::cpu().with_n_freq(n_freq);
+    if let Some(settings) = spec.strip_prefix("fresh-dusty2:") {
+        let mut config = GeneratorConfig::cpu();
+        for setting in settings.split(';') {
+            let (key, values) = setting
+                .split_once('=')
+                .ok_or_else(|| anyhow::anyhow!("{setting}: expected freq=... or channels=..."))?;
+            let values = values
+                .split(',')
+                .map(str::parse)
+                .collect::<Result<Vec<usize>, _>>()?;
+            config = match key {
+                "freq" => config.with_n_freq(values),
+                "channels" => config.with_channels(values),
+                _ => bail!("{key}: expected freq or channels"),
+            };
+        }
         return Ok(AnyGenerator::Implicit(config.init(device)));
     }
     Ok(match spec {
