@@ -30,18 +30,13 @@ use rangegan_mcap::model::baseline::ConvGeneratorConfig;
 use rangegan_mcap::model::data::{DROPPED, RangeDataset};
 use rangegan_mcap::model::generator::{GeneratorConfig, GridCache};
 use rangegan_mcap::model::weights::Model;
+use rangegan_mcap::train::reconstruct::returns_l1;
 use rangegan_mcap::train::write_png;
 use rangegan_mcap::util::rng::Rng;
 use rangegan_mcap::util::tensor::{tensor_from, tensor_to_vec};
 
 const Z_LR: f32 = 0.02;
 const G_LR: f64 = 1e-3;
-
-/// Mean absolute difference of inverse depth where the scan has a return.
-fn masked_l1(x_d: Tensor<4>, real: Tensor<4>, returns: Tensor<4>) -> Tensor<1> {
-    let count = returns.clone().sum().add_scalar(1.0);
-    ((x_d - real).abs() * returns).sum() / count
-}
 
 /// The generator to fit: a trained one, or a fresh one of either family.
 fn generator(spec: &str, device: &Device) -> Result<AnyGenerator> {
@@ -87,13 +82,14 @@ fn fit(
     let mut adam_z = LatentAdam::new(z.len());
     let mut generator = g.clone().fork(device).train();
     let mut opt = AdamConfig::new().with_epsilon(1e-8).init();
-    for step in 0..=steps {
+    let render = |generator: &AnyGenerator, z: Tensor<2>| generator.generate(z, grid, None).0.x_d;
+    for step in 0..steps {
         let z_t = tensor_from(z.clone(), [n, d_z], device).require_grad();
-        let x_d = generator.generate(z_t.clone(), grid, None).0.x_d;
-        if step == steps {
-            return tensor_to_vec(x_d);
-        }
-        let loss = masked_l1(x_d, real.clone(), returns.clone());
+        let loss = returns_l1(
+            render(&generator, z_t.clone()),
+            real.clone(),
+            returns.clone(),
+        );
         if step % 25 == 0 {
             let value = loss.clone().inner().into_scalar::<f32>();
             println!("{label} step {step:4}: L1 {value:.4}");
@@ -105,7 +101,7 @@ fn fit(
         let grads = GradientsParams::from_grads(grads, &generator);
         generator = opt.step(G_LR, generator, grads);
     }
-    unreachable!("the loop returns at its last step")
+    tensor_to_vec(render(&generator, tensor_from(z, [n, d_z], device)))
 }
 
 fn main() -> Result<()> {

@@ -10,8 +10,8 @@
 //! match keeps the encoded real scans spread as the mapped latents are: without it the
 //! encoder can put every scan at one point, and the reconstruction then teaches the generator
 //! the mean scan there. The generator takes the adversarial and the reconstruction gradients;
-//! the encoder takes the reconstruction, the cycle and the prior match. `convert` inverts real scans the same way, so this trains
-//! for what the tool does with the generator.
+//! the encoder takes the reconstruction, the cycle and the prior match. `convert` inverts real
+//! scans the same way, so this trains for what the tool does with the generator.
 
 use burn::config::Config;
 use burn::optim::{AdamConfig, ModuleOptimizer};
@@ -76,6 +76,15 @@ pub struct Losses {
     pub prior: f32,
 }
 
+/// Mean absolute difference of inverse depth over the scan's returns.
+///
+/// # Shapes
+/// - x_d, real, returns: `[n, 1, H, W]` (network units; returns in {0, 1})
+pub fn returns_l1(x_d: Tensor<4>, real: Tensor<4>, returns: Tensor<4>) -> Tensor<1> {
+    let count = returns.clone().sum().add_scalar(1.0);
+    ((x_d - real).abs() * returns).sum() / count
+}
+
 /// How far a batch of encoded latents lies from the mapped latents' distribution: the squared
 /// gaps between their per-dimension means and standard deviations, averaged over dimensions.
 /// A batch encoded into one tight cloud scores the mapped latents' variance however well
@@ -114,8 +123,7 @@ pub fn losses(
     let encoded = encoder.forward(real.clone(), returns.clone()); // [n, d_w], relative to w_avg
     let w_hat = encoded.clone() + w_avg.clone();
     let out = generator.render(w_hat, grid, None);
-    let count = returns.clone().sum().add_scalar(1.0);
-    let depth = ((out.x_d - real).abs() * returns.clone()).sum() / count; // [1]
+    let depth = returns_l1(out.x_d, real, returns.clone()); // [1]
     let logit = out.keep_logit; // [n, 1, H, W]
     let keep = (softplus(logit.clone().neg(), 1.0) * returns.clone()
         + softplus(logit, 1.0) * returns.neg().add_scalar(1.0))
