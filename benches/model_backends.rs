@@ -130,7 +130,7 @@ fn op_step(
 fn discriminator_pieces(device: &Device, reps: usize) {
     use burn::tensor::module::conv2d;
     use burn::tensor::ops::ConvOptions;
-    use rangegan_mcap::model::discriminator::{downsample2x, pad_circular};
+    use rangegan_mcap::model::conv::{downsample2x, pad_circular};
     let big = [8, 8, 64, 512];
     let weight = Rng::new(6).normal_tensor([8, 8, 3, 3], device);
     let conv = |x: Tensor<4>| {

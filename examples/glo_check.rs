@@ -12,8 +12,9 @@
 //! ```
 //! MODEL: a run or model directory, `fresh-dusty2` (the CPU-size implicit generator) or
 //! `fresh-dusty1` (the transposed-convolution generator of the same widths);
-//! `fresh-dusty2:freq=F1,...,F5;channels=C1,...,C5` sets the implicit generator's Fourier
-//! pairs and channels per block. Prints the masked
+//! `fresh-dusty2:freq=F1,...,F5;channels=C1,...,C5;local=N` sets the implicit generator's
+//! Fourier pairs and channels per block and gives its N finest blocks the local 3x3 path;
+//! `DIR:local=N` adds that path to a trained implicit generator. Prints the masked
 //! L1 of inverse depth (network units) every 25 steps and the relative depth error at the end;
 //! the PNG shows, per scan, the real scan, then each model's fit.
 
@@ -38,30 +39,43 @@ use rangegan_mcap::util::tensor::{tensor_from, tensor_to_vec};
 const Z_LR: f32 = 0.02;
 const G_LR: f64 = 1e-3;
 
-/// The generator to fit: a trained one, or a fresh one of either family.
+/// The generator to fit: a trained one, or a fresh one of either family, with the spec's
+/// settings (`freq`, `channels`, `local`) after a colon.
 fn generator(spec: &str, device: &Device) -> Result<AnyGenerator> {
-    if let Some(settings) = spec.strip_prefix("fresh-dusty2:") {
-        let mut config = GeneratorConfig::cpu();
-        for setting in settings.split(';') {
-            let (key, values) = setting
-                .split_once('=')
-                .ok_or_else(|| anyhow::anyhow!("{setting}: expected freq=... or channels=..."))?;
-            let values = values
-                .split(',')
-                .map(str::parse)
-                .collect::<Result<Vec<usize>, _>>()?;
-            config = match key {
-                "freq" => config.with_n_freq(values),
-                "channels" => config.with_channels(values),
-                _ => bail!("{key}: expected freq or channels"),
-            };
-        }
-        return Ok(AnyGenerator::Implicit(config.init(device)));
+    let (base, settings) = spec.split_once(':').unwrap_or((spec, ""));
+    let mut config = GeneratorConfig::cpu();
+    let mut local = None;
+    for setting in settings.split(';').filter(|s| !s.is_empty()) {
+        let (key, values) = setting
+            .split_once('=')
+            .ok_or_else(|| anyhow::anyhow!("{setting}: expected KEY=VALUES"))?;
+        let values = values
+            .split(',')
+            .map(str::parse)
+            .collect::<Result<Vec<usize>, _>>()?;
+        config = match (key, values.as_slice()) {
+            ("freq", _) => config.with_n_freq(values),
+            ("channels", _) => config.with_channels(values),
+            ("local", [n]) => {
+                local = Some(*n);
+                config.with_local_blocks(*n)
+            }
+            _ => bail!("{setting}: expected freq=F1,..., channels=C1,... or local=N"),
+        };
     }
-    Ok(match spec {
-        "fresh-dusty2" => AnyGenerator::Implicit(GeneratorConfig::cpu().init(device)),
+    Ok(match base {
+        "fresh-dusty2" => AnyGenerator::Implicit(config.init(device)),
         "fresh-dusty1" => AnyGenerator::Conv(ConvGeneratorConfig::cpu(2).init(device)),
-        dir => Model::from_dir(&PathBuf::from(dir), device)?.generator,
+        dir => {
+            let model = Model::from_dir(&PathBuf::from(dir), device)?;
+            match (model.generator, local) {
+                (AnyGenerator::Implicit(g), Some(n)) => {
+                    let fresh = model.config.generator.with_local_blocks(n).init(device);
+                    AnyGenerator::Implicit(g.with_local_paths_of(fresh))
+                }
+                (g, _) => g,
+            }
+        }
     })
 }
 

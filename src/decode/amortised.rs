@@ -17,7 +17,7 @@ use burn::tensor::module::conv2d;
 use burn::tensor::ops::ConvOptions;
 use burn::tensor::{Bytes, Device, Tensor};
 
-use crate::model::discriminator::pad_circular;
+use crate::model::conv::pad_circular;
 use crate::model::layers::{EqualLinear, EqualLinearConfig};
 use crate::util::rng::Rng;
 

@@ -9,7 +9,7 @@ use burn::tensor::module::conv_transpose2d;
 use burn::tensor::ops::ConvTransposeOptions;
 use burn::tensor::{Device, Tensor};
 
-use super::discriminator::{EqualConv, EqualConvConfig};
+use super::conv::{EqualConv, EqualConvConfig};
 use super::layers::{EqualLinear, EqualLinearConfig};
 use crate::util::rng::Rng;
 

@@ -4,7 +4,9 @@
 //! (random azimuth phase) rendering used in training.
 //!
 //! The generator is a function of the angles, not of a pixel grid: any grid whose size is
-//! divisible by 2^(blocks - 1) can be rendered, e.g. a 2x denser one, without retraining.
+//! divisible by 2^(blocks - 1) can be rendered, e.g. a 2x denser one, without retraining. The
+//! optional local path (a 3x3 convolution in the finest blocks) is the exception: it sees
+//! neighbouring pixels, so it is tied to the pixel spacing it was trained at.
 
 use std::f32::consts::TAU;
 
@@ -12,6 +14,7 @@ use burn::config::Config;
 use burn::module::{Module, Param};
 use burn::tensor::{Device, Tensor};
 
+use super::conv::{LocalConv, LocalConvConfig};
 use super::layers::{
     AngleGridExt, EqualLinear, EqualLinearConfig, FourierFeatures, FourierFeaturesConfig,
     ModulatedLinear, ModulatedLinearConfig, fixed_param, upsample2x,
@@ -118,6 +121,9 @@ pub struct SynthesisBlockConfig {
     pub d_out: usize,
     pub d_w: usize,
     pub fourier: FourierFeaturesConfig,
+    /// Add the local 3x3 path after the block's second layer.
+    #[config(default = false)]
+    pub local: bool,
 }
 
 #[derive(Module, Debug)]
@@ -125,6 +131,8 @@ pub struct SynthesisBlock {
     pub fourier: FourierFeatures,
     pub conv0: ModulatedLinear,
     pub conv1: ModulatedLinear,
+    /// The local path, in the blocks that have one.
+    pub local: Option<LocalConv>,
     /// Two channels, no demodulation: inverse depth and ray-drop logit.
     pub head: ModulatedLinear,
 }
@@ -137,6 +145,9 @@ impl SynthesisBlockConfig {
             fourier,
             conv0: ModulatedLinearConfig::new(d_in, self.d_out, self.d_w).init(rng, device),
             conv1: ModulatedLinearConfig::new(self.d_out, self.d_out, self.d_w).init(rng, device),
+            local: self
+                .local
+                .then(|| LocalConvConfig::new(self.d_out, self.d_w).init(rng, device)),
             head: ModulatedLinearConfig::new(self.d_out, 2, self.d_w)
                 .with_demodulate(false)
                 .with_activate(false)
@@ -200,6 +211,9 @@ pub struct GeneratorConfig {
     /// log2 azimuth bandwidth per block (integer frequencies).
     #[config(default = "vec![4, 5, 6, 7, 8]")]
     pub lw: Vec<u32>,
+    /// How many of the finest blocks have the local 3x3 path (0: the paper's generator).
+    #[config(default = 0)]
+    pub local_blocks: usize,
     /// Scale of the summed head outputs before tanh.
     #[config(default = 0.25)]
     pub output_gain: f32,
@@ -236,6 +250,7 @@ impl GeneratorConfig {
         let lw: Vec<usize> = self.lw.iter().map(|&v| v as usize).collect();
         bounds::sizes("generator.lh", &lh, blocks..=blocks, 0..=20)?;
         bounds::sizes("generator.lw", &lw, blocks..=blocks, 0..=20)?;
+        bounds::size("generator.local_blocks", self.local_blocks, 0..=blocks)?;
         bounds::size("generator.mapping.d_z", self.mapping.d_z, 1..=4096)?;
         bounds::size("generator.mapping.d_w", self.mapping.d_w, 1..=4096)?;
         bounds::size("generator.mapping.n_layers", self.mapping.n_layers, 1..=32)
@@ -264,9 +279,15 @@ impl GeneratorConfig {
             let d_prev = if i == 0 { 0 } else { self.channels[i - 1] };
             let c = self.channels[i];
             let d_in = d_prev + 2 * self.n_freq[i];
-            macs += pixels * (d_in * c + c * c + 2 * c) as u64;
+            let local = if self.has_local(i) { 9 * c * c } else { 0 };
+            macs += pixels * (d_in * c + c * c + local + 2 * c) as u64;
         }
         macs
+    }
+
+    /// Whether block `i` (coarsest first) has the local path.
+    fn has_local(&self, i: usize) -> bool {
+        i + self.local_blocks >= self.channels.len()
     }
 
     pub fn init(&self, device: &Device) -> Generator {
@@ -285,6 +306,7 @@ impl GeneratorConfig {
                 let fourier =
                     FourierFeaturesConfig::new(self.lh[i], self.lw[i]).with_n_freq(self.n_freq[i]);
                 SynthesisBlockConfig::new(d_prev, self.channels[i], self.mapping.d_w, fourier)
+                    .with_local(self.has_local(i))
                     .init(&mut rng, device)
             })
             .collect();
@@ -297,6 +319,22 @@ impl GeneratorConfig {
 }
 
 impl Generator {
+    /// `base`'s weights with `fresh`'s local paths where `base` has none. A new path starts
+    /// as the identity, so the result draws exactly what `base` draws: a trained generator
+    /// gains the path and goes on training.
+    pub fn with_local_paths_of(self, fresh: Generator) -> Generator {
+        let blocks = self
+            .blocks
+            .into_iter()
+            .zip(fresh.blocks)
+            .map(|(block, new)| SynthesisBlock {
+                local: block.local.or(new.local),
+                ..block
+            })
+            .collect();
+        Generator { blocks, ..self }
+    }
+
     pub fn d_z(&self) -> usize {
         self.mapping
             .layers
@@ -366,6 +404,10 @@ impl Generator {
                 w.clone(),
             ); // [batch, h*w, ch]
             let y = block.conv1.forward(y, w.clone()); // [batch, h*w, ch]
+            let y = match &block.local {
+                Some(local) => local.forward(y, h, wd, w.clone()), // [batch, h*w, ch]
+                None => y,
+            };
             let head = block
                 .head
                 .forward(y.clone(), w.clone())
@@ -549,6 +591,23 @@ mod tests {
         let va: f32 = a.iter().map(|x| (x - ma).powi(2)).sum();
         let vb: f32 = b.iter().map(|y| (y - mb).powi(2)).sum();
         cov / (va * vb).sqrt()
+    }
+
+    #[test]
+    fn a_generator_gains_local_paths_without_changing_what_it_draws() {
+        let dev = Device::flex();
+        let base = tiny(3).init(&dev);
+        let grown = base
+            .clone()
+            .with_local_paths_of(tiny(3).with_local_blocks(2).init(&dev));
+        let has_local: Vec<bool> = grown.blocks.iter().map(|b| b.local.is_some()).collect();
+        assert_eq!(has_local, [false, true, true]);
+        let z = Rng::new(7).normal_tensor([2, 8], &dev);
+        let grid = kitti_like_grid(8, 32);
+        let a = base.forward(z.clone(), &base.prepare(&grid, &dev));
+        let b = grown.forward(z, &grown.prepare(&grid, &dev));
+        assert_eq!(tensor_to_vec(a.x_d), tensor_to_vec(b.x_d));
+        assert_eq!(tensor_to_vec(a.keep_logit), tensor_to_vec(b.keep_logit));
     }
 
     #[test]

@@ -4,6 +4,7 @@
 //! - [`generator`]: the implicit DUSty v2 generator (z -> w -> x_d, keep logit on any grid).
 //! - [`baseline`]: fixed-resolution transposed-conv generator (DUSty v1, vanilla).
 //! - [`measurement`]: the differentiable ray-drop model (keep/drop probability, sampled masks).
+//! - [`conv`]: circular convolutions (padding, blur-downsampling, plain and modulated 3x3).
 //! - [`discriminator`]: circular residual discriminator.
 //! - [`data`]: the projected-dataset cache.
 //! - [`config`]: what a trained generator is (family, shapes, measurement).
@@ -16,6 +17,7 @@
 pub mod baseline;
 pub mod calibration;
 pub mod config;
+pub mod conv;
 pub mod data;
 pub mod discriminator;
 pub mod generator;
