@@ -12,8 +12,9 @@
 //! ```
 //! MODEL: a run or model directory, `fresh-dusty2` (the CPU-size implicit generator) or
 //! `fresh-dusty1` (the transposed-convolution generator of the same widths);
-//! `fresh-dusty2:freq=F1,...,F5;channels=C1,...,C5;local=N` sets the implicit generator's
-//! Fourier pairs and channels per block and gives its N finest blocks the local 3x3 path;
+//! `fresh-dusty2:freq=F1,...,F5;channels=C1,...,C5;lh=...;lw=...;local=N` sets the implicit
+//! generator's Fourier pairs, channels and log2 bandwidths (elevation, azimuth) per block and
+//! gives its N finest blocks the local 3x3 path;
 //! `DIR:local=N` adds that path to a trained implicit generator. Prints the masked
 //! L1 of inverse depth (network units) every 25 steps and the relative depth error at the end;
 //! the PNG shows, per scan, the real scan, then each model's fit.
@@ -56,11 +57,15 @@ fn generator(spec: &str, device: &Device) -> Result<AnyGenerator> {
         config = match (key, values.as_slice()) {
             ("freq", _) => config.with_n_freq(values),
             ("channels", _) => config.with_channels(values),
+            ("lh", _) => config.with_lh(values.iter().map(|&v| v as u32).collect()),
+            ("lw", _) => config.with_lw(values.iter().map(|&v| v as u32).collect()),
             ("local", [n]) => {
                 local = Some(*n);
                 config.with_local_blocks(*n)
             }
-            _ => bail!("{setting}: expected freq=F1,..., channels=C1,... or local=N"),
+            _ => bail!(
+                "{setting}: expected freq=, channels=, lh=, lw= (one value per block) or local=N"
+            ),
         };
     }
     Ok(match base {
