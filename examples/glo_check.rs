@@ -41,11 +41,11 @@ const Z_LR: f32 = 0.02;
 const G_LR: f64 = 1e-3;
 
 /// The generator to fit: a trained one, or a fresh one of either family, with the spec's
-/// settings (`freq`, `channels`, `local`) after a colon.
+/// settings (`freq`, `channels`, `lh`, `lw`, `local`) after a colon; a trained one takes
+/// only `local`.
 fn generator(spec: &str, device: &Device) -> Result<AnyGenerator> {
     let (base, settings) = spec.split_once(':').unwrap_or((spec, ""));
     let mut config = GeneratorConfig::cpu();
-    let mut local = None;
     for setting in settings.split(';').filter(|s| !s.is_empty()) {
         let (key, values) = setting
             .split_once('=')
@@ -59,10 +59,7 @@ fn generator(spec: &str, device: &Device) -> Result<AnyGenerator> {
             ("channels", _) => config.with_channels(values),
             ("lh", _) => config.with_lh(values.iter().map(|&v| v as u32).collect()),
             ("lw", _) => config.with_lw(values.iter().map(|&v| v as u32).collect()),
-            ("local", [n]) => {
-                local = Some(*n);
-                config.with_local_blocks(*n)
-            }
+            ("local", [n]) => config.with_local_blocks(*n),
             _ => bail!(
                 "{setting}: expected freq=, channels=, lh=, lw= (one value per block) or local=N"
             ),
@@ -73,12 +70,15 @@ fn generator(spec: &str, device: &Device) -> Result<AnyGenerator> {
         "fresh-dusty1" => AnyGenerator::Conv(ConvGeneratorConfig::cpu(2).init(device)),
         dir => {
             let model = Model::from_dir(&PathBuf::from(dir), device)?;
-            match (model.generator, local) {
-                (AnyGenerator::Implicit(g), Some(n)) => {
-                    let fresh = model.config.generator.with_local_blocks(n).init(device);
-                    AnyGenerator::Implicit(g.with_local_paths_of(fresh))
+            match model.generator {
+                AnyGenerator::Implicit(g) if config.local_blocks > 0 => {
+                    let grown = model
+                        .config
+                        .generator
+                        .with_local_blocks(config.local_blocks);
+                    AnyGenerator::Implicit(g.with_local_paths_of(grown.init(device)))
                 }
-                (g, _) => g,
+                g => g,
             }
         }
     })

@@ -319,9 +319,9 @@ impl GeneratorConfig {
 }
 
 impl Generator {
-    /// `base`'s weights with `fresh`'s local paths where `base` has none. A new path starts
-    /// as the identity, so the result draws exactly what `base` draws: a trained generator
-    /// gains the path and goes on training.
+    /// This generator's weights with `fresh`'s local paths where it has none. A new path
+    /// starts as the identity, so the result draws exactly what this generator draws: a
+    /// trained generator gains the path and goes on training.
     pub fn with_local_paths_of(self, fresh: Generator) -> Generator {
         let blocks = self
             .blocks
