@@ -53,7 +53,7 @@ pub struct EffectReport {
     pub location: String,
     pub params: Map<String, Value>,
     pub fit: FitMetric,
-    /// Held-out gain, nats per held-out pixel (the ranking key).
+    /// Held-out gain, nats per held-out pixel (the ranking key after established effects).
     pub gain_nats_per_pixel: f64,
 }
 
@@ -355,7 +355,12 @@ pub fn diagnose(
         &mut fitted_physics,
     );
     effects.extend(residual.effects);
-    effects.sort_by(|a, b| b.gain_nats_per_pixel.total_cmp(&a.gain_nats_per_pixel));
+    let established: Vec<&str> = families
+        .iter()
+        .filter(|f| f.established())
+        .map(|f| f.id())
+        .collect();
+    rank(&mut effects, &established);
     let candidates = candidates(&selection, &residual_fits);
     let mismatch = comparison
         .significant()
@@ -795,6 +800,18 @@ fn maps(
     }
 }
 
+/// Orders the named effects: those that evidence of their own `established` (motion: the
+/// seam's range step) first, since the drops they cause that their coverage model misses
+/// show up as other effects, sometimes with a larger gain; then by held-out gain.
+fn rank(effects: &mut [EffectReport], established: &[&str]) {
+    let first = |e: &EffectReport| established.contains(&e.id.as_str());
+    effects.sort_by(|a, b| {
+        first(b)
+            .cmp(&first(a))
+            .then(b.gain_nats_per_pixel.total_cmp(&a.gain_nats_per_pixel))
+    });
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -817,5 +834,32 @@ mod tests {
         assert_eq!(check.worse_than_sim.len(), 1);
         assert_eq!(check.worse_than_sim[0].at, 6.25);
         assert_eq!(check.worse_than_sim[0].fitted, 0.38);
+    }
+
+    #[test]
+    fn established_effects_rank_first_then_by_gain() {
+        let effect = |id: &str, gain: f64| EffectReport {
+            id: id.into(),
+            confidence: 1.0,
+            location: String::new(),
+            params: Map::new(),
+            fit: FitMetric {
+                metric: String::new(),
+                before: 1.0,
+                after: 0.9,
+            },
+            gain_nats_per_pixel: gain,
+        };
+        let mut effects = vec![
+            effect("edge_dropout", 0.02),
+            effect("motion_distortion", 0.01),
+            effect("range_noise", 0.5),
+        ];
+        rank(&mut effects, &["motion_distortion"]);
+        let ids: Vec<&str> = effects.iter().map(|e| e.id.as_str()).collect();
+        assert_eq!(ids, ["motion_distortion", "range_noise", "edge_dropout"]);
+        rank(&mut effects, &[]);
+        let ids: Vec<&str> = effects.iter().map(|e| e.id.as_str()).collect();
+        assert_eq!(ids, ["range_noise", "edge_dropout", "motion_distortion"]);
     }
 }
