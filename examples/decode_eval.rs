@@ -242,7 +242,7 @@ struct Variant {
 
 /// The library fills measured by default: the ones `convert` offers, with the shipped rule.
 fn default_variants() -> Vec<Variant> {
-    [Fill::Guided, Fill::EdgeAware]
+    [Fill::Learned, Fill::Guided, Fill::EdgeAware]
         .into_iter()
         .map(|fill| Variant {
             name: fill.name().replace('-', "_"),

@@ -4,6 +4,7 @@
 //! observed return reaches. Chosen by measurement on held-out KITTI (BENCHMARKS.md,
 //! "Guided upsampling and restoration").
 
+use super::row_fill::RowFill;
 use super::{Decoded, PreparedGrid, Rendered, Sparsify};
 use crate::lidar::{
     Guide, Interpolation, RangeImage, ScatterFill, SurfaceRule, fill_scattered,
@@ -22,8 +23,13 @@ pub enum Fill {
     /// scattered returns: an inverse-depth plane where one explains the returns around the
     /// pixel, else the side of a depth edge that carries most of their weight.
     EdgeAware,
-    /// The same, but the decoded scene may pick the surface where its depth clearly agrees
-    /// with one surface rather than with the blend.
+    /// The same, then each row restored between two kept beams (`--restore-lines`) moved
+    /// along its ray by a small network that reads the kept returns around it
+    /// ([`super::row_fill`], trained on KITTI): whether a pixel between beams at different
+    /// depths lies on the near surface or the far one.
+    Learned,
+    /// The same as edge-aware, but the decoded scene may pick the surface where its depth
+    /// clearly agrees with one surface rather than with the blend.
     Guided,
     /// Bilinear between rows and columns; inverse-distance weighting for scattered points.
     Bilinear,
@@ -35,10 +41,11 @@ pub enum Fill {
 
 impl Fill {
     /// The best measured (BENCHMARKS.md).
-    pub const DEFAULT: Fill = Fill::EdgeAware;
+    pub const DEFAULT: Fill = Fill::Learned;
 
     pub fn name(self) -> &'static str {
         match self {
+            Fill::Learned => "learned",
             Fill::Guided => "guided",
             Fill::EdgeAware => "edge-aware",
             Fill::Bilinear => "bilinear",
@@ -55,7 +62,11 @@ impl Default for Fill {
 }
 
 /// Rows `rows` of a model-grid depth as their own range image (with their angles).
-fn rows_image(grid: &crate::lidar::AngleGrid, depth: &[f32], rows: &[usize]) -> RangeImage {
+pub(super) fn rows_image(
+    grid: &crate::lidar::AngleGrid,
+    depth: &[f32],
+    rows: &[usize],
+) -> RangeImage {
     let w = grid.width;
     let pick = |field: &[f32]| -> Vec<f32> {
         rows.iter()
@@ -87,7 +98,7 @@ fn resample(
         Fill::Gan => return target.depth_m.clone(),
         Fill::Nearest => resample_image(source, grid, Interpolation::Nearest),
         Fill::Bilinear => resample_image(source, grid, Interpolation::Bilinear),
-        Fill::EdgeAware => resample_by_surface(source, grid, rule, None),
+        Fill::EdgeAware | Fill::Learned => resample_by_surface(source, grid, rule, None),
         Fill::Guided => resample_by_surface(
             source,
             grid,
@@ -125,13 +136,19 @@ impl Decoded {
                 let kept = Sparsify::kept_rows(n, grid.height);
                 let source = rows_image(grid, &self.observed_m, &kept);
                 let guide_source = rows_image(grid, &self.model.depth_m, &kept).range_m;
-                resample(&source, &guide_source, &self.model, fill, rule)
+                let filled = resample(&source, &guide_source, &self.model, fill, rule);
+                match fill {
+                    Fill::Learned => {
+                        RowFill::shipped().refine(&self.observed_m, &filled, grid, &kept)
+                    }
+                    _ => filled,
+                }
             }
             (_, Some(Sparsify::Fraction(_))) => {
                 let how = match fill {
                     Fill::Nearest => ScatterFill::Nearest,
                     Fill::Bilinear => ScatterFill::Idw,
-                    Fill::EdgeAware => ScatterFill::Surfaces {
+                    Fill::EdgeAware | Fill::Learned => ScatterFill::Surfaces {
                         guide: None,
                         guide_jump: rule.guide_jump,
                     },

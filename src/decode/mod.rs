@@ -22,6 +22,7 @@ pub mod fill;
 pub mod fit;
 pub mod invert;
 pub mod loss;
+pub mod row_fill;
 
 use std::sync::{Arc, Condvar, Mutex};
 

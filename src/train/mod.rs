@@ -10,12 +10,14 @@
 //! - [`growth`]: coarse-to-fine training: the generator's synthesis pyramid grown a level at
 //!   a time, each level with its own discriminator, on real scans sampled at that level.
 //! - [`reconstruct`]: reconstruction-assisted training: an encoder in the generator's loop.
+//! - [`row_fill`]: the learned correction of restored rows ([`crate::decode::row_fill`]).
 
 pub mod config;
 pub mod encoder;
 pub mod gan;
 pub mod growth;
 pub mod reconstruct;
+pub mod row_fill;
 pub mod run_dir;
 pub mod update;
 
