@@ -3,7 +3,8 @@
 //! `../shared/real_lidar/semantickitti_ssv3/000000.bin` when it exists, else
 //! generates a scan with the same layout (64 rings x 2010 points in KITTI ring
 //! order). Also the fill of a 64x512 grid from a random 10 % of its returns
-//! (`fill_scattered`: IDW and local surfaces). Plain timing harness (no
+//! (`fill_scattered`: IDW and local surfaces), and rows restored from 16 of 64 (the
+//! edge-aware fill and the learned correction on it). Plain timing harness (no
 //! criterion), single-threaded like one scan in `convert`:
 //!
 //! `cargo bench --bench lidar_projection`
@@ -15,6 +16,8 @@ use std::hint::black_box;
 use std::path::Path;
 use std::time::Instant;
 
+use rangegan_mcap::decode::Sparsify;
+use rangegan_mcap::decode::row_fill::{RowFill, edge_aware_rows};
 use rangegan_mcap::lidar::{
     Interpolation, Scan, ScatterFill, SensorProfile, Strategy, estimate_profile, fill_scattered,
     kitti, project, resample_image,
@@ -134,4 +137,15 @@ fn main() {
             || fill_scattered(&observed, &small.angles, how).len(),
         );
     }
+    // Rows restored from 16 of 64: the edge-aware fill, then the learned correction on it.
+    let kept = Sparsify::kept_rows(16, 64);
+    time_runs("decode/restore-rows/edge-aware/64x512-16-lines", runs, || {
+        edge_aware_rows(&small.angles, &small.range_m, &kept).len()
+    });
+    let reference = edge_aware_rows(&small.angles, &small.range_m, &kept);
+    time_runs("decode/restore-rows/learned-correction/64x512-16-lines", runs, || {
+        RowFill::shipped()
+            .refine(&small.range_m, &reference, &small.angles, &kept)
+            .len()
+    });
 }
