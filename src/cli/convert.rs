@@ -114,12 +114,13 @@ pub struct ConvertArgs {
     #[arg(long)]
     pub restore_fraction: Option<f32>,
     /// What the `--upsample` and `--target-sensor` grids and a `--restore-*` depth hold:
-    /// `edge-aware` (measured returns kept, new pixels interpolated only from neighbouring
-    /// returns on their own surface; from scattered points a local inverse-depth plane where
-    /// one fits), `guided` (the same, the decoded scene picking the surface where it clearly
-    /// can), `bilinear` (inverse-distance weighting for scattered points), `nearest`, or `gan`
-    /// (the decoded scene's rendering). Where no observed return reaches, the rendering fills
-    /// in.
+    /// `learned` (the default: as `edge-aware`, then rows restored between kept beams moved
+    /// along their rays by a small network trained on KITTI), `edge-aware` (measured returns
+    /// kept, new pixels interpolated only from neighbouring returns on their own surface;
+    /// from scattered points a local inverse-depth plane where one fits), `guided` (the same,
+    /// the decoded scene picking the surface where it clearly can), `bilinear`
+    /// (inverse-distance weighting for scattered points), `nearest`, or `gan` (the decoded
+    /// scene's rendering). Where no observed return reaches, the rendering fills in.
     #[arg(long, value_enum, default_value_t = Fill::DEFAULT)]
     pub upsample_method: Fill,
 }
