@@ -5,7 +5,7 @@
 use std::path::PathBuf;
 
 use anyhow::Result;
-use rangegan_mcap::decode::row_fill::Window;
+use rangegan_mcap::decode::row_fill::{RowFill, Window};
 use rangegan_mcap::model::data::kitti_validation_split;
 use rangegan_mcap::train::row_fill::{TrainOptions, collect, mae, train};
 
@@ -38,7 +38,6 @@ fn main() -> Result<()> {
         t.elapsed().as_secs_f64()
     );
     let opts = TrainOptions {
-        window,
         epochs,
         hidden,
         ..TrainOptions::default()
@@ -62,6 +61,7 @@ fn main() -> Result<()> {
             b.corrected[2],
         );
     });
+    let fill = RowFill::new(window, fill);
     std::fs::write("row_fill.json", serde_json::to_string(&fill)?)?;
     Ok(())
 }

@@ -11,7 +11,7 @@ use serde::Serialize;
 
 use crate::decode::Sparsify;
 use crate::decode::row_fill::{
-    MAX_MOVE, RowFill, Window, edge_aware_rows, moved, restored_features,
+    MAX_MOVE, Window, edge_aware_rows, moved, restored_features,
 };
 use crate::lidar::{self, AngleGrid, SensorProfile, Strategy};
 use crate::model::data::{MAX_DEPTH_M, MIN_DEPTH_M};
@@ -144,7 +144,6 @@ fn shuffle(v: &mut [usize], rng: &mut Rng) {
 /// How the network is fitted.
 #[derive(Debug, Clone, Serialize)]
 pub struct TrainOptions {
-    pub window: Window,
     pub hidden: Vec<usize>,
     pub epochs: usize,
     pub batch: usize,
@@ -155,7 +154,6 @@ pub struct TrainOptions {
 impl Default for TrainOptions {
     fn default() -> Self {
         TrainOptions {
-            window: Window::default(),
             hidden: vec![64, 64],
             epochs: 4,
             batch: 256,
@@ -165,14 +163,15 @@ impl Default for TrainOptions {
     }
 }
 
-/// The correction fitted to `train`; `progress(epoch, mean training loss)` after each epoch.
+/// The correction network fitted to `samples`; `progress(epoch, mean training loss,
+/// network)` after each epoch.
 pub fn train(
     samples: &Samples,
     opts: &TrainOptions,
-    mut progress: impl FnMut(usize, f64, &RowFill),
-) -> RowFill {
+    mut progress: impl FnMut(usize, f64, &Mlp),
+) -> Mlp {
     let mut rng = Rng::new(opts.seed);
-    let nf = opts.window.features();
+    let nf = samples.features;
     let sizes: Vec<usize> = std::iter::once(nf)
         .chain(opts.hidden.iter().copied())
         .chain([1])
@@ -212,13 +211,9 @@ pub fn train(
             adam.step(&mut net, &grads, lr);
             step += 1;
         }
-        progress(
-            epoch,
-            loss_sum / n.max(1) as f64,
-            &RowFill::new(opts.window, net.clone()),
-        );
+        progress(epoch, loss_sum / n.max(1) as f64, &net);
     }
-    RowFill::new(opts.window, net)
+    net
 }
 
 /// Mean absolute error in meters, near (true depth <= 30 m) and far, of the fill and of the
@@ -231,8 +226,8 @@ pub struct Mae {
     pub corrected: [f64; 3],
 }
 
-pub fn mae(samples: &Samples, fill: &RowFill) -> Mae {
-    let moves = fill.net.forward(&samples.x);
+pub fn mae(samples: &Samples, net: &Mlp) -> Mae {
+    let moves = net.forward(&samples.x);
     let mut m = Mae::default();
     let mut sums = [[0.0f64; 2]; 2];
     for ((&r, &t), o) in samples.reference.iter().zip(&samples.truth).zip(moves) {
