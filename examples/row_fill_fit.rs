@@ -1,40 +1,75 @@
-//! Fits the learned row fill on KITTI training scans and reports its MAE against the
-//! edge-aware fill on every third scan of a drive left out of training.
+//! Fits the learned row fill ([`rangegan_mcap::decode::row_fill`]) on KITTI training scans
+//! and reports, after each epoch, its MAE against the edge-aware fill (all / near / far) on
+//! every third scan of a drive left out of training, for 4, 8, 16 and 32 kept lines. Writes
+//! `row_fill.json` (copy it to `models/` to ship it). Deterministic. `--eval FILE` only
+//! reports a saved one.
 //!
-//!     cargo run --release --example row_fill_fit -- [../shared/real_lidar] [per-scan pixels] [epochs] [hidden,hidden] [beams per side] [half columns]
-use std::path::PathBuf;
+//!     cargo run --release --example row_fill_fit -- [../shared/real_lidar] [per-scan pixels]
+//!         [epochs] [hidden,hidden] [beams per side] [half columns] [training lines,..]
+//!     cargo run --release --example row_fill_fit -- --eval models/row_fill.json [../shared/real_lidar]
+use std::path::{Path, PathBuf};
 
 use anyhow::Result;
 use rangegan_mcap::decode::row_fill::{RowFill, Window};
 use rangegan_mcap::model::data::kitti_validation_split;
-use rangegan_mcap::train::row_fill::{TrainOptions, collect, mae, train};
+use rangegan_mcap::train::row_fill::{Samples, TrainOptions, collect, mae, train};
+use rangegan_mcap::util::mlp::Mlp;
+
+const VALIDATION_LINES: [usize; 4] = [4, 8, 16, 32];
+
+fn list(s: &str) -> Vec<usize> {
+    s.split(',').map(|v| v.parse().expect("a number")).collect()
+}
+
+fn validation(window: Window, data: &Path) -> Result<Vec<Samples>> {
+    let (_, files) = kitti_validation_split(data, &["kitti_raw_drive_d".to_string()])?;
+    let files: Vec<PathBuf> = files.into_iter().step_by(3).collect();
+    VALIDATION_LINES
+        .iter()
+        .map(|&n| collect(window, &files, &[n], usize::MAX, 0))
+        .collect()
+}
+
+fn report(sets: &[Samples], net: &Mlp) -> String {
+    VALIDATION_LINES
+        .iter()
+        .zip(sets)
+        .map(|(n, set)| {
+            let m = mae(set, net);
+            let [a, b, c] = m.fill;
+            let [x, y, z] = m.corrected;
+            format!("{n} lines {a:.3} {b:.3} {c:.3} -> {x:.3} {y:.3} {z:.3}")
+        })
+        .collect::<Vec<_>>()
+        .join(" | ")
+}
 
 fn main() -> Result<()> {
-    let mut args = std::env::args().skip(1);
+    let mut args = std::env::args().skip(1).peekable();
+    if args.peek().is_some_and(|a| a == "--eval") {
+        args.next();
+        let fill = RowFill::load(Path::new(&args.next().expect("--eval FILE")))?;
+        let data = PathBuf::from(args.next().unwrap_or("../shared/real_lidar".into()));
+        println!("{}", report(&validation(fill.window, &data)?, &fill.net));
+        return Ok(());
+    }
     let data = PathBuf::from(args.next().unwrap_or("../shared/real_lidar".into()));
-    let per_scan: usize = args.next().map_or(1500, |s| s.parse().unwrap());
-    let epochs: usize = args.next().map_or(4, |s| s.parse().unwrap());
-    let hidden: Vec<usize> = args.next().map_or(vec![64, 64], |s| {
-        s.split(',').map(|v| v.parse().unwrap()).collect()
-    });
+    let per_scan: usize = args.next().map_or(4000, |s| s.parse().unwrap());
+    let epochs: usize = args.next().map_or(3, |s| s.parse().unwrap());
+    let hidden = args.next().map_or(vec![64, 64], |s| list(&s));
     let window = Window {
         beams_per_side: args.next().map_or(2, |s| s.parse().unwrap()),
         half_columns: args.next().map_or(2, |s| s.parse().unwrap()),
     };
-    let (train_files, val_files) =
-        kitti_validation_split(&data, &["kitti_raw_drive_d".to_string()])?;
-    let val_files: Vec<PathBuf> = val_files.into_iter().step_by(3).collect();
+    let lines = args.next().map_or(vec![8, 16], |s| list(&s));
+    let (train_files, _) = kitti_validation_split(&data, &["kitti_raw_drive_d".to_string()])?;
     let t = std::time::Instant::now();
-    let samples = collect(window, &train_files, &[8, 16], per_scan, 7)?;
-    let val16 = collect(window, &val_files, &[16], usize::MAX, 0)?;
-    let val8 = collect(window, &val_files, &[8], usize::MAX, 0)?;
+    let samples = collect(window, &train_files, &lines, per_scan, 7)?;
+    let sets = validation(window, &data)?;
     eprintln!(
-        "{} training scans, {} samples; validation {} scans, {} / {} pixels ({:.0} s)",
+        "{} training scans, {} samples from {lines:?} kept lines ({:.0} s)",
         train_files.len(),
         samples.len(),
-        val_files.len(),
-        val16.len(),
-        val8.len(),
         t.elapsed().as_secs_f64()
     );
     let opts = TrainOptions {
@@ -42,26 +77,11 @@ fn main() -> Result<()> {
         hidden,
         ..TrainOptions::default()
     };
-    let fill = train(&samples, &opts, |epoch, loss, fill| {
-        let (a, b) = (mae(&val16, fill), mae(&val8, fill));
-        eprintln!(
-            "epoch {epoch} loss {loss:.3} ({:.0} s) | 16 lines fill {:.3} {:.3} {:.3} -> {:.3} {:.3} {:.3} | 8 lines {:.3} {:.3} {:.3} -> {:.3} {:.3} {:.3}",
-            t.elapsed().as_secs_f64(),
-            a.fill[0],
-            a.fill[1],
-            a.fill[2],
-            a.corrected[0],
-            a.corrected[1],
-            a.corrected[2],
-            b.fill[0],
-            b.fill[1],
-            b.fill[2],
-            b.corrected[0],
-            b.corrected[1],
-            b.corrected[2],
-        );
+    let net = train(&samples, &opts, |epoch, loss, net| {
+        let secs = t.elapsed().as_secs_f64();
+        eprintln!("epoch {epoch} loss {loss:.3} ({secs:.0} s) | {}", report(&sets, net));
     });
-    let fill = RowFill::new(window, fill);
+    let fill = RowFill::new(window, net);
     std::fs::write("row_fill.json", serde_json::to_string(&fill)?)?;
     Ok(())
 }
