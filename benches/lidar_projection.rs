@@ -139,13 +139,19 @@ fn main() {
     }
     // Rows restored from 16 of 64: the edge-aware fill, then the learned correction on it.
     let kept = Sparsify::kept_rows(16, 64);
-    time_runs("decode/restore-rows/edge-aware/64x512-16-lines", runs, || {
-        edge_aware_rows(&small.angles, &small.range_m, &kept).len()
-    });
+    time_runs(
+        "decode/restore-rows/edge-aware/64x512-16-lines",
+        runs,
+        || edge_aware_rows(&small.angles, &small.range_m, &kept).len(),
+    );
     let reference = edge_aware_rows(&small.angles, &small.range_m, &kept);
-    time_runs("decode/restore-rows/learned-correction/64x512-16-lines", runs, || {
-        RowFill::shipped()
-            .refine(&small.range_m, &reference, &small.angles, &kept)
-            .len()
-    });
+    time_runs(
+        "decode/restore-rows/learned-correction/64x512-16-lines",
+        runs,
+        || {
+            RowFill::shipped()
+                .refine(&small.range_m, &reference, &small.angles, &kept)
+                .len()
+        },
+    );
 }

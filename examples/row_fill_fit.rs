@@ -79,7 +79,10 @@ fn main() -> Result<()> {
     };
     let net = train(&samples, &opts, |epoch, loss, net| {
         let secs = t.elapsed().as_secs_f64();
-        eprintln!("epoch {epoch} loss {loss:.3} ({secs:.0} s) | {}", report(&sets, net));
+        eprintln!(
+            "epoch {epoch} loss {loss:.3} ({secs:.0} s) | {}",
+            report(&sets, net)
+        );
     });
     let fill = RowFill::new(window, net);
     std::fs::write("row_fill.json", serde_json::to_string(&fill)?)?;

@@ -10,9 +10,7 @@ use rayon::prelude::*;
 use serde::Serialize;
 
 use crate::decode::Sparsify;
-use crate::decode::row_fill::{
-    MAX_MOVE, Window, edge_aware_rows, moved, restored_features,
-};
+use crate::decode::row_fill::{MAX_MOVE, Window, edge_aware_rows, moved, restored_features};
 use crate::lidar::{self, AngleGrid, SensorProfile, Strategy};
 use crate::model::data::{MAX_DEPTH_M, MIN_DEPTH_M};
 use crate::util::mlp::{Adam, Mlp};
