@@ -9,8 +9,8 @@ use std::path::PathBuf;
 
 use anyhow::Result;
 use rangegan_mcap::decode::Sparsify;
-use rangegan_mcap::lidar::{self, SensorProfile, Strategy};
-use rangegan_mcap::model::data::{MAX_DEPTH_M, MIN_DEPTH_M, kitti_validation_split};
+use rangegan_mcap::model::data::kitti_validation_split;
+use rangegan_mcap::train::row_fill::kitti_depth;
 
 #[derive(Default, Debug)]
 struct Sums {
@@ -40,24 +40,11 @@ fn main() -> Result<()> {
     );
     let lines: usize = std::env::args().nth(2).map_or(16, |s| s.parse().unwrap());
     let (_, files) = kitti_validation_split(&data, &["kitti_raw_drive_d".to_string()])?;
-    let profile = SensorProfile::kitti_hdl64e().with_columns(512);
     let kept = Sparsify::kept_rows(lines, 64);
     let (mut near, mut far) = (Sums::default(), Sums::default());
     for f in files.iter().step_by(3) {
-        let scan = lidar::kitti::read_bin(f)?;
-        let img = lidar::project(&scan, &profile, Strategy::Auto)?;
-        let d: Vec<f32> = img
-            .range_m
-            .iter()
-            .map(|&r| {
-                if (MIN_DEPTH_M..=MAX_DEPTH_M).contains(&r) {
-                    r
-                } else {
-                    0.0
-                }
-            })
-            .collect();
-        let el = &img.angles.elevation_rad;
+        let (grid, d) = kitti_depth(f)?;
+        let el = &grid.elevation_rad;
         let w = 512;
         for c in 0..w {
             for r in 0..64 {
