@@ -2,7 +2,7 @@
 //! own rendering, or the observation interpolated onto the grid (nearest, bilinear,
 //! edge-aware, or guided by the decoded scene), completed by the rendering where no
 //! observed return reaches. Chosen by measurement on held-out KITTI (BENCHMARKS.md,
-//! "Guided upsampling and restoration").
+//! "Guided upsampling and restoration", "A learned correction of restored rows").
 
 use super::row_fill::RowFill;
 use super::{Decoded, PreparedGrid, Rendered, Sparsify};

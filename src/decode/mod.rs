@@ -11,6 +11,8 @@
 //!   the reconstruction error, Bernoulli ray-drop masks, and [`Decoded::render`] for other grids.
 //! - [`fill`] decides what the upsampled, other-sensor and restored grids hold ([`Fill`]: the
 //!   rendering, or the observation interpolated with the decoded scene as a guide).
+//! - [`row_fill`] is the learned correction of rows restored between kept beams (the
+//!   default fill's last step).
 //!
 //! Every random draw comes from the caller's seed (derive it with [`scan_seed`] from topic and
 //! log time) and each decode runs its tensor work on one thread, so results are bit-identical
