@@ -219,8 +219,9 @@ impl Beams {
         })
     }
 
-    /// The first kept return at column `c`, then `c -+ 1`, ... up to `half_columns` away,
-    /// taking the beams nearest first at each column.
+    /// The first kept return at column `c`, then `c - 1`, `c + 1`, ... up to `half_columns`
+    /// away, taking the beams nearest first at each column (of two equally near, the one on
+    /// the side the row is nearer to).
     fn nearest_return(
         &self,
         observed: &[f32],
@@ -229,32 +230,26 @@ impl Beams {
         half_columns: usize,
     ) -> Option<f32> {
         let n = self.rows.len() / 2;
-        let mut by_nearness: Vec<usize> = (0..self.rows.len())
-            .map(|i| {
-                if i < n {
-                    2 * (n - 1 - i)
+        let below_first = self.between > 0.5;
+        let nearest_first: Vec<usize> = (0..n)
+            .flat_map(|j| {
+                let (above, below) = (self.rows[n - 1 - j], self.rows[n + j]);
+                if below_first {
+                    [below, above]
                 } else {
-                    2 * (i - n) + 1
+                    [above, below]
                 }
             })
+            .flatten()
             .collect();
-        if self.between > 0.5 {
-            // The beam below is nearer: it goes first at each distance.
-            for v in &mut by_nearness {
-                *v ^= 1;
-            }
-        }
-        let mut order: Vec<usize> = (0..self.rows.len()).collect();
-        order.sort_by_key(|&i| by_nearness[i]);
-        (0..=half_columns as isize)
-            .flat_map(|dc| if dc == 0 { vec![0] } else { vec![-dc, dc] })
+        let offsets = (0..=2 * half_columns as isize).map(|t| match t {
+            0 => 0,
+            t if t % 2 == 1 => -(t + 1) / 2,
+            t => t / 2,
+        });
+        offsets
             .map(|dc| (c as isize + dc).rem_euclid(w as isize) as usize)
-            .flat_map(|col| {
-                order
-                    .iter()
-                    .filter_map(move |&i| self.rows[i].map(|q| q * w + col))
-            })
-            .map(|k| observed[k])
+            .flat_map(|col| nearest_first.iter().map(move |&q| observed[q * w + col]))
             .find(|&d| d > 0.0)
     }
 }
