@@ -18,7 +18,7 @@ use rangegan_mcap::lidar::projection::{choose_strategy, ring_order_ids};
 use rangegan_mcap::lidar::range_image::{NO_POINT, azimuth_column};
 use rangegan_mcap::lidar::{
     EstimateMethod, RangeImage, Scan, ScatterFill, SensorProfile, Strategy, estimate_profile,
-    fill_scattered, kitti, nuscenes, pcd, project,
+    fill_scattered, kitti, kitti_boxes, nuscenes, pcd, project,
 };
 
 /// Every full-resolution KITTI scan: SemanticKITTI (with labels) and Patchwork++.
@@ -529,6 +529,54 @@ fn learned_row_fill_beats_edge_aware_on_held_out_kitti_scans() {
             "{lines} lines: {learned} m against {edge} m"
         );
     }
+}
+
+#[test]
+fn kitti_object_boxes_label_cars_and_people_in_the_camera_view_only() {
+    let Some(root) = real_data("kitti_object_boxes_label_cars_and_people_in_the_camera_view_only")
+    else {
+        return;
+    };
+    let dir = root.join("kitti_object_acdc");
+    // Frame 000010: cars and a pedestrian in view.
+    let scan = kitti::read_bin(&dir.join("velodyne/000010.bin")).unwrap();
+    let labels = kitti_boxes::read_point_labels(
+        &scan.xyz,
+        &dir.join("label_2/000010.txt"),
+        &dir.join("calib/000010.txt"),
+    )
+    .unwrap();
+    let count = |id: u32| labels.iter().filter(|&&l| l == id).count();
+    let (car, person, in_view) = (count(10), count(30), count(kitti_boxes::IN_VIEW_NO_BOX));
+    eprintln!(
+        "000010: {} points, car {car}, person {person}, in view and in no box {in_view}",
+        labels.len()
+    );
+    assert!(car > 100 && person > 5, "car {car}, person {person}");
+    // The front camera sees about 80 degrees: labels ahead, none behind or to the side.
+    let azimuth_deg = |p: [f32; 3]| p[1].atan2(p[0]).to_degrees();
+    for (p, &l) in scan.xyz.iter().zip(&labels).filter(|(_, l)| **l != 0) {
+        assert!(azimuth_deg(*p).abs() < 45.0, "label {l} at {p:?}");
+    }
+    let ahead = scan
+        .xyz
+        .iter()
+        .filter(|p| azimuth_deg(**p).abs() < 30.0)
+        .count();
+    assert!(
+        in_view + car + person > ahead / 2,
+        "{in_view} + {car} + {person} labelled of {ahead} points ahead"
+    );
+    // Car points stand above the road: the lowest is well above the lowest point in view.
+    let z_of = |id: u32| {
+        scan.xyz
+            .iter()
+            .zip(&labels)
+            .filter(|(_, l)| **l == id)
+            .map(|(p, _)| p[2])
+            .fold(f32::MAX, f32::min)
+    };
+    assert!(z_of(10) > z_of(kitti_boxes::IN_VIEW_NO_BOX) + 0.15);
 }
 
 #[test]

@@ -361,3 +361,70 @@ fn model_folders_with_bad_sizes_are_refused_by_name() {
         );
     }
 }
+
+/// Real KITTI object scans with car and pedestrian boxes: `import` labels them partially,
+/// a network trains on them beside fully labelled scans, and scoring counts only the points
+/// that carry one class (car, person, or a cyclist's `other`).
+#[test]
+fn kitti_object_boxes_import_as_partial_labels_that_train_and_score() {
+    let Some(real) = real_data("kitti_object_boxes_import_as_partial_labels_that_train_and_score")
+    else {
+        return;
+    };
+    let dir = tempfile::tempdir().unwrap();
+    let acdc = real.join("kitti_object_acdc");
+    let folder = dir.path().join("boxes");
+    // Three frames, two with pedestrians (000010, 000011).
+    for (sub, ext) in [("velodyne", "bin"), ("label_2", "txt"), ("calib", "txt")] {
+        std::fs::create_dir_all(folder.join(sub)).unwrap();
+        for frame in ["000009", "000010", "000011"] {
+            let name = format!("{frame}.{ext}");
+            std::fs::copy(acdc.join(sub).join(&name), folder.join(sub).join(&name)).unwrap();
+        }
+    }
+    let boxes = dir.path().join("boxes.mcap");
+    let imported = json(&[
+        "--json",
+        "import",
+        folder.to_str().unwrap(),
+        boxes.to_str().unwrap(),
+    ]);
+    assert_eq!(imported["scans"], 3);
+    assert_eq!(imported["labelled"], 3);
+    let run_dir = dir.path().join("run");
+    let trained = json(&[
+        "--json",
+        "segment",
+        "train",
+        run_dir.to_str().unwrap(),
+        boxes.to_str().unwrap(),
+        "--steps",
+        "3",
+        "--batch-size",
+        "2",
+    ]);
+    assert_eq!(trained["steps"], 3, "{trained}");
+    let report = json(&[
+        "--json",
+        "segment",
+        "eval",
+        "--model",
+        run_dir.join("model").to_str().unwrap(),
+        boxes.to_str().unwrap(),
+    ]);
+    let points = |class: &str| {
+        report["classes"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .find(|c| c["class"] == class)
+            .map(|c| c["points"].as_u64().unwrap())
+            .unwrap()
+    };
+    assert!(points("car") > 100 && points("person") > 10, "{report}");
+    for class in ["road", "sidewalk", "building", "vegetation", "pole"] {
+        assert_eq!(points(class), 0, "{class}: boxes name only car and person");
+    }
+    // Scored points are the boxed ones: a small share of the returns.
+    assert!(report["points"].as_u64().unwrap() < 10_000, "{report}");
+}

@@ -1,6 +1,8 @@
 //! `rangegan-mcap import DIR OUT`: a KITTI / SemanticKITTI folder becomes an MCAP of
 //! ROS 2 PointCloud2 messages (x, y, z, intensity, ring, label) at 10 Hz, so
-//! datasets and recordings go through one path.
+//! datasets and recordings go through one path. Labels come from SemanticKITTI
+//! `labels/*.label` files, or from KITTI object boxes (`label_2/` with `calib/`) as the
+//! partial labels of [`kitti_boxes`].
 
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
@@ -10,12 +12,14 @@ use anyhow::{Context, bail};
 use super::{GlobalArgs, Outcome};
 use crate::io::Family;
 use crate::io::encoders::{Kind, encode_cloud};
-use crate::lidar::{kitti, projection::ring_order_ids};
+use crate::lidar::{kitti, kitti_boxes, projection::ring_order_ids};
 
 #[derive(Debug, clap::Args)]
 pub struct ImportArgs {
     /// Dataset folder: holds `velodyne/*.bin` (or the `.bin` files themselves) and
-    /// optionally `labels/*.label`.
+    /// optionally `labels/*.label`, or KITTI object boxes in `label_2/*.txt` with
+    /// `calib/*.txt` (cars and pedestrians labelled, the rest of the camera's view marked as
+    /// neither).
     pub dir: PathBuf,
     #[command(flatten)]
     pub out: super::CloudOutputArgs,
@@ -25,10 +29,39 @@ pub struct ImportArgs {
     pub strict: bool,
 }
 
-/// A dataset folder's scans, sorted, each with its label file if present, and
+/// Where a scan's labels come from.
+#[derive(Debug, Clone)]
+enum Labels {
+    /// A SemanticKITTI `.label` file.
+    Semantic(PathBuf),
+    /// KITTI object boxes and the frame's calibration.
+    Boxes { label_2: PathBuf, calib: PathBuf },
+}
+
+impl Labels {
+    fn files(&self) -> Vec<&Path> {
+        match self {
+            Labels::Semantic(p) => vec![p],
+            Labels::Boxes { label_2, calib } => vec![label_2, calib],
+        }
+    }
+
+    fn attach(&self, bin: &Path) -> Result<crate::lidar::Scan, kitti::KittiError> {
+        match self {
+            Labels::Semantic(path) => kitti::read_scan(bin, Some(path)),
+            Labels::Boxes { label_2, calib } => {
+                let mut scan = kitti::read_bin(bin)?;
+                scan.label = Some(kitti_boxes::read_point_labels(&scan.xyz, label_2, calib)?);
+                Ok(scan)
+            }
+        }
+    }
+}
+
+/// A dataset folder's scans, sorted, each with its labels if present, and
 /// warnings for files that cannot take part (label files that match no scan).
 struct Dataset {
-    scans: Vec<(PathBuf, Option<PathBuf>)>,
+    scans: Vec<(PathBuf, Option<Labels>)>,
     warnings: Vec<String>,
 }
 
@@ -61,16 +94,27 @@ fn dataset_files(dir: &Path) -> anyhow::Result<Dataset> {
     }
     let mut labels = files_with_extension(&dir.join("labels"), "label")?;
     labels.extend(files_with_extension(&velodyne, "label")?);
+    let boxes = files_with_extension(&dir.join("label_2"), "txt")?;
+    let calibs = files_with_extension(&dir.join("calib"), "txt")?;
     let stem = |p: &Path| p.file_stem().map(|s| s.to_os_string());
+    let find = |files: &[PathBuf], bin: &Path| files.iter().position(|l| stem(l) == stem(bin));
     let mut used = vec![false; labels.len()];
     let scans = bins
         .into_iter()
         .map(|bin| {
-            let found = labels.iter().position(|l| stem(l) == stem(&bin));
-            if let Some(k) = found {
+            let semantic = find(&labels, &bin).map(|k| {
                 used[k] = true;
-            }
-            (bin, found.map(|k| labels[k].clone()))
+                Labels::Semantic(labels[k].clone())
+            });
+            let boxed = || {
+                let (b, c) = (find(&boxes, &bin)?, find(&calibs, &bin)?);
+                Some(Labels::Boxes {
+                    label_2: boxes[b].clone(),
+                    calib: calibs[c].clone(),
+                })
+            };
+            let found = semantic.or_else(boxed);
+            (bin, found)
         })
         .collect();
     let mut warnings: Vec<String> = labels
@@ -84,11 +128,12 @@ fn dataset_files(dir: &Path) -> anyhow::Result<Dataset> {
             )
         })
         .collect();
-    let scans: Vec<(PathBuf, Option<PathBuf>)> = scans;
+    let scans: Vec<(PathBuf, Option<Labels>)> = scans;
     let unlabelled: Vec<_> = scans.iter().filter(|s| s.1.is_none()).collect();
-    if !labels.is_empty() && !unlabelled.is_empty() {
+    let any_labels = !(labels.is_empty() && boxes.is_empty());
+    if any_labels && !unlabelled.is_empty() {
         warnings.push(format!(
-            "{} of {} scans have no .label file (first: {}); written without labels",
+            "{} of {} scans have no labels (a .label file, or label_2 and calib files; first: {}); written without labels",
             unlabelled.len(),
             scans.len(),
             unlabelled[0].0.display()
@@ -104,7 +149,9 @@ pub fn run(global: &GlobalArgs, args: ImportArgs) -> anyhow::Result<Outcome> {
     } = dataset_files(&args.dir)?;
     let inputs: Vec<&Path> = files
         .iter()
-        .flat_map(|(bin, label)| std::iter::once(bin.as_path()).chain(label.as_deref()))
+        .flat_map(|(bin, labels)| {
+            std::iter::once(bin.as_path()).chain(labels.iter().flat_map(Labels::files))
+        })
         .collect();
     crate::io::writer::refuse_overwriting_inputs(&args.out.output, &inputs)?;
     let start_nanos = args.out.start_nanos(files.len() as u64)?;
@@ -122,7 +169,11 @@ pub fn run(global: &GlobalArgs, args: ImportArgs) -> anyhow::Result<Outcome> {
     let mut written = 0u64;
     let mut unreadable = 0usize;
     for (bin, label) in &files {
-        let mut scan = match kitti::read_scan(bin, label.as_deref()) {
+        let read = match label {
+            Some(labels) => labels.attach(bin),
+            None => kitti::read_bin(bin),
+        };
+        let mut scan = match read {
             Ok(scan) => scan,
             Err(e) => {
                 // One bad file does not cost the others (errors name the file).

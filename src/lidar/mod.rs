@@ -8,6 +8,7 @@
 pub mod edges;
 pub mod estimate;
 pub mod kitti;
+pub mod kitti_boxes;
 pub mod nuscenes;
 pub mod pcd;
 pub mod profile;

@@ -14,6 +14,8 @@ pub const CLASSES: [&str; 8] = [
     "other",
 ];
 
+use crate::lidar::kitti_boxes::IN_VIEW_NO_BOX;
+
 /// Number of network outputs.
 pub const NUM_CLASSES: usize = CLASSES.len();
 
@@ -29,17 +31,27 @@ pub const CAR_PERSON: [usize; 2] = [0, 1];
 /// Target of a pixel that has no class: no return, unlabelled or outlier.
 pub const IGNORE: u8 = u8::MAX;
 
+/// Target of a pixel known to be neither car nor person, and nothing more (a KITTI object
+/// frame's view outside every box, see [`crate::lidar::kitti_boxes`]): a partial label.
+pub const NOT_CAR_OR_PERSON: u8 = u8::MAX - 1;
+
+/// Whether a target names one class (not [`IGNORE`], not a partial label).
+pub fn is_class(target: u8) -> bool {
+    (target as usize) < NUM_CLASSES
+}
+
 /// The class of a SemanticKITTI label (low 16 bits: class id; high 16: instance).
 pub fn class_of(label: u32) -> u8 {
     match label & 0xffff {
         0 | 1 => IGNORE, // unlabelled, outlier
-        10 | 252 => 0,   // car, moving car
-        30 | 254 => 1,   // person, moving person
-        40 => 2,         // road
-        48 => 3,         // sidewalk
-        50 => 4,         // building
-        70 => 5,         // vegetation
-        80 => 6,         // pole
+        id if id == IN_VIEW_NO_BOX => NOT_CAR_OR_PERSON,
+        10 | 252 => 0, // car, moving car
+        30 | 254 => 1, // person, moving person
+        40 => 2,       // road
+        48 => 3,       // sidewalk
+        50 => 4,       // building
+        70 => 5,       // vegetation
+        80 => 6,       // pole
         _ => OTHER,
     }
 }
@@ -55,6 +67,7 @@ pub fn color(class: u8) -> [u8; 3] {
         5 => [0, 175, 0],
         6 => [255, 240, 150],
         OTHER => [110, 110, 110],
+        NOT_CAR_OR_PERSON => [45, 45, 45],
         _ => [0, 0, 0],
     }
 }
@@ -73,6 +86,13 @@ mod tests {
         assert_eq!(class_of(72), OTHER);
         assert_eq!(class_of(0), IGNORE);
         assert_eq!(class_of(1), IGNORE);
+        assert_eq!(class_of(IN_VIEW_NO_BOX), NOT_CAR_OR_PERSON);
+        assert!(!is_class(NOT_CAR_OR_PERSON) && !is_class(IGNORE) && is_class(OTHER));
+        assert_eq!(
+            CAR_PERSON,
+            [0, 1],
+            "the partial label's loss relies on this order"
+        );
         assert_eq!(CLASSES[OTHER as usize], "other");
         assert!(!SCORED.contains(&(OTHER as usize)));
     }

@@ -12,7 +12,7 @@ use plotters::prelude::*;
 use serde::Serialize;
 
 use super::SegModel;
-use super::classes::{CAR_PERSON, CLASSES, IGNORE, NUM_CLASSES, SCORED, color};
+use super::classes::{CAR_PERSON, CLASSES, NUM_CLASSES, SCORED, color, is_class};
 use super::data::{CHANNELS, SegDataset};
 use super::net::SegNet;
 use crate::lidar::range_image::column_azimuth;
@@ -163,7 +163,7 @@ fn tally(data: &SegDataset, predictions: &[Vec<u8>], keep: impl Fn(usize) -> boo
     let mut confusion = Confusion::default();
     for (scan, pred) in data.scans.iter().zip(predictions) {
         for (k, (&t, &p)) in scan.target.iter().zip(pred).enumerate() {
-            if t != IGNORE && keep(k % data.width) {
+            if is_class(t) && keep(k % data.width) {
                 confusion.add(t, p);
             }
         }

@@ -6,11 +6,15 @@
 //! The Lovász extension is linear in the per-pixel errors once their order is fixed, so the
 //! order and its weights are computed on the host and the loss is a weighted sum of tensor
 //! errors: the same value and gradient as sorting inside the graph.
+//!
+//! A pixel with the partial label [`NOT_CAR_OR_PERSON`] counts in the cross-entropy as the
+//! event "any class but car and person" (-ln(1 - p_car - p_person)), and in the Lovász term
+//! as a known negative of car and person.
 
 use burn::tensor::Tensor;
 use burn::tensor::activation::log_softmax;
 
-use super::classes::{IGNORE, NUM_CLASSES};
+use super::classes::{CAR_PERSON, NOT_CAR_OR_PERSON, NUM_CLASSES, is_class};
 
 /// Per-pixel targets `[b, H, W]` as class weight at the true class and 0 elsewhere
 /// (`[b, classes, H, W]`), and the sum of the weights (the loss's normaliser).
@@ -22,7 +26,7 @@ pub fn weighted_one_hot(
     let mut out = vec![0.0f32; target.len() * NUM_CLASSES];
     let mut norm = 0.0f32;
     for (idx, &t) in target.iter().enumerate() {
-        if t == IGNORE {
+        if !is_class(t) {
             continue;
         }
         let (s, k) = (idx / n, idx % n);
@@ -36,6 +40,30 @@ pub fn weighted_one_hot(
 /// Cross-entropy weighted per pixel: -sum(weights * log_softmax(logits)) / norm.
 pub fn weighted_cross_entropy(logits: Tensor<4>, weights: Tensor<4>, norm: f32) -> Tensor<1> {
     log_softmax(logits, 1).mul(weights).sum().div_scalar(-norm)
+}
+
+/// The [`NOT_CAR_OR_PERSON`] pixels of `target` (`[b, n]`) as a `[b, 1, n]` mask, and their
+/// count.
+pub fn partial_mask(target: &[u8]) -> (Vec<f32>, f32) {
+    let mask: Vec<f32> = target
+        .iter()
+        .map(|&t| f32::from(t == NOT_CAR_OR_PERSON))
+        .collect();
+    let count = mask.iter().sum();
+    (mask, count)
+}
+
+/// The summed cross-entropy of the partial label: -sum(mask * ln(1 - p_car - p_person)),
+/// the log-probability of the other classes taken as one log-sum-exp.
+///
+/// # Shapes
+/// - logits: `[b, classes, H, W]`, mask: `[b, 1, H, W]`
+pub fn partial_cross_entropy(logits: Tensor<4>, mask: Tensor<4>) -> Tensor<1> {
+    let first = CAR_PERSON.len();
+    let rest = log_softmax(logits, 1).narrow(1, first, NUM_CLASSES - first); // [b, c-2, H, W]
+    let top = rest.clone().max_dim(1).detach(); // [b, 1, H, W]
+    let lse = (rest - top.clone()).exp().sum_dim(1).log() + top; // [b, 1, H, W]
+    lse.mul(mask).sum().neg()
 }
 
 /// What the Lovász-softmax term needs beside the network's class probabilities: the
@@ -54,12 +82,15 @@ pub struct LovaszTerms {
 pub fn lovasz_terms(probs: &[f32], target: &[u8], n: usize) -> LovaszTerms {
     let mut one_hot = vec![0.0f32; probs.len()];
     for (idx, &t) in target.iter().enumerate() {
-        if t != IGNORE {
+        if is_class(t) {
             one_hot[((idx / n) * NUM_CLASSES + t as usize) * n + idx % n] = 1.0;
         }
     }
     let at = |c: usize, idx: usize| ((idx / n) * NUM_CLASSES + c) * n + idx % n;
-    let labelled: Vec<usize> = (0..target.len()).filter(|&i| target[i] != IGNORE).collect();
+    let labelled: Vec<usize> = (0..target.len()).filter(|&i| is_class(target[i])).collect();
+    let partial: Vec<usize> = (0..target.len())
+        .filter(|&i| target[i] == NOT_CAR_OR_PERSON)
+        .collect();
     let mut weights = vec![0.0f32; probs.len()];
     let mut per_class: Vec<(usize, Vec<(usize, f32)>)> = Vec::new();
     for c in 0..NUM_CLASSES {
@@ -67,8 +98,14 @@ pub fn lovasz_terms(probs: &[f32], target: &[u8], n: usize) -> LovaszTerms {
         if positives == 0 {
             continue;
         }
+        let known_negatives: &[usize] = if CAR_PERSON.contains(&c) {
+            &partial
+        } else {
+            &[]
+        };
         let mut order: Vec<(usize, f32)> = labelled
             .iter()
+            .chain(known_negatives)
             .map(|&i| (i, (one_hot[at(c, i)] - probs[at(c, i)]).abs()))
             .collect();
         order.sort_by(|a, b| b.1.total_cmp(&a.1));
@@ -107,6 +144,7 @@ pub fn lovasz_softmax(probs: Tensor<4>, one_hot: Tensor<4>, weights: Tensor<4>) 
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::segment::classes::IGNORE;
     use crate::util::tensor::tensor_from;
     use burn::tensor::Device;
 
@@ -178,5 +216,42 @@ mod tests {
         // person IoU 0, road IoU 98/100.
         let expected = 1.0 - (0.0 + 0.98) / 2.0;
         assert!((got - expected).abs() < 1e-5, "{got}");
+    }
+
+    #[test]
+    fn the_partial_label_costs_the_probability_of_car_or_person() {
+        let device = Device::flex();
+        // Pixel 0: neither car nor person; pixel 1: road, which the partial term ignores.
+        let (mask, count) = partial_mask(&[NOT_CAR_OR_PERSON, 2]);
+        assert_eq!(count, 1.0);
+        let logits: Vec<f32> = (0..NUM_CLASSES * 2)
+            .map(|i| (i as f32 * 0.61).cos())
+            .collect();
+        let p: Vec<f32> = {
+            let e: Vec<f32> = (0..NUM_CLASSES).map(|c| logits[c * 2].exp()).collect();
+            let z: f32 = e.iter().sum();
+            e.iter().map(|v| v / z).collect()
+        };
+        let expected = -(1.0 - p[0] - p[1]).ln();
+        let got = partial_cross_entropy(
+            tensor_from(logits, [1, NUM_CLASSES, 1, 2], &device),
+            tensor_from(mask, [1, 1, 1, 2], &device),
+        )
+        .into_scalar::<f32>();
+        assert!((got - expected).abs() < 1e-5, "{got} vs {expected}");
+    }
+
+    #[test]
+    fn lovasz_counts_a_partial_pixel_read_as_car_against_car_only() {
+        // Two cars, one road pixel, one pixel known to be neither car nor person.
+        let target = [0, 0, 2, NOT_CAR_OR_PERSON];
+        // Read as car: car IoU 2/3, road 1.
+        let as_car = loss(hard(&[0, 0, 2, 0]), &target);
+        assert!(
+            (as_car - (1.0 - (2.0 / 3.0 + 1.0) / 2.0)).abs() < 1e-5,
+            "{as_car}"
+        );
+        // Read as any other class: nothing lost.
+        assert!(loss(hard(&[0, 0, 2, 4]), &target).abs() < 1e-6);
     }
 }

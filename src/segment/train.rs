@@ -28,7 +28,10 @@ use serde::{Deserialize, Serialize};
 use super::classes::{CLASSES, NUM_CLASSES, SCORED};
 use super::data::{CHANNELS, ClassColumns, CropPlan, SegDataset, batch, benchmark_profile};
 use super::eval::{confusion, mean_iou};
-use super::loss::{lovasz_softmax, lovasz_terms, weighted_cross_entropy, weighted_one_hot};
+use super::loss::{
+    lovasz_softmax, lovasz_terms, partial_cross_entropy, partial_mask, weighted_cross_entropy,
+    weighted_one_hot,
+};
 use super::net::{SegNet, SegNetConfig};
 use super::{SegModel, SegModelInfo};
 use crate::train::{CHECKPOINT, write_checkpoint};
@@ -387,9 +390,16 @@ impl Trainer {
         let shape = [b, NUM_CLASSES, h, cw];
         let x = tensor_from(input, [b, CHANNELS, h, cw], &self.device);
         let (weights, norm) = weighted_one_hot(&target, h * cw, &self.weights);
+        let (partial, partial_count) = partial_mask(&target);
+        // A partial label weighs as an average labelled return (the class weights' mean).
+        let norm = norm + partial_count;
         let weights = tensor_from(weights, shape, &self.device);
         let logits = self.net.forward(x, false);
         let mut loss = weighted_cross_entropy(logits.clone(), weights, norm);
+        if partial_count > 0.0 {
+            let mask = tensor_from(partial, [b, 1, h, cw], &self.device);
+            loss = loss + partial_cross_entropy(logits.clone(), mask).div_scalar(norm);
+        }
         if self.config.lovasz_weight > 0.0 {
             let probs = softmax(logits, 1);
             let terms = lovasz_terms(&tensor_to_vec(probs.clone()), &target, h * cw);
