@@ -10,11 +10,12 @@
 # new best, one every VAL_EVERY steps) or its STEPS budget (a cosine learning-rate decay over
 # it) runs out, and exports the network that scored best on validation: VAL_SCENES more
 # simulated scenes rendered like the training ones for A-G, SemanticKITTI sequence 06 for the
-# real oracle (trained on 01-05, 09, 10 with scale and ray-drop augmentation).
+# real oracle (trained on 01-05, 09, 10 with scale and ray-drop augmentation; real_boxes adds
+# the car and pedestrian boxes of the KITTI object scans in kitti_object_acdc as partial labels).
 #
 # Settings (environment): SCENES (15), VAL_SCENES (2), SCANS_PER_SCENE (40), STEPS (2000),
 # PATIENCE (6), VAL_EVERY (200), WIDTHS (the network's default), SEEDS ("0 1"),
-# CONFIGS ("A B C E F G real": the training sets to train and score; after new generator
+# CONFIGS ("A B C E F G real real_boxes": the training sets to train and score; after new generator
 # weights, "E F G" reruns the ones that use them), JOBS (2 trainings at once, one thread
 # each), RANGEGAN_BIN (target/release/rangegan-mcap), REAL_LIDAR (../shared/real_lidar). Every step is skipped when its output exists, so a
 # killed run resumes where it stopped (a training resumes from its checkpoint).
@@ -31,7 +32,7 @@ PATIENCE=${PATIENCE:-6}
 VAL_EVERY=${VAL_EVERY:-200}
 WIDTHS=${WIDTHS:-}
 SEEDS=${SEEDS:-"0 1"}
-CONFIGS=${CONFIGS:-"A B C E F G real"}
+CONFIGS=${CONFIGS:-"A B C E F G real real_boxes"}
 JOBS=${JOBS:-2}
 HERE=$(cd "$(dirname "$0")" && pwd)
 
@@ -68,6 +69,8 @@ for s in 00 07; do
   [ -f real/heldout_mini$s.mcap ] || rg import "$REAL/semantickitti_mini/$s" real/heldout_mini$s.mcap
 done
 [ -f real/heldout_ssv3.mcap ] || rg import "$REAL/semantickitti_ssv3" real/heldout_ssv3.mcap
+# KITTI object scans: car and pedestrian boxes, partial labels for the second oracle.
+[ -f real/oracle_boxes.mcap ] || rg import "$REAL/kitti_object_acdc" real/oracle_boxes.mcap
 log "real recordings ready"
 
 # 2. Config A: ideal simulated scans (no ray drop), many scenes; the last VAL_SCENES validate.
@@ -121,6 +124,8 @@ done | xargs -r -P "$JOBS" -L1 bash -c '
   c=$0; seed=$1
   if [ "$c" = real ]; then
     data=(real/oracle_fit.mcap --val real/oracle_val.mcap --augment)
+  elif [ "$c" = real_boxes ]; then
+    data=(real/oracle_fit.mcap real/oracle_boxes.mcap --val real/oracle_val.mcap --augment)
   else
     data=(split/$c/train --val split/$c/val)
   fi

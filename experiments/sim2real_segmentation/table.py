@@ -16,6 +16,7 @@ DESCRIPTION = {
     "F": "+ physics fitted by `diagnose`",
     "G": "+ fitted perturbations, GAN ray drop",
     "real": "Real (oracle)",
+    "real_boxes": "Real + KITTI object boxes (oracle)",
 }
 # The paper's Table 4: car IoU, pedestrian IoU, mIoU (SqueezeSegV2, GTA-LiDAR -> KITTI-frontal).
 PAPER = {"A": (1.1, 2.4, 1.7), "B": (55.2, 25.1, 40.2), "C": (59.0, 22.5, 40.7),
