@@ -54,8 +54,7 @@ impl Calib {
         if c.z <= 0.1 {
             return false;
         }
-        let uvw = self.p2 * Vector4::new(c.x, c.y, c.z, 1.0);
-        let (u, v) = (uvw.x / uvw.z, uvw.y / uvw.z);
+        let (u, v) = self.pixel(c);
         (0.0..IMAGE_WIDTH).contains(&u) && (0.0..IMAGE_HEIGHT).contains(&v)
     }
 
