@@ -116,7 +116,7 @@ fn dataset_files(dir: &Path) -> anyhow::Result<Dataset> {
             let found = semantic.or_else(boxed);
             (bin, found)
         })
-        .collect();
+        .collect::<Vec<_>>();
     let mut warnings: Vec<String> = labels
         .iter()
         .zip(&used)
@@ -128,7 +128,6 @@ fn dataset_files(dir: &Path) -> anyhow::Result<Dataset> {
             )
         })
         .collect();
-    let scans: Vec<(PathBuf, Option<Labels>)> = scans;
     let unlabelled: Vec<_> = scans.iter().filter(|s| s.1.is_none()).collect();
     let any_labels = !(labels.is_empty() && boxes.is_empty());
     if any_labels && !unlabelled.is_empty() {

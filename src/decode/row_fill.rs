@@ -231,17 +231,14 @@ impl Beams {
     ) -> Option<f32> {
         let n = self.rows.len() / 2;
         let below_first = self.between > 0.5;
-        let nearest_first: Vec<usize> = (0..n)
-            .flat_map(|j| {
-                let (above, below) = (self.rows[n - 1 - j], self.rows[n + j]);
-                if below_first {
-                    [below, above]
-                } else {
-                    [above, below]
-                }
-            })
-            .flatten()
-            .collect();
+        let pair = |j: usize| {
+            let (above, below) = (self.rows[n - 1 - j], self.rows[n + j]);
+            if below_first {
+                [below, above]
+            } else {
+                [above, below]
+            }
+        };
         let offsets = (0..=2 * half_columns as isize).map(|t| match t {
             0 => 0,
             t if t % 2 == 1 => -(t + 1) / 2,
@@ -249,7 +246,12 @@ impl Beams {
         });
         offsets
             .map(|dc| (c as isize + dc).rem_euclid(w as isize) as usize)
-            .flat_map(|col| nearest_first.iter().map(move |&q| observed[q * w + col]))
+            .flat_map(|col| {
+                (0..n)
+                    .flat_map(pair)
+                    .flatten()
+                    .map(move |q| observed[q * w + col])
+            })
             .find(|&d| d > 0.0)
     }
 }

@@ -49,19 +49,15 @@ impl Calib {
         self.r0 * (self.velo_to_cam * v)
     }
 
-    /// Whether a point in the rectified camera frame projects into the image.
-    pub fn in_view(&self, c: &Vector3<f64>) -> bool {
+    /// Where a point in the rectified camera frame lands in the image (pixels), if it is in
+    /// front of the camera and inside the image.
+    pub fn image_position(&self, c: &Vector3<f64>) -> Option<(f64, f64)> {
         if c.z <= 0.1 {
-            return false;
+            return None;
         }
-        let (u, v) = self.pixel(c);
-        (0.0..IMAGE_WIDTH).contains(&u) && (0.0..IMAGE_HEIGHT).contains(&v)
-    }
-
-    /// Image position of a point in the rectified camera frame.
-    fn pixel(&self, c: &Vector3<f64>) -> (f64, f64) {
         let uvw = self.p2 * Vector4::new(c.x, c.y, c.z, 1.0);
-        (uvw.x / uvw.z, uvw.y / uvw.z)
+        let (u, v) = (uvw.x / uvw.z, uvw.y / uvw.z);
+        ((0.0..IMAGE_WIDTH).contains(&u) && (0.0..IMAGE_HEIGHT).contains(&v)).then_some((u, v))
     }
 }
 
@@ -209,10 +205,9 @@ pub fn point_labels(xyz: &[[f32; 3]], calib: &Calib, objects: &[Object]) -> Vec<
     xyz.iter()
         .map(|&p| {
             let c = calib.to_camera(p);
-            if !calib.in_view(&c) {
+            let Some((u, v)) = calib.image_position(&c) else {
                 return UNLABELLED_ID;
-            }
-            let (u, v) = calib.pixel(&c);
+            };
             let mut label = IN_VIEW_NO_BOX;
             for o in objects {
                 if !o.has_3d_box() {
