@@ -27,6 +27,9 @@ struct Outcome {
     single: bool,
     /// Share of the real side's rays the left-out effects dropped, where they drop rays.
     share: Option<f64>,
+    /// Every left-out effect that can be seen (it moves returns, or drops at least
+    /// [`VISIBLE_SHARE`] of the rays alone) is among the named.
+    visible_named: bool,
 }
 
 /// Left-out effects that dropped less than this share of the real rays are reported
@@ -43,6 +46,10 @@ fn judge(p: &testgen::Pair, d: &Diagnosis, seconds: f64) -> Outcome {
         named.first().is_some_and(|f| truth.contains(f))
     };
     let all_named = truth.iter().all(|t| named.contains(t));
+    let visible_named = truth
+        .iter()
+        .zip(&p.effect_shares)
+        .all(|(t, share)| share.is_some_and(|s| s < VISIBLE_SHARE) || named.contains(t));
     let fit = &d.report.fit;
     let fit_better = if null {
         fit.after <= fit.before + 1e-9
@@ -58,10 +65,15 @@ fn judge(p: &testgen::Pair, d: &Diagnosis, seconds: f64) -> Outcome {
         if null {
             "(none)".into()
         } else {
-            match p.effect_share {
-                Some(share) => format!("{} ({:.1} % of rays)", truth.join(", "), 100.0 * share),
-                None => truth.join(", "),
-            }
+            truth
+                .iter()
+                .zip(&p.effect_shares)
+                .map(|(t, share)| match share {
+                    Some(s) => format!("{t} ({:.1} % of rays)", 100.0 * s),
+                    None => t.to_string(),
+                })
+                .collect::<Vec<_>>()
+                .join(", ")
         },
         if named.is_empty() {
             "(none)".into()
@@ -90,6 +102,7 @@ fn judge(p: &testgen::Pair, d: &Diagnosis, seconds: f64) -> Outcome {
         fit_better,
         single: truth.len() == 1,
         share: p.effect_share,
+        visible_named,
     }
 }
 
@@ -160,6 +173,7 @@ fn main() {
         .collect();
     let count = |f: &dyn Fn(&Outcome) -> bool, v: &[&Outcome]| v.iter().filter(|o| f(o)).count();
     let singles: Vec<&Outcome> = with_effect.iter().copied().filter(|o| o.single).collect();
+    let multi: Vec<&Outcome> = with_effect.iter().copied().filter(|o| !o.single).collect();
     let nulls: Vec<&Outcome> = outcomes
         .iter()
         .map(|(_, o)| o)
@@ -182,6 +196,17 @@ fn main() {
         "| every true effect among the named | {} / {} |",
         count(&|o| o.all_named, &with_effect),
         with_effect.len()
+    );
+    println!(
+        "| every true effect among the named (multi-effect pairs) | {} / {} |",
+        count(&|o| o.all_named, &multi),
+        multi.len()
+    );
+    println!(
+        "| every true effect that dropped >= {:.1} % of the rays alone, or moved returns, among the named (multi-effect pairs) | {} / {} |",
+        100.0 * VISIBLE_SHARE,
+        count(&|o| o.visible_named, &multi),
+        multi.len()
     );
     println!(
         "| null pairs with nothing named | {} / {} |",

@@ -93,7 +93,7 @@ const RANGE_BIN_M: f32 = 1.0;
 const RANGE_BINS: usize = 150;
 /// A dropped pixel counts for the range curve when returns enclose it within
 /// this many pixels (`Pixels::enclosure_px`).
-const RANGE_ENCLOSURE_PX: u8 = 8;
+const RANGE_ENCLOSURE_PX: u8 = super::fit::ENCLOSED_PX;
 
 impl DropFamily for RangeFamily {
     fn id(&self) -> &'static str {
@@ -102,12 +102,13 @@ impl DropFamily for RangeFamily {
     fn bins(&self, _: &Pixels) -> usize {
         RANGE_BINS
     }
-    /// Dropped pixels count only when returns enclose them closely: the range an
-    /// open-space pixel takes from an object's outline is the scene's, not the
-    /// sensor's.
+    /// Dropped pixels count only when returns enclose them closely, or they lie on
+    /// the open ground within reach: the range an open-space pixel takes from an
+    /// object's outline is the scene's, not the sensor's.
     fn bin(&self, px: &Pixels, i: usize) -> Option<usize> {
         let r = px.range_m[i];
-        (r.is_finite() && px.enclosure_px[i] <= RANGE_ENCLOSURE_PX)
+        let open_ground = px.open_ground.get(i).copied().unwrap_or(false);
+        (r.is_finite() && (px.enclosure_px[i] <= RANGE_ENCLOSURE_PX || open_ground))
             .then(|| ((r.max(0.0) / RANGE_BIN_M) as usize).min(RANGE_BINS - 1))
     }
     fn fit(&self, table: &QTable, _: &Pixels) -> Option<DropFit> {

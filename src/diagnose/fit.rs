@@ -102,6 +102,73 @@ fn enclosure_px(f: &ScanFeatures) -> Vec<u8> {
 /// usable ground estimate: the horizon (elevation 0).
 pub fn open_elevation_rad(scans: &[ScanFeatures], reach_m: f32) -> f32 {
     const GROUND_REACH_FRACTION: f32 = 0.8;
+    match ground_depth_m(scans) {
+        Some(h) if reach_m.is_finite() => -(h / (GROUND_REACH_FRACTION * reach_m))
+            .clamp(0.0, 1.0)
+            .asin(),
+        _ => 0.0,
+    }
+}
+
+/// A dropped pixel is enclosed when returns lie on both sides of it within this many
+/// pixels along its row or its column ([`Pixels::enclosure_px`]).
+pub const ENCLOSED_PX: u8 = 8;
+
+/// Share of the reach a column's farthest return must pass before its lost far
+/// field is read as open ground ([`open_ground_range`]).
+const OPEN_GROUND_SEEN: f32 = 0.25;
+
+/// For each pixel of a scan on the open ground within reach, the level ground's range
+/// `h / sin(-e)` (else NaN): dropped, not enclosed by returns (the fill copied some
+/// outline's range into it), below `open_above` (the ground lies within reach there),
+/// its ground point beyond every return of its column (nearer, the ground was in
+/// sight: an object lost its rays, and the feature fill completes it), in a column
+/// that saw beyond [`OPEN_GROUND_SEEN`] of the reach (one that saw only the near field
+/// may be blocked by a near object that lost all its rays), and no return above it
+/// standing nearer than that ground point (a wall it would hit first).
+fn open_ground_range(
+    f: &ScanFeatures,
+    enclosure: &[u8],
+    open_above: f32,
+    h: f32,
+    reach_m: f32,
+) -> Vec<f32> {
+    let w = f.width.max(1);
+    let mut out = vec![f32::NAN; f.len()];
+    for j in 0..w {
+        let column = (j..f.len()).step_by(w);
+        let farthest_m = column
+            .clone()
+            .filter(|&k| f.kept[k])
+            .map(|k| f.range_m[k] * f.elevation_rad[k].cos())
+            .fold(0.0f32, f32::max);
+        if farthest_m < OPEN_GROUND_SEEN * reach_m {
+            continue;
+        }
+        // Horizontal distance of the nearest return above, walking down the column.
+        let mut wall_m = f32::INFINITY;
+        for k in column {
+            let e = f.elevation_rad[k];
+            if f.kept[k] {
+                wall_m = f.range_m[k] * e.cos();
+                continue;
+            }
+            if enclosure[k] <= ENCLOSED_PX || e > open_above || e >= 0.0 {
+                continue;
+            }
+            let ground_r = h / (-e).sin();
+            let ground_m = ground_r * e.cos();
+            if ground_m > farthest_m && ground_m <= wall_m {
+                out[k] = ground_r;
+            }
+        }
+    }
+    out
+}
+
+/// The ground's depth below the sensor: the median over the bottom row's returns
+/// below it (None with fewer than 20).
+fn ground_depth_m(scans: &[ScanFeatures]) -> Option<f32> {
     let mut heights: Vec<f32> = scans
         .iter()
         .flat_map(|f| {
@@ -112,14 +179,11 @@ pub fn open_elevation_rad(scans: &[ScanFeatures], reach_m: f32) -> f32 {
         })
         .filter(|h| h.is_finite() && *h > 0.2)
         .collect();
-    if heights.len() < 20 || !reach_m.is_finite() {
-        return 0.0;
+    if heights.len() < 20 {
+        return None;
     }
     let mid = heights.len() / 2;
-    let h = *heights.select_nth_unstable_by(mid, f32::total_cmp).1;
-    -(h / (GROUND_REACH_FRACTION * reach_m))
-        .clamp(0.0, 1.0)
-        .asin()
+    Some(*heights.select_nth_unstable_by(mid, f32::total_cmp).1)
 }
 
 /// The pixels a fit uses, pooled over scans (struct of arrays). Left out: pixels
@@ -144,6 +208,11 @@ pub struct Pixels {
     /// interpolates one surface rather than extrapolating from an object's
     /// outline into open space.
     pub enclosure_px: Vec<u8>,
+    /// A dropped pixel on the open ground within reach ([`open_ground_range`]),
+    /// completed as the level ground (range and incidence): where strong range or
+    /// incidence physics empties the far field, no return is left to complete it from,
+    /// and the fill's copied range would hide the loss.
+    pub open_ground: Vec<bool>,
     /// Pixels (4-connected steps) to the nearest depth edge of the completed range, capped.
     pub edge_px: Vec<u8>,
     /// The same along the row only (object silhouettes, not far ground).
@@ -173,14 +242,27 @@ impl Pixels {
                 .collect();
         }
         let open_above = open_elevation_rad(scans, reach_m);
+        let ground_depth =
+            ground_depth_m(scans).filter(|_| reach_m.is_finite() && open_above < 0.0);
         for f in scans {
             if f.height != px.height || f.width != px.width {
                 continue;
             }
             let scan = px.scan_range_m.len() as u32;
             px.scan_range_m.push(f.range_m.clone());
-            for (k, enclosure) in enclosure_px(f).into_iter().enumerate() {
-                let r = f.range_m[k];
+            let enclosure = enclosure_px(f);
+            let ground_r = match ground_depth {
+                Some(h) => open_ground_range(f, &enclosure, open_above, h, reach_m),
+                None => vec![f32::NAN; f.len()],
+            };
+            for (k, &enclosure) in enclosure.iter().enumerate() {
+                let (mut r, mut cos) = (f.range_m[k], f.incidence_rad[k].cos());
+                let open_ground = ground_r[k].is_finite();
+                if open_ground {
+                    // The ray meets a level ground at cos(incidence) = sin(-e).
+                    r = ground_r[k];
+                    cos = (-f.elevation_rad[k]).sin();
+                }
                 if r > reach_m || (r.is_nan() && f.elevation_rad[k] > open_above) {
                     continue;
                 }
@@ -188,10 +270,11 @@ impl Pixels {
                 px.row.push(row as u16);
                 px.column.push((k % f.width.max(1)) as u16);
                 px.range_m.push(r);
-                px.cos_incidence.push(f.incidence_rad[k].cos());
+                px.cos_incidence.push(cos);
                 px.class.push((f.class[k] & 0xffff) as u16);
                 px.kept.push(f.kept[k]);
                 px.enclosure_px.push(enclosure);
+                px.open_ground.push(open_ground);
                 px.edge_px
                     .push(f.edge_px.get(k).copied().unwrap_or(u8::MAX));
                 px.row_edge_px
@@ -822,6 +905,98 @@ fn fit_given(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A scan of level ground 1.5 m down, rows 1 deg apart from -1 deg down, 64
+    /// columns; the rows looking farther than `dropped_beyond_m` lost their rays,
+    /// and the fill copied the nearest return's range into them.
+    fn far_ground_dropped(rows: usize, dropped_beyond_m: f32) -> ScanFeatures {
+        let w = 64;
+        let mut f = ScanFeatures {
+            height: rows,
+            width: w,
+            row: Vec::new(),
+            azimuth_rad: Vec::new(),
+            elevation_rad: Vec::new(),
+            range_m: Vec::new(),
+            incidence_rad: Vec::new(),
+            edge_px: Vec::new(),
+            row_edge_px: Vec::new(),
+            class: Vec::new(),
+            kept: Vec::new(),
+        };
+        let elevation = |i: usize| -(1.0 + i as f32).to_radians();
+        let nearest_kept = (0..rows)
+            .map(|i| 1.5 / (-elevation(i)).sin())
+            .find(|&r| r <= dropped_beyond_m)
+            .unwrap_or(f32::NAN);
+        for i in 0..rows {
+            let e = elevation(i);
+            let r = 1.5 / (-e).sin();
+            for j in 0..w {
+                f.row.push(i as u32);
+                f.azimuth_rad
+                    .push(j as f32 * std::f32::consts::TAU / w as f32);
+                f.elevation_rad.push(e);
+                let kept = r <= dropped_beyond_m;
+                f.range_m.push(if kept { r } else { nearest_kept });
+                f.incidence_rad.push(std::f32::consts::FRAC_PI_2 + e);
+                f.edge_px.push(8);
+                f.row_edge_px.push(8);
+                f.class.push(0);
+                f.kept.push(kept);
+            }
+        }
+        f
+    }
+
+    #[test]
+    fn open_ground_takes_the_level_grounds_range_where_nothing_stands_in_front() {
+        let f = far_ground_dropped(30, 20.0);
+        let enclosure = enclosure_px(&f);
+        let open_above = -(3.0f32).to_radians();
+        let ground = open_ground_range(&f, &enclosure, open_above, 1.5, 60.0);
+        for (k, &g) in ground.iter().enumerate() {
+            let e = f.elevation_rad[k];
+            let far = !f.kept[k] && enclosure[k] > ENCLOSED_PX;
+            if far && e <= open_above {
+                assert!((g - 1.5 / (-e).sin()).abs() < 1e-3, "pixel {k}: {g}");
+            } else {
+                assert!(g.is_nan(), "pixel {k}: {g}");
+            }
+        }
+        assert!(ground.iter().any(|g| g.is_finite()));
+
+        // A wall 10 m away across the top rows of column 5 stands in front of the
+        // far ground below it: that column keeps the fill's range.
+        let mut walled = f.clone();
+        for i in 0..3 {
+            let k = i * walled.width + 5;
+            walled.kept[k] = true;
+            walled.range_m[k] = 10.0 / walled.elevation_rad[k].cos();
+        }
+        // A return 50 m away in column 7 shows the column saw past the lost
+        // pixels' ground points: they are not open ground either.
+        let k = 7;
+        walled.kept[k] = true;
+        walled.range_m[k] = 50.0 / walled.elevation_rad[k].cos();
+        let open = vec![ENCLOSURE_CAP_PX; walled.len()];
+        let ground = open_ground_range(&walled, &open, open_above, 1.5, 60.0);
+        for j in [5, 7] {
+            assert!((0..walled.height).all(|i| ground[i * walled.width + j].is_nan()));
+        }
+        assert!((0..walled.height).any(|i| ground[i * walled.width + 6].is_finite()));
+
+        // The open ground's pixels reach the range family's bins with their ground range.
+        let px = Pixels::collect(std::slice::from_ref(&f), 60.0);
+        assert!(px.open_ground.iter().any(|&o| o));
+        for i in (0..px.len()).filter(|&i| px.open_ground[i]) {
+            assert!(!px.kept[i] && px.range_m[i] > 20.0);
+            assert!(
+                (px.cos_incidence[i] - px.row_elevation_rad[px.row[i] as usize].abs().sin()).abs()
+                    < 1e-4
+            );
+        }
+    }
 
     #[test]
     fn q_table_nll_of_the_true_rate_is_the_binary_entropy() {

@@ -799,6 +799,10 @@ pub struct Pair {
     /// (its drop rate beside the same scans with the uniform dropout alone), how visible
     /// they are at all.
     pub effect_share: Option<f64>,
+    /// Each left-out effect's own share of the real side's rays (the drop rate with the
+    /// uniform dropout and that effect alone, beside the uniform dropout alone); None for
+    /// effects that drop no rays.
+    pub effect_shares: Vec<Option<f64>>,
 }
 
 fn cast(scene: &Scene, sensor: &Sensor) -> Vec<SimScan> {
@@ -865,6 +869,8 @@ pub fn pair_with(seed: u64, effects: &[&str], beams: usize, organized: Option<bo
     let mut real_effects = vec![uniform()];
     let mut truth_params = Vec::new();
     let mut drops = false;
+    // Each effect is drawn again from the same stream to measure it alone.
+    let effects_rng = rng.clone();
     for id in effects {
         let e = draw_effect(id, &mut rng, &sensor);
         truth_params.push(format!("{e:?}"));
@@ -883,7 +889,21 @@ pub fn pair_with(seed: u64, effects: &[&str], beams: usize, organized: Option<bo
         effects: vec![uniform()],
     };
     let r = drop_rate(&real);
-    let effect_share = drops.then(|| r - drop_rate(&applied(&real_cast, &uniform_only, seed)));
+    let uniform_rate = drop_rate(&applied(&real_cast, &uniform_only, seed));
+    let effect_share = drops.then_some(r - uniform_rate);
+    let mut again = effects_rng;
+    let effect_shares = effects
+        .iter()
+        .map(|id| {
+            let e = draw_effect(id, &mut again, &sensor);
+            e.drops().then(|| {
+                let alone = Physics {
+                    effects: vec![uniform(), e],
+                };
+                drop_rate(&applied(&real_cast, &alone, seed)) - uniform_rate
+            })
+        })
+        .collect();
     let sim_cast = cast(&sim_scene, &sensor);
     let ideal = applied(&sim_cast, &Physics::ideal(), seed ^ 1);
     let s0 = drop_rate(&ideal);
@@ -903,6 +923,7 @@ pub fn pair_with(seed: u64, effects: &[&str], beams: usize, organized: Option<bo
         drop_rate_sim: drop_rate(&sim),
         drop_rate_real: r,
         effect_share,
+        effect_shares,
         sim: sim.iter().map(|s| features(s, &sensor)).collect(),
         real: real.iter().map(|s| features(s, &sensor)).collect(),
         sensor,
