@@ -13,7 +13,7 @@ use super::drop;
 use super::features::ScanFeatures;
 use super::fit::{self, Baseline, DropFamily, DropSelection, FitError, Pixels};
 use super::residual::{self, ResidualContext, ResidualFit};
-use super::stats::{BinOptions, Comparison, DropCounts, Feature, TestOptions, compare};
+use super::stats::{BinOptions, BinTest, Comparison, DropCounts, Feature, TestOptions, compare};
 
 /// Settings of a diagnosis.
 #[derive(Debug, Clone, PartialEq)]
@@ -308,6 +308,18 @@ pub fn diagnose(
         ));
     }
     let comparison = compare(&c_sim, &c_real, &bins, &options.tests);
+    // Grazing drops are a candidate only where the grazing bins lose more rays beyond
+    // the sim than the rest do: a fit can otherwise read a scene's far ground as an
+    // incidence curve at the grid's edge.
+    let grazing = grazing_contrast(&comparison, bins.incidence_step_deg);
+    let incidence_testable = grazing.is_none_or(|c| c >= MIN_GRAZING_CONTRAST);
+    if let Some(c) = grazing.filter(|_| !incidence_testable) {
+        left_out.push(format!(
+            "incidence_dropout: at 70-90 deg the real recording loses {:.1} % more of the rays beyond the sim than at other incidences (at least {:.0} % is needed)",
+            100.0 * c,
+            100.0 * MIN_GRAZING_CONTRAST
+        ));
+    }
 
     // What moves returns: range-residual candidates.
     let residual_fits: Vec<ResidualFit> = residual::families()
@@ -333,6 +345,7 @@ pub fn diagnose(
         .iter()
         .map(|b| b.as_ref())
         .filter(|f| unlabelled.is_empty() || f.id() != "material_dropout")
+        .filter(|f| incidence_testable || f.id() != "incidence_dropout")
         .chain(motion_coverage.as_ref().map(|f| f as &dyn DropFamily))
         .collect();
     let selection = fit::select(
@@ -812,9 +825,82 @@ fn rank(effects: &mut [EffectReport], established: &[&str]) {
     });
 }
 
+/// Smallest grazing contrast ([`grazing_contrast`]) for which `incidence_dropout` is a
+/// candidate.
+const MIN_GRAZING_CONTRAST: f64 = 0.05;
+
+/// How much more of the rays the real recording loses beyond the sim at grazing
+/// incidence (the largest real-minus-sim drop rate of the bins from 70 deg) than at
+/// other incidences (the median of the bins below 70 deg); None without bins on
+/// both sides.
+fn grazing_contrast(comparison: &Comparison, step_deg: f32) -> Option<f64> {
+    let grazing_from = (70.0 / step_deg.max(1e-3)).ceil() as i64;
+    let tests = comparison
+        .tests
+        .iter()
+        .filter(|t| t.feature == Feature::Incidence && t.bin >= 0);
+    let grazing = tests
+        .clone()
+        .filter(|t| t.bin >= grazing_from)
+        .map(BinTest::rate_diff)
+        .reduce(f64::max)?;
+    let mut rest: Vec<f64> = tests
+        .filter(|t| t.bin < grazing_from)
+        .map(BinTest::rate_diff)
+        .collect();
+    if rest.is_empty() {
+        return None;
+    }
+    rest.sort_by(f64::total_cmp);
+    Some(grazing - rest[rest.len() / 2])
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    fn incidence_bins(real_minus_sim: &[f64]) -> Comparison {
+        let tests = real_minus_sim
+            .iter()
+            .enumerate()
+            .map(|(bin, &d)| BinTest {
+                feature: Feature::Incidence,
+                bin: bin as i64,
+                description: String::new(),
+                pixels_sim: 1000,
+                dropped_sim: 200,
+                pixels_real: 1000,
+                dropped_real: (1000.0 * (0.2 + d)) as u64,
+                rate_sim: 0.2,
+                rate_real: 0.2 + d,
+                z: 0.0,
+                p_value: 1.0,
+                q_value: 1.0,
+                significant: false,
+            })
+            .collect();
+        Comparison {
+            rate_sim: 0.2,
+            rate_real: 0.2,
+            tests,
+        }
+    }
+
+    #[test]
+    fn grazing_contrast_is_the_grazing_excess_over_the_median_elsewhere() {
+        // A concealed grazing effect: real loses fewer rays everywhere but at 80-90 deg.
+        let concealed =
+            incidence_bins(&[-0.05, -0.04, -0.05, -0.06, -0.05, -0.05, -0.04, -0.05, 0.2]);
+        let c = grazing_contrast(&concealed, 10.0).unwrap();
+        assert!((c - 0.25).abs() < 1e-9, "{c}");
+        // A scene difference that only shifts every bin a little.
+        let shifted = incidence_bins(&[
+            -0.03, -0.03, -0.02, -0.03, -0.03, -0.02, -0.03, -0.01, -0.02,
+        ]);
+        assert!(grazing_contrast(&shifted, 10.0).unwrap() < MIN_GRAZING_CONTRAST);
+        // No grazing bins tested: nothing to say.
+        assert_eq!(grazing_contrast(&incidence_bins(&[0.1, 0.1]), 10.0), None);
+    }
 
     #[test]
     fn the_check_names_bins_where_the_fit_is_worse_than_the_raw_sim() {
