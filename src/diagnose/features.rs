@@ -72,6 +72,24 @@ pub struct ScanFeatures {
 }
 
 impl ScanFeatures {
+    /// No pixels yet, on an `height x width` grid (tests push their own pixels).
+    #[cfg(test)]
+    pub(crate) fn empty(height: usize, width: usize) -> Self {
+        ScanFeatures {
+            height,
+            width,
+            row: Vec::new(),
+            azimuth_rad: Vec::new(),
+            elevation_rad: Vec::new(),
+            range_m: Vec::new(),
+            incidence_rad: Vec::new(),
+            edge_px: Vec::new(),
+            row_edge_px: Vec::new(),
+            class: Vec::new(),
+            kept: Vec::new(),
+        }
+    }
+
     pub fn len(&self) -> usize {
         self.kept.len()
     }

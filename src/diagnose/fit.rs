@@ -911,19 +911,7 @@ mod tests {
     /// and the fill copied the nearest return's range into them.
     fn far_ground_dropped(rows: usize, dropped_beyond_m: f32) -> ScanFeatures {
         let w = 64;
-        let mut f = ScanFeatures {
-            height: rows,
-            width: w,
-            row: Vec::new(),
-            azimuth_rad: Vec::new(),
-            elevation_rad: Vec::new(),
-            range_m: Vec::new(),
-            incidence_rad: Vec::new(),
-            edge_px: Vec::new(),
-            row_edge_px: Vec::new(),
-            class: Vec::new(),
-            kept: Vec::new(),
-        };
+        let mut f = ScanFeatures::empty(rows, w);
         let elevation = |i: usize| -(1.0 + i as f32).to_radians();
         let nearest_kept = (0..rows)
             .map(|i| 1.5 / (-elevation(i)).sin())

@@ -365,19 +365,7 @@ mod tests {
     /// incidence are independent of range.
     fn synthetic(seed: u64, n: usize, drop_prob: impl Fn(f32) -> f32) -> ScanFeatures {
         let u = |k: usize, s: u64| uniform(&[seed, k as u64, s]);
-        let mut f = ScanFeatures {
-            height: 32,
-            width: n / 32,
-            row: Vec::new(),
-            azimuth_rad: Vec::new(),
-            elevation_rad: Vec::new(),
-            range_m: Vec::new(),
-            incidence_rad: Vec::new(),
-            edge_px: Vec::new(),
-            row_edge_px: Vec::new(),
-            class: Vec::new(),
-            kept: Vec::new(),
-        };
+        let mut f = ScanFeatures::empty(32, n / 32);
         for k in 0..n {
             let range_m = 2.0 + 78.0 * u(k, 1);
             f.row.push((u(k, 2) * 32.0) as u32 % 32);
