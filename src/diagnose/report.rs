@@ -97,7 +97,8 @@ pub struct InputsReport {
     pub completion_model: Option<String>,
     /// Scans the GAN could not decode, completed by the neighbour fill instead.
     pub completion_fallback_scans: usize,
-    /// Tests and candidates left out because one side lacks their feature, why.
+    /// Tests and candidates left out, and why: one side lacks their feature, or (for
+    /// `incidence_dropout`) the drop rates by incidence show no grazing contrast.
     pub left_out: Vec<String>,
 }
 
