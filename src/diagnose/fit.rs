@@ -100,9 +100,10 @@ fn enclosure_px(f: &ScanFeatures) -> Vec<u8> {
 /// is not physics, whatever the sensor's field of view; below it the ground is
 /// within reach, so a pixel without a return there lost its ray. Without a
 /// usable ground estimate: the horizon (elevation 0).
-pub fn open_elevation_rad(scans: &[ScanFeatures], reach_m: f32) -> f32 {
+/// `ground_m` is [`ground_depth_m`] of the scans.
+fn open_elevation_rad(ground_m: Option<f32>, reach_m: f32) -> f32 {
     const GROUND_REACH_FRACTION: f32 = 0.8;
-    match ground_depth_m(scans) {
+    match ground_m {
         Some(h) if reach_m.is_finite() => -(h / (GROUND_REACH_FRACTION * reach_m))
             .clamp(0.0, 1.0)
             .asin(),
@@ -241,9 +242,8 @@ impl Pixels {
                 .map(|j| f.azimuth_rad.get(j).copied().unwrap_or(0.0))
                 .collect();
         }
-        let open_above = open_elevation_rad(scans, reach_m);
-        let ground_depth =
-            ground_depth_m(scans).filter(|_| reach_m.is_finite() && open_above < 0.0);
+        let ground_depth = ground_depth_m(scans).filter(|_| reach_m.is_finite());
+        let open_above = open_elevation_rad(ground_depth, reach_m);
         for f in scans {
             if f.height != px.height || f.width != px.width {
                 continue;
