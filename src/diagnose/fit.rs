@@ -299,9 +299,9 @@ impl Pixels {
 }
 
 /// The sim's keep rate per (row, range cell); the last range cell holds pixels
-/// without geometry. Times an azimuth factor per (row, sector) where the sim's
-/// own drop rate there differs from its row's beyond doubt (|z| > 4: the sim's
-/// own blind spots), else 1.
+/// without geometry. Times an azimuth factor per (row, sector) where the sim
+/// keeps more or fewer of the sector's pixels than their cells predict beyond
+/// doubt (|z| > 4: the sim's own blind spots), else 1.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Baseline {
     cells: usize,
@@ -363,32 +363,24 @@ impl Baseline {
         b.keep = (0..rows * cells)
             .map(|i| (k[i] + SMOOTHING_PIXELS * range_keep[i % cells]) / (n[i] + SMOOTHING_PIXELS))
             .collect();
-        let mut sn = vec![0f64; rows * sectors];
-        let mut sk = vec![0f64; rows * sectors];
+        // A sector departs where the sim keeps more or fewer of its pixels than
+        // their (row, range) cells predict: a blind spot of the sim itself. Judged
+        // against the cells, not the row's rate, so that a wall in one sector and
+        // sky in the next (the scene) is no departure.
+        let mut kept = vec![0f64; rows * sectors];
+        let mut expected = vec![0f64; rows * sectors];
+        let mut variance = vec![0f64; rows * sectors];
         for i in 0..sim.len() {
             let s = b.sector(sim, i);
-            sn[s] += 1.0;
-            sk[s] += f64::from(u8::from(sim.kept[i]));
+            let p = b.keep[b.cell(sim, i)];
+            kept[s] += f64::from(u8::from(sim.kept[i]));
+            expected[s] += p;
+            variance[s] += p * (1.0 - p);
         }
-        for row in 0..rows {
-            let cells = row * sectors..(row + 1) * sectors;
-            let (n_row, k_row): (f64, f64) = (
-                sn[cells.clone()].iter().sum(),
-                sk[cells.clone()].iter().sum(),
-            );
-            if n_row == 0.0 {
-                continue;
-            }
-            let p_row = k_row / n_row;
-            for s in cells {
-                if sn[s] < 10.0 {
-                    continue;
-                }
-                let p = sk[s] / sn[s];
-                let sd = (p_row * (1.0 - p_row) / sn[s]).sqrt().max(1e-9);
-                if ((p - p_row) / sd).abs() > 4.0 && p_row > 0.0 {
-                    b.azimuth[s] = p / p_row;
-                }
+        for s in 0..rows * sectors {
+            let z = (kept[s] - expected[s]) / variance[s].sqrt().max(1e-9);
+            if expected[s] > 0.0 && z.abs() > 4.0 {
+                b.azimuth[s] = kept[s] / expected[s];
             }
         }
         b
@@ -1021,6 +1013,42 @@ mod tests {
     fn golden_finds_a_parabola_minimum() {
         let (x, fx) = golden(-3.0, 5.0, 60, |x| (x - 1.25) * (x - 1.25) + 2.0);
         assert!((x - 1.25).abs() < 1e-6 && (fx - 2.0).abs() < 1e-9);
+    }
+
+    /// One row of 64 sectors x 16 columns: a wall 10 m away in the first half,
+    /// nothing (no geometry, all dropped) in the second; `kept(column)` says
+    /// which wall pixels the sim kept.
+    fn wall_then_sky(kept: impl Fn(usize) -> bool) -> Pixels {
+        let w = 64 * 16;
+        let mut px = Pixels {
+            height: 1,
+            width: w,
+            ..Pixels::default()
+        };
+        for j in 0..w {
+            let wall = j < w / 2;
+            px.row.push(0);
+            px.column.push(j as u16);
+            px.range_m.push(if wall { 10.0 } else { f32::NAN });
+            px.kept.push(wall && kept(j));
+        }
+        px
+    }
+
+    #[test]
+    fn azimuth_factor_marks_the_sims_blind_spots_not_its_open_sky() {
+        // The wall keeps 9 of 10 rays everywhere: no sector departs from its
+        // cells, although half the row is sky.
+        let even = Baseline::from_sim(&wall_then_sky(|j| j % 10 != 0), 50.0);
+        assert!(even.azimuth.iter().all(|a| *a == 1.0), "{:?}", even.azimuth);
+        // The sim drops every ray in sectors 8-11 of the wall: those, only.
+        let blind = Baseline::from_sim(
+            &wall_then_sky(|j| j % 10 != 0 && !(128..192).contains(&j)),
+            50.0,
+        );
+        for (s, a) in blind.azimuth.iter().enumerate() {
+            assert_eq!(*a < 0.5, (8..12).contains(&s), "sector {s}: {a}");
+        }
     }
 
     #[test]
