@@ -100,15 +100,14 @@ fn enclosure_px(f: &ScanFeatures) -> Vec<u8> {
 /// is not physics, whatever the sensor's field of view; below it the ground is
 /// within reach, so a pixel without a return there lost its ray. Without a
 /// usable ground estimate: the horizon (elevation 0).
-/// `ground_m` is [`ground_depth_m`] of the scans.
+/// `ground_m` is [`ground_depth_m`] of the scans, None where it or the reach is unknown.
 fn open_elevation_rad(ground_m: Option<f32>, reach_m: f32) -> f32 {
     const GROUND_REACH_FRACTION: f32 = 0.8;
-    match ground_m {
-        Some(h) if reach_m.is_finite() => -(h / (GROUND_REACH_FRACTION * reach_m))
+    ground_m.map_or(0.0, |h| {
+        -(h / (GROUND_REACH_FRACTION * reach_m))
             .clamp(0.0, 1.0)
-            .asin(),
-        _ => 0.0,
-    }
+            .asin()
+    })
 }
 
 /// A dropped pixel is enclosed when returns lie on both sides of it within this many
