@@ -721,8 +721,6 @@ fn redundant_effect(
     let base_train = baseline.keep_of(train);
     let base_test = baseline.keep_of(test);
     let family = |id: &str| families.iter().copied().find(|f| f.id() == id);
-    // The keep scale is refitted only where the null was adopted (as in `forward`).
-    let fit_scale = selection.null_nll != selection.before_nll;
     selection
         .selected
         .iter()
@@ -734,7 +732,7 @@ fn redundant_effect(
                 let f = family(s.id)?;
                 let given: Vec<(&dyn DropFamily, &DropFit)> =
                     fits.iter().map(|(f, d)| (*f, d)).collect();
-                let (fit, c_fit) = fit_given(f, train, &base_train, c, fit_scale, &given)?;
+                let (fit, c_fit) = fit_given(f, train, &base_train, c, &given)?;
                 c = c_fit;
                 fits.push((f, fit));
             }
@@ -766,17 +764,21 @@ fn forward(
     let base_test = baseline.keep_of(test);
     let before_nll = mask_nll(test, &model_keep(test, &base_test, 1.0, &[]));
     // The null (only the overall rate differs) is adopted only where it beats
-    // the sim as given on held-out scans.
+    // the sim as given on held-out scans. The scale is still refitted beside every
+    // effect: a sim whose overall rate was matched to the real one (its uniform
+    // dropout raised) keeps too few of the pixels the effect spares, and only a
+    // scale above 1 says so. An effect is judged against the better of the sim as
+    // given and the null, so the scale's own gain is never credited to it.
     let mut c = best_scale(train, &base_train);
     let mut null_nll = mask_nll(test, &model_keep(test, &base_test, c, &[]));
-    let fit_scale = before_nll - null_nll > MIN_GAIN_NATS;
-    if !fit_scale {
+    let scale_only_nll = null_nll;
+    if before_nll - null_nll <= MIN_GAIN_NATS {
         c = 1.0;
         null_nll = before_nll;
     }
     let n = train.len() as f64;
     let mut chosen: Vec<(usize, DropFit, Selected)> = Vec::new();
-    let mut current_nll = null_nll;
+    let mut current_nll = null_nll.min(scale_only_nll);
     let mut current_halves = mask_nll_ahead_behind(test, &model_keep(test, &base_test, c, &[]));
     let mut tried = Vec::new();
     for round in 0..max_effects {
@@ -787,8 +789,7 @@ fn forward(
             if chosen.iter().any(|(i, ..)| *i == fi) {
                 continue;
             }
-            let Some((fit, c_fit)) = fit_given(*family, train, &base_train, c, fit_scale, &effects)
-            else {
+            let Some((fit, c_fit)) = fit_given(*family, train, &base_train, c, &effects) else {
                 continue;
             };
             let mut with = effects.clone();
@@ -857,13 +858,12 @@ fn forward(
 }
 
 /// Fits `family` on `train` given the chosen `effects`, alternating with the
-/// keep scale where `fit_scale` (the null was adopted): (fit, scale).
+/// keep scale: (fit, scale).
 fn fit_given(
     family: &dyn DropFamily,
     train: &Pixels,
     base: &[f64],
     c0: f64,
-    fit_scale: bool,
     effects: &[(&dyn DropFamily, &DropFit)],
 ) -> Option<(DropFit, f64)> {
     let rest_unit = model_keep(train, base, 1.0, effects);
@@ -885,9 +885,7 @@ fn fit_given(
                 rest * (1.0 - p)
             })
             .collect();
-        if fit_scale {
-            c = best_scale(train, &with_effect);
-        }
+        c = best_scale(train, &with_effect);
         fit = Some(f);
     }
     fit.map(|f| (f, c))

@@ -466,6 +466,40 @@ fn two_concealed_effects_are_both_named() {
     assert!(d.report.fit.after < d.report.fit.before);
 }
 
+/// Concealing two effects raises the sim's uniform dropout by both their shares, so
+/// the real scans keep more than the sim wherever neither acts: the second effect
+/// shows only beside a keep scale above 1.
+#[test]
+fn concealed_material_beside_incidence_needs_the_keep_scale() {
+    let effect = || -> Vec<Box<dyn Effect>> {
+        vec![
+            Box::new(MaterialDropout {
+                enabled: true,
+                drop_prob: BTreeMap::from([
+                    (Material::Glass, 0.6),
+                    (Material::DarkPaint, 0.55),
+                    (Material::Rubber, 0.55),
+                ]),
+                drop_prob_by_class: BTreeMap::new(),
+            }),
+            Box::new(IncidenceDropout {
+                enabled: true,
+                cos_50: 0.19,
+                softness: 0.22,
+            }),
+        ]
+    };
+    let (sim, real) = concealed(&hdl64(), effect, 151, 252);
+    let d = run(&sim, &real);
+    let ids: Vec<&str> = d.report.effects.iter().map(|e| e.id.as_str()).collect();
+    assert!(
+        ids.contains(&"material_dropout") && ids.contains(&"incidence_dropout"),
+        "{}",
+        summary(&d)
+    );
+    assert!(d.report.keep_scale > 1.0, "{}", d.report.keep_scale);
+}
+
 #[test]
 fn thirty_two_beams_concealed_range_dropout_and_null() {
     let profile = SensorProfile::builtin("hdl32e").unwrap().with_columns(512);
