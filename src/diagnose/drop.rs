@@ -103,12 +103,12 @@ impl DropFamily for RangeFamily {
         RANGE_BINS
     }
     /// Dropped pixels count only when returns enclose them closely, or they lie on
-    /// the open ground within reach: the range an open-space pixel takes from an
+    /// a level plane (the open ground within reach, a garage's ceiling): the range an open-space pixel takes from an
     /// object's outline is the scene's, not the sensor's.
     fn bin(&self, px: &Pixels, i: usize) -> Option<usize> {
         let r = px.range_m[i];
-        let open_ground = px.open_ground.get(i).copied().unwrap_or(false);
-        (r.is_finite() && (px.enclosure_px[i] <= RANGE_ENCLOSURE_PX || open_ground))
+        let level_plane = px.level_plane.get(i).copied().unwrap_or(false);
+        (r.is_finite() && (px.enclosure_px[i] <= RANGE_ENCLOSURE_PX || level_plane))
             .then(|| ((r.max(0.0) / RANGE_BIN_M) as usize).min(RANGE_BINS - 1))
     }
     fn fit(&self, table: &QTable, _: &Pixels) -> Option<DropFit> {

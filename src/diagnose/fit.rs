@@ -186,6 +186,65 @@ fn ground_depth_m(scans: &[ScanFeatures]) -> Option<f32> {
     Some(*heights.select_nth_unstable_by(mid, f32::total_cmp).1)
 }
 
+/// Upward returns a ceiling estimate needs, over all scans.
+const CEILING_MIN_RETURNS: usize = 200;
+/// Share of the upward returns that must lie on the estimated ceiling.
+const CEILING_SHARE: f32 = 0.4;
+
+/// The height above the sensor of a level ceiling that covers the scans (a garage,
+/// a tunnel): the 95th percentile of the upward returns' heights, where at least
+/// [`CEILING_SHARE`] of them lie within 5 % of it. None in the open, where trees and
+/// buildings spread the heights.
+fn ceiling_height_m(scans: &[ScanFeatures]) -> Option<f32> {
+    let min_elevation = 0.5f32.to_radians();
+    let mut heights: Vec<f32> = scans
+        .iter()
+        .flat_map(|f| {
+            (0..f.len())
+                .filter(|&k| f.kept[k] && f.elevation_rad[k] > min_elevation)
+                .map(|k| f.range_m[k] * f.elevation_rad[k].sin())
+        })
+        .filter(|h| h.is_finite() && *h > 0.2)
+        .collect();
+    if heights.len() < CEILING_MIN_RETURNS {
+        return None;
+    }
+    let i = (heights.len() - 1) * 95 / 100;
+    let h = *heights.select_nth_unstable_by(i, f32::total_cmp).1;
+    let on = heights
+        .iter()
+        .filter(|&&z| (z - h).abs() <= 0.05 * h)
+        .count();
+    (on as f32 >= CEILING_SHARE * heights.len() as f32).then_some(h)
+}
+
+/// For each dropped upward pixel of a scan whose ray meets the level ceiling `h`
+/// above the sensor within reach, the ceiling's range `h / sin(e)` (else NaN), unless
+/// the nearest return below it in its column (a wall or a pillar, walking up from
+/// the horizon) stands nearer than that ceiling point: the ray would hit it first.
+/// Where grazing drops empty the far ceiling, the rows between the wall tops and the
+/// near ceiling hold no return to complete them from.
+fn ceiling_range(f: &ScanFeatures, h: f32, reach_m: f32) -> Vec<f32> {
+    let w = f.width.max(1);
+    let mut out = vec![f32::NAN; f.len()];
+    for j in 0..w {
+        let mut below_m = f32::INFINITY;
+        for k in (j..f.len()).step_by(w).rev() {
+            let e = f.elevation_rad[k];
+            if e <= 0.0 {
+                continue;
+            }
+            let horizontal_m = h / e.tan();
+            if f.kept[k] {
+                below_m = f.range_m[k] * e.cos();
+            } else if horizontal_m < below_m && h / e.sin() <= reach_m {
+                out[k] = h / e.sin();
+            }
+        }
+    }
+    out
+}
+
 /// The pixels a fit uses, pooled over scans (struct of arrays). Left out: pixels
 /// completed beyond the reach, and pixels without geometry where open space is
 /// possible ([`open_elevation_rad`]: whether a scene has sky there is not
@@ -208,11 +267,12 @@ pub struct Pixels {
     /// interpolates one surface rather than extrapolating from an object's
     /// outline into open space.
     pub enclosure_px: Vec<u8>,
-    /// A dropped pixel on the open ground within reach ([`open_ground_range`]),
-    /// completed as the level ground (range and incidence): where strong range or
-    /// incidence physics empties the far field, no return is left to complete it from,
-    /// and the fill's copied range would hide the loss.
-    pub open_ground: Vec<bool>,
+    /// A dropped pixel on the open ground within reach ([`open_ground_range`]) or
+    /// under a level ceiling ([`ceiling_range`]), completed as that plane (range and
+    /// incidence): where strong range or incidence physics empties the far field or a
+    /// garage's ceiling, no return is left to complete it from, and the fill's copied
+    /// range (a wall's) would hide the loss.
+    pub level_plane: Vec<bool>,
     /// Pixels (4-connected steps) to the nearest depth edge of the completed range, capped.
     pub edge_px: Vec<u8>,
     /// The same along the row only (object silhouettes, not far ground).
@@ -243,6 +303,7 @@ impl Pixels {
         }
         let ground_depth = ground_depth_m(scans).filter(|_| reach_m.is_finite());
         let open_above = open_elevation_rad(ground_depth, reach_m);
+        let ceiling = ceiling_height_m(scans).filter(|_| reach_m.is_finite());
         for f in scans {
             if f.height != px.height || f.width != px.width {
                 continue;
@@ -254,13 +315,22 @@ impl Pixels {
                 Some(h) => open_ground_range(f, &enclosure, open_above, h, reach_m),
                 None => vec![f32::NAN; f.len()],
             };
+            let ceiling_r = match ceiling {
+                Some(h) => ceiling_range(f, h, reach_m),
+                None => vec![f32::NAN; f.len()],
+            };
             for (k, &enclosure) in enclosure.iter().enumerate() {
                 let (mut r, mut cos) = (f.range_m[k], f.incidence_rad[k].cos());
-                let open_ground = ground_r[k].is_finite();
-                if open_ground {
-                    // The ray meets a level ground at cos(incidence) = sin(-e).
-                    r = ground_r[k];
-                    cos = (-f.elevation_rad[k]).sin();
+                let plane_r = if ground_r[k].is_finite() {
+                    ground_r[k]
+                } else {
+                    ceiling_r[k]
+                };
+                let level_plane = plane_r.is_finite();
+                if level_plane {
+                    // The ray meets a level plane at cos(incidence) = |sin(e)|.
+                    r = plane_r;
+                    cos = f.elevation_rad[k].sin().abs();
                 }
                 if r > reach_m || (r.is_nan() && f.elevation_rad[k] > open_above) {
                     continue;
@@ -273,7 +343,7 @@ impl Pixels {
                 px.class.push((f.class[k] & 0xffff) as u16);
                 px.kept.push(f.kept[k]);
                 px.enclosure_px.push(enclosure);
-                px.open_ground.push(open_ground);
+                px.level_plane.push(level_plane);
                 px.edge_px
                     .push(f.edge_px.get(k).copied().unwrap_or(u8::MAX));
                 px.row_edge_px
@@ -926,6 +996,75 @@ mod tests {
         f
     }
 
+    /// Rows looking up 15 deg to 1 deg under a ceiling 1.5 m above the sensor, 64
+    /// columns; rays meeting it farther than 15 m lost their returns (grazing), and
+    /// the fill copied a far wall's 40 m into them.
+    fn ceiling_grazing_dropped() -> ScanFeatures {
+        let (rows, w) = (15, 64);
+        let mut f = ScanFeatures::empty(rows, w);
+        for i in 0..rows {
+            let e = (15.0 - i as f32).to_radians();
+            let r = 1.5 / e.sin();
+            for j in 0..w {
+                f.row.push(i as u32);
+                f.azimuth_rad
+                    .push(j as f32 * std::f32::consts::TAU / w as f32);
+                f.elevation_rad.push(e);
+                let kept = r <= 15.0;
+                f.range_m.push(if kept { r } else { 40.0 });
+                f.incidence_rad.push(0.3);
+                f.edge_px.push(8);
+                f.row_edge_px.push(8);
+                f.class.push(0);
+                f.kept.push(kept);
+            }
+        }
+        f
+    }
+
+    #[test]
+    fn a_level_ceiling_completes_the_upward_rows_that_grazing_drops_emptied() {
+        let mut f = ceiling_grazing_dropped();
+        assert!((ceiling_height_m(std::slice::from_ref(&f)).unwrap() - 1.5).abs() < 1e-3);
+        // A pillar 12 m away in column 3, seen by the lowest row: the rays above it
+        // whose ceiling point lies beyond 12 m hit the pillar, not the ceiling.
+        let k = 14 * f.width + 3;
+        f.kept[k] = true;
+        f.range_m[k] = 12.0 / f.elevation_rad[k].cos();
+        let ceiling = ceiling_range(&f, 1.5, 60.0);
+        for (k, &c) in ceiling.iter().enumerate() {
+            let e = f.elevation_rad[k];
+            let beyond_pillar = k % f.width == 3 && 1.5 / e.tan() >= 12.0;
+            if f.kept[k] || beyond_pillar || 1.5 / e.sin() > 60.0 {
+                assert!(c.is_nan(), "pixel {k}: {c}");
+            } else {
+                assert!((c - 1.5 / e.sin()).abs() < 1e-3, "pixel {k}: {c}");
+            }
+        }
+        // The completed pixels reach the fit as grazing ceiling, not as the wall.
+        let px = Pixels::collect(std::slice::from_ref(&f), 60.0);
+        let plane: Vec<usize> = (0..px.len()).filter(|&i| px.level_plane[i]).collect();
+        assert!(!plane.is_empty());
+        for i in plane {
+            let e = px.row_elevation_rad[px.row[i] as usize];
+            assert!(!px.kept[i] && px.range_m[i] > 15.0);
+            assert!(
+                (px.range_m[i] * e.sin() - 1.5).abs() < 1e-3,
+                "{}",
+                px.range_m[i]
+            );
+            assert!(px.cos_incidence[i] < 0.1);
+        }
+
+        // In the open, upward returns spread over trees and facades: no ceiling.
+        let mut open = ceiling_grazing_dropped();
+        for k in (0..open.len()).filter(|&k| open.kept[k]) {
+            let height = 0.5 + (k % 37) as f32 * 0.3;
+            open.range_m[k] = height / open.elevation_rad[k].sin();
+        }
+        assert_eq!(ceiling_height_m(std::slice::from_ref(&open)), None);
+    }
+
     #[test]
     fn open_ground_takes_the_level_grounds_range_where_nothing_stands_in_front() {
         let f = far_ground_dropped(30, 20.0);
@@ -965,8 +1104,8 @@ mod tests {
 
         // The open ground's pixels reach the range family's bins with their ground range.
         let px = Pixels::collect(std::slice::from_ref(&f), 60.0);
-        assert!(px.open_ground.iter().any(|&o| o));
-        for i in (0..px.len()).filter(|&i| px.open_ground[i]) {
+        assert!(px.level_plane.iter().any(|&o| o));
+        for i in (0..px.len()).filter(|&i| px.level_plane[i]) {
             assert!(!px.kept[i] && px.range_m[i] > 20.0);
             assert!(
                 (px.cos_incidence[i] - px.row_elevation_rad[px.row[i] as usize].abs().sin()).abs()
