@@ -103,8 +103,8 @@ impl DropFamily for RangeFamily {
         RANGE_BINS
     }
     /// Dropped pixels count only when returns enclose them closely, or they lie on
-    /// a level plane (the open ground within reach, a garage's ceiling): the range an open-space pixel takes from an
-    /// object's outline is the scene's, not the sensor's.
+    /// a level plane (the open ground within reach, a garage's ceiling): the range an
+    /// open-space pixel takes from an object's outline is the scene's, not the sensor's.
     fn bin(&self, px: &Pixels, i: usize) -> Option<usize> {
         let r = px.range_m[i];
         let level_plane = px.level_plane.get(i).copied().unwrap_or(false);
