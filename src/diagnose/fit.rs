@@ -234,11 +234,13 @@ fn ceiling_range(f: &ScanFeatures, h: f32, reach_m: f32) -> Vec<f32> {
             if e <= 0.0 {
                 continue;
             }
-            let horizontal_m = h / e.tan();
             if f.kept[k] {
                 below_m = f.range_m[k] * e.cos();
-            } else if horizontal_m < below_m && h / e.sin() <= reach_m {
-                out[k] = h / e.sin();
+                continue;
+            }
+            let range_m = h / e.sin();
+            if h / e.tan() < below_m && range_m <= reach_m {
+                out[k] = range_m;
             }
         }
     }
@@ -839,16 +841,16 @@ fn forward(
     // dropout raised) keeps too few of the pixels the effect spares, and only a
     // scale above 1 says so. An effect is judged against the better of the sim as
     // given and the null, so the scale's own gain is never credited to it.
-    let mut c = best_scale(train, &base_train);
-    let mut null_nll = mask_nll(test, &model_keep(test, &base_test, c, &[]));
-    let scale_only_nll = null_nll;
-    if before_nll - null_nll <= MIN_GAIN_NATS {
-        c = 1.0;
-        null_nll = before_nll;
-    }
+    let c_null = best_scale(train, &base_train);
+    let scale_only_nll = mask_nll(test, &model_keep(test, &base_test, c_null, &[]));
+    let (mut c, null_nll) = if before_nll - scale_only_nll > MIN_GAIN_NATS {
+        (c_null, scale_only_nll)
+    } else {
+        (1.0, before_nll)
+    };
     let n = train.len() as f64;
     let mut chosen: Vec<(usize, DropFit, Selected)> = Vec::new();
-    let mut current_nll = null_nll.min(scale_only_nll);
+    let mut current_nll = before_nll.min(scale_only_nll);
     let mut current_halves = mask_nll_ahead_behind(test, &model_keep(test, &base_test, c, &[]));
     let mut tried = Vec::new();
     for round in 0..max_effects {
