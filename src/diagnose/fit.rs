@@ -114,25 +114,16 @@ fn open_elevation_rad(ground_m: Option<f32>, reach_m: f32) -> f32 {
 /// pixels along its row or its column ([`Pixels::enclosure_px`]).
 pub const ENCLOSED_PX: u8 = 8;
 
-/// Share of the reach a column's farthest return must pass before its lost far
-/// field is read as open ground ([`open_ground_range`]).
-const OPEN_GROUND_SEEN: f32 = 0.25;
-
 /// For each pixel of a scan on the open ground within reach, the level ground's range
 /// `h / sin(-e)` (else NaN): dropped, not enclosed by returns (the fill copied some
 /// outline's range into it), below `open_above` (the ground lies within reach there),
 /// its ground point beyond every return of its column (nearer, the ground was in
-/// sight: an object lost its rays, and the feature fill completes it), in a column
-/// that saw beyond [`OPEN_GROUND_SEEN`] of the reach (one that saw only the near field
-/// may be blocked by a near object that lost all its rays), and no return above it
-/// standing nearer than that ground point (a wall it would hit first).
-fn open_ground_range(
-    f: &ScanFeatures,
-    enclosure: &[u8],
-    open_above: f32,
-    h: f32,
-    reach_m: f32,
-) -> Vec<f32> {
+/// sight: an object lost its rays, and the feature fill completes it), and no return
+/// above it standing nearer than that ground point (a wall it would hit first).
+/// A column whose returns all lie in the near field qualifies too: where grazing
+/// incidence empties the ground from a few metres on (a low-resolution sensor's
+/// ground rows), that is all a column keeps.
+fn open_ground_range(f: &ScanFeatures, enclosure: &[u8], open_above: f32, h: f32) -> Vec<f32> {
     let w = f.width.max(1);
     let mut out = vec![f32::NAN; f.len()];
     for j in 0..w {
@@ -142,9 +133,6 @@ fn open_ground_range(
             .filter(|&k| f.kept[k])
             .map(|k| f.range_m[k] * f.elevation_rad[k].cos())
             .fold(0.0f32, f32::max);
-        if farthest_m < OPEN_GROUND_SEEN * reach_m {
-            continue;
-        }
         // Horizontal distance of the nearest return above, walking down the column.
         let mut wall_m = f32::INFINITY;
         for k in column {
@@ -314,7 +302,7 @@ impl Pixels {
             px.scan_range_m.push(f.range_m.clone());
             let enclosure = enclosure_px(f);
             let ground_r = match ground_depth {
-                Some(h) => open_ground_range(f, &enclosure, open_above, h, reach_m),
+                Some(h) => open_ground_range(f, &enclosure, open_above, h),
                 None => vec![f32::NAN; f.len()],
             };
             let ceiling_r = match ceiling {
@@ -804,7 +792,7 @@ fn redundant_effect(
                 let f = family(s.id)?;
                 let given: Vec<(&dyn DropFamily, &DropFit)> =
                     fits.iter().map(|(f, d)| (*f, d)).collect();
-                let (fit, c_fit) = fit_given(f, train, &base_train, c, &given)?;
+                let (fit, c_fit) = fit_given(f, train, &base_train, c, &given, true)?;
                 c = c_fit;
                 fits.push((f, fit));
             }
@@ -836,8 +824,8 @@ fn forward(
     let base_test = baseline.keep_of(test);
     let before_nll = mask_nll(test, &model_keep(test, &base_test, 1.0, &[]));
     // The null (only the overall rate differs) is adopted only where it beats
-    // the sim as given on held-out scans. The scale is still refitted beside every
-    // effect: a sim whose overall rate was matched to the real one (its uniform
+    // the sim as given on held-out scans. The scale may still be refitted beside
+    // an effect: a sim whose overall rate was matched to the real one (its uniform
     // dropout raised) keeps too few of the pixels the effect spares, and only a
     // scale above 1 says so. An effect is judged against the better of the sim as
     // given and the null, so the scale's own gain is never credited to it.
@@ -848,6 +836,10 @@ fn forward(
     } else {
         (1.0, before_nll)
     };
+    // Where the scale alone fits the held-out scans clearly worse than the sim as
+    // given, the training scenes drop more or fewer rays than the held-out ones, and
+    // a scale refitted beside a candidate would cost it that loss.
+    let refit_scale = scale_only_nll - before_nll < MIN_GAIN_NATS;
     let n = train.len() as f64;
     let mut chosen: Vec<(usize, DropFit, Selected)> = Vec::new();
     let mut current_nll = before_nll.min(scale_only_nll);
@@ -861,7 +853,9 @@ fn forward(
             if chosen.iter().any(|(i, ..)| *i == fi) {
                 continue;
             }
-            let Some((fit, c_fit)) = fit_given(*family, train, &base_train, c, &effects) else {
+            let Some((fit, c_fit)) =
+                fit_given(*family, train, &base_train, c, &effects, refit_scale)
+            else {
                 continue;
             };
             let mut with = effects.clone();
@@ -929,38 +923,43 @@ fn forward(
     })
 }
 
-/// Fits `family` on `train` given the chosen `effects`, alternating with the
-/// keep scale: (fit, scale).
+/// Fits `family` on `train` given the chosen `effects` at the keep scale `c0`, or,
+/// with `refit_scale`, alternating with the scale: (fit, scale).
 fn fit_given(
     family: &dyn DropFamily,
     train: &Pixels,
     base: &[f64],
     c0: f64,
     effects: &[(&dyn DropFamily, &DropFit)],
+    refit_scale: bool,
 ) -> Option<(DropFit, f64)> {
     let rest_unit = model_keep(train, base, 1.0, effects);
-    let mut c = c0;
-    let mut fit = None;
-    for _ in 0..2 {
+    let fit_at = |c: f64| {
         let rest: Vec<f64> = rest_unit
             .iter()
             .map(|k| (k * c).clamp(1e-12, KEEP_MAX))
             .collect();
-        let table = QTable::build(family, train, &rest);
-        let f = family.fit(&table, train)?;
+        family.fit(&QTable::build(family, train, &rest), train)
+    };
+    let scale_beside = |fit: &DropFit| {
         let with_effect: Vec<f64> = family
             .bins_of(train)
             .into_iter()
             .zip(&rest_unit)
             .map(|(b, rest)| {
-                let p = b.and_then(|b| f.drop_prob.get(b)).copied().unwrap_or(0.0);
+                let p = b.and_then(|b| fit.drop_prob.get(b)).copied().unwrap_or(0.0);
                 rest * (1.0 - p)
             })
             .collect();
-        c = best_scale(train, &with_effect);
-        fit = Some(f);
+        best_scale(train, &with_effect)
+    };
+    let fit = fit_at(c0)?;
+    if !refit_scale {
+        return Some((fit, c0));
     }
-    fit.map(|f| (f, c))
+    let fit = fit_at(scale_beside(&fit))?;
+    let c = scale_beside(&fit);
+    Some((fit, c))
 }
 
 #[cfg(test)]
@@ -1072,7 +1071,7 @@ mod tests {
         let f = far_ground_dropped(30, 20.0);
         let enclosure = enclosure_px(&f);
         let open_above = -(3.0f32).to_radians();
-        let ground = open_ground_range(&f, &enclosure, open_above, 1.5, 60.0);
+        let ground = open_ground_range(&f, &enclosure, open_above, 1.5);
         for (k, &g) in ground.iter().enumerate() {
             let e = f.elevation_rad[k];
             let far = !f.kept[k] && enclosure[k] > ENCLOSED_PX;
@@ -1083,6 +1082,21 @@ mod tests {
             }
         }
         assert!(ground.iter().any(|g| g.is_finite()));
+
+        // Grazing drops that empty the ground from 8 m on leave its columns nothing
+        // farther to see: what they lost is still the level ground.
+        let near = far_ground_dropped(30, 8.0);
+        let ground = open_ground_range(&near, &enclosure_px(&near), open_above, 1.5);
+        let lost =
+            (0..near.len()).filter(|&k| !near.kept[k] && near.elevation_rad[k] <= open_above);
+        for k in lost {
+            let e = near.elevation_rad[k];
+            assert!(
+                (ground[k] - 1.5 / (-e).sin()).abs() < 1e-3,
+                "pixel {k}: {}",
+                ground[k]
+            );
+        }
 
         // A wall 10 m away across the top rows of column 5 stands in front of the
         // far ground below it: that column keeps the fill's range.
@@ -1098,7 +1112,7 @@ mod tests {
         walled.kept[k] = true;
         walled.range_m[k] = 50.0 / walled.elevation_rad[k].cos();
         let open = vec![ENCLOSURE_CAP_PX; walled.len()];
-        let ground = open_ground_range(&walled, &open, open_above, 1.5, 60.0);
+        let ground = open_ground_range(&walled, &open, open_above, 1.5);
         for j in [5, 7] {
             assert!((0..walled.height).all(|i| ground[i * walled.width + j].is_nan()));
         }
