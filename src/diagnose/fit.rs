@@ -708,6 +708,8 @@ pub struct DropSelection {
     pub null_nll: f64,
     pub after_nll: f64,
     pub keep_scale: f64,
+    /// Whether the keep scale was refitted beside the candidates (else held).
+    pub scale_refitted: bool,
     pub test_pixels: usize,
 }
 
@@ -792,7 +794,8 @@ fn redundant_effect(
                 let f = family(s.id)?;
                 let given: Vec<(&dyn DropFamily, &DropFit)> =
                     fits.iter().map(|(f, d)| (*f, d)).collect();
-                let (fit, c_fit) = fit_given(f, train, &base_train, c, &given, true)?;
+                let (fit, c_fit) =
+                    fit_given(f, train, &base_train, c, &given, selection.scale_refitted)?;
                 c = c_fit;
                 fits.push((f, fit));
             }
@@ -919,6 +922,7 @@ fn forward(
         null_nll,
         after_nll: current_nll,
         keep_scale: c,
+        scale_refitted: refit_scale,
         test_pixels: test.len(),
     })
 }
