@@ -974,50 +974,46 @@ mod tests {
     /// columns; the rows looking farther than `dropped_beyond_m` lost their rays,
     /// and the fill copied the nearest return's range into them.
     fn far_ground_dropped(rows: usize, dropped_beyond_m: f32) -> ScanFeatures {
-        let w = 64;
-        let mut f = ScanFeatures::empty(rows, w);
         let elevation = |i: usize| -(1.0 + i as f32).to_radians();
         let nearest_kept = (0..rows)
             .map(|i| 1.5 / (-elevation(i)).sin())
             .find(|&r| r <= dropped_beyond_m)
             .unwrap_or(f32::NAN);
-        for i in 0..rows {
+        level_rows(rows, |i| {
             let e = elevation(i);
             let r = 1.5 / (-e).sin();
-            for j in 0..w {
-                f.row.push(i as u32);
-                f.azimuth_rad
-                    .push(j as f32 * std::f32::consts::TAU / w as f32);
-                f.elevation_rad.push(e);
-                let kept = r <= dropped_beyond_m;
-                f.range_m.push(if kept { r } else { nearest_kept });
-                f.incidence_rad.push(std::f32::consts::FRAC_PI_2 + e);
-                f.edge_px.push(8);
-                f.row_edge_px.push(8);
-                f.class.push(0);
-                f.kept.push(kept);
-            }
-        }
-        f
+            let kept = r <= dropped_beyond_m;
+            let range = if kept { r } else { nearest_kept };
+            (e, kept, range, std::f32::consts::FRAC_PI_2 + e)
+        })
     }
 
     /// Rows looking up 15 deg to 1 deg under a ceiling 1.5 m above the sensor, 64
     /// columns; rays meeting it farther than 15 m lost their returns (grazing), and
     /// the fill copied a far wall's 40 m into them.
     fn ceiling_grazing_dropped() -> ScanFeatures {
-        let (rows, w) = (15, 64);
-        let mut f = ScanFeatures::empty(rows, w);
-        for i in 0..rows {
+        level_rows(15, |i| {
             let e = (15.0 - i as f32).to_radians();
             let r = 1.5 / e.sin();
+            let kept = r <= 15.0;
+            (e, kept, if kept { r } else { 40.0 }, 0.3)
+        })
+    }
+
+    /// A scan of 64 columns whose every row `i` is the same all round:
+    /// `row(i)` = (elevation, kept, range, incidence).
+    fn level_rows(rows: usize, row: impl Fn(usize) -> (f32, bool, f32, f32)) -> ScanFeatures {
+        let w = 64;
+        let mut f = ScanFeatures::empty(rows, w);
+        for i in 0..rows {
+            let (e, kept, range, incidence) = row(i);
             for j in 0..w {
                 f.row.push(i as u32);
                 f.azimuth_rad
                     .push(j as f32 * std::f32::consts::TAU / w as f32);
                 f.elevation_rad.push(e);
-                let kept = r <= 15.0;
-                f.range_m.push(if kept { r } else { 40.0 });
-                f.incidence_rad.push(0.3);
+                f.range_m.push(range);
+                f.incidence_rad.push(incidence);
                 f.edge_px.push(8);
                 f.row_edge_px.push(8);
                 f.class.push(0);
