@@ -14,7 +14,8 @@ use crate::model::generator::GeneratorConfig;
 use crate::physics::pretraining::PretrainingSet;
 use crate::train::growth::{Stage, parse_stage};
 use crate::train::reconstruct::ReconstructionConfig;
-use crate::train::{Backend, TrainConfig, TrainOptions, load_config, run};
+use crate::train::widen::widen_run;
+use crate::train::{Backend, CHECKPOINT, TrainConfig, TrainOptions, load_config, run};
 
 #[derive(Debug, Clone, Copy, clap::ValueEnum)]
 pub enum ArchArg {
@@ -133,6 +134,23 @@ pub struct TrainArgs {
     /// weights); its depth x_d, and so an encoder trained for it, stays as it was.
     #[arg(long, requires = "init_from")]
     pub drop_head_only: bool,
+    /// Continue the training run in DIR at a larger generator width: its generator (and
+    /// EMA) widened to `--channels` and `--fourier` without changing what it renders, with
+    /// its discriminator, encoder and image count, in the new run directory. A resumed
+    /// widened run ignores it.
+    #[arg(
+        long,
+        value_name = "DIR",
+        requires = "channels",
+        conflicts_with = "init_from"
+    )]
+    pub widen_from: Option<PathBuf>,
+    /// With `--widen-from`: channels per synthesis block, coarsest first (comma-separated).
+    #[arg(long, value_delimiter = ',', requires = "widen_from")]
+    pub channels: Vec<usize>,
+    /// With `--widen-from`: Fourier frequency pairs per block (default: the run's).
+    #[arg(long, value_delimiter = ',', requires = "widen_from")]
+    pub fourier: Vec<usize>,
     /// A coarse-to-fine stage of a new run, `BLOCKS:IMAGES` (repeatable, in order): only the
     /// first BLOCKS synthesis blocks render, on a grid halved per block left out, for IMAGES
     /// real images, against a discriminator of that size; after the last stage every block
@@ -193,6 +211,9 @@ pub fn run_train(global: &GlobalArgs, args: TrainArgs) -> anyhow::Result<Outcome
     if let Some(s) = args.run.seed {
         config = config.with_seed(s);
     }
+    if let Some(src) = &args.widen_from {
+        widen_once(src, &args)?;
+    }
     let dataset_cache = args.run.cache_path();
     if let Some(n) = args.sim_scans {
         build_simulated_cache(global, &dataset_cache, n)?;
@@ -214,6 +235,21 @@ pub fn run_train(global: &GlobalArgs, args: TrainArgs) -> anyhow::Result<Outcome
     };
     run(&opts)?;
     Ok(Outcome::Success)
+}
+
+/// Writes the widened run into the run directory, unless it holds a checkpoint (a resumed
+/// widened run).
+fn widen_once(src: &Path, args: &TrainArgs) -> anyhow::Result<()> {
+    let dst = &args.run.run_dir;
+    if dst.join(CHECKPOINT).join("state.json").exists() {
+        return Ok(());
+    }
+    let n_freq = match args.fourier.is_empty() {
+        true => load_config(&src.join("config.json"))?.generator.n_freq,
+        false => args.fourier.clone(),
+    };
+    let device = Backend::from(args.run.backend).device()?;
+    widen_run(src, dst, args.channels.clone(), n_freq, &device)
 }
 
 /// Simulates the pretraining set into `cache` unless it is there already (a resumed run).

@@ -10,6 +10,8 @@
 //! - [`growth`]: coarse-to-fine training: the generator's synthesis pyramid grown a level at
 //!   a time, each level with its own discriminator, on real scans sampled at that level.
 //! - [`reconstruct`]: reconstruction-assisted training: an encoder in the generator's loop.
+//! - [`widen`]: function-preserving widening of a trained generator, to go on training
+//!   a run at a larger width.
 //! - [`row_fill`]: the learned correction of restored rows ([`crate::decode::row_fill`]).
 
 pub mod config;
@@ -20,6 +22,7 @@ pub mod reconstruct;
 pub mod row_fill;
 pub mod run_dir;
 pub mod update;
+pub mod widen;
 
 pub use config::*;
 pub use gan::*;

@@ -153,11 +153,14 @@ impl Trainer {
             d = d
                 .try_load_file(ck.join("d.bpk"))
                 .map_err(|e| load_err("d", e))?;
-            opt_g = opt_g
-                .load(ck.join("opt_g.bpk"))
-                .map_err(|e| load_err("opt_g", e))?;
-            // A compact checkpoint (the committed one) may leave out D's Adam state: it is
-            // rebuilt within a few dozen steps (beta1 = 0), and at 64 x 512 it is most of the bytes.
+            // A widened run starts without G's Adam state (its shapes changed), and a compact
+            // checkpoint (the committed one) may leave out D's: it is rebuilt within a few
+            // dozen steps (beta1 = 0), and at 64 x 512 it is most of the bytes.
+            if ck.join("opt_g.bpk").exists() {
+                opt_g = opt_g
+                    .load(ck.join("opt_g.bpk"))
+                    .map_err(|e| load_err("opt_g", e))?;
+            }
             if ck.join("opt_d.bpk").exists() {
                 opt_d = opt_d
                     .load(ck.join("opt_d.bpk"))
