@@ -434,3 +434,56 @@ fn a_staged_assisted_run_grows_and_resumes_as_if_uninterrupted() {
             .all(|l| l["reconstruction"].is_number() || l["loss_g"].is_null())
     );
 }
+
+/// A run widened mid-way resumes at its image count with the wider generator, its
+/// discriminator as it was, and trains on.
+#[test]
+fn a_widened_run_resumes_where_its_source_stopped() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let cache = synthetic_cache(dir.path(), 8, 3, |i, _| (i % 64) as f32 / 64.0 - 0.5);
+    let config = tiny_run_config().with_total_images(4);
+    let source = options(dir.path().join("run"), cache, config);
+    run(&source).expect("train");
+    let wide_dir = dir.path().join("wide");
+    crate::train::widen::widen_run(
+        &source.run_dir,
+        &wide_dir,
+        vec![12, 10],
+        vec![4, 6],
+        &Device::flex(),
+    )
+    .expect("widen");
+    assert!(!wide_dir.join("checkpoint/opt_g.bpk").exists());
+    assert_eq!(
+        std::fs::read(wide_dir.join("checkpoint/d.bpk")).expect("read"),
+        std::fs::read(source.run_dir.join("checkpoint/d.bpk")).expect("read"),
+    );
+    // Widening never writes over a run.
+    let again = crate::train::widen::widen_run(
+        &source.run_dir,
+        &wide_dir,
+        vec![12, 10],
+        vec![4, 6],
+        &Device::flex(),
+    );
+    assert!(again.is_err());
+
+    let wide = TrainOptions {
+        run_dir: wide_dir.clone(),
+        total_images: Some(8),
+        ..source.clone()
+    };
+    run(&wide).expect("resume widened");
+    let state: TrainState = serde_json::from_str(
+        &std::fs::read_to_string(wide_dir.join("checkpoint/state.json")).expect("state"),
+    )
+    .expect("json");
+    assert_eq!(state.images, 8);
+    let (g, c) = load_generator(&wide_dir, &Device::flex()).expect("load");
+    assert_eq!(c.generator.channels, vec![12, 10]);
+    let AnyGenerator::Implicit(g) = g else {
+        panic!("implicit generator expected")
+    };
+    assert_eq!(g.blocks[1].conv1.weight.dims(), [10, 10]);
+    assert!(wide_dir.join("checkpoint/opt_g.bpk").exists());
+}
