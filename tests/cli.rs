@@ -265,6 +265,46 @@ fn training_on_a_backend_missing_from_the_build_is_a_clear_error() {
     }
 }
 
+/// `train --widen-from` refuses what is not a training run, and a narrower
+/// generator, before it writes anything; `--channels` alone is a usage error.
+#[test]
+fn widening_refuses_a_model_directory_and_a_narrower_generator() {
+    let dir = tempfile::tempdir().unwrap();
+    let run_dir = dir.path().join("wide");
+    let widen = |source: &str, channels: &str| {
+        run(&[
+            "train",
+            run_dir.to_str().unwrap(),
+            "--data",
+            dir.path().to_str().unwrap(),
+            "--widen-from",
+            source,
+            "--channels",
+            channels,
+        ])
+    };
+    let o = widen("models/dusty2", "256,128,64,32,32");
+    assert_eq!(o.status.code(), Some(1), "{}", stderr(&o));
+    assert!(
+        stderr(&o).contains("no training checkpoint"),
+        "{}",
+        stderr(&o)
+    );
+    let o = widen("models/gan-run", "64,64,32,16,16");
+    assert_eq!(o.status.code(), Some(1), "{}", stderr(&o));
+    assert!(
+        stderr(&o).contains("cannot remove channels"),
+        "{}",
+        stderr(&o)
+    );
+    assert!(
+        !run_dir.exists(),
+        "a refused widening wrote its run directory"
+    );
+    let o = run(&["train", run_dir.to_str().unwrap(), "--channels", "8,8"]);
+    assert_eq!(o.status.code(), Some(2), "{}", stderr(&o));
+}
+
 /// Real SemanticKITTI through import and convert: the sensor is estimated from the
 /// data (64 beams by ring, columns from the azimuth step of these every-4th-point
 /// files) and nearly every point keeps a pixel.
