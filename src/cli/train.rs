@@ -244,9 +244,10 @@ fn widen_once(src: &Path, args: &TrainArgs) -> anyhow::Result<()> {
     if dst.join(CHECKPOINT).join("state.json").exists() {
         return Ok(());
     }
-    let n_freq = match args.fourier.is_empty() {
-        true => load_config(&src.join("config.json"))?.generator.n_freq,
-        false => args.fourier.clone(),
+    let n_freq = if args.fourier.is_empty() {
+        load_config(&src.join("config.json"))?.generator.n_freq
+    } else {
+        args.fourier.clone()
     };
     let device = Backend::from(args.run.backend).device()?;
     widen_run(src, dst, args.channels.clone(), n_freq, &device)

@@ -269,6 +269,14 @@ pub fn widen_run(
     let (g, g_ema) = (widen_file("g.bpk")?, widen_file("g_ema.bpk")?);
     std::fs::create_dir_all(dst)
         .with_context(|| format!("failed to create '{}'", dst.display()))?;
+    // The checkpoint comes last: its atomic swap marks a finished widening, so an
+    // interrupted one is simply redone.
+    wider
+        .save(dst.join("config.json"))
+        .with_context(|| format!("failed to write '{}'", dst.join("config.json").display()))?;
+    if src.join("log.jsonl").exists() {
+        std::fs::copy(src.join("log.jsonl"), dst.join("log.jsonl"))?;
+    }
     write_checkpoint(dst, |tmp| {
         let save = |m: Generator, name: &str| {
             AnyGenerator::Implicit(m)
@@ -285,14 +293,7 @@ pub fn widen_run(
             }
         }
         Ok(())
-    })?;
-    if src.join("log.jsonl").exists() {
-        std::fs::copy(src.join("log.jsonl"), dst.join("log.jsonl"))?;
-    }
-    wider
-        .save(dst.join("config.json"))
-        .with_context(|| format!("failed to write '{}'", dst.join("config.json").display()))?;
-    Ok(())
+    })
 }
 
 #[cfg(test)]
