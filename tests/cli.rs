@@ -283,20 +283,18 @@ fn widening_refuses_a_model_directory_and_a_narrower_generator() {
             channels,
         ])
     };
-    let o = widen("models/dusty2", "256,128,64,32,32");
-    assert_eq!(o.status.code(), Some(1), "{}", stderr(&o));
-    assert!(
-        stderr(&o).contains("no training checkpoint"),
-        "{}",
-        stderr(&o)
-    );
-    let o = widen("models/gan-run", "64,64,32,16,16");
-    assert_eq!(o.status.code(), Some(1), "{}", stderr(&o));
-    assert!(
-        stderr(&o).contains("cannot remove channels"),
-        "{}",
-        stderr(&o)
-    );
+    for (source, channels, why) in [
+        (
+            "models/dusty2",
+            "256,128,64,32,32",
+            "no training checkpoint",
+        ),
+        ("models/gan-run", "64,64,32,16,16", "cannot remove channels"),
+    ] {
+        let o = widen(source, channels);
+        assert_eq!(o.status.code(), Some(1), "{source}: {}", stderr(&o));
+        assert!(stderr(&o).contains(why), "{source}: {}", stderr(&o));
+    }
     assert!(
         !run_dir.exists(),
         "a refused widening wrote its run directory"

@@ -445,28 +445,23 @@ fn a_widened_run_resumes_where_its_source_stopped() {
     let source = options(dir.path().join("run"), cache, config);
     run(&source).expect("train");
     let wide_dir = dir.path().join("wide");
-    crate::train::widen::widen_run(
-        &source.run_dir,
-        &wide_dir,
-        vec![12, 10],
-        vec![4, 6],
-        &Device::flex(),
-    )
-    .expect("widen");
+    let widen = || {
+        crate::train::widen::widen_run(
+            &source.run_dir,
+            &wide_dir,
+            vec![12, 10],
+            vec![4, 6],
+            &Device::flex(),
+        )
+    };
+    widen().expect("widen");
     assert!(!wide_dir.join("checkpoint/opt_g.bpk").exists());
     assert_eq!(
         std::fs::read(wide_dir.join("checkpoint/d.bpk")).expect("read"),
         std::fs::read(source.run_dir.join("checkpoint/d.bpk")).expect("read"),
     );
     // Widening never writes over a run.
-    let again = crate::train::widen::widen_run(
-        &source.run_dir,
-        &wide_dir,
-        vec![12, 10],
-        vec![4, 6],
-        &Device::flex(),
-    );
-    assert!(again.is_err());
+    assert!(widen().is_err());
 
     let wide = TrainOptions {
         run_dir: wide_dir.clone(),
