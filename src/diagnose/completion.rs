@@ -3,7 +3,8 @@
 //! completed, either by the cheap neighbour fill of `features` or by the
 //! range-image GAN: each scan is auto-decoded (`crate::decode`, `fast` quality,
 //! seeded from its topic and log time), the decoded scene rendered on the scan's
-//! own grid, and its completed depth x_d used for the dropped pixels.
+//! own grid, and its completed depth x_d used for the dropped pixels that no
+//! measured surface spans (a hole bridged by one surface keeps that geometry).
 
 use rayon::prelude::*;
 
@@ -232,8 +233,10 @@ mod tests {
             assert!(g.edge_px.iter().all(|e| *e <= options.max_edge_px));
         }
         assert!(dropped > 1000, "{dropped} dropped pixels compared");
+        // Holes that one surface spans keep its geometry under both; the GAN answers
+        // the rest (wide holes, gaps between surfaces).
         assert!(
-            differ as f64 > 0.3 * dropped as f64,
+            differ as f64 > 0.1 * dropped as f64,
             "GAN and neighbour fill differ on {differ} of {dropped} dropped pixels"
         );
         // Deterministic, whatever the thread count.

@@ -4,8 +4,8 @@
 //! This module owns the cheap geometry that the drop-rate comparisons condition
 //! on: a completion of dropped pixels (holes bridged along their surface, wide
 //! holes near the ground completed as ground and walls, and a cheap neighbour
-//! fill, or a completed depth given by the caller: the GAN's x_d, see
-//! `completion`), incidence angles from the normals of the completed depth,
+//! fill, or a completed depth given by the caller for the holes no surface
+//! spans: the GAN's x_d, see `completion`), incidence angles from the normals of the completed depth,
 //! depth-edge proximity, and classes (labels where present, else the most common
 //! label among valid neighbours). It does no statistics (see `stats`) and no I/O.
 
@@ -113,8 +113,11 @@ impl ScanFeatures {
 
     /// Computes the features of a projected scan whose dropped pixels take their
     /// range from `completed` (row-major on the image's grid, meters; e.g. the GAN's
-    /// x_d from auto-decoding) where it is positive and finite. Kept pixels keep
-    /// their measured range. Classes still come from the neighbours. The sky rule is
+    /// x_d from auto-decoding) where it is positive and finite and no surface
+    /// spans the hole (a bridged hole keeps the geometry measured on both sides: a
+    /// guess that disagrees with it would make every drop a depth edge with a
+    /// grazing normal, and drops would read as edge and incidence physics). Kept
+    /// pixels keep their measured range. Classes still come from the neighbours. The sky rule is
     /// the neighbour fill's: in the upper half of the image a dropped pixel with no
     /// return within [`FeatureOptions::fill_passes`] stays without geometry (whether
     /// a scene has sky there is not physics), whatever `completed` says; in the lower
@@ -160,7 +163,7 @@ impl ScanFeatures {
             for k in 0..n {
                 let d = depth[k];
                 let sky = range_m[k].is_nan() && k / w.max(1) < h / 2;
-                if !kept[k] && !sky && d.is_finite() && d > 0.0 {
+                if !kept[k] && !bridged[k] && !sky && d.is_finite() && d > 0.0 {
                     range_m[k] = d;
                 }
             }
@@ -677,6 +680,37 @@ mod tests {
             let expected = std::f32::consts::FRAC_PI_2 + img.angles.elevation_rad[k];
             assert!((f.incidence_rad[k] - expected).abs() < 0.02, "k={k}");
         }
+    }
+
+    /// A given completion (the GAN's x_d) is a guess; a hole spanned by one surface has
+    /// its geometry measured on both sides. A completion that disagrees with it would
+    /// mark every dropped pixel as a depth edge with a grazing normal, and make drops
+    /// look like edge and incidence physics.
+    #[test]
+    fn a_given_completion_fills_only_what_no_surface_spans() {
+        let mut img = ground_image(24, 64, 1.7);
+        let truth = img.clone();
+        let bridged = 14 * 64 + 30;
+        let wide: Vec<usize> = (16..24)
+            .flat_map(|i| (0..64).map(move |j| i * 64 + j))
+            .collect();
+        for &k in wide.iter().chain([&bridged]) {
+            img.range_m[k] = 0.0;
+        }
+        let completed: Vec<f32> = truth.range_m.iter().map(|r| 1.3 * r).collect();
+        let f =
+            ScanFeatures::from_image_completed(&img, Some(&completed), &FeatureOptions::default());
+        let rel = (f.range_m[bridged] - truth.range_m[bridged]).abs() / truth.range_m[bridged];
+        assert!(rel < 1e-4, "bridged hole took {}", f.range_m[bridged]);
+        let expected = std::f32::consts::FRAC_PI_2 + img.angles.elevation_rad[bridged];
+        assert!((f.incidence_rad[bridged] - expected).abs() < 0.02);
+        // The bottom rows, dropped all round: no return closes a column below them or
+        // a row beside them, so nothing spans them and the completion fills them.
+        let filled = wide
+            .iter()
+            .filter(|&&k| f.range_m[k] == completed[k])
+            .count();
+        assert_eq!(filled, wide.len());
     }
 
     /// Drops the block `rows` x `columns` of `img`, completes it, and checks the range

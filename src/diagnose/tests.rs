@@ -245,6 +245,22 @@ fn concealed_incidence_dropout() {
     }
 }
 
+/// Known bad for a completion: rays dropped at random, nothing else. Where the GAN's
+/// guess replaced holes that one surface spans, every drop became a depth edge with
+/// a grazing normal, and edge and incidence dropout were named here.
+#[test]
+fn random_drops_under_the_gan_completion_name_no_physics() {
+    let profile = hdl64();
+    let real = simulated_images_with(&profile, 121, SCANS, uniform_dropout(0.1));
+    let sim = simulated_images_with(&profile, 222, SCANS, vec![]);
+    let d = run_with(
+        &gan_completed(&sim, "/sim"),
+        &gan_completed(&real, "/real"),
+        Completion::Gan,
+    );
+    assert!(d.report.effects.is_empty(), "{}", summary(&d));
+}
+
 #[test]
 fn concealed_incidence_dropout_neighbour_fill() {
     for case in 0..2u64 {
