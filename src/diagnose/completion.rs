@@ -3,8 +3,9 @@
 //! completed, either by the cheap neighbour fill of `features` or by the
 //! range-image GAN: each scan is auto-decoded (`crate::decode`, `fast` quality,
 //! seeded from its topic and log time), the decoded scene rendered on the scan's
-//! own grid, and its completed depth x_d used for the dropped pixels that no
-//! measured surface spans (a hole bridged by one surface keeps that geometry).
+//! own grid, and its completed depth x_d used for the dropped pixels of the lower
+//! half that no measured surface spans (a hole bridged by one surface keeps that
+//! geometry; above, where a drop mostly met nothing, the neighbour fill stays).
 
 use rayon::prelude::*;
 
@@ -196,7 +197,15 @@ mod tests {
 
     #[test]
     fn gan_completion_fills_dropped_pixels_differently_and_deterministically() {
-        let images = scans();
+        let mut images = scans();
+        // A wide hole down to the bottom row, which no surface spans.
+        for img in &mut images {
+            for i in img.height - 20..img.height {
+                for j in 100..140 {
+                    img.range_m[i * img.width + j] = 0.0;
+                }
+            }
+        }
         let seeds: Vec<u64> = (0..images.len() as u64)
             .map(|i| scan_seed("/sim", 100 * i))
             .collect();
@@ -222,7 +231,8 @@ mod tests {
                             || (0.0..=std::f32::consts::FRAC_PI_2).contains(&g.incidence_rad[k])
                     );
                 }
-                if n.range_m[k].is_finite() && g.range_m[k].is_finite() {
+                let lower = k / g.width >= g.height / 2;
+                if lower && n.range_m[k].is_finite() && g.range_m[k].is_finite() {
                     dropped += 1;
                     let rel = (g.range_m[k] - n.range_m[k]).abs() / n.range_m[k];
                     differ += usize::from(rel > 0.01);
@@ -234,9 +244,10 @@ mod tests {
         }
         assert!(dropped > 1000, "{dropped} dropped pixels compared");
         // Holes that one surface spans keep its geometry under both; the GAN answers
-        // the rest (wide holes, gaps between surfaces).
+        // the rest of the lower half (the wide hole, gaps between surfaces), agreeing
+        // with the fill's ground within 1 % on part of it.
         assert!(
-            differ as f64 > 0.1 * dropped as f64,
+            differ as f64 > 0.05 * dropped as f64,
             "GAN and neighbour fill differ on {differ} of {dropped} dropped pixels"
         );
         // Deterministic, whatever the thread count.

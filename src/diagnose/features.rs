@@ -4,8 +4,8 @@
 //! This module owns the cheap geometry that the drop-rate comparisons condition
 //! on: a completion of dropped pixels (holes bridged along their surface, wide
 //! holes near the ground completed as ground and walls, and a cheap neighbour
-//! fill, or a completed depth given by the caller for the holes no surface
-//! spans: the GAN's x_d, see `completion`), incidence angles from the normals of the completed depth,
+//! fill, or a completed depth given by the caller for the holes of the lower
+//! half that no surface spans: the GAN's x_d, see `completion`), incidence angles from the normals of the completed depth,
 //! depth-edge proximity, and classes (labels where present, else the most common
 //! label among valid neighbours). It does no statistics (see `stats`) and no I/O.
 
@@ -117,12 +117,15 @@ impl ScanFeatures {
     /// spans the hole (a bridged hole keeps the geometry measured on both sides: a
     /// guess that disagrees with it would make every drop a depth edge with a
     /// grazing normal, and drops would read as edge and incidence physics). Kept
-    /// pixels keep their measured range. Classes still come from the neighbours. The sky rule is
-    /// the neighbour fill's: in the upper half of the image a dropped pixel with no
-    /// return within [`FeatureOptions::fill_passes`] stays without geometry (whether
-    /// a scene has sky there is not physics), whatever `completed` says; in the lower
-    /// half every dropped pixel takes the completion. Where `completed` has no depth
-    /// (0, e.g. beyond the model's beams) the neighbour fill stays.
+    /// pixels keep their measured range. Classes still come from the neighbours. Only
+    /// the lower half of the image takes the completion: above it a dropped ray mostly
+    /// met nothing (sky, or beyond reach), which a completion cannot say, as it gives
+    /// every pixel a depth; the sim's no-returns would all sit at the model's typical
+    /// depth there, and the baseline would expect drops on real surfaces at that depth.
+    /// The upper half keeps the neighbour fill (a dropped pixel with no return within
+    /// [`FeatureOptions::fill_passes`] stays without geometry: whether a scene has sky
+    /// there is not physics). Where `completed` has no depth (0, e.g. beyond the
+    /// model's beams) the neighbour fill stays too.
     pub fn from_image_completed(
         image: &RangeImage,
         completed: Option<&[f32]>,
@@ -162,8 +165,8 @@ impl ScanFeatures {
         if let Some(depth) = completed.filter(|d| d.len() == n) {
             for k in 0..n {
                 let d = depth[k];
-                let sky = range_m[k].is_nan() && k / w.max(1) < h / 2;
-                if !kept[k] && !bridged[k] && !sky && d.is_finite() && d > 0.0 {
+                let upper = k / w.max(1) < h / 2;
+                if !kept[k] && !bridged[k] && !upper && d.is_finite() && d > 0.0 {
                     range_m[k] = d;
                 }
             }
@@ -711,6 +714,25 @@ mod tests {
             .filter(|&&k| f.range_m[k] == completed[k])
             .count();
         assert_eq!(filled, wide.len());
+    }
+
+    /// In the upper half a dropped ray mostly met nothing (sky, or beyond reach). A
+    /// completion gives every pixel a depth; there it would put the no-returns at the
+    /// model's typical depth, so the upper half keeps the neighbour fill.
+    #[test]
+    fn a_given_completion_leaves_the_upper_half_to_the_neighbour_fill() {
+        let mut img = ground_image(24, 64, 1.7);
+        let top: Vec<usize> = (0..3 * 64).collect();
+        for &k in &top {
+            img.range_m[k] = 0.0;
+        }
+        let completed = vec![35.0; img.len()];
+        let options = FeatureOptions::default();
+        let with = ScanFeatures::from_image_completed(&img, Some(&completed), &options);
+        let without = ScanFeatures::from_image(&img, &options);
+        assert!(top.iter().any(|&k| with.range_m[k].is_finite()));
+        let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+        assert_eq!(bits(&with.range_m), bits(&without.range_m));
     }
 
     /// Drops the block `rows` x `columns` of `img`, completes it, and checks the range
