@@ -5,8 +5,8 @@
 //! on: a completion of dropped pixels (holes bridged along their surface, wide
 //! holes near the ground completed as ground and walls, and a cheap neighbour
 //! fill, or a completed depth given by the caller for the holes of the lower
-//! half that no surface spans: the GAN's x_d, see `completion`), incidence angles from the normals of the completed depth,
-//! depth-edge proximity, and classes (labels where present, else the most common
+//! half that no surface spans: the GAN's x_d, see `completion`), incidence
+//! angles from the normals of the completed depth, depth-edge proximity, and classes (labels where present, else the most common
 //! label among valid neighbours). It does no statistics (see `stats`) and no I/O.
 
 use crate::lidar::RangeImage;
@@ -111,21 +111,17 @@ impl ScanFeatures {
         Self::from_image_completed(image, None, options)
     }
 
-    /// Computes the features of a projected scan whose dropped pixels take their
-    /// range from `completed` (row-major on the image's grid, meters; e.g. the GAN's
-    /// x_d from auto-decoding) where it is positive and finite and no surface
-    /// spans the hole (a bridged hole keeps the geometry measured on both sides: a
-    /// guess that disagrees with it would make every drop a depth edge with a
-    /// grazing normal, and drops would read as edge and incidence physics). Kept
-    /// pixels keep their measured range. Classes still come from the neighbours. Only
-    /// the lower half of the image takes the completion: above it a dropped ray mostly
-    /// met nothing (sky, or beyond reach), which a completion cannot say, as it gives
-    /// every pixel a depth; the sim's no-returns would all sit at the model's typical
-    /// depth there, and the baseline would expect drops on real surfaces at that depth.
-    /// The upper half keeps the neighbour fill (a dropped pixel with no return within
-    /// [`FeatureOptions::fill_passes`] stays without geometry: whether a scene has sky
-    /// there is not physics). Where `completed` has no depth (0, e.g. beyond the
-    /// model's beams) the neighbour fill stays too.
+    /// Computes the features of a projected scan whose dropped pixels in the lower
+    /// half of the image take their range from `completed` (row-major on the image's
+    /// grid, meters; e.g. the GAN's x_d from auto-decoding) where it is positive and
+    /// finite and no surface spans the hole. Everywhere else the neighbour fill stays:
+    /// - a bridged hole keeps the geometry measured on both its sides; a guess that
+    ///   disagrees with it would make every drop a depth edge with a grazing normal;
+    /// - in the upper half a dropped ray mostly met nothing (sky, or beyond reach),
+    ///   which a completion cannot say: it would put the sim's no-returns at the
+    ///   model's typical depth, where the baseline would then expect real drops.
+    ///
+    /// Kept pixels keep their measured range; classes come from the neighbours.
     pub fn from_image_completed(
         image: &RangeImage,
         completed: Option<&[f32]>,

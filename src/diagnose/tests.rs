@@ -245,9 +245,9 @@ fn concealed_incidence_dropout() {
     }
 }
 
-/// Known bad for a completion: rays dropped at random, nothing else. Where the GAN's
-/// guess replaced holes that one surface spans, every drop became a depth edge with
-/// a grazing normal, and edge and incidence dropout were named here.
+/// Known bad for a completion: rays dropped at random, nothing else. A guess that
+/// replaces holes one surface spans makes every drop a depth edge with a grazing
+/// normal, and edge and incidence dropout get named here.
 #[test]
 fn random_drops_under_the_gan_completion_name_no_physics() {
     let profile = hdl64();
