@@ -223,7 +223,8 @@ mod tests {
                     assert_eq!(g.range_m[k], img.range_m[k], "measured range kept");
                     continue;
                 }
-                if k / g.width >= g.height / 2 {
+                let lower = k / g.width >= g.height / 2;
+                if lower {
                     // Every dropped pixel of the lower half has geometry.
                     assert!(g.range_m[k].is_finite() && g.range_m[k] > 0.0, "k={k}");
                     assert!(
@@ -231,7 +232,6 @@ mod tests {
                             || (0.0..=std::f32::consts::FRAC_PI_2).contains(&g.incidence_rad[k])
                     );
                 }
-                let lower = k / g.width >= g.height / 2;
                 if lower && n.range_m[k].is_finite() && g.range_m[k].is_finite() {
                     dropped += 1;
                     let rel = (g.range_m[k] - n.range_m[k]).abs() / n.range_m[k];

@@ -159,10 +159,9 @@ impl ScanFeatures {
             }
         }
         if let Some(depth) = completed.filter(|d| d.len() == n) {
-            for k in 0..n {
+            for k in (h / 2) * w..n {
                 let d = depth[k];
-                let upper = k / w.max(1) < h / 2;
-                if !kept[k] && !bridged[k] && !upper && d.is_finite() && d > 0.0 {
+                if !kept[k] && !bridged[k] && d.is_finite() && d > 0.0 {
                     range_m[k] = d;
                 }
             }
