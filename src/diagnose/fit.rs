@@ -631,18 +631,34 @@ pub fn mask_nll(px: &Pixels, keep: &[f64]) -> f64 {
 }
 
 /// Held-out NLL (nats, summed) of the pixels ahead of the sensor (|azimuth| <
-/// 90 deg) and behind it.
+/// 90 deg) and behind it, each side at its own best keep scale: whether an effect
+/// helps on both sides is a question about its pattern, and the one scale fitted
+/// over both would otherwise credit or charge it with the sides' different
+/// shares of open space.
 fn mask_nll_ahead_behind(px: &Pixels, keep: &[f64]) -> [f64; 2] {
-    let mut total = [0.0; 2];
-    for (i, (&kept, &k)) in px.kept.iter().zip(keep).enumerate() {
-        let a = px
-            .column_azimuth_rad
-            .get(px.column[i] as usize)
-            .copied()
-            .unwrap_or(0.0);
-        total[usize::from(a.abs() > std::f32::consts::FRAC_PI_2)] += pixel_nll(kept, k);
+    struct Side;
+    impl DropFamily for Side {
+        fn id(&self) -> &'static str {
+            "side"
+        }
+        fn bins(&self, _: &Pixels) -> usize {
+            2
+        }
+        fn bin(&self, px: &Pixels, i: usize) -> Option<usize> {
+            let a = px
+                .column_azimuth_rad
+                .get(px.column[i] as usize)
+                .copied()
+                .unwrap_or(0.0);
+            Some(usize::from(a.abs() > std::f32::consts::FRAC_PI_2))
+        }
+        fn fit(&self, _: &QTable, _: &Pixels) -> Option<DropFit> {
+            None
+        }
     }
-    total
+    let table = QTable::build(&Side, px, keep);
+    // keep = c·q = q·(1 − p) with p = 1 − c, as in `best_scale`.
+    [0, 1].map(|side| golden(0.3, 3.0, 48, |c| table.bin_nll(side, 1.0 - c)).1)
 }
 
 /// The keep scale `c` minimising the NLL of `keep = c · rest` (pooled by level).
@@ -1201,6 +1217,63 @@ mod tests {
         for (s, a) in blind.azimuth.iter().enumerate() {
             assert_eq!(*a < 0.5, (8..12).contains(&s), "sector {s}: {a}");
         }
+    }
+
+    /// Two rows of 400 columns spanning all azimuths; `kept(row, ahead, column)`
+    /// says which pixels kept their rays.
+    fn two_rows(kept: impl Fn(usize, bool, usize) -> bool) -> Pixels {
+        let w = 400;
+        let mut px = Pixels {
+            height: 2,
+            width: w,
+            column_azimuth_rad: (0..w)
+                .map(|j| (j as f32 / w as f32 - 0.5) * std::f32::consts::TAU)
+                .collect(),
+            ..Pixels::default()
+        };
+        for i in 0..2 {
+            for j in 0..w {
+                let ahead = px.column_azimuth_rad[j].abs() <= std::f32::consts::FRAC_PI_2;
+                px.row.push(i as u16);
+                px.column.push(j as u16);
+                px.range_m.push(10.0);
+                px.kept.push(kept(i, ahead, j));
+            }
+        }
+        px
+    }
+
+    #[test]
+    fn each_side_is_judged_at_its_own_keep_scale() {
+        // Ahead keeps 9 of 10 rays, behind 1 of 2: a model that only moves the
+        // overall rate is neither better nor worse on either side.
+        let px = two_rows(|_, ahead, j| if ahead { j % 10 != 0 } else { j % 2 == 0 });
+        let [ahead_low, behind_low] = mask_nll_ahead_behind(&px, &vec![0.6; px.len()]);
+        let [ahead_high, behind_high] = mask_nll_ahead_behind(&px, &vec![0.8; px.len()]);
+        assert!(
+            (ahead_low - ahead_high).abs() < 1e-6 * ahead_low,
+            "{ahead_low} {ahead_high}"
+        );
+        assert!(
+            (behind_low - behind_high).abs() < 1e-6 * behind_low,
+            "{behind_low} {behind_high}"
+        );
+        // A per-row pattern true ahead only (row 0 drops half, row 1 nothing;
+        // behind both rows drop a quarter) helps ahead and not behind.
+        let px = two_rows(|i, ahead, j| match (ahead, i) {
+            (true, 0) => j % 2 == 0,
+            (true, _) => true,
+            (false, _) => j % 4 != 0,
+        });
+        let flat = mask_nll_ahead_behind(&px, &vec![0.75; px.len()]);
+        let pattern: Vec<f64> = px
+            .row
+            .iter()
+            .map(|&i| if i == 0 { 0.5 } else { 0.99 })
+            .collect();
+        let rows = mask_nll_ahead_behind(&px, &pattern);
+        assert!(rows[0] < flat[0], "ahead {rows:?} {flat:?}");
+        assert!(rows[1] >= flat[1], "behind {rows:?} {flat:?}");
     }
 
     #[test]
