@@ -631,34 +631,51 @@ pub fn mask_nll(px: &Pixels, keep: &[f64]) -> f64 {
 }
 
 /// Held-out NLL (nats, summed) of the pixels ahead of the sensor (|azimuth| <
-/// 90 deg) and behind it, each side at its own best keep scale: whether an effect
-/// helps on both sides is a question about its pattern, and the one scale fitted
-/// over both would otherwise credit or charge it with the sides' different
-/// shares of open space.
+/// 90 deg) and behind it, each side at its own overall rate (a shift of every
+/// keep logit): whether an effect helps on both sides is a question about its
+/// pattern. The one keep scale refitted beside an effect raises the keep rate of
+/// every pixel the effect does not bin, and a side that sees mostly open space
+/// would look worse although the effect fits it. A shift in logits, unlike a
+/// scale, never saturates, so a side whose scenes keep far more than the sim's
+/// still shows the pattern.
 fn mask_nll_ahead_behind(px: &Pixels, keep: &[f64]) -> [f64; 2] {
-    struct Side;
-    impl DropFamily for Side {
-        fn id(&self) -> &'static str {
-            "side"
+    const BINS: usize = 448;
+    const LIMIT: f64 = 28.0;
+    // Per side and logit bin: (kept, dropped, sum of logits).
+    let mut cells = vec![[(0.0, 0.0, 0.0); BINS]; 2];
+    for (i, (&kept, &k)) in px.kept.iter().zip(keep).enumerate() {
+        let a = px
+            .column_azimuth_rad
+            .get(px.column[i] as usize)
+            .copied()
+            .unwrap_or(0.0);
+        let side = usize::from(a.abs() > std::f32::consts::FRAC_PI_2);
+        let k = k.clamp(1e-12, KEEP_MAX);
+        let z = (k / (1.0 - k)).ln();
+        let bin = (((z + LIMIT) / (2.0 * LIMIT) * BINS as f64) as usize).min(BINS - 1);
+        let cell = &mut cells[side][bin];
+        if kept {
+            cell.0 += 1.0;
+        } else {
+            cell.1 += 1.0;
         }
-        fn bins(&self, _: &Pixels) -> usize {
-            2
-        }
-        fn bin(&self, px: &Pixels, i: usize) -> Option<usize> {
-            let a = px
-                .column_azimuth_rad
-                .get(px.column[i] as usize)
-                .copied()
-                .unwrap_or(0.0);
-            Some(usize::from(a.abs() > std::f32::consts::FRAC_PI_2))
-        }
-        fn fit(&self, _: &QTable, _: &Pixels) -> Option<DropFit> {
-            None
-        }
+        cell.2 += z;
     }
-    let table = QTable::build(&Side, px, keep);
-    // keep = c·q = q·(1 − p) with p = 1 − c, as in `best_scale`.
-    [0, 1].map(|side| golden(0.3, 3.0, 48, |c| table.bin_nll(side, 1.0 - c)).1)
+    // -ln sigmoid(z), stable for either sign.
+    let softplus_neg = |z: f64| (-z).max(0.0) + (-z.abs()).exp().ln_1p();
+    [0, 1].map(|side| {
+        let nll = |shift: f64| {
+            cells[side]
+                .iter()
+                .filter(|c| c.0 + c.1 > 0.0)
+                .map(|&(kept, dropped, zs)| {
+                    let z = zs / (kept + dropped) + shift;
+                    kept * softplus_neg(z) + dropped * softplus_neg(-z)
+                })
+                .sum::<f64>()
+        };
+        golden(-8.0, 8.0, 48, nll).1
+    })
 }
 
 /// The keep scale `c` minimising the NLL of `keep = c · rest` (pooled by level).
@@ -1244,7 +1261,7 @@ mod tests {
     }
 
     #[test]
-    fn each_side_is_judged_at_its_own_keep_scale() {
+    fn each_side_is_judged_at_its_own_overall_rate() {
         // Ahead keeps 9 of 10 rays, behind 1 of 2: a model that only moves the
         // overall rate is neither better nor worse on either side.
         let px = two_rows(|_, ahead, j| if ahead { j % 10 != 0 } else { j % 2 == 0 });
