@@ -641,7 +641,8 @@ pub fn mask_nll(px: &Pixels, keep: &[f64]) -> f64 {
 fn mask_nll_ahead_behind(px: &Pixels, keep: &[f64]) -> [f64; 2] {
     const BINS: usize = 448;
     const LIMIT: f64 = 28.0;
-    // Per side and logit bin: (kept, dropped, sum of logits).
+    // Per side and logit bin (0.125 wide): (kept, dropped, sum of logits), so the
+    // shift is searched over a few hundred cells rather than every pixel.
     let mut cells = vec![[(0.0, 0.0, 0.0); BINS]; 2];
     for (i, (&kept, &k)) in px.kept.iter().zip(keep).enumerate() {
         let a = px
