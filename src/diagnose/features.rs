@@ -6,8 +6,9 @@
 //! holes near the ground completed as ground and walls, and a cheap neighbour
 //! fill, or a completed depth given by the caller for the holes of the lower
 //! half that no surface spans: the GAN's x_d, see `completion`), incidence
-//! angles from the normals of the completed depth, depth-edge proximity, and classes (labels where present, else the most common
-//! label among valid neighbours). It does no statistics (see `stats`) and no I/O.
+//! angles from the normals of the completed depth, depth-edge proximity, and
+//! classes (labels where present, else the most common label among valid
+//! neighbours). It does no statistics (see `stats`) and no I/O.
 
 use crate::lidar::RangeImage;
 use crate::lidar::edges::{EDGE_RELATIVE_JUMP, EdgeAxes, MAX_EDGE_PX, edge_proximity};

@@ -23,6 +23,7 @@
 //! and the likelihood of any per-bin drop curve is a sum over its cells.
 
 use super::features::ScanFeatures;
+use crate::model::calibration::bernoulli_nll;
 
 /// Smallest held-out gain (nats per pixel) an effect must show: pixels of a scan
 /// are correlated, so the BIC term alone (which assumes independence) is too lax.
@@ -662,8 +663,6 @@ fn mask_nll_ahead_behind(px: &Pixels, keep: &[f64]) -> [f64; 2] {
         }
         cell.2 += z;
     }
-    // -ln sigmoid(z), stable for either sign.
-    let softplus_neg = |z: f64| (-z).max(0.0) + (-z.abs()).exp().ln_1p();
     [0, 1].map(|side| {
         let nll = |shift: f64| {
             cells[side]
@@ -671,7 +670,7 @@ fn mask_nll_ahead_behind(px: &Pixels, keep: &[f64]) -> [f64; 2] {
                 .filter(|c| c.0 + c.1 > 0.0)
                 .map(|&(kept, dropped, zs)| {
                     let z = zs / (kept + dropped) + shift;
-                    kept * softplus_neg(z) + dropped * softplus_neg(-z)
+                    kept * bernoulli_nll(z, true) + dropped * bernoulli_nll(z, false)
                 })
                 .sum::<f64>()
         };
