@@ -10,6 +10,7 @@
 //! with the weights (`calibration.json` beside `g_ema.bpk`), because it belongs to the
 //! generator (and to the decode that produced the logits it was fitted on).
 
+use crate::util::math::softplus;
 use anyhow::{Context, Result, bail};
 use serde::{Deserialize, Serialize};
 
@@ -86,7 +87,6 @@ impl BeamSamples {
 /// -log p(kept) for a keep logit `z`, stable for large |z|.
 pub fn bernoulli_nll(z: f64, kept: bool) -> f64 {
     // -log sigmoid(z) = softplus(-z); -log(1 - sigmoid(z)) = softplus(z)
-    let softplus = |x: f64| x.max(0.0) + (-x.abs()).exp().ln_1p();
     if kept { softplus(-z) } else { softplus(z) }
 }
 

@@ -15,6 +15,7 @@
 use nalgebra::{DMatrix, DVector};
 
 use super::data::DROPPED;
+use crate::util::math::softplus;
 use crate::util::rng::Rng;
 
 /// Row bands the per-band statistics are taken over.
@@ -206,11 +207,7 @@ pub fn c2st(a: &[Vec<f64>], b: &[Vec<f64>], cfg: &C2stConfig) -> C2stReport {
                     .chain(split(&ib, b, true).iter().map(|x| -model.score(x)))
                     .collect::<Vec<f64>>();
                 correct += margins.iter().filter(|m| **m > 0.0).count();
-                // log(1 + e^-m), stable for large |m|.
-                loss_sum += margins
-                    .iter()
-                    .map(|m| (-m).max(0.0) + (-m.abs()).exp().ln_1p())
-                    .sum::<f64>();
+                loss_sum += margins.iter().map(|m| softplus(-m)).sum::<f64>();
             }
             correct as f64 / (2 * n) as f64
         })

@@ -4,6 +4,7 @@
 //!   anything is allocated from them.
 //! - [`fs`]: atomic file writes.
 //! - [`json`]: merging a saved JSON config over the current defaults.
+//! - [`math`]: scalar functions (a stable softplus).
 //! - [`mlp`]: a small fully connected network with its own backward pass and Adam.
 //! - [`png`]: PNG encoding.
 //! - [`rng`]: deterministic random numbers, keyed or sequential.
@@ -12,6 +13,7 @@
 pub mod bounds;
 pub mod fs;
 pub mod json;
+pub mod math;
 pub mod mlp;
 pub mod png;
 pub mod rng;
