@@ -10,9 +10,10 @@
 //! with the weights (`calibration.json` beside `g_ema.bpk`), because it belongs to the
 //! generator (and to the decode that produced the logits it was fitted on).
 
-use crate::util::math::softplus;
 use anyhow::{Context, Result, bail};
 use serde::{Deserialize, Serialize};
+
+use crate::util::math::softplus;
 
 /// Per-beam affine maps of the keep logit.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
