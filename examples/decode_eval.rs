@@ -538,6 +538,7 @@ fn mean(v: &[f64]) -> f64 {
 }
 
 fn main() -> Result<()> {
+    rangegan_mcap::model::tune_allocator(); // as the binary does
     let args = parse_args()?;
     if !args.data.exists() {
         eprintln!("skipped: {} not found", args.data.display());

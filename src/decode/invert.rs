@@ -152,16 +152,17 @@ pub struct Inverted {
     pub losses: Vec<f32>,
 }
 
-/// Host-side Adam for latents (any number of values; torch defaults beta (0.9, 0.999)).
-pub struct LatentAdam {
+/// Host-side Adam over a flat vector (latents, or every weight of the hand-written pivotal
+/// tuning); torch defaults beta (0.9, 0.999), the same update as burn's `Adam`.
+pub struct HostAdam {
     m: Vec<f32>,
     v: Vec<f32>,
     t: i32,
 }
 
-impl LatentAdam {
+impl HostAdam {
     pub fn new(n: usize) -> Self {
-        LatentAdam {
+        HostAdam {
             m: vec![0.0; n],
             v: vec![0.0; n],
             t: 0,
@@ -227,7 +228,25 @@ fn fits(
 /// `generator` lives on the inference device, `cache_ad` is its grid cache on `ad` (the
 /// autodiff device); target and mask are `[1, 1, H, W]` on `ad` (network units, {0, 1}).
 /// Starts at `w0`. The caller's generator is not modified: pivotal tuning works on a copy.
+/// Pivotal tuning alone runs by hand ([`super::pivotal`]), everything else through autodiff.
 pub fn invert(
+    generator: &Generator,
+    cache_ad: &GridCache,
+    target: Tensor<4>,
+    mask: Tensor<4>,
+    w0: Vec<f32>,
+    schedule: &Schedule,
+    ad: &Device,
+) -> Inverted {
+    if super::pivotal::supports(generator, schedule) && target.dims()[0] == 1 {
+        let (target, mask) = (tensor_to_vec(target), tensor_to_vec(mask));
+        return super::pivotal::tune(generator, cache_ad, &target, &mask, w0, schedule);
+    }
+    invert_autodiff(generator, cache_ad, target, mask, w0, schedule, ad)
+}
+
+/// [`invert`] through burn's autodiff, whatever the schedule.
+pub fn invert_autodiff(
     generator: &Generator,
     cache_ad: &GridCache,
     target: Tensor<4>,
@@ -244,7 +263,7 @@ pub fn invert(
     // Step 1: w only; the weights are constants (no weight gradients are computed).
     if schedule.w_steps > 0 {
         let frozen = generator.clone().fork(ad).no_grad();
-        let mut adam = LatentAdam::new(d_w);
+        let mut adam = HostAdam::new(d_w);
         for step in 0..schedule.w_steps {
             let t = step as f64 / schedule.w_steps as f64;
             let lr = (schedule.w_lr * lr_ramp(t)) as f32;
@@ -264,7 +283,7 @@ pub fn invert(
     let total: usize = stages.iter().map(|(steps, _)| steps).sum();
     let mut tuned = generator.clone().fork(ad).train();
     let joint = schedule.tune_w_lr > 0.0;
-    let mut adam_w = LatentAdam::new(d_w);
+    let mut adam_w = HostAdam::new(d_w);
     let mut opt = AdamConfig::new().with_epsilon(1e-8).init();
     let mut step = 0;
     for (steps, fit) in &stages {

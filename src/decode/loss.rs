@@ -82,6 +82,126 @@ pub fn reconstruction_loss(
     loss
 }
 
+/// [`reconstruction_loss`] of one `h x w` image on the host, and its gradient with respect to
+/// the generated image (network units): the loss of the hand-written pivotal tuning
+/// ([`super::pivotal`]). Same function, pixel for pixel.
+pub fn reconstruction_loss_grad(
+    x_gen_net: &[f32],
+    target_net: &[f32],
+    mask: &[f32],
+    (h, w): (usize, usize),
+    levels: usize,
+) -> (f32, Vec<f32>) {
+    let to_x = |v: &[f32]| -> Vec<f32> { v.iter().map(|x| (x + 1.0) * 0.5).collect() };
+    let mut pyramid = vec![HostLevel {
+        x_gen: to_x(x_gen_net),
+        x_obs: to_x(target_net),
+        mask: mask.to_vec(),
+        count: Vec::new(),
+        size: (h, w),
+    }];
+    for _ in 0..levels {
+        let (h, w) = pyramid.last().expect("level 0").size;
+        if h < 2 || w < 2 || h % 2 != 0 || w % 2 != 0 {
+            break;
+        }
+        let pooled = pyramid.last().expect("level 0").pooled();
+        pyramid.push(pooled);
+    }
+    let mut loss = 0.0;
+    let mut grad: Vec<f32> = Vec::new(); // of the current (coarser) level's x_gen
+    for (l, level) in pyramid.iter().enumerate().rev() {
+        let (value, mut g) = level.loss_grad();
+        loss += value;
+        if let Some(coarser) = pyramid.get(l + 1) {
+            // Back through the masked mean: each pixel gets its cell's gradient / count.
+            let (_, w) = level.size;
+            for (k, gk) in g.iter_mut().enumerate() {
+                let cell = (k / w / 2) * (w / 2) + (k % w) / 2;
+                *gk += grad[cell] * level.mask[k] / coarser.count[cell].max(1.0);
+            }
+        }
+        grad = g;
+    }
+    (loss, grad.iter().map(|g| 0.5 * g).collect())
+}
+
+/// One level of [`reconstruction_loss_grad`]'s pyramid.
+struct HostLevel {
+    x_gen: Vec<f32>,
+    x_obs: Vec<f32>,
+    mask: Vec<f32>,
+    /// Measured pixels of the finer level in each cell (pooled levels only).
+    count: Vec<f32>,
+    size: (usize, usize),
+}
+
+impl HostLevel {
+    /// [`pool_masked`] of both images.
+    fn pooled(&self) -> HostLevel {
+        let (h, w) = self.size;
+        let (hp, wp) = (h / 2, w / 2);
+        let mut sums = [
+            vec![0.0f32; hp * wp],
+            vec![0.0; hp * wp],
+            vec![0.0; hp * wp],
+        ];
+        for k in 0..h * w {
+            let cell = (k / w / 2) * wp + (k % w) / 2;
+            let m = self.mask[k];
+            sums[0][cell] += self.x_gen[k] * m;
+            sums[1][cell] += self.x_obs[k] * m;
+            sums[2][cell] += m;
+        }
+        let [g, o, count] = sums;
+        let mean = |s: Vec<f32>| -> Vec<f32> {
+            s.iter().zip(&count).map(|(s, c)| s / c.max(1.0)).collect()
+        };
+        HostLevel {
+            x_gen: mean(g),
+            x_obs: mean(o),
+            mask: count
+                .iter()
+                .map(|c| f32::from(u8::from(*c > 0.0)))
+                .collect(),
+            count,
+            size: (hp, wp),
+        }
+    }
+
+    /// `level_loss` and its gradient with respect to x_gen.
+    fn loss_grad(&self) -> (f32, Vec<f32>) {
+        let sign = |v: f32| {
+            if v > 0.0 {
+                1.0
+            } else if v < 0.0 {
+                -1.0
+            } else {
+                0.0
+            }
+        };
+        let n = self.mask.iter().sum::<f32>().max(1.0);
+        let mut loss = 0.0f32;
+        let grad = (self.x_gen.iter().zip(&self.x_obs).zip(&self.mask))
+            .map(|((&g, &o), &m)| {
+                if m == 0.0 {
+                    return 0.0;
+                }
+                let safe = g.max(MIN_X_D);
+                let (inv, depth) = (g / o - 1.0, o / safe - 1.0);
+                loss += inv.abs() + depth.abs();
+                let d_depth = if g > MIN_X_D {
+                    -sign(depth) * o / (safe * safe)
+                } else {
+                    0.0
+                };
+                (sign(inv) / o + d_depth) / n
+            })
+            .collect();
+        (loss / n, grad)
+    }
+}
+
 /// The reported reconstruction error: mean over measured pixels of |d_gen - d_obs| / d_obs
 /// (depths in meters), with the generated depth clamped to the valid range [1.45, 80] m.
 /// `None` when nothing was measured.
@@ -144,6 +264,32 @@ mod tests {
         ));
         let expected = ((x_gen / x_obs - 1.0).abs() + (x_obs / x_gen - 1.0).abs()) / 3.0;
         assert!((l[0] - expected).abs() < 1e-5, "{} vs {expected}", l[0]);
+    }
+
+    #[test]
+    fn host_loss_and_gradient_match_autodiff() {
+        let (h, w) = (4, 8);
+        let wave = |a: f32, b: f32| (0..h * w).map(move |k| (k as f32 * a + b).sin() * 0.6);
+        let gen_: Vec<f32> = wave(0.7, 0.3).collect();
+        let obs: Vec<f32> = wave(0.4, 1.1).collect();
+        let mask: Vec<f32> = (0..h * w)
+            .map(|k| f32::from(u8::from(k % 3 != 1)))
+            .collect();
+        let ad = Device::flex().autodiff();
+        let x = tensor_from(gen_.clone(), [1, 1, h, w], &ad).require_grad();
+        let obs_t = tensor_from(obs.clone(), [1, 1, h, w], &ad);
+        let mask_t = tensor_from(mask.clone(), [1, 1, h, w], &ad);
+        let loss = reconstruction_loss(x.clone(), obs_t, mask_t, 2).sum();
+        let want = loss.clone().inner().into_scalar::<f32>();
+        let want_grad = tensor_to_vec(x.grad(&loss.backward()).expect("a gradient"));
+        let (got, grad) = reconstruction_loss_grad(&gen_, &obs, &mask, (h, w), 2);
+        assert!(
+            (got - want).abs() < 1e-5 * want.abs().max(1.0),
+            "{got} vs {want}"
+        );
+        for (g, e) in grad.iter().zip(&want_grad) {
+            assert!((g - e).abs() < 1e-5, "{g} vs {e}");
+        }
     }
 
     #[test]

@@ -6,7 +6,8 @@
 //!   amortised encoder ([`amortised`]) and the per-grid Fourier caches.
 //! - [`Decoder::decode`] reprojects the observation onto the model grid, optionally makes it sparse
 //!   ([`Sparsify`], the paper's restoration), predicts or initialises w, and runs
-//!   [`invert::invert`] (w steps, then pivotal tuning on a private copy of the weights).
+//!   [`invert::invert`] (w steps, then pivotal tuning on a private copy of the weights; by hand
+//!   in [`pivotal`] where only tuning steps run).
 //! - [`Decoded`] holds the result: completed depth x_d and drop probability x_n on the model grid,
 //!   the reconstruction error, Bernoulli ray-drop masks, and [`Decoded::render`] for other grids.
 //! - [`fill`] decides what the upsampled, other-sensor and restored grids hold ([`Fill`]: the
@@ -24,6 +25,7 @@ pub mod fill;
 pub mod fit;
 pub mod invert;
 pub mod loss;
+pub mod pivotal;
 pub mod row_fill;
 
 use std::sync::{Arc, Condvar, Mutex};

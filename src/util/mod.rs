@@ -5,6 +5,7 @@
 //! - [`fs`]: atomic file writes.
 //! - [`json`]: merging a saved JSON config over the current defaults.
 //! - [`math`]: scalar functions (a stable softplus).
+//! - [`matmul`]: single-threaded matrix products on host slices.
 //! - [`mlp`]: a small fully connected network with its own backward pass and Adam.
 //! - [`png`]: PNG encoding.
 //! - [`rng`]: deterministic random numbers, keyed or sequential.
@@ -14,6 +15,7 @@ pub mod bounds;
 pub mod fs;
 pub mod json;
 pub mod math;
+pub mod matmul;
 pub mod mlp;
 pub mod png;
 pub mod rng;

@@ -1,0 +1,666 @@
+//! Pivotal tuning by hand on the CPU: the implicit generator's forward and backward pass at
+//! batch 1 with w frozen, and Adam over every tuned weight.
+//!
+//! The same function, loss and optimiser as the autodiff path of [`super::invert`] (a test
+//! holds the two level), written as a few passes per synthesis block over host slices. Through
+//! autodiff a batch-1 tuning step spends most of its time creating, copying and walking
+//! per-op tensors rather than multiplying (BENCHMARKS.md, "Where a `fast` decode's time goes").
+//!
+//! A modulated layer with style s and scaled weight W computes y = x (W diag(s))^T, so its
+//! products use one per-step matrix Wm = W diag(s), and the backward pass needs no per-pixel
+//! copy of x s: with G = gy^T x, dL/dW = G diag(s) and dL/ds_k = sum_o W_ok G_ok, plus the
+//! demodulation's terms.
+
+use std::f32::consts::SQRT_2;
+use std::ops::Range;
+
+use burn::module::Param;
+use burn::tensor::{Device, Tensor};
+
+use super::invert::{HostAdam, Inverted, Schedule};
+use super::loss::reconstruction_loss_grad;
+use crate::model::generator::{Generator, GridCache};
+use crate::model::layers::ModulatedLinear;
+use crate::util::matmul::{View, matmul};
+use crate::util::tensor::{tensor_from, tensor_to_vec};
+
+/// Slopes of LeakyReLU(0.2) * sqrt(2) ([`crate::model::layers::lrelu_gain`]).
+const POS: f32 = SQRT_2;
+const NEG: f32 = 0.2 * SQRT_2;
+
+/// Whether [`tune`] runs `schedule` on `generator`: pivotal tuning alone (no steps on w, no
+/// coarse steps), and no local 3x3 paths. Anything else takes the autodiff path.
+pub fn supports(generator: &Generator, schedule: &Schedule) -> bool {
+    schedule.w_steps == 0
+        && schedule.coarse_steps.is_empty()
+        && schedule.tune_w_lr == 0.0
+        && generator.blocks.iter().all(|b| b.local.is_none())
+}
+
+/// Pivotal tuning of a copy of `generator` at the latent `w` against one observation
+/// (`target`, `mask`: the model grid's `H*W` pixels, network units and {0, 1}).
+pub fn tune(
+    generator: &Generator,
+    cache: &GridCache,
+    target: &[f32],
+    mask: &[f32],
+    w: Vec<f32>,
+    schedule: &Schedule,
+) -> Inverted {
+    let mut net = Net::read(generator, cache);
+    let mut adam = HostAdam::new(net.params.len());
+    let mut losses = Vec::with_capacity(schedule.tune_steps);
+    for step in 0..schedule.tune_steps {
+        let lr = if schedule.tune_decay {
+            let t = step as f64 / schedule.tune_steps as f64;
+            schedule.tune_lr * 0.5 * (1.0 + (std::f64::consts::PI * t).cos())
+        } else {
+            schedule.tune_lr
+        };
+        let (loss, grads) = net.loss_and_gradients(&w, target, mask, schedule.pyramid_levels);
+        losses.push(loss);
+        adam.step(&mut net.params, &grads, lr as f32);
+    }
+    Inverted {
+        generator: net.write(generator),
+        w,
+        losses,
+    }
+}
+
+/// Where one modulated layer's weights sit in the flat parameter vector, and its constants.
+struct Layer {
+    d_in: usize,
+    d_out: usize,
+    demodulate: bool,
+    activate: bool,
+    affine_gain: f32,
+    affine_lr_mul: f32,
+    weight_gain: f32,
+    /// `[d_in, d_w]`
+    affine_weight: Range<usize>,
+    /// `[d_in]`
+    affine_bias: Range<usize>,
+    /// `[d_out, d_in]`
+    weight: Range<usize>,
+    /// `[d_out]`
+    bias: Range<usize>,
+}
+
+/// A layer's values for one step: style s, scaled weight W, Wm = W diag(s), demodulation d.
+struct Modulated {
+    s: Vec<f32>,
+    ws: Vec<f32>,
+    wm: Vec<f32>,
+    d: Vec<f32>,
+}
+
+impl Layer {
+    fn read(layer: &ModulatedLinear, params: &mut Vec<f32>) -> Layer {
+        let mut push = |v: Vec<f32>| {
+            let start = params.len();
+            params.extend(v);
+            start..params.len()
+        };
+        let [d_out, d_in] = layer.weight.dims();
+        Layer {
+            d_in,
+            d_out,
+            demodulate: layer.demodulate,
+            activate: layer.activate,
+            affine_gain: layer.affine.weight_gain,
+            affine_lr_mul: layer.affine.lr_mul,
+            weight_gain: layer.weight_gain,
+            affine_weight: push(tensor_to_vec(layer.affine.weight.val())),
+            affine_bias: push(tensor_to_vec(layer.affine.bias.val())),
+            weight: push(tensor_to_vec(layer.weight.val())),
+            bias: push(tensor_to_vec(layer.bias.val())),
+        }
+    }
+
+    fn write(&self, layer: &mut ModulatedLinear, params: &[f32], device: &Device) {
+        let d_w = self.affine_weight.len() / self.d_in;
+        let values = |r: &Range<usize>| params[r.clone()].to_vec();
+        let t2 = |r: &Range<usize>, shape| tensor_from(values(r), shape, device);
+        let t1 = |r: &Range<usize>| tensor_from(values(r), [r.len()], device);
+        let affine = &mut layer.affine;
+        affine.weight = set(&affine.weight, t2(&self.affine_weight, [self.d_in, d_w]));
+        affine.bias = set(&affine.bias, t1(&self.affine_bias));
+        layer.weight = set(&layer.weight, t2(&self.weight, [self.d_out, self.d_in]));
+        layer.bias = set(&layer.bias, t1(&self.bias));
+    }
+
+    fn modulate(&self, p: &[f32], w: &[f32]) -> Modulated {
+        let d_w = w.len();
+        let aw = &p[self.affine_weight.clone()];
+        let ab = &p[self.affine_bias.clone()];
+        let s: Vec<f32> = (0..self.d_in)
+            .map(|k| {
+                let row = &aw[k * d_w..(k + 1) * d_w];
+                let dot: f32 = row.iter().zip(w).map(|(a, b)| a * b).sum();
+                dot * self.affine_gain + ab[k] * self.affine_lr_mul
+            })
+            .collect();
+        let ws: Vec<f32> = p[self.weight.clone()]
+            .iter()
+            .map(|v| v * self.weight_gain)
+            .collect();
+        let wm: Vec<f32> = ws
+            .iter()
+            .enumerate()
+            .map(|(i, v)| v * s[i % self.d_in])
+            .collect();
+        let d = (0..self.d_out)
+            .map(|o| {
+                if !self.demodulate {
+                    return 1.0;
+                }
+                let row = &wm[o * self.d_in..(o + 1) * self.d_in];
+                1.0 / (row.iter().map(|v| v * v).sum::<f32>() + 1e-8).sqrt()
+            })
+            .collect();
+        Modulated { s, ws, wm, d }
+    }
+
+    /// The layer's output from its product y (`[pixels, d_out]`, before demodulation).
+    fn output(&self, m: &Modulated, p: &[f32], y: &[f32], out: &mut [f32]) {
+        let (bias, d) = (&p[self.bias.clone()], &m.d[..self.d_out]);
+        for (row, y) in out
+            .chunks_exact_mut(self.d_out)
+            .zip(y.chunks_exact(self.d_out))
+        {
+            for (((o, y), d), b) in row.iter_mut().zip(y).zip(d).zip(bias) {
+                *o = self.slope(y * d + b) * (y * d + b);
+            }
+        }
+    }
+
+    /// The activation's slope at z (1 without one).
+    fn slope(&self, z: f32) -> f32 {
+        match (self.activate, z > 0.0) {
+            (false, _) => 1.0,
+            (true, true) => POS,
+            (true, false) => NEG,
+        }
+    }
+
+    /// Back through [`Layer::output`]: turns `g` (the output's gradient) into the product's in
+    /// place, and returns the gradients of the demodulation coefficients and of the bias.
+    fn output_backward(
+        &self,
+        m: &Modulated,
+        p: &[f32],
+        y: &[f32],
+        g: &mut [f32],
+    ) -> (Vec<f32>, Vec<f32>) {
+        let (bias, d) = (&p[self.bias.clone()], &m.d[..self.d_out]);
+        let mut gd = vec![0.0f32; self.d_out];
+        let mut gb = vec![0.0f32; self.d_out];
+        for (g, y) in g
+            .chunks_exact_mut(self.d_out)
+            .zip(y.chunks_exact(self.d_out))
+        {
+            let terms = g.iter_mut().zip(y).zip(d).zip(bias);
+            for ((((g, y), d), b), (gd, gb)) in terms.zip(gd.iter_mut().zip(gb.iter_mut())) {
+                let gz = *g * self.slope(y * d + b);
+                *gd += gz * y;
+                *gb += gz;
+                *g = gz * d;
+            }
+        }
+        (gd, gb)
+    }
+
+    /// The weights' gradients, into `grads`, from G = gy^T x (`[d_out, d_in]`, gy the product's
+    /// gradient) and the output's `gd`, `gb`.
+    fn weight_gradients(
+        &self,
+        m: &Modulated,
+        w: &[f32],
+        (g, gd, gb): (&[f32], &[f32], &[f32]),
+        grads: &mut [f32],
+    ) {
+        let d_in = self.d_in;
+        let mut gs = vec![0.0f32; d_in];
+        for o in 0..self.d_out {
+            // d = (sum_k (s_k W_ok)^2 + eps)^(-1/2)
+            let gr = if self.demodulate {
+                -0.5 * gd[o] * m.d[o].powi(3)
+            } else {
+                0.0
+            };
+            for k in 0..d_in {
+                let (s, ws, gok) = (m.s[k], m.ws[o * d_in + k], g[o * d_in + k]);
+                let g_ws = gok * s + gr * 2.0 * s * s * ws;
+                gs[k] += ws * gok + gr * 2.0 * s * ws * ws;
+                grads[self.weight.start + o * d_in + k] += g_ws * self.weight_gain;
+            }
+            grads[self.bias.start + o] += gb[o];
+        }
+        let d_w = w.len();
+        for (k, gk) in gs.iter().enumerate() {
+            let row = self.affine_weight.start + k * d_w;
+            for (j, wj) in w.iter().enumerate() {
+                grads[row + j] += gk * self.affine_gain * wj;
+            }
+            grads[self.affine_bias.start + k] += gk * self.affine_lr_mul;
+        }
+    }
+}
+
+fn set<const D: usize>(param: &Param<Tensor<D>>, value: Tensor<D>) -> Param<Tensor<D>> {
+    param.clone().map(|_| value)
+}
+
+/// One synthesis block: its three layers, its level's Fourier basis and sizes.
+struct Block {
+    conv0: Layer,
+    conv1: Layer,
+    head: Layer,
+    /// `[h*w, 2F]`
+    basis: Vec<f32>,
+    size: (usize, usize),
+}
+
+impl Block {
+    fn pixels(&self) -> usize {
+        self.size.0 * self.size.1
+    }
+
+    fn channels(&self) -> usize {
+        self.conv1.d_out
+    }
+
+    /// Channels of conv0's input that come from the previous block.
+    fn previous_channels(&self) -> usize {
+        self.conv0.d_in - self.basis.len() / self.pixels()
+    }
+}
+
+/// A block's buffers, kept from step to step: what the forward pass keeps for the backward one
+/// (this step's modulations, conv0's and conv1's products before demodulation and their outputs)
+/// and the gradients of the two outputs. `[pixels, ch]` each.
+struct Pass {
+    m0: Modulated,
+    m1: Modulated,
+    mh: Modulated,
+    y0: Vec<f32>,
+    a0: Vec<f32>,
+    y1: Vec<f32>,
+    a1: Vec<f32>,
+    g_a0: Vec<f32>,
+    g_a1: Vec<f32>,
+}
+
+impl Pass {
+    fn new(block: &Block) -> Pass {
+        let len = block.pixels() * block.channels();
+        let none = || Modulated {
+            s: Vec::new(),
+            ws: Vec::new(),
+            wm: Vec::new(),
+            d: Vec::new(),
+        };
+        Pass {
+            m0: none(),
+            m1: none(),
+            mh: none(),
+            y0: vec![0.0; len],
+            a0: vec![0.0; len],
+            y1: vec![0.0; len],
+            a1: vec![0.0; len],
+            g_a0: vec![0.0; len],
+            g_a1: vec![0.0; len],
+        }
+    }
+}
+
+/// The generator as flat tuned weights and host-side blocks, with each block's buffers.
+struct Net {
+    params: Vec<f32>,
+    blocks: Vec<Block>,
+    work: Vec<Pass>,
+    output_gain: f32,
+}
+
+impl Net {
+    fn read(generator: &Generator, cache: &GridCache) -> Net {
+        let mut params = Vec::new();
+        let blocks: Vec<Block> = (generator.blocks.iter().zip(&cache.levels))
+            .map(|(block, level)| Block {
+                conv0: Layer::read(&block.conv0, &mut params),
+                conv1: Layer::read(&block.conv1, &mut params),
+                head: Layer::read(&block.head, &mut params),
+                basis: tensor_to_vec(level.basis.clone()),
+                size: (level.height, level.width),
+            })
+            .collect();
+        Net {
+            params,
+            work: blocks.iter().map(Pass::new).collect(),
+            blocks,
+            output_gain: generator.output_gain,
+        }
+    }
+
+    fn write(&self, generator: &Generator) -> Generator {
+        let device = generator.mapping.w_avg.val().device();
+        let mut out = generator.clone();
+        for (block, layout) in out.blocks.iter_mut().zip(&self.blocks) {
+            layout.conv0.write(&mut block.conv0, &self.params, &device);
+            layout.conv1.write(&mut block.conv1, &self.params, &device);
+            layout.head.write(&mut block.head, &self.params, &device);
+        }
+        out
+    }
+
+    /// The forward pass into the blocks' buffers; returns the summed heads' inverse-depth
+    /// channel at the finest level (before the output gain and tanh).
+    fn forward(&mut self, w: &[f32]) -> Vec<f32> {
+        let Net {
+            params: p,
+            blocks,
+            work,
+            ..
+        } = self;
+        let mut heads: Vec<f32> = Vec::new();
+        for (i, block) in blocks.iter().enumerate() {
+            let (done, rest) = work.split_at_mut(i);
+            let pass = &mut rest[0];
+            let (n, c, c_x) = (block.pixels(), block.channels(), block.previous_channels());
+            let (d_in, two_f) = (block.conv0.d_in, block.conv0.d_in - c_x);
+            pass.m0 = block.conv0.modulate(p, w);
+            let wm_pe = View::columns(&pass.m0.wm, c, d_in, c_x, two_f).t();
+            matmul(
+                View::new(&block.basis, n, two_f),
+                wm_pe,
+                &mut pass.y0,
+                false,
+            );
+            if let Some(prev) = done.last() {
+                // The product at the previous level, then upsampled (the two commute); g_a0
+                // is free until the backward pass.
+                let (hp, wp) = blocks[i - 1].size;
+                let y_x = &mut pass.g_a0[..hp * wp * c];
+                let wm_x = View::columns(&pass.m0.wm, c, d_in, 0, c_x).t();
+                matmul(View::new(&prev.a1, hp * wp, c_x), wm_x, y_x, false);
+                let up = upsample2x(y_x, (hp, wp), c);
+                pass.y0.iter_mut().zip(&up).for_each(|(y, u)| *y += u);
+                heads = upsample2x(&heads, (hp, wp), 1);
+            }
+            block.conv0.output(&pass.m0, p, &pass.y0, &mut pass.a0);
+            pass.m1 = block.conv1.modulate(p, w);
+            let wm1 = View::new(&pass.m1.wm, c, c).t();
+            matmul(View::new(&pass.a0, n, c), wm1, &mut pass.y1, false);
+            block.conv1.output(&pass.m1, p, &pass.y1, &mut pass.a1);
+            pass.mh = block.head.modulate(p, w);
+            let mut head = vec![0.0f32; n];
+            let wm_h = View::new(&pass.mh.wm[..c], 1, c).t();
+            matmul(View::new(&pass.a1, n, c), wm_h, &mut head, false);
+            let bias = p[block.head.bias.start];
+            heads = if heads.is_empty() {
+                head.iter().map(|h| h + bias).collect()
+            } else {
+                heads.iter().zip(&head).map(|(u, h)| u + h + bias).collect()
+            };
+        }
+        heads
+    }
+
+    /// The reconstruction loss at latent `w` and its gradient for every tuned weight.
+    fn loss_and_gradients(
+        &mut self,
+        w: &[f32],
+        target: &[f32],
+        mask: &[f32],
+        levels: usize,
+    ) -> (f32, Vec<f32>) {
+        let heads = self.forward(w);
+        let x_net: Vec<f32> = heads
+            .iter()
+            .map(|h| (h * self.output_gain).tanh())
+            .collect();
+        let size = self.blocks.last().expect("a generator has blocks").size;
+        let (loss, g_x) = reconstruction_loss_grad(&x_net, target, mask, size, levels);
+        let g_heads: Vec<f32> = (g_x.iter().zip(&x_net))
+            .map(|(g, x)| g * (1.0 - x * x) * self.output_gain)
+            .collect();
+        (loss, self.backward(w, g_heads))
+    }
+
+    /// The backward pass from the gradient of the finest summed heads.
+    fn backward(&mut self, w: &[f32], mut g_heads: Vec<f32>) -> Vec<f32> {
+        let Net {
+            params: p,
+            blocks,
+            work,
+            ..
+        } = self;
+        let mut grads = vec![0.0f32; p.len()];
+        for (i, block) in blocks.iter().enumerate().rev() {
+            let (below, rest) = work.split_at_mut(i);
+            let pass = &mut rest[0];
+            let (n, c, c_x) = (block.pixels(), block.channels(), block.previous_channels());
+            let (d_in, two_f) = (block.conv0.d_in, block.conv0.d_in - c_x);
+
+            // Head: only its inverse-depth channel reaches the loss. g_a1 already holds the
+            // next block's part, except in the last block.
+            let g_heads_v = View::new(&g_heads, n, 1);
+            let wm_h = View::new(&pass.mh.wm[..c], 1, c);
+            matmul(g_heads_v, wm_h, &mut pass.g_a1, i + 1 < blocks.len());
+            let mut g_head = vec![0.0f32; 2 * c];
+            matmul(
+                g_heads_v.t(),
+                View::new(&pass.a1, n, c),
+                &mut g_head[..c],
+                false,
+            );
+            let gb_head = [g_heads.iter().sum::<f32>(), 0.0];
+            let head_terms = (&g_head[..], &[0.0, 0.0][..], &gb_head[..]);
+            block
+                .head
+                .weight_gradients(&pass.mh, w, head_terms, &mut grads);
+
+            // conv1
+            let (gd1, gb1) = block
+                .conv1
+                .output_backward(&pass.m1, p, &pass.y1, &mut pass.g_a1);
+            let g_y1 = View::new(&pass.g_a1, n, c);
+            let mut g1 = vec![0.0f32; c * c];
+            matmul(g_y1.t(), View::new(&pass.a0, n, c), &mut g1, false);
+            matmul(g_y1, View::new(&pass.m1.wm, c, c), &mut pass.g_a0, false);
+            block
+                .conv1
+                .weight_gradients(&pass.m1, w, (&g1, &gd1, &gb1), &mut grads);
+
+            // conv0: the Fourier part, then the previous block's features (upsampled)
+            let (gd0, gb0) = block
+                .conv0
+                .output_backward(&pass.m0, p, &pass.y0, &mut pass.g_a0);
+            let g_y0 = View::new(&pass.g_a0, n, c);
+            let mut g0 = vec![0.0f32; c * d_in];
+            let mut g_pe = vec![0.0f32; c * two_f];
+            matmul(
+                g_y0.t(),
+                View::new(&block.basis, n, two_f),
+                &mut g_pe,
+                false,
+            );
+            if let Some(prev) = below.last_mut() {
+                let (hp, wp) = blocks[i - 1].size;
+                let g_yx = upsample2x_adjoint(&pass.g_a0, (hp, wp), c);
+                let g_yx_v = View::new(&g_yx, hp * wp, c);
+                let mut g_x = vec![0.0f32; c * c_x];
+                matmul(
+                    g_yx_v.t(),
+                    View::new(&prev.a1, hp * wp, c_x),
+                    &mut g_x,
+                    false,
+                );
+                let wm_x = View::columns(&pass.m0.wm, c, d_in, 0, c_x);
+                matmul(g_yx_v, wm_x, &mut prev.g_a1, false);
+                for (row, x) in g0.chunks_exact_mut(d_in).zip(g_x.chunks_exact(c_x)) {
+                    row[..c_x].copy_from_slice(x);
+                }
+                g_heads = upsample2x_adjoint(&g_heads, (hp, wp), 1);
+            }
+            for (row, pe) in g0.chunks_exact_mut(d_in).zip(g_pe.chunks_exact(two_f)) {
+                row[c_x..].copy_from_slice(pe);
+            }
+            block
+                .conv0
+                .weight_gradients(&pass.m0, w, (&g0, &gd0, &gb0), &mut grads);
+        }
+        grads
+    }
+}
+
+/// Neighbours of index `i` of `n` along an axis: circular (azimuth) or replicated (elevation).
+fn neighbours(i: usize, n: usize, circular: bool) -> (usize, usize) {
+    if circular {
+        ((i + n - 1) % n, (i + 1) % n)
+    } else {
+        (i.saturating_sub(1), (i + 1).min(n - 1))
+    }
+}
+
+/// [`crate::model::layers::upsample2x`] along one axis of `[outer, n, inner]` data:
+/// out[2i] = x[i-1] / 4 + 3 x[i] / 4, out[2i+1] = 3 x[i] / 4 + x[i+1] / 4.
+fn upsample_axis(x: &[f32], (outer, n, inner): (usize, usize, usize), circular: bool) -> Vec<f32> {
+    let mut out = Vec::with_capacity(2 * x.len());
+    for rows in x.chunks_exact(n * inner).take(outer) {
+        let row = |j: usize| &rows[j * inner..(j + 1) * inner];
+        for i in 0..n {
+            let (prev, next) = neighbours(i, n, circular);
+            let (xp, xi, xn) = (row(prev), row(i), row(next));
+            out.extend(xp.iter().zip(xi).map(|(p, x)| 0.25 * p + 0.75 * x));
+            out.extend(xi.iter().zip(xn).map(|(x, n)| 0.75 * x + 0.25 * n));
+        }
+    }
+    out
+}
+
+/// The adjoint (transpose) of [`upsample_axis`]: x[i] collects 3/4 of out[2i] and out[2i+1]
+/// and 1/4 of out[2i+2] and out[2i-1] (at a replicated border, of its own pair again).
+fn upsample_axis_adjoint(
+    g: &[f32],
+    (outer, n, inner): (usize, usize, usize),
+    circular: bool,
+) -> Vec<f32> {
+    let mut out = Vec::with_capacity(g.len() / 2);
+    for rows in g.chunks_exact(2 * n * inner).take(outer) {
+        let even = |j: usize| &rows[2 * j * inner..(2 * j + 1) * inner];
+        let odd = |j: usize| &rows[(2 * j + 1) * inner..(2 * j + 2) * inner];
+        for i in 0..n {
+            let (a, b) = if circular {
+                (even((i + 1) % n), odd((i + n - 1) % n))
+            } else {
+                let a = if i + 1 < n { even(i + 1) } else { odd(i) };
+                let b = if i > 0 { odd(i - 1) } else { even(i) };
+                (a, b)
+            };
+            let terms = even(i).iter().zip(odd(i)).zip(a.iter().zip(b));
+            out.extend(terms.map(|((e, o), (a, b))| 0.75 * (e + o) + 0.25 * (a + b)));
+        }
+    }
+    out
+}
+
+/// `[h, w, ch]` -> `[2h, 2w, ch]`, as the generator upsamples.
+fn upsample2x(x: &[f32], (h, w): (usize, usize), ch: usize) -> Vec<f32> {
+    let wide = upsample_axis(x, (h, w, ch), true);
+    upsample_axis(&wide, (1, h, 2 * w * ch), false)
+}
+
+/// The adjoint of [`upsample2x`]: `[2h, 2w, ch]` -> `[h, w, ch]`.
+fn upsample2x_adjoint(g: &[f32], (h, w): (usize, usize), ch: usize) -> Vec<f32> {
+    let narrow = upsample_axis_adjoint(g, (1, h, 2 * w * ch), false);
+    upsample_axis_adjoint(&narrow, (h, w, ch), true)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::decode::invert::invert_autodiff;
+    use crate::model::generator::{GeneratorConfig, MappingConfig};
+    use crate::model::layers::{self, kitti_like_grid};
+    use crate::util::rng::Rng;
+
+    #[test]
+    fn upsampling_matches_the_generator_and_its_adjoint_is_the_transpose() {
+        let (h, w, c) = (3, 4, 2);
+        let x: Vec<f32> = (0..h * w * c).map(|i| (i as f32 * 0.9).sin()).collect();
+        let dev = Device::flex();
+        let want = tensor_to_vec(layers::upsample2x(tensor_from(
+            x.clone(),
+            [1, h, w, c],
+            &dev,
+        )));
+        let got = upsample2x(&x, (h, w), c);
+        for (g, e) in got.iter().zip(&want) {
+            assert!((g - e).abs() < 1e-6, "{g} vs {e}");
+        }
+        // <up(x), g> = <x, up^T(g)>
+        let g: Vec<f32> = (0..got.len()).map(|i| (i as f32 * 0.37).cos()).collect();
+        let lhs: f32 = got.iter().zip(&g).map(|(a, b)| a * b).sum();
+        let back = upsample2x_adjoint(&g, (h, w), c);
+        let rhs: f32 = x.iter().zip(&back).map(|(a, b)| a * b).sum();
+        assert!((lhs - rhs).abs() < 1e-4, "{lhs} vs {rhs}");
+    }
+
+    /// Both paths from the same start: the losses of every step and the tuned rendering agree.
+    #[test]
+    fn hand_written_tuning_matches_autodiff() {
+        let dev = Device::flex();
+        let ad = dev.clone().autodiff();
+        let g = GeneratorConfig::new()
+            .with_mapping(MappingConfig::new().with_d_z(8).with_d_w(8))
+            .with_channels(vec![12, 8, 6])
+            .with_n_freq(vec![5, 4, 3])
+            .with_lh(vec![3, 4, 5])
+            .with_lw(vec![2, 3, 4])
+            .with_seed(5)
+            .init(&dev);
+        let grid = kitti_like_grid(8, 32);
+        let cache = g.prepare(&grid, &dev);
+        let cache_ad = g.prepare(&grid, &ad);
+        let mut rng = Rng::new(9);
+        let w_true = g.mapping.forward(rng.normal_tensor([1, 8], &dev));
+        let target = tensor_to_vec(g.render(w_true, &cache, None).x_d);
+        // Holes, so that the masked pooling is exercised.
+        let mask: Vec<f32> = (0..target.len())
+            .map(|k| f32::from(u8::from(k % 7 != 3 && k % 11 != 5)))
+            .collect();
+        let w0: Vec<f32> = (0..8).map(|i| 0.3 * (i as f32).sin()).collect();
+        let schedule = Schedule {
+            tune_steps: 8,
+            tune_lr: 1e-2,
+            ..Schedule::fast()
+        };
+        assert!(supports(&g, &schedule));
+        let hand = tune(&g, &cache_ad, &target, &mask, w0.clone(), &schedule);
+        let auto = invert_autodiff(
+            &g,
+            &cache_ad,
+            tensor_from(target.clone(), [1, 1, 8, 32], &ad),
+            tensor_from(mask, [1, 1, 8, 32], &ad),
+            w0.clone(),
+            &schedule,
+            &ad,
+        );
+        assert!(hand.losses[7] < 0.8 * hand.losses[0], "{:?}", hand.losses);
+        for (a, b) in hand.losses.iter().zip(&auto.losses) {
+            assert!((a - b).abs() < 1e-4 * b.abs().max(1.0), "{a} vs {b}");
+        }
+        let w_t = tensor_from(w0, [1, 8], &dev);
+        let render = |g: &Generator| tensor_to_vec(g.render(w_t.clone(), &cache, None).x_d);
+        let (x_hand, x_auto) = (render(&hand.generator), render(&auto.generator));
+        let worst = (x_hand.iter().zip(&x_auto))
+            .map(|(a, b)| (a - b).abs())
+            .fold(0.0f32, f32::max);
+        assert!(worst < 1e-4, "tuned renderings differ by {worst}");
+        // The shared generator is untouched.
+        let untouched = render(&g);
+        assert!(untouched.iter().zip(&x_hand).any(|(a, b)| a != b));
+    }
+}
