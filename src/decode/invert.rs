@@ -174,11 +174,11 @@ impl HostAdam {
         self.t += 1;
         let c1 = 1.0 - b1.powi(self.t);
         let c2 = 1.0 - b2.powi(self.t);
-        for i in 0..x.len() {
-            let g = grad[i];
-            self.m[i] = b1 * self.m[i] + (1.0 - b1) * g;
-            self.v[i] = b2 * self.v[i] + (1.0 - b2) * g * g;
-            x[i] -= lr * (self.m[i] / c1) / ((self.v[i] / c2).sqrt() + eps);
+        let moments = self.m.iter_mut().zip(self.v.iter_mut());
+        for ((x, g), (m, v)) in x.iter_mut().zip(grad).zip(moments) {
+            *m = b1 * *m + (1.0 - b1) * g;
+            *v = b2 * *v + (1.0 - b2) * g * g;
+            *x -= lr * (*m / c1) / ((*v / c2).sqrt() + eps);
         }
     }
 }

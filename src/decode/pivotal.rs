@@ -145,10 +145,8 @@ impl Layer {
             .iter()
             .map(|v| v * self.weight_gain)
             .collect();
-        let wm: Vec<f32> = ws
-            .iter()
-            .enumerate()
-            .map(|(i, v)| v * s[i % self.d_in])
+        let wm: Vec<f32> = (ws.chunks_exact(self.d_in))
+            .flat_map(|row| row.iter().zip(&s).map(|(v, s)| v * s))
             .collect();
         let d = (0..self.d_out)
             .map(|o| {
@@ -229,21 +227,25 @@ impl Layer {
             } else {
                 0.0
             };
-            for k in 0..d_in {
-                let (s, ws, gok) = (m.s[k], m.ws[o * d_in + k], g[o * d_in + k]);
-                let g_ws = gok * s + gr * 2.0 * s * s * ws;
-                gs[k] += ws * gok + gr * 2.0 * s * ws * ws;
-                grads[self.weight.start + o * d_in + k] += g_ws * self.weight_gain;
+            let row = o * d_in..(o + 1) * d_in;
+            let start = self.weight.start + row.start;
+            let g_weight = &mut grads[start..start + d_in];
+            let terms = m.s.iter().zip(&m.ws[row.clone()]).zip(&g[row]);
+            for (((s, ws), gok), (gs, gw)) in terms.zip(gs.iter_mut().zip(g_weight)) {
+                *gs += ws * gok + gr * 2.0 * s * ws * ws;
+                *gw += (gok * s + gr * 2.0 * s * s * ws) * self.weight_gain;
             }
             grads[self.bias.start + o] += gb[o];
         }
-        let d_w = w.len();
-        for (k, gk) in gs.iter().enumerate() {
-            let row = self.affine_weight.start + k * d_w;
-            for (j, wj) in w.iter().enumerate() {
-                grads[row + j] += gk * self.affine_gain * wj;
-            }
-            grads[self.affine_bias.start + k] += gk * self.affine_lr_mul;
+        let affine = grads[self.affine_weight.clone()].chunks_exact_mut(w.len());
+        for (row, gk) in affine.zip(&gs) {
+            row.iter_mut()
+                .zip(w)
+                .for_each(|(g, wj)| *g += gk * self.affine_gain * wj);
+        }
+        let affine_bias = &mut grads[self.affine_bias.clone()];
+        for (g, gk) in affine_bias.iter_mut().zip(&gs) {
+            *g += gk * self.affine_lr_mul;
         }
     }
 }
