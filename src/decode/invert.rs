@@ -75,8 +75,8 @@ impl Schedule {
     }
 
     /// The fast path's refinement after the encoder: 33 steps of pivotal tuning at a 20x
-    /// higher learning rate, no steps on w. 33 steps keep `convert` above 2 scans/s end to end
-    /// on 2 quiet cores (a step costs ~25 ms per scan and core; BENCHMARKS.md); the learning
+    /// higher learning rate, no steps on w. 33 steps run `convert` at about 4 scans/s end to end
+    /// on 2 quiet cores (a step costs ~10 ms per scan and core by hand; BENCHMARKS.md); the learning
     /// rate was chosen on a KITTI drive left out of training (1e-2 among 3.5e-3..2e-2, a cosine
     /// decay worse). Steps on w after the encoder made the result worse.
     ///
