@@ -3,6 +3,11 @@
 //! channels under `<topic>/rangegan/`. Scans are processed in parallel (rayon) in
 //! bounded batches and written back in input order, so the output is the same
 //! whatever the thread count and memory does not grow with the file.
+//!
+//! A topic's scans may form chains ([`ConvertOptions::chain_stride`]): scan k continues
+//! from what scan k - stride left in its chain's [`ChainState`] (the decoder's tuned weights),
+//! so each chain runs in input order and chains run in parallel. The chains follow from the
+//! scans' order alone, never from the threads.
 
 use std::collections::{BTreeMap, HashMap};
 use std::io::{Read, Seek};
@@ -20,6 +25,7 @@ use crate::io::{
     decode_cloud, read_records,
 };
 use crate::lidar::{RangeImage, SensorProfile, Strategy, estimate_profile, project};
+use crate::model::generator::Generator;
 
 /// Which sensor grid a topic's scans are projected onto.
 #[derive(Debug, Clone)]
@@ -49,12 +55,21 @@ pub struct ConvertOptions {
     pub scans_processed: Option<Arc<AtomicU64>>,
     /// Warn when a topic's scans are far from what the decoding model saw.
     pub check_model_fit: bool,
+    /// Scans of a topic in chains: scan k continues from scan k - stride (0: each scan alone).
+    pub chain_stride: usize,
 }
 
 /// Scans per parallel batch. Fixed rather than tied to the thread count: outputs of a batch are
 /// written after its last input record, so the batch size decides how copied and new records
 /// interleave, and the output file must be the same bytes whatever the thread count.
 pub const DEFAULT_BATCH_SCANS: usize = 16;
+
+/// Chains per topic: one per core of the 2-core machines the tool is sized for. Fixed rather
+/// than tied to the thread count, since a scan's result depends on its chain.
+pub const DEFAULT_CHAIN_STRIDE: usize = 2;
+
+/// What a chain of scans carries from one scan to the next: the last pivotal-tuned generator.
+pub type ChainState = Mutex<Option<Generator>>;
 
 impl Default for ConvertOptions {
     fn default() -> Self {
@@ -69,6 +84,7 @@ impl Default for ConvertOptions {
             strict: false,
             scans_processed: None,
             check_model_fit: false,
+            chain_stride: DEFAULT_CHAIN_STRIDE,
         }
     }
 }
@@ -80,6 +96,8 @@ pub struct ScanInput<'a> {
     pub family: Family,
     pub cloud: &'a DecodedCloud,
     pub image: &'a RangeImage,
+    /// The scan's chain, when scans are chained; its scans reach the stages in input order.
+    pub chain: Option<&'a ChainState>,
 }
 
 /// One message a stage adds, on channel `<topic>/rangegan/<suffix>`.
@@ -184,7 +202,15 @@ impl<'d> DecodeStage<'d> {
     /// Decode one scan and encode its channels.
     pub fn run(&self, input: &ScanInput<'_>) -> anyhow::Result<Vec<StageOutput>> {
         let seed = scan_seed(input.topic, input.log_time);
-        let decoded = self.decoder.decode(input.image, seed)?;
+        let lock = |c: &ChainState| c.lock().unwrap_or_else(|e| e.into_inner()).clone();
+        let start = input.chain.and_then(lock);
+        let decoded = self
+            .decoder
+            .decode_from(input.image, seed, start.as_ref())?;
+        if let Some(chain) = input.chain {
+            *chain.lock().unwrap_or_else(|e| e.into_inner()) =
+                Some(decoded.tuned_generator().clone());
+        }
         let (family, stamp, frame) = (
             input.family,
             input.cloud.stamp_nanos,
@@ -305,6 +331,8 @@ pub struct RecordCounts {
 /// copied; its outputs follow when the batch is processed).
 struct Pending {
     topic: String,
+    /// The scan's chain within its topic (with chains).
+    chain: Option<usize>,
     format: CloudFormat,
     log_time: u64,
     publish_time: u64,
@@ -373,7 +401,7 @@ impl ScanProcessor<'_> {
         Ok((profile, strategy))
     }
 
-    fn process(&self, p: &Pending) -> Result<Processed, String> {
+    fn process(&self, p: &Pending, chain: Option<&ChainState>) -> Result<Processed, String> {
         let cloud = decode_cloud(p.format, &p.data).map_err(|e| e.to_string())?;
         let (profile, strategy) = self.profile_for(&p.topic, p.log_time, &cloud)?;
         let image = project(&cloud.scan, &profile, strategy).map_err(|e| e.to_string())?;
@@ -385,6 +413,7 @@ impl ScanProcessor<'_> {
             family: p.format.family(),
             cloud: &cloud,
             image: &image,
+            chain,
         };
         // One failing stage (e.g. a scan with nothing to decode) does not cost the others.
         let (mut outputs, mut failed) = (Vec::new(), Vec::new());
@@ -408,6 +437,9 @@ struct Converter<'a> {
     file: std::path::PathBuf,
     table: ChannelTable,
     batch: Vec<Pending>,
+    /// Scans seen per converted topic (they number the chains).
+    topic_scans: HashMap<String, usize>,
+    chains: HashMap<(String, usize), ChainState>,
     scans_done: u64,
     report: ConvertReport,
 }
@@ -444,8 +476,13 @@ impl Converter<'_> {
             && let Some(channel) = self.table.get(header.channel_id)
             && let Some(format) = Self::converted(self.opts, channel)
         {
+            let index = self.topic_scans.entry(channel.topic.clone()).or_default();
+            let stride = self.opts.chain_stride;
+            let chain = (stride > 0).then_some(*index % stride.max(1));
+            *index += 1;
             self.batch.push(Pending {
                 topic: channel.topic.clone(),
+                chain,
                 format,
                 log_time: header.log_time,
                 publish_time: header.publish_time,
@@ -460,8 +497,7 @@ impl Converter<'_> {
 
     fn flush(&mut self) -> anyhow::Result<()> {
         let batch = std::mem::take(&mut self.batch);
-        let processor = &self.processor;
-        let results: Vec<_> = batch.par_iter().map(|p| processor.process(p)).collect();
+        let results = self.process_batch(&batch);
         for (p, result) in batch.iter().zip(results) {
             let topic_report = self.report.topics.entry(p.topic.clone()).or_default();
             match result {
@@ -508,6 +544,42 @@ impl Converter<'_> {
     }
 }
 
+impl Converter<'_> {
+    /// Every scan of `batch` processed, in its order: chains in parallel, each in input order;
+    /// unchained scans each on their own.
+    fn process_batch(&mut self, batch: &[Pending]) -> Vec<Result<Processed, String>> {
+        let mut groups: Vec<(Option<(String, usize)>, Vec<usize>)> = Vec::new();
+        for (i, p) in batch.iter().enumerate() {
+            let key = p.chain.map(|c| (p.topic.clone(), c));
+            match groups.iter_mut().find(|(k, _)| key.is_some() && *k == key) {
+                Some((_, members)) => members.push(i),
+                None => groups.push((key, vec![i])),
+            }
+        }
+        for key in groups.iter().filter_map(|(k, _)| k.clone()) {
+            self.chains.entry(key).or_default();
+        }
+        let (processor, chains) = (&self.processor, &self.chains);
+        let done: Vec<Vec<(usize, Result<Processed, String>)>> = groups
+            .par_iter()
+            .map(|(key, members)| {
+                let chain = key.as_ref().and_then(|k| chains.get(k));
+                let run = |&i: &usize| (i, processor.process(&batch[i], chain));
+                members.iter().map(run).collect()
+            })
+            .collect();
+        let mut results: Vec<Option<Result<Processed, String>>> =
+            batch.iter().map(|_| None).collect();
+        for (i, r) in done.into_iter().flatten() {
+            results[i] = Some(r);
+        }
+        results
+            .into_iter()
+            .map(|r| r.expect("every scan of the batch was processed"))
+            .collect()
+    }
+}
+
 /// How far a conversion has come, for progress bars.
 #[derive(Debug, Clone, Copy, Default)]
 pub struct Progress {
@@ -547,6 +619,8 @@ pub fn convert(
         file: input.to_path_buf(),
         table: ChannelTable::default(),
         batch: Vec::new(),
+        topic_scans: HashMap::new(),
+        chains: HashMap::new(),
         scans_done: 0,
         report: ConvertReport::default(),
     };

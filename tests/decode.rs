@@ -137,6 +137,64 @@ fn decoding_is_identical_with_one_and_two_threads() {
     );
 }
 
+/// The depth channel's messages of `/lidar_ros2`, in log order.
+fn depth_messages(path: &Path) -> Vec<Vec<u8>> {
+    let bytes = std::fs::read(path).unwrap();
+    let mut out: Vec<(u64, Vec<u8>)> = mcap::MessageStream::new(&bytes)
+        .unwrap()
+        .map(|m| m.unwrap())
+        .filter(|m| m.channel.topic == "/lidar_ros2/rangegan/depth")
+        .map(|m| (m.log_time, m.data.into_owned()))
+        .collect();
+    out.sort_by_key(|(t, _)| *t);
+    out.into_iter().map(|(_, d)| d).collect()
+}
+
+/// Chained scans (the default, 2 chains per topic) start from their chain's last tuned
+/// weights: the first scan of each chain decodes as on its own, the later ones do not, and
+/// the bytes do not depend on the thread count. Tuning steps alone, so the hand-written path.
+#[test]
+fn chained_scans_continue_their_chain_whatever_the_threads() {
+    let dir = tempfile::tempdir().unwrap();
+    let input = dir.path().join("in.mcap");
+    write_recording(&input, &[Family::Ros2], 5, None);
+    let run_with = |name: &str, stride: &str, threads: &str| {
+        let output = dir.path().join(name);
+        let o = bin()
+            .args([
+                "convert",
+                input.to_str().unwrap(),
+                output.to_str().unwrap(),
+                "--quiet",
+                "--tune-steps",
+                "3",
+                "--upsample-method",
+                "gan",
+                "--chain-stride",
+                stride,
+            ])
+            .env("RAYON_NUM_THREADS", threads)
+            .output()
+            .expect("binary runs");
+        assert!(o.status.success(), "{}", stderr(&o));
+        output
+    };
+    let chained = run_with("chained1.mcap", "2", "1");
+    let chained2 = run_with("chained2.mcap", "2", "2");
+    let alone = run_with("alone.mcap", "0", "2");
+    let (c, a) = (depth_messages(&chained), depth_messages(&alone));
+    assert_eq!(c.len(), 5);
+    assert_eq!(c, depth_messages(&chained2), "1 and 2 threads, same chains");
+    assert_eq!(
+        c[..2],
+        a[..2],
+        "each chain's first scan starts from the shared weights"
+    );
+    for k in 2..5 {
+        assert_ne!(c[k], a[k], "scan {k} continues its chain");
+    }
+}
+
 #[test]
 fn bad_decoding_flags_are_clear_errors() {
     let dir = tempfile::tempdir().unwrap();

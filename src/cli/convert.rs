@@ -92,6 +92,12 @@ pub struct ConvertArgs {
     /// `--tune-steps` that follow (default 5) then decay their rate to 0.
     #[arg(long, value_delimiter = ',')]
     pub coarse_steps: Vec<usize>,
+    /// Chain each topic's scans: scan k's pivotal tuning starts from scan k - N's tuned
+    /// weights (0: every scan from the shared generator). Consecutive scans see nearly the
+    /// same scene, so a chain fits each scan better in the same steps (docs/decode.md); N
+    /// chains per topic decode in parallel. The output depends on N, never on the threads.
+    #[arg(long, default_value_t = pipeline::DEFAULT_CHAIN_STRIDE)]
+    pub chain_stride: usize,
     /// Write the generator's own x_n, without the per-beam calibration shipped with the model
     /// (`calibration.json`; `rangegan-mcap calibrate-raydrop` fits one).
     #[arg(long)]
@@ -291,6 +297,9 @@ pub(crate) fn output_settings(args: &ConvertArgs) -> String {
     if args.quality != QualityArg::Off {
         parts.push(format!("--mask-samples {}", args.mask_samples));
     }
+    if args.quality != QualityArg::Off {
+        parts.push(format!("--chain-stride {}", args.chain_stride));
+    }
     if args.raw_raydrop {
         parts.push("--raw-raydrop".into());
     }
@@ -460,6 +469,7 @@ impl<'d> FileConverter<'d> {
                 metadata,
                 scans_processed: Some(counters.scans.clone()),
                 check_model_fit: decoding.is_some(),
+                chain_stride: args.chain_stride,
                 ..ConvertOptions::default()
             },
             writer: writer_settings(args)?,

@@ -442,6 +442,17 @@ impl Decoder {
     /// every random draw (use [`scan_seed`]). Runs on one thread; call it from several rayon
     /// workers to decode scans in parallel.
     pub fn decode(&self, observed: &RangeImage, seed: u64) -> Result<Decoded> {
+        self.decode_from(observed, seed, None)
+    }
+
+    /// [`Decoder::decode`], with pivotal tuning starting from `start`'s weights (for example
+    /// the previous scan's tuned generator) instead of the shared generator's.
+    pub fn decode_from(
+        &self,
+        observed: &RangeImage,
+        seed: u64,
+        start: Option<&Generator>,
+    ) -> Result<Decoded> {
         if observed.range_m.len() != observed.len() || observed.angles.len() != observed.len() {
             bail!(
                 "range image {}x{} has {} ranges and {} angles",
@@ -451,10 +462,15 @@ impl Decoder {
                 observed.angles.len()
             );
         }
-        self.pools.run(|| self.decode_here(observed, seed))
+        self.pools.run(|| self.decode_here(observed, seed, start))
     }
 
-    fn decode_here(&self, observed: &RangeImage, seed: u64) -> Result<Decoded> {
+    fn decode_here(
+        &self,
+        observed: &RangeImage,
+        seed: u64,
+        start: Option<&Generator>,
+    ) -> Result<Decoded> {
         let grid = &self.model.grid;
         let (h, w) = (grid.height, grid.width);
         let mut rng = Rng::new(seed);
@@ -479,7 +495,7 @@ impl Decoder {
             None => w_avg,
         };
         let inv = invert::invert(
-            &self.generator,
+            start.unwrap_or(&self.generator),
             &self.cache_ad,
             target.autodiff(),
             mask_t.autodiff(),
@@ -589,6 +605,12 @@ fn observed_depth(net: f32) -> f32 {
 }
 
 impl Decoded {
+    /// The generator as tuned for this scan (a start for the next scan's tuning:
+    /// [`Decoder::decode_from`]).
+    pub fn tuned_generator(&self) -> &Generator {
+        &self.generator
+    }
+
     /// Render the tuned scene on a prepared grid (from [`Decoder::prepare`]).
     pub fn render_prepared(&self, grid: &PreparedGrid) -> Rendered {
         let (depth_m, keep_logit) = self.render_raw(grid);
