@@ -71,6 +71,9 @@ pub const DEFAULT_CHAIN_STRIDE: usize = 2;
 /// What a chain of scans carries from one scan to the next: the last pivotal-tuned generator.
 pub type ChainState = Mutex<Option<Generator>>;
 
+/// A chain: its topic and number within the topic.
+type ChainKey = (String, usize);
+
 impl Default for ConvertOptions {
     fn default() -> Self {
         ConvertOptions {
@@ -439,7 +442,7 @@ struct Converter<'a> {
     batch: Vec<Pending>,
     /// Scans seen per converted topic (they number the chains).
     topic_scans: HashMap<String, usize>,
-    chains: HashMap<(String, usize), ChainState>,
+    chains: HashMap<ChainKey, ChainState>,
     scans_done: u64,
     report: ConvertReport,
 }
@@ -548,7 +551,7 @@ impl Converter<'_> {
     /// Every scan of `batch` processed, in its order: chains in parallel, each in input order;
     /// unchained scans each on their own.
     fn process_batch(&mut self, batch: &[Pending]) -> Vec<Result<Processed, String>> {
-        let mut groups: Vec<(Option<(String, usize)>, Vec<usize>)> = Vec::new();
+        let mut groups: Vec<(Option<ChainKey>, Vec<usize>)> = Vec::new();
         for (i, p) in batch.iter().enumerate() {
             let key = p.chain.map(|c| (p.topic.clone(), c));
             match groups.iter_mut().find(|(k, _)| key.is_some() && *k == key) {
