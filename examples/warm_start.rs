@@ -5,13 +5,17 @@
 //! shared one). Prints the relative L1 of x_d on the measured pixels, mean over the scans and
 //! over each third of them, and the decode time.
 //!
-//!     cargo run --release --example warm_start -- ../shared/real_lidar kitti_raw_drive_d 30 33,14 0,1,4
+//! With a sixth argument N the scans are decoded from N of their 64 rows (restoration), and it
+//! also prints the MAE in meters over the held-out pixels of the GAN rendering, of the
+//! default fill and of the guided one.
+//!
+//!     cargo run --release --example warm_start -- ../shared/real_lidar kitti_raw_drive_d 30 33,14 0,1,4 [16]
 
 use std::path::PathBuf;
 use std::time::Instant;
 
 use anyhow::{Context, Result};
-use rangegan_mcap::decode::{DecodeOptions, Decoder, Quality};
+use rangegan_mcap::decode::{DecodeOptions, Decoder, Fill, Quality, Sparsify};
 use rangegan_mcap::lidar::{self, SensorProfile, Strategy};
 use rangegan_mcap::model::data::{MAX_DEPTH_M, MIN_DEPTH_M};
 use rangegan_mcap::model::weights::Model;
@@ -19,8 +23,10 @@ use rangegan_mcap::model::weights::Model;
 fn main() -> Result<()> {
     rangegan_mcap::model::tune_allocator();
     let args: Vec<String> = std::env::args().skip(1).collect();
-    let [data, drive, n, steps, strides] = args.as_slice() else {
-        anyhow::bail!("usage: warm_start REAL_LIDAR DRIVE SCANS STEPS,.. STRIDE,..");
+    let (data, drive, n, steps, strides, restore) = match args.as_slice() {
+        [a, b, c, d, e] => (a, b, c, d, e, None),
+        [a, b, c, d, e, f] => (a, b, c, d, e, Some(f.parse::<usize>()?)),
+        _ => anyhow::bail!("usage: warm_start REAL_LIDAR DRIVE SCANS STEPS,.. STRIDE,.. [LINES]"),
     };
     let dir = PathBuf::from(data).join(drive);
     if !dir.exists() {
@@ -50,16 +56,33 @@ fn main() -> Result<()> {
     for steps in steps.split(',') {
         let mut opts = DecodeOptions::new(Quality::Fast);
         opts.schedule.set_tune_steps(steps.parse()?);
+        opts.restore = restore.map(Sparsify::Lines);
         let decoder = Decoder::new(Model::load(None, &burn::tensor::Device::flex())?, opts)?;
         for stride in strides.split(',') {
             let stride: usize = stride.parse()?;
             let start = Instant::now();
             let mut tuned = Vec::new();
             let mut errors = Vec::new();
+            let mut held_out = [(0.0f64, 0usize); 3];
             for (k, scan) in scans.iter().enumerate() {
                 let from = (stride > 0 && k >= stride).then(|| &tuned[k - stride]);
                 let decoded = decoder.decode_from(scan, k as u64, from)?;
                 errors.push(decoded.error.unwrap_or(f32::NAN) as f64);
+                if restore.is_some() {
+                    for (sum, fill) in
+                        held_out
+                            .iter_mut()
+                            .zip([Fill::Gan, Fill::DEFAULT, Fill::Guided])
+                    {
+                        let out = decoded.model_output(fill);
+                        for (d, t) in out.depth_m.iter().zip(&decoded.held_out_m) {
+                            if *t > 0.0 {
+                                sum.0 += f64::from((d - t).abs());
+                                sum.1 += 1;
+                            }
+                        }
+                    }
+                }
                 tuned.push(decoded.tuned_generator().clone());
             }
             let mean = |e: &[f64]| e.iter().sum::<f64>() / e.len().max(1) as f64;
@@ -75,6 +98,16 @@ fn main() -> Result<()> {
                 parts.join(" / "),
                 start.elapsed().as_secs_f64()
             );
+            if restore.is_some() {
+                let mae: Vec<String> = held_out
+                    .iter()
+                    .map(|(s, n)| format!("{:.3}", s / (*n).max(1) as f64))
+                    .collect();
+                println!(
+                    "  held-out MAE (m): GAN {}, default fill {}, guided {}",
+                    mae[0], mae[1], mae[2]
+                );
+            }
         }
     }
     Ok(())
