@@ -545,9 +545,7 @@ impl Converter<'_> {
         }
         Ok(())
     }
-}
 
-impl Converter<'_> {
     /// Every scan of `batch` processed, in its order: chains in parallel, each in input order;
     /// unchained scans each on their own.
     fn process_batch(&mut self, batch: &[Pending]) -> Vec<Result<Processed, String>> {
