@@ -25,7 +25,6 @@ use anyhow::{Result, bail};
 use burn::module::Module;
 use burn::optim::{AdamConfig, GradientsParams};
 use burn::tensor::{Device, Tensor};
-use rangegan_mcap::decode::invert::HostAdam;
 use rangegan_mcap::decode::loss::{network_to_depth, relative_depth_error};
 use rangegan_mcap::model::AnyGenerator;
 use rangegan_mcap::model::baseline::ConvGeneratorConfig;
@@ -34,6 +33,7 @@ use rangegan_mcap::model::generator::{GeneratorConfig, GridCache};
 use rangegan_mcap::model::weights::Model;
 use rangegan_mcap::train::reconstruct::returns_l1;
 use rangegan_mcap::train::write_png;
+use rangegan_mcap::util::adam::Adam;
 use rangegan_mcap::util::rng::Rng;
 use rangegan_mcap::util::tensor::{tensor_from, tensor_to_vec};
 
@@ -98,7 +98,7 @@ fn fit(
     let d_z = g.d_z();
     let mut rng = Rng::new(3);
     let mut z: Vec<f32> = (0..n * d_z).map(|_| rng.normal()).collect();
-    let mut adam_z = HostAdam::new(z.len());
+    let mut adam_z = Adam::new(z.len());
     let mut generator = g.clone().fork(device).train();
     let mut opt = AdamConfig::new().with_epsilon(1e-8).init();
     let render = |generator: &AnyGenerator, z: Tensor<2>| generator.generate(z, grid, None).0.x_d;

@@ -10,6 +10,7 @@ use burn::tensor::{Device, Tensor};
 
 use super::loss::{pool_masked, reconstruction_loss};
 use crate::model::generator::{Generator, GridCache};
+use crate::util::adam::Adam;
 use crate::util::tensor::{tensor_from, tensor_to_vec};
 
 /// Steps and learning rates of one inversion.
@@ -152,37 +153,6 @@ pub struct Inverted {
     pub losses: Vec<f32>,
 }
 
-/// Host-side Adam over a flat vector (latents, or every weight of the hand-written pivotal
-/// tuning); torch defaults beta (0.9, 0.999), the same update as burn's `Adam`.
-pub struct HostAdam {
-    m: Vec<f32>,
-    v: Vec<f32>,
-    t: i32,
-}
-
-impl HostAdam {
-    pub fn new(n: usize) -> Self {
-        HostAdam {
-            m: vec![0.0; n],
-            v: vec![0.0; n],
-            t: 0,
-        }
-    }
-
-    pub fn step(&mut self, x: &mut [f32], grad: &[f32], lr: f32) {
-        let (b1, b2, eps) = (0.9f32, 0.999f32, 1e-8f32);
-        self.t += 1;
-        let c1 = 1.0 - b1.powi(self.t);
-        let c2 = 1.0 - b2.powi(self.t);
-        let moments = self.m.iter_mut().zip(self.v.iter_mut());
-        for ((x, g), (m, v)) in x.iter_mut().zip(grad).zip(moments) {
-            *m = b1 * *m + (1.0 - b1) * g;
-            *v = b2 * *v + (1.0 - b2) * g * g;
-            *x -= lr * (*m / c1) / ((*v / c2).sqrt() + eps);
-        }
-    }
-}
-
 /// What one tuning step is fitted to: a grid and the observation on it.
 struct Fit {
     cache: GridCache,
@@ -223,30 +193,13 @@ fn fits(
     stages
 }
 
-/// Invert one observation.
+/// Invert one observation through burn's autodiff, whatever the schedule.
 ///
 /// `generator` lives on the inference device, `cache_ad` is its grid cache on `ad` (the
 /// autodiff device); target and mask are `[1, 1, H, W]` on `ad` (network units, {0, 1}).
 /// Starts at `w0`. The caller's generator is not modified: pivotal tuning works on a copy.
-/// Pivotal tuning alone runs by hand ([`super::pivotal`]), everything else through autodiff.
+/// [`super::pivotal::tune`] runs schedules of pivotal tuning alone faster, by hand.
 pub fn invert(
-    generator: &Generator,
-    cache_ad: &GridCache,
-    target: Tensor<4>,
-    mask: Tensor<4>,
-    w0: Vec<f32>,
-    schedule: &Schedule,
-    ad: &Device,
-) -> Inverted {
-    if super::pivotal::supports(generator, schedule) && target.dims()[0] == 1 {
-        let (target, mask) = (tensor_to_vec(target), tensor_to_vec(mask));
-        return super::pivotal::tune(generator, cache_ad, &target, &mask, w0, schedule);
-    }
-    invert_autodiff(generator, cache_ad, target, mask, w0, schedule, ad)
-}
-
-/// [`invert`] through burn's autodiff, whatever the schedule.
-pub fn invert_autodiff(
     generator: &Generator,
     cache_ad: &GridCache,
     target: Tensor<4>,
@@ -263,7 +216,7 @@ pub fn invert_autodiff(
     // Step 1: w only; the weights are constants (no weight gradients are computed).
     if schedule.w_steps > 0 {
         let frozen = generator.clone().fork(ad).no_grad();
-        let mut adam = HostAdam::new(d_w);
+        let mut adam = Adam::new(d_w);
         for step in 0..schedule.w_steps {
             let t = step as f64 / schedule.w_steps as f64;
             let lr = (schedule.w_lr * lr_ramp(t)) as f32;
@@ -283,7 +236,7 @@ pub fn invert_autodiff(
     let total: usize = stages.iter().map(|(steps, _)| steps).sum();
     let mut tuned = generator.clone().fork(ad).train();
     let joint = schedule.tune_w_lr > 0.0;
-    let mut adam_w = HostAdam::new(d_w);
+    let mut adam_w = Adam::new(d_w);
     let mut opt = AdamConfig::new().with_epsilon(1e-8).init();
     let mut step = 0;
     for (steps, fit) in &stages {

@@ -6,8 +6,8 @@
 //!   amortised encoder ([`amortised`]) and the per-grid Fourier caches.
 //! - [`Decoder::decode`] reprojects the observation onto the model grid, optionally makes it sparse
 //!   ([`Sparsify`], the paper's restoration), predicts or initialises w, and runs
-//!   [`invert::invert`] (w steps, then pivotal tuning on a private copy of the weights; by hand
-//!   in [`pivotal`] where only tuning steps run).
+//!   pivotal tuning on a private copy of the weights: by hand in [`pivotal`], or through
+//!   [`invert::invert`] where the schedule also has w steps or coarse steps.
 //! - [`Decoded`] holds the result: completed depth x_d and drop probability x_n on the model grid,
 //!   the reconstruction error, Bernoulli ray-drop masks, and [`Decoded::render`] for other grids.
 //! - [`fill`] decides what the upsampled, other-sensor and restored grids hold ([`Fill`]: the
@@ -494,15 +494,14 @@ impl Decoder {
             }
             None => w_avg,
         };
-        let inv = invert::invert(
-            start.unwrap_or(&self.generator),
-            &self.cache_ad,
-            target.autodiff(),
-            mask_t.autodiff(),
-            w0,
-            &self.opts.schedule,
-            &self.ad,
-        );
+        let start = start.unwrap_or(&self.generator);
+        let schedule = &self.opts.schedule;
+        let inv = if pivotal::supports(start, schedule) {
+            pivotal::tune(start, &self.cache_ad, &net, &mask, w0, schedule)
+        } else {
+            let (target, mask) = (target.autodiff(), mask_t.autodiff());
+            invert::invert(start, &self.cache_ad, target, mask, w0, schedule, &self.ad)
+        };
         let d_w = inv.w.len();
         let w_t = tensor_from(inv.w, [1, d_w], &self.device);
         let depth_obs = |keep: &dyn Fn(usize) -> bool| -> Vec<f32> {

@@ -1,7 +1,7 @@
 //! Pivotal tuning by hand on the CPU: the implicit generator's forward and backward pass at
 //! batch 1 with w frozen, and Adam over every tuned weight.
 //!
-//! The same function, loss and optimiser as the autodiff path of [`super::invert`] (a test
+//! The same function, loss and optimiser as the autodiff path ([`super::invert`]) (a test
 //! holds the two level), written as a few passes per synthesis block over host slices. Through
 //! autodiff a batch-1 tuning step spends most of its time creating, copying and walking
 //! per-op tensors rather than multiplying (BENCHMARKS.md, "Where a `fast` decode's time goes").
@@ -17,10 +17,11 @@ use std::ops::Range;
 use burn::module::Param;
 use burn::tensor::{Device, Tensor};
 
-use super::invert::{HostAdam, Inverted, Schedule};
+use super::invert::{Inverted, Schedule};
 use super::loss::reconstruction_loss_grad;
 use crate::model::generator::{Generator, GridCache};
 use crate::model::layers::ModulatedLinear;
+use crate::util::adam::Adam;
 use crate::util::matmul::{View, matmul};
 use crate::util::tensor::{tensor_from, tensor_to_vec};
 
@@ -48,7 +49,7 @@ pub fn tune(
     schedule: &Schedule,
 ) -> Inverted {
     let mut net = Net::read(generator, cache);
-    let mut adam = HostAdam::new(net.params.len());
+    let mut adam = Adam::new(net.params.len());
     let mut losses = Vec::with_capacity(schedule.tune_steps);
     for step in 0..schedule.tune_steps {
         let lr = if schedule.tune_decay {
@@ -583,7 +584,7 @@ fn upsample2x_adjoint(g: &[f32], (h, w): (usize, usize), ch: usize) -> Vec<f32> 
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::decode::invert::invert_autodiff;
+    use crate::decode::invert::invert;
     use crate::model::generator::{GeneratorConfig, MappingConfig};
     use crate::model::layers::{self, kitti_like_grid};
     use crate::util::rng::Rng;
@@ -641,7 +642,7 @@ mod tests {
         };
         assert!(supports(&g, &schedule));
         let hand = tune(&g, &cache_ad, &target, &mask, w0.clone(), &schedule);
-        let auto = invert_autodiff(
+        let auto = invert(
             &g,
             &cache_ad,
             tensor_from(target.clone(), [1, 1, 8, 32], &ad),

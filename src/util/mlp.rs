@@ -207,41 +207,15 @@ fn relu(h: &mut [f32]) {
 
 /// Adam (Kingma and Ba) over an [`Mlp`]'s weights.
 #[derive(Debug, Clone)]
-pub struct Adam {
-    m: Vec<f32>,
-    v: Vec<f32>,
-    t: i32,
-    pub beta1: f32,
-    pub beta2: f32,
-}
+pub struct Adam(super::adam::Adam);
 
 impl Adam {
     pub fn new(net: &Mlp) -> Adam {
-        let n = net.params().count();
-        Adam {
-            m: vec![0.0; n],
-            v: vec![0.0; n],
-            t: 0,
-            beta1: 0.9,
-            beta2: 0.999,
-        }
+        Adam(super::adam::Adam::new(net.params().count()))
     }
 
     pub fn step(&mut self, net: &mut Mlp, grads: &Mlp, lr: f32) {
-        self.t += 1;
-        let (b1, b2) = (self.beta1, self.beta2);
-        let c1 = 1.0 - b1.powi(self.t);
-        let c2 = 1.0 - b2.powi(self.t);
-        for (((p, g), m), v) in net
-            .params_mut()
-            .zip(grads.params())
-            .zip(&mut self.m)
-            .zip(&mut self.v)
-        {
-            *m = b1 * *m + (1.0 - b1) * g;
-            *v = b2 * *v + (1.0 - b2) * g * g;
-            *p -= lr * (*m / c1) / ((*v / c2).sqrt() + 1e-8);
-        }
+        self.0.step(net.params_mut(), grads.params(), lr);
     }
 }
 

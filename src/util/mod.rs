@@ -1,5 +1,6 @@
 //! Code without domain knowledge that the rest of the crate shares.
 //!
+//! - [`adam`]: the Adam optimiser over host-side weights.
 //! - [`bounds`]: checks that sizes read from files and flags lie in a sane range, before
 //!   anything is allocated from them.
 //! - [`fs`]: atomic file writes.
@@ -11,6 +12,7 @@
 //! - [`rng`]: deterministic random numbers, keyed or sequential.
 //! - [`tensor`]: host vectors <-> burn tensors.
 
+pub mod adam;
 pub mod bounds;
 pub mod fs;
 pub mod json;
