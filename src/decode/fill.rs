@@ -4,7 +4,7 @@
 //! observed return reaches. Chosen by measurement on held-out KITTI (BENCHMARKS.md,
 //! "Guided upsampling and restoration", "A learned correction of restored rows").
 
-use super::row_fill::RowFill;
+use super::row_fill::{RowFill, rows_image};
 use super::{Decoded, PreparedGrid, Rendered, Sparsify};
 use crate::lidar::{
     Guide, Interpolation, RangeImage, ScatterFill, SurfaceRule, fill_scattered,
@@ -59,29 +59,6 @@ impl Default for Fill {
     fn default() -> Self {
         Fill::DEFAULT
     }
-}
-
-/// Rows `rows` of a model-grid depth as their own range image (with their angles).
-pub(super) fn rows_image(
-    grid: &crate::lidar::AngleGrid,
-    depth: &[f32],
-    rows: &[usize],
-) -> RangeImage {
-    let w = grid.width;
-    let pick = |field: &[f32]| -> Vec<f32> {
-        rows.iter()
-            .flat_map(|r| field[r * w..(r + 1) * w].iter().copied())
-            .collect()
-    };
-    let angles = crate::lidar::AngleGrid {
-        height: rows.len(),
-        width: w,
-        elevation_rad: pick(&grid.elevation_rad),
-        azimuth_rad: pick(&grid.azimuth_rad),
-    };
-    let mut image = RangeImage::empty(angles);
-    image.range_m = pick(depth);
-    image
 }
 
 /// `source` resampled onto `target.grid` by `fill`, guided by `guide_source` (on the source

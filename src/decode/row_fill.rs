@@ -13,7 +13,7 @@ use std::sync::OnceLock;
 use anyhow::{Context, Result, bail};
 use serde::{Deserialize, Serialize};
 
-use crate::lidar::{AngleGrid, SurfaceRule, resample_by_surface};
+use crate::lidar::{AngleGrid, RangeImage, SurfaceRule, resample_by_surface};
 use crate::util::mlp::Mlp;
 
 /// Which kept returns around a restored pixel the network reads.
@@ -132,8 +132,27 @@ pub fn moved(depth: f32, m: f32) -> f32 {
 /// The edge-aware fill of every row of `grid` from the `kept` rows of `observed` (model-grid
 /// depths, 0 = no return), as `convert` restores them; 0 where no kept return reaches.
 pub fn edge_aware_rows(grid: &AngleGrid, observed: &[f32], kept: &[usize]) -> Vec<f32> {
-    let source = super::fill::rows_image(grid, observed, kept);
+    let source = rows_image(grid, observed, kept);
     resample_by_surface(&source, grid, &SurfaceRule::default(), None).range_m
+}
+
+/// Rows `rows` of a model-grid depth as their own range image (with their angles).
+pub(super) fn rows_image(grid: &AngleGrid, depth: &[f32], rows: &[usize]) -> RangeImage {
+    let w = grid.width;
+    let pick = |field: &[f32]| -> Vec<f32> {
+        rows.iter()
+            .flat_map(|r| field[r * w..(r + 1) * w].iter().copied())
+            .collect()
+    };
+    let angles = AngleGrid {
+        height: rows.len(),
+        width: w,
+        elevation_rad: pick(&grid.elevation_rad),
+        azimuth_rad: pick(&grid.azimuth_rad),
+    };
+    let mut image = RangeImage::empty(angles);
+    image.range_m = pick(depth);
+    image
 }
 
 /// The restored pixels the network moves, where it starts each (the fill, or where the fill
