@@ -481,7 +481,7 @@ impl Converter<'_> {
         {
             let index = self.topic_scans.entry(channel.topic.clone()).or_default();
             let stride = self.opts.chain_stride;
-            let chain = (stride > 0).then_some(*index % stride.max(1));
+            let chain = (stride > 0).then(|| *index % stride);
             *index += 1;
             self.batch.push(Pending {
                 topic: channel.topic.clone(),

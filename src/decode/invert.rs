@@ -129,6 +129,15 @@ impl Schedule {
         format!("{text} (after {} coarse)", coarse.join("/"))
     }
 
+    /// The tuning rate at tuning step `step` of `total`: constant, or along the cosine decay.
+    pub fn tuning_rate(&self, step: usize, total: usize) -> f64 {
+        if !self.tune_decay {
+            return self.tune_lr;
+        }
+        let t = step as f64 / total as f64;
+        self.tune_lr * 0.5 * (1.0 + (std::f64::consts::PI * t).cos())
+    }
+
     /// Total optimisation steps (each one forward + backward pass of the generator).
     pub fn steps(&self) -> usize {
         self.w_steps + self.coarse_steps.iter().sum::<usize>() + self.tune_steps
@@ -242,13 +251,10 @@ pub fn invert(
     for (steps, fit) in &stages {
         let full_resolution = fit.cache.height == cache_ad.height;
         for i in 0..*steps {
-            let lr = if schedule.tune_decay {
-                let t = step as f64 / total as f64;
-                schedule.tune_lr * 0.5 * (1.0 + (std::f64::consts::PI * t).cos())
-            } else if schedule.fine_decay() && full_resolution {
+            let lr = if !schedule.tune_decay && schedule.fine_decay() && full_resolution {
                 schedule.tune_lr * (1.0 - i as f64 / *steps as f64)
             } else {
-                schedule.tune_lr
+                schedule.tuning_rate(step, total)
             };
             step += 1;
             let w_t = tensor_from(w.clone(), [1, d_w], ad); // [1, d_w]

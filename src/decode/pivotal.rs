@@ -52,12 +52,7 @@ pub fn tune(
     let mut adam = Adam::new(net.params.len());
     let mut losses = Vec::with_capacity(schedule.tune_steps);
     for step in 0..schedule.tune_steps {
-        let lr = if schedule.tune_decay {
-            let t = step as f64 / schedule.tune_steps as f64;
-            schedule.tune_lr * 0.5 * (1.0 + (std::f64::consts::PI * t).cos())
-        } else {
-            schedule.tune_lr
-        };
+        let lr = schedule.tuning_rate(step, schedule.tune_steps);
         let (loss, grads) = net.loss_and_gradients(&w, target, mask, schedule.pyramid_levels);
         losses.push(loss);
         adam.step(&mut net.params, &grads, lr as f32);
@@ -89,6 +84,7 @@ struct Layer {
 }
 
 /// A layer's values for one step: style s, scaled weight W, Wm = W diag(s), demodulation d.
+#[derive(Default)]
 struct Modulated {
     s: Vec<f32>,
     ws: Vec<f32>,
@@ -298,16 +294,10 @@ struct Pass {
 impl Pass {
     fn new(block: &Block) -> Pass {
         let len = block.pixels() * block.channels();
-        let none = || Modulated {
-            s: Vec::new(),
-            ws: Vec::new(),
-            wm: Vec::new(),
-            d: Vec::new(),
-        };
         Pass {
-            m0: none(),
-            m1: none(),
-            mh: none(),
+            m0: Modulated::default(),
+            m1: Modulated::default(),
+            mh: Modulated::default(),
             y0: vec![0.0; len],
             a0: vec![0.0; len],
             y1: vec![0.0; len],
