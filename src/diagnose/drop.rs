@@ -226,39 +226,58 @@ const CLASS_ENCLOSURE_PX: u8 = 8;
 
 pub struct BeamFamily;
 
+/// A weak laser is weak all round: its rate is fitted in each quarter turn of
+/// columns, and the excess it keeps is the one that at least half of the
+/// quarters reach. Holes that one part of the scene makes in a band of rows
+/// (gaps between tree crowns near the horizon) are not in every quarter, and a
+/// quarter of open field has no surface to show a laser's weakness at all.
+const BEAM_SIDES: usize = 4;
+/// How many quarters must reach a laser's excess drop rate.
+const BEAM_SIDES_WEAK: usize = 2;
+
 impl DropFamily for BeamFamily {
     fn id(&self) -> &'static str {
         "beam_dropout"
     }
     fn bins(&self, px: &Pixels) -> usize {
-        px.height
+        px.height * BEAM_SIDES
     }
     /// Pixels with a surface only: a laser's sensitivity shows on what it can
     /// hit; how much open space a row sees is the scene's.
     fn bin(&self, px: &Pixels, i: usize) -> Option<usize> {
-        (px.enclosure_px[i] <= BEAM_ENCLOSURE_PX && px.range_m[i].is_finite())
-            .then_some(px.row[i] as usize)
+        let side = (px.column[i] as usize * BEAM_SIDES / px.width.max(1)).min(BEAM_SIDES - 1);
+        // The last tenth of the reach is where surfaces pass out of range: a
+        // hole there is range's, not a laser's.
+        (px.surface_px[i] <= BEAM_ENCLOSURE_PX && px.range_m[i] <= 0.9 * px.reach_m)
+            .then_some(px.row[i] as usize * BEAM_SIDES + side)
     }
     fn fit(&self, table: &QTable, _: &Pixels) -> Option<DropFit> {
         if table.bins == 0 {
             return None;
         }
+        let rows = table.bins / BEAM_SIDES;
         // Per-laser differences, not a smooth trend over rows: a trend is what
         // range, incidence or sky change, and a constant is the keep scale. The
-        // rate above the running median of its 7 neighbouring rows is the beam's.
+        // rate above the running median of its 7 neighbouring rows (in the same
+        // quarter) is the beam's.
         let free: Vec<f64> = (0..table.bins).map(|b| table.best_bin_prob(b)).collect();
-        let drop_prob: Vec<f64> = (0..free.len())
+        let excess = |r: usize, side: usize| {
+            let mut window: Vec<f64> = (r.saturating_sub(3)..(r + 4).min(rows))
+                .map(|q| free[q * BEAM_SIDES + side])
+                .collect();
+            window.sort_by(f64::total_cmp);
+            excess_drop(free[r * BEAM_SIDES + side], window[window.len() / 2])
+        };
+        let per_row: Vec<f64> = (0..rows)
             .map(|r| {
-                let lo = r.saturating_sub(3);
-                let hi = (r + 4).min(free.len());
-                let mut window: Vec<f64> = free[lo..hi].to_vec();
-                window.sort_by(f64::total_cmp);
-                let median = window[window.len() / 2];
-                excess_drop(free[r], median)
+                let mut e: Vec<f64> = (0..BEAM_SIDES).map(|side| excess(r, side)).collect();
+                e.sort_by(|a, b| b.total_cmp(a));
+                e[BEAM_SIDES_WEAK - 1]
             })
             .collect();
-        let rates: Vec<f64> = drop_prob.iter().map(|p| round3(*p)).collect();
-        let items: Vec<(String, f64)> = drop_prob
+        let drop_prob: Vec<f64> = (0..table.bins).map(|b| per_row[b / BEAM_SIDES]).collect();
+        let rates: Vec<f64> = per_row.iter().map(|p| round3(*p)).collect();
+        let items: Vec<(String, f64)> = per_row
             .iter()
             .enumerate()
             .map(|(r, p)| (format!("row {r}"), *p))
@@ -268,7 +287,7 @@ impl DropFamily for BeamFamily {
         let mut physics = Map::new();
         physics.insert("beam_dropout".into(), json!({ "rates": rates }));
         Some(DropFit {
-            n_params: table.bins,
+            n_params: rates.len(),
             drop_prob,
             params,
             physics,
@@ -338,7 +357,7 @@ impl DropFamily for EdgeFamily {
     /// Pixels with a surface only (a completed range): edges are between surfaces.
     fn bin(&self, px: &Pixels, i: usize) -> Option<usize> {
         let r = px.range_m[i];
-        (r.is_finite() && px.enclosure_px[i] <= BEAM_ENCLOSURE_PX).then(|| {
+        (r.is_finite() && px.surface_px[i] <= BEAM_ENCLOSURE_PX).then(|| {
             edge_band(r) * EDGE_DISTANCES + usize::from(px.row_edge_px[i].min(MAX_EDGE_PX))
         })
     }
@@ -958,6 +977,7 @@ mod tests {
                 px.cos_incidence.push(0.5);
                 px.class.push(0);
                 px.enclosure_px.push(0);
+                px.surface_px.push(0);
                 px.kept.push(true);
                 px.scan.push(0);
             }
@@ -1057,6 +1077,56 @@ mod tests {
         assert!((row_position(&px, 0.01) - 0.5).abs() < 1e-4);
         assert!((row_position(&px, -0.03) - 2.5).abs() < 1e-4);
         assert!((row_position(&px, 0.04) + 1.0).abs() < 1e-4);
+    }
+
+    /// Eight rows of 400 columns of a wall 10 m away; `weak(row, column)` pixels
+    /// keep 7 rays in 10, the others 19 in 20.
+    fn wall_rows(weak: impl Fn(usize, usize) -> bool) -> Pixels {
+        let (h, w) = (8, 400);
+        let mut px = Pixels {
+            height: h,
+            width: w,
+            reach_m: 100.0,
+            ..Default::default()
+        };
+        for i in 0..h {
+            for j in 0..w {
+                px.row.push(i as u16);
+                px.column.push(j as u16);
+                px.range_m.push(10.0);
+                px.enclosure_px.push(1);
+                px.surface_px.push(1);
+                px.kept
+                    .push(if weak(i, j) { j % 10 >= 3 } else { j % 20 != 0 });
+            }
+        }
+        px
+    }
+
+    fn beam_rates(px: &Pixels) -> Vec<f64> {
+        let table = QTable::build(&BeamFamily, px, &vec![0.95; px.len()]);
+        let fit = BeamFamily.fit(&table, px).unwrap();
+        (0..px.height)
+            .map(|r| fit.drop_prob[r * BEAM_SIDES])
+            .collect()
+    }
+
+    #[test]
+    fn a_weak_laser_is_weak_all_round() {
+        let all_round = beam_rates(&wall_rows(|i, _| i == 4));
+        assert!(
+            (all_round[4] - (1.0 - 0.7 / 0.95)).abs() < 0.01,
+            "{all_round:?}"
+        );
+        assert!(
+            all_round
+                .iter()
+                .enumerate()
+                .all(|(r, p)| r == 4 || *p < 1e-3)
+        );
+        // The same holes in one quarter turn only are the scene's.
+        let one_quarter = beam_rates(&wall_rows(|i, j| i == 4 && j < 100));
+        assert!(one_quarter.iter().all(|p| *p < 1e-3), "{one_quarter:?}");
     }
 
     #[test]

@@ -71,8 +71,14 @@ pub fn kept_range_quantile(scans: &[ScanFeatures], q: f64) -> f32 {
 /// Largest enclosure distance [`Pixels::enclosure_px`] tells apart.
 pub const ENCLOSURE_CAP_PX: u8 = 16;
 
-/// [`Pixels::enclosure_px`] of every pixel of one scan.
-fn enclosure_px(f: &ScanFeatures) -> Vec<u8> {
+/// Two returns enclose a pixel as one surface ([`Pixels::surface_px`]) when their
+/// inverse ranges differ by at most this share of the larger one.
+const SURFACE_TOLERANCE: f32 = 0.15;
+
+/// [`Pixels::enclosure_px`] of every pixel of one scan, or with `one_surface`
+/// [`Pixels::surface_px`]: the two enclosing returns' inverse ranges within that
+/// share of each other.
+fn enclosure_px(f: &ScanFeatures, one_surface: Option<f32>) -> Vec<u8> {
     let (h, w) = (f.height, f.width.max(1));
     let cap = usize::from(ENCLOSURE_CAP_PX);
     // Distance to the nearest return from `k` in steps of `step`, at most `limit` steps.
@@ -81,14 +87,28 @@ fn enclosure_px(f: &ScanFeatures) -> Vec<u8> {
             .find(|&d| f.kept[(k as isize + step * d as isize) as usize])
             .unwrap_or(cap)
     };
+    // The farther of the nearest returns on both sides, `step` apart, within
+    // `before` and `after` steps.
+    let side = |k: usize, step: isize, before: usize, after: usize| -> usize {
+        let a = reach(k, -step, before);
+        let b = reach(k, step, after);
+        if a >= cap || b >= cap {
+            return cap;
+        }
+        if let Some(tol) = one_surface {
+            let ua = 1.0 / f.range_m[(k as isize - step * a as isize) as usize];
+            let ub = 1.0 / f.range_m[(k as isize + step * b as isize) as usize];
+            if (ua - ub).abs() > tol * ua.max(ub) {
+                return cap;
+            }
+        }
+        a.max(b)
+    };
     (0..f.len())
         .map(|k| {
-            if f.kept[k] {
-                return 0;
-            }
             let (i, j) = (k / w, k % w);
-            let row = reach(k, -1, j).max(reach(k, 1, w - 1 - j));
-            let column = reach(k, -(w as isize), i).max(reach(k, w as isize, h - 1 - i));
+            let row = side(k, 1, j, w - 1 - j);
+            let column = side(k, w as isize, i, h - 1 - i);
             row.min(column) as u8
         })
         .collect()
@@ -244,6 +264,8 @@ fn ceiling_range(f: &ScanFeatures, h: f32, reach_m: f32) -> Vec<f32> {
 pub struct Pixels {
     pub height: usize,
     pub width: usize,
+    /// The sim's reach the pixels were collected within (m).
+    pub reach_m: f32,
     pub row: Vec<u16>,
     pub column: Vec<u16>,
     /// Completed range (NaN = no geometry).
@@ -252,12 +274,21 @@ pub struct Pixels {
     pub cos_incidence: Vec<f32>,
     pub class: Vec<u16>,
     pub kept: Vec<bool>,
-    /// 0 for a kept pixel; for a dropped one, the smallest `d` such that it has
-    /// returns on both sides within `d` pixels along its row or along its column
-    /// (capped at [`ENCLOSURE_CAP_PX`]). A small value means its completion
-    /// interpolates one surface rather than extrapolating from an object's
-    /// outline into open space.
+    /// The smallest `d` such that the pixel has returns on both sides within `d`
+    /// pixels along its row or along its column (capped at [`ENCLOSURE_CAP_PX`]),
+    /// the pixel itself not counted. A small value means it lies within a
+    /// surface (a dropped one's completion interpolates it rather than
+    /// extrapolating from an object's outline into open space). Read from the
+    /// neighbours only, so that selecting pixels by it selects kept and dropped
+    /// ones alike: counting every kept pixel as enclosed would make the set of
+    /// enclosed pixels depend on the outcome being modelled.
     pub enclosure_px: Vec<u8>,
+    /// As `enclosure_px`, with the two returns on one surface (their ranges within
+    /// [`SURFACE_TOLERANCE`]): a hole in a wall, not a gap between two tree crowns
+    /// at different ranges that shows the sky. Which share of the pixels beside
+    /// an object's outline open onto the sky is the scene's; the families that
+    /// read small holes (lasers, edges) and the baseline's split use this.
+    pub surface_px: Vec<u8>,
     /// A dropped pixel on the open ground within reach ([`open_ground_range`]) or
     /// under a level ceiling ([`ceiling_range`]), completed as that plane (range and
     /// incidence): where strong range or incidence physics empties the far field or a
@@ -281,7 +312,10 @@ pub struct Pixels {
 
 impl Pixels {
     pub fn collect(scans: &[ScanFeatures], reach_m: f32) -> Self {
-        let mut px = Pixels::default();
+        let mut px = Pixels {
+            reach_m,
+            ..Pixels::default()
+        };
         if let Some(f) = scans.first() {
             px.height = f.height;
             px.width = f.width;
@@ -301,7 +335,8 @@ impl Pixels {
             }
             let scan = px.scan_range_m.len() as u32;
             px.scan_range_m.push(f.range_m.clone());
-            let enclosure = enclosure_px(f);
+            let enclosure = enclosure_px(f, None);
+            let surface = enclosure_px(f, Some(SURFACE_TOLERANCE));
             let ground_r = match ground_depth {
                 Some(h) => open_ground_range(f, &enclosure, open_above, h),
                 None => vec![f32::NAN; f.len()],
@@ -334,6 +369,7 @@ impl Pixels {
                 px.class.push((f.class[k] & 0xffff) as u16);
                 px.kept.push(f.kept[k]);
                 px.enclosure_px.push(enclosure);
+                px.surface_px.push(surface[k]);
                 px.level_plane.push(level_plane);
                 px.edge_px
                     .push(f.edge_px.get(k).copied().unwrap_or(u8::MAX));
@@ -358,8 +394,12 @@ impl Pixels {
     }
 }
 
-/// The sim's keep rate per (row, range cell); the last range cell holds pixels
-/// without geometry. Times an azimuth factor per (row, sector) where the sim
+/// The sim's keep rate per (row, range cell, enclosed or not); the last range
+/// cell holds pixels without geometry. Enclosed (neighbours return on both sides
+/// within [`BASELINE_ENCLOSED_PX`]) splits a hole in a surface, which only
+/// dropout makes, from the edge of open space, which the scene makes: one rate
+/// for both would under-predict every surface pixel of rows that see much open
+/// space, and a weak laser there would look like one that keeps too much. Times an azimuth factor per (row, sector) where the sim
 /// keeps more or fewer of the sector's pixels than their cells predict beyond
 /// doubt (|z| > 4: the sim's own blind spots), else 1.
 #[derive(Debug, Clone, PartialEq)]
@@ -370,6 +410,10 @@ pub struct Baseline {
     width: usize,
     azimuth: Vec<f64>,
 }
+
+/// A pixel counts as enclosed for the baseline when its neighbours return within
+/// this many pixels on both sides.
+const BASELINE_ENCLOSED_PX: u8 = 3;
 
 /// Azimuth sectors of the baseline's azimuth factor.
 const BASELINE_SECTORS: usize = 64;
@@ -386,7 +430,8 @@ impl Baseline {
         } else {
             self.cells - 1
         };
-        px.row[i] as usize * self.cells + c
+        let e = usize::from(px.surface_px[i] <= BASELINE_ENCLOSED_PX);
+        (px.row[i] as usize * self.cells + c) * 2 + e
     }
 
     pub fn from_sim(sim: &Pixels, reach_m: f32) -> Self {
@@ -405,23 +450,28 @@ impl Baseline {
             width: sim.width,
             azimuth: vec![1.0; rows * sectors],
         };
-        let mut n = vec![0f64; rows * cells];
-        let mut k = vec![0f64; rows * cells];
+        // Cells are (row, range cell, enclosed or not); a cell's prior is its
+        // (range cell, enclosed) rate over all rows.
+        let mut n = vec![0f64; rows * cells * 2];
+        let mut k = vec![0f64; rows * cells * 2];
         for i in 0..sim.len() {
             let c = b.cell(sim, i);
             n[c] += 1.0;
             k[c] += f64::from(u8::from(sim.kept[i]));
         }
         let global = 1.0 - sim.drop_rate();
-        let mut range_keep = vec![global; cells];
+        let across_rows = |i: usize| i % (cells * 2);
+        let mut range_keep = vec![global; cells * 2];
         for (c, rk) in range_keep.iter_mut().enumerate() {
             let (nn, kk) = (0..rows).fold((0.0, 0.0), |(a, b), r| {
-                (a + n[r * cells + c], b + k[r * cells + c])
+                (a + n[r * cells * 2 + c], b + k[r * cells * 2 + c])
             });
             *rk = (kk + SMOOTHING_PIXELS * global) / (nn + SMOOTHING_PIXELS);
         }
-        b.keep = (0..rows * cells)
-            .map(|i| (k[i] + SMOOTHING_PIXELS * range_keep[i % cells]) / (n[i] + SMOOTHING_PIXELS))
+        b.keep = (0..rows * cells * 2)
+            .map(|i| {
+                (k[i] + SMOOTHING_PIXELS * range_keep[across_rows(i)]) / (n[i] + SMOOTHING_PIXELS)
+            })
             .collect();
         // A sector departs where the sim keeps more or fewer of its pixels than
         // their (row, range) cells predict: a blind spot of the sim itself. Judged
@@ -1102,7 +1152,7 @@ mod tests {
     #[test]
     fn open_ground_takes_the_level_grounds_range_where_nothing_stands_in_front() {
         let f = far_ground_dropped(30, 20.0);
-        let enclosure = enclosure_px(&f);
+        let enclosure = enclosure_px(&f, None);
         let open_above = -(3.0f32).to_radians();
         let ground = open_ground_range(&f, &enclosure, open_above, 1.5);
         for (k, &g) in ground.iter().enumerate() {
@@ -1119,7 +1169,7 @@ mod tests {
         // Grazing drops that empty the ground from 8 m on leave its columns nothing
         // farther to see: what they lost is still the level ground.
         let near = far_ground_dropped(30, 8.0);
-        let ground = open_ground_range(&near, &enclosure_px(&near), open_above, 1.5);
+        let ground = open_ground_range(&near, &enclosure_px(&near, None), open_above, 1.5);
         let lost =
             (0..near.len()).filter(|&k| !near.kept[k] && near.elevation_rad[k] <= open_above);
         for k in lost {
@@ -1216,8 +1266,65 @@ mod tests {
             px.column.push(j as u16);
             px.range_m.push(if wall { 10.0 } else { f32::NAN });
             px.kept.push(wall && kept(j));
+            let enclosure = if wall { 1 } else { ENCLOSURE_CAP_PX };
+            px.enclosure_px.push(enclosure);
+            px.surface_px.push(enclosure);
         }
         px
+    }
+
+    #[test]
+    fn baseline_tells_holes_in_a_surface_from_the_edge_of_open_space() {
+        // A wall 10 m away whose rays return 19 in 20 times, then pixels beside
+        // open space that the fill gave the wall's range, all dropped.
+        let w = 1000;
+        let mut px = Pixels {
+            height: 1,
+            width: w,
+            ..Pixels::default()
+        };
+        for j in 0..w {
+            let wall = j < 800;
+            px.row.push(0);
+            px.column.push(j as u16);
+            px.range_m.push(10.0);
+            px.kept.push(wall && j % 20 != 0);
+            let enclosure = if wall { 1 } else { ENCLOSURE_CAP_PX };
+            px.enclosure_px.push(enclosure);
+            px.surface_px.push(enclosure);
+        }
+        let keep = Baseline::from_sim(&px, 50.0).keep_of(&px);
+        assert!((keep[1] - 0.95).abs() < 0.01, "wall {}", keep[1]);
+        assert!(keep[900] < 0.05, "open edge {}", keep[900]);
+    }
+
+    #[test]
+    fn a_kept_pixels_enclosure_is_read_from_its_neighbours() {
+        // One row: returns in columns 0, 2 and 4, then open space.
+        let mut f = level_rows(1, |_| (0.0, true, 10.0, 0.0));
+        for j in 0..64 {
+            f.kept[j] = j <= 4 && j % 2 == 0;
+        }
+        let e = enclosure_px(&f, None);
+        assert_eq!(e[1], 1, "a hole between two returns");
+        assert_eq!(e[2], 2, "a return between returns two pixels away");
+        assert_eq!(e[4], ENCLOSURE_CAP_PX, "a return beside open space");
+    }
+
+    #[test]
+    fn a_gap_between_two_surfaces_is_not_a_hole_in_one() {
+        // One row: a crown 10 m away (columns 0-9), open sky (10-11), another crown
+        // 14 m away (12-20), a hole in it (21), the crown again (22-30).
+        let mut f = level_rows(1, |_| (0.0, true, 10.0, 0.0));
+        for j in 0..64 {
+            f.kept[j] = j <= 30 && !matches!(j, 10 | 11 | 21);
+            f.range_m[j] = if j < 12 { 10.0 } else { 14.0 };
+        }
+        let any = enclosure_px(&f, None);
+        let surface = enclosure_px(&f, Some(SURFACE_TOLERANCE));
+        assert_eq!((any[10], any[21]), (2, 1), "both enclosed by returns");
+        assert_eq!(surface[10], ENCLOSURE_CAP_PX, "the sky between the crowns");
+        assert_eq!(surface[21], 1, "the hole in the far crown");
     }
 
     #[test]
