@@ -357,7 +357,7 @@ impl DropFamily for EdgeFamily {
     /// Pixels with a surface only (a completed range): edges are between surfaces.
     fn bin(&self, px: &Pixels, i: usize) -> Option<usize> {
         let r = px.range_m[i];
-        (r.is_finite() && px.surface_px[i] <= BEAM_ENCLOSURE_PX).then(|| {
+        (r.is_finite() && px.enclosure_px[i] <= BEAM_ENCLOSURE_PX).then(|| {
             edge_band(r) * EDGE_DISTANCES + usize::from(px.row_edge_px[i].min(MAX_EDGE_PX))
         })
     }
@@ -948,6 +948,7 @@ impl DropFamily for MotionCoverageFamily {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::diagnose::fit::ENCLOSURE_CAP_PX;
 
     /// One scan of ground rows (1 deg apart from -10 deg down) 1.5 m up, 360
     /// columns; pixels dropped where `dropped([along column, along row])` says.
@@ -1127,6 +1128,26 @@ mod tests {
         // The same holes in one quarter turn only are the scene's.
         let one_quarter = beam_rates(&wall_rows(|i, j| i == 4 && j < 100));
         assert!(one_quarter.iter().all(|p| *p < 1e-3), "{one_quarter:?}");
+    }
+
+    #[test]
+    fn a_ray_dropped_on_a_depth_edge_counts_for_edges_not_for_lasers() {
+        // Returns on both sides, 1 px away, on the two surfaces of the edge.
+        let px = Pixels {
+            height: 1,
+            width: 1,
+            reach_m: 100.0,
+            row: vec![0],
+            column: vec![0],
+            range_m: vec![20.0],
+            kept: vec![false],
+            enclosure_px: vec![1],
+            surface_px: vec![ENCLOSURE_CAP_PX],
+            row_edge_px: vec![0],
+            ..Default::default()
+        };
+        assert!(EdgeFamily.bin(&px, 0).is_some());
+        assert_eq!(BeamFamily.bin(&px, 0), None);
     }
 
     #[test]
