@@ -9,6 +9,8 @@
 //! also prints the MAE in meters over the held-out pixels of the GAN rendering, of the
 //! default fill and of the guided one.
 //!
+//! With `WARMUP=S` in the environment, each chain's first scan is tuned for S steps.
+//!
 //!     cargo run --release --example warm_start -- ../shared/real_lidar kitti_raw_drive_d 30 33,14 0,1,4 [16]
 
 use std::path::PathBuf;
@@ -57,7 +59,13 @@ fn main() -> Result<()> {
         let mut opts = DecodeOptions::new(Quality::Fast);
         opts.schedule.set_tune_steps(steps.parse()?);
         opts.restore = restore.map(Sparsify::Lines);
-        let decoder = Decoder::new(Model::load(None, &burn::tensor::Device::flex())?, opts)?;
+        let mut first_opts = opts.clone();
+        if let Ok(steps) = std::env::var("WARMUP") {
+            first_opts.schedule.set_tune_steps(steps.parse()?);
+        }
+        let device = burn::tensor::Device::flex();
+        let decoder = Decoder::new(Model::load(None, &device)?, opts)?;
+        let first = Decoder::new(Model::load(None, &device)?, first_opts)?;
         for stride in strides.split(',') {
             let stride: usize = stride.parse()?;
             let start = Instant::now();
@@ -66,7 +74,9 @@ fn main() -> Result<()> {
             let mut held_out = [(0.0f64, 0usize); 3];
             for (k, scan) in scans.iter().enumerate() {
                 let from = (stride > 0 && k >= stride).then(|| &tuned[k - stride]);
-                let decoded = decoder.decode_from(scan, k as u64, from)?;
+                let chain_start = stride > 0 && k < stride;
+                let decoded = if chain_start { &first } else { &decoder }
+                    .decode_from(scan, k as u64, from)?;
                 errors.push(decoded.error.unwrap_or(f32::NAN) as f64);
                 if restore.is_some() {
                     for (sum, fill) in

@@ -355,6 +355,8 @@ impl DropFamily for EdgeFamily {
         EDGE_BANDS_M.len() * EDGE_DISTANCES
     }
     /// Pixels with a surface only (a completed range): edges are between surfaces.
+    /// Enclosed by any returns, not by one surface: a ray dropped on a depth edge
+    /// has the edge's two surfaces beside it.
     fn bin(&self, px: &Pixels, i: usize) -> Option<usize> {
         let r = px.range_m[i];
         (r.is_finite() && px.enclosure_px[i] <= BEAM_ENCLOSURE_PX).then(|| {

@@ -286,8 +286,8 @@ pub struct Pixels {
     /// As `enclosure_px`, with the two returns on one surface (their ranges within
     /// [`SURFACE_TOLERANCE`]): a hole in a wall, not a gap between two tree crowns
     /// at different ranges that shows the sky. Which share of the pixels beside
-    /// an object's outline open onto the sky is the scene's; the families that
-    /// read small holes (lasers, edges) and the baseline's split use this.
+    /// an object's outline open onto the sky is the scene's; `beam_dropout` and
+    /// the baseline's split use this.
     pub surface_px: Vec<u8>,
     /// A dropped pixel on the open ground within reach ([`open_ground_range`]) or
     /// under a level ceiling ([`ceiling_range`]), completed as that plane (range and
