@@ -75,10 +75,9 @@ pub const ENCLOSURE_CAP_PX: u8 = 16;
 /// inverse ranges differ by at most this share of the larger one.
 const SURFACE_TOLERANCE: f32 = 0.15;
 
-/// [`Pixels::enclosure_px`] of every pixel of one scan, or with `one_surface`
-/// [`Pixels::surface_px`]: the two enclosing returns' inverse ranges within that
-/// share of each other.
-fn enclosure_px(f: &ScanFeatures, one_surface: Option<f32>) -> Vec<u8> {
+/// [`Pixels::enclosure_px`] and [`Pixels::surface_px`] of every pixel of one scan, from
+/// one search for each pixel's nearest returns.
+fn enclosures(f: &ScanFeatures) -> (Vec<u8>, Vec<u8>) {
     let (h, w) = (f.height, f.width.max(1));
     let cap = usize::from(ENCLOSURE_CAP_PX);
     // Distance to the nearest return from `k` in steps of `step`, at most `limit` steps.
@@ -87,31 +86,28 @@ fn enclosure_px(f: &ScanFeatures, one_surface: Option<f32>) -> Vec<u8> {
             .find(|&d| f.kept[(k as isize + step * d as isize) as usize])
             .unwrap_or(cap)
     };
-    // The farther of the nearest returns on both sides, `step` apart, within
-    // `before` and `after` steps.
-    let side = |k: usize, step: isize, before: usize, after: usize| -> usize {
+    // The farther of the nearest returns on both sides, `step` apart, within `before`
+    // and `after` steps: as any returns, and as one surface (their inverse ranges
+    // within `SURFACE_TOLERANCE` of each other).
+    let side = |k: usize, step: isize, before: usize, after: usize| -> (usize, usize) {
         let a = reach(k, -step, before);
         let b = reach(k, step, after);
         if a >= cap || b >= cap {
-            return cap;
+            return (cap, cap);
         }
-        if let Some(tol) = one_surface {
-            let ua = 1.0 / f.range_m[(k as isize - step * a as isize) as usize];
-            let ub = 1.0 / f.range_m[(k as isize + step * b as isize) as usize];
-            if (ua - ub).abs() > tol * ua.max(ub) {
-                return cap;
-            }
-        }
-        a.max(b)
+        let ua = 1.0 / f.range_m[(k as isize - step * a as isize) as usize];
+        let ub = 1.0 / f.range_m[(k as isize + step * b as isize) as usize];
+        let apart = (ua - ub).abs() > SURFACE_TOLERANCE * ua.max(ub);
+        (a.max(b), if apart { cap } else { a.max(b) })
     };
     (0..f.len())
         .map(|k| {
             let (i, j) = (k / w, k % w);
             let row = side(k, 1, j, w - 1 - j);
             let column = side(k, w as isize, i, h - 1 - i);
-            row.min(column) as u8
+            (row.0.min(column.0) as u8, row.1.min(column.1) as u8)
         })
-        .collect()
+        .unzip()
 }
 
 /// Elevation above which a pixel without geometry may be open space rather than
@@ -335,8 +331,7 @@ impl Pixels {
             }
             let scan = px.scan_range_m.len() as u32;
             px.scan_range_m.push(f.range_m.clone());
-            let enclosure = enclosure_px(f, None);
-            let surface = enclosure_px(f, Some(SURFACE_TOLERANCE));
+            let (enclosure, surface) = enclosures(f);
             let ground_r = match ground_depth {
                 Some(h) => open_ground_range(f, &enclosure, open_above, h),
                 None => vec![f32::NAN; f.len()],
@@ -1152,7 +1147,7 @@ mod tests {
     #[test]
     fn open_ground_takes_the_level_grounds_range_where_nothing_stands_in_front() {
         let f = far_ground_dropped(30, 20.0);
-        let enclosure = enclosure_px(&f, None);
+        let enclosure = enclosures(&f).0;
         let open_above = -(3.0f32).to_radians();
         let ground = open_ground_range(&f, &enclosure, open_above, 1.5);
         for (k, &g) in ground.iter().enumerate() {
@@ -1169,7 +1164,7 @@ mod tests {
         // Grazing drops that empty the ground from 8 m on leave its columns nothing
         // farther to see: what they lost is still the level ground.
         let near = far_ground_dropped(30, 8.0);
-        let ground = open_ground_range(&near, &enclosure_px(&near, None), open_above, 1.5);
+        let ground = open_ground_range(&near, &enclosures(&near).0, open_above, 1.5);
         let lost =
             (0..near.len()).filter(|&k| !near.kept[k] && near.elevation_rad[k] <= open_above);
         for k in lost {
@@ -1305,7 +1300,7 @@ mod tests {
         for j in 0..64 {
             f.kept[j] = j <= 4 && j % 2 == 0;
         }
-        let e = enclosure_px(&f, None);
+        let e = enclosures(&f).0;
         assert_eq!(e[1], 1, "a hole between two returns");
         assert_eq!(e[2], 2, "a return between returns two pixels away");
         assert_eq!(e[4], ENCLOSURE_CAP_PX, "a return beside open space");
@@ -1320,8 +1315,7 @@ mod tests {
             f.kept[j] = j <= 30 && !matches!(j, 10 | 11 | 21);
             f.range_m[j] = if j < 12 { 10.0 } else { 14.0 };
         }
-        let any = enclosure_px(&f, None);
-        let surface = enclosure_px(&f, Some(SURFACE_TOLERANCE));
+        let (any, surface) = enclosures(&f);
         assert_eq!((any[10], any[21]), (2, 1), "both enclosed by returns");
         assert_eq!(surface[10], ENCLOSURE_CAP_PX, "the sky between the crowns");
         assert_eq!(surface[21], 1, "the hole in the far crown");
