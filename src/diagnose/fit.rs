@@ -15,8 +15,9 @@
 //! real *training* scans given the effects already chosen, and keeps the one
 //! whose held-out gain (NLL per pixel on the real *test* scans, over the current
 //! model with `c` refitted) beats its penalty (BIC term, at least
-//! [`MIN_GAIN_NATS`]). Nothing is claimed that does not beat the null on held-out
-//! data.
+//! [`MIN_GAIN_NATS`]); of two that read the same drops, the one with fewer
+//! parameters ([`simpler_rival`]). Nothing is claimed that does not beat the null on
+//! held-out data.
 //!
 //! Fitting one candidate given the others is cheap: pixels are pooled into a
 //! [`QTable`] by (candidate bin, level of the rest-of-model keep probability `q`),
@@ -72,8 +73,12 @@ pub fn kept_range_quantile(scans: &[ScanFeatures], q: f64) -> f32 {
 pub const ENCLOSURE_CAP_PX: u8 = 16;
 
 /// Two returns enclose a pixel as one surface ([`Pixels::surface_px`]) when their
-/// inverse ranges differ by at most this share of the larger one.
+/// inverse ranges differ by at most this share of the larger one, or, above and below
+/// it, their heights do (one level plane: the ground, a ceiling).
 const SURFACE_TOLERANCE: f32 = 0.15;
+/// Heights nearer the sensor's than this (m) do not tell a level plane: at the horizon
+/// every surface has them.
+const LEVEL_MIN_HEIGHT_M: f32 = 0.5;
 
 /// [`Pixels::enclosure_px`] and [`Pixels::surface_px`] of every pixel of one scan, from
 /// one search for each pixel's nearest returns.
@@ -95,10 +100,20 @@ fn enclosures(f: &ScanFeatures) -> (Vec<u8>, Vec<u8>) {
         if a >= cap || b >= cap {
             return (cap, cap);
         }
-        let ua = 1.0 / f.range_m[(k as isize - step * a as isize) as usize];
-        let ub = 1.0 / f.range_m[(k as isize + step * b as isize) as usize];
-        let apart = (ua - ub).abs() > SURFACE_TOLERANCE * ua.max(ub);
-        (a.max(b), if apart { cap } else { a.max(b) })
+        let (ka, kb) = (
+            (k as isize - step * a as isize) as usize,
+            (k as isize + step * b as isize) as usize,
+        );
+        let (ua, ub) = (1.0 / f.range_m[ka], 1.0 / f.range_m[kb]);
+        let near = |x: f32, y: f32| (x - y).abs() <= SURFACE_TOLERANCE * x.abs().max(y.abs());
+        // Rows of a sparse sensor meet the ground at ranges far apart, at one height.
+        let level = step != 1 && {
+            let height = |k: usize| f.range_m[k] * f.elevation_rad[k].sin();
+            let (za, zb) = (height(ka), height(kb));
+            za.abs().min(zb.abs()) >= LEVEL_MIN_HEIGHT_M && za * zb > 0.0 && near(za, zb)
+        };
+        let one_surface = near(ua, ub) || level;
+        (a.max(b), if one_surface { a.max(b) } else { cap })
     };
     (0..f.len())
         .map(|k| {
@@ -929,7 +944,7 @@ fn forward(
     for round in 0..max_effects {
         let effects: Vec<(&dyn DropFamily, &DropFit)> =
             chosen.iter().map(|(i, f, _)| (families[*i], f)).collect();
-        let mut best: Option<(usize, DropFit, f64, f64, f64, [f64; 2])> = None;
+        let mut viable: Vec<Candidate> = Vec::new();
         for (fi, family) in families.iter().enumerate() {
             if chosen.iter().any(|(i, ..)| *i == fi) {
                 continue;
@@ -963,19 +978,48 @@ fn forward(
                 });
             }
             let margin = gain - penalty;
-            let best_established = best.as_ref().is_some_and(|b| families[b.0].established());
-            let better = match best.as_ref() {
-                None => true,
-                Some(_) if family.established() != best_established => family.established(),
-                Some(b) => margin > current_nll - b.2 - b.3,
-            };
-            if margin > 0.0 && better {
-                best = Some((fi, fit, nll, penalty, c_fit, halves));
+            if margin > 0.0 {
+                viable.push(Candidate {
+                    family: fi,
+                    fit,
+                    nll,
+                    penalty,
+                    c_fit,
+                    halves,
+                    margin,
+                });
             }
         }
-        let Some((fi, fit, nll, penalty, c_fit, halves)) = best else {
+        let Some(best) = strongest(&viable, families) else {
             break;
         };
+        let explains = |rival: &Candidate| {
+            let mut given = effects.clone();
+            given.push((families[rival.family], &rival.fit));
+            let Some((fit, c_both)) = fit_given(
+                families[best.family],
+                train,
+                &base_train,
+                rival.c_fit,
+                &given,
+                refit_scale,
+            ) else {
+                return true;
+            };
+            given.push((families[best.family], &fit));
+            let both = mask_nll(test, &model_keep(test, &base_test, c_both, &given));
+            rival.nll - both < best.penalty
+        };
+        let best = simpler_rival(best, &viable, families, explains).unwrap_or(best);
+        let Candidate {
+            family: fi,
+            fit,
+            nll,
+            penalty,
+            c_fit,
+            halves,
+            ..
+        } = best.clone();
         chosen.push((
             fi,
             fit.clone(),
@@ -1003,6 +1047,57 @@ fn forward(
         scale_refitted: refit_scale,
         test_pixels: test.len(),
     })
+}
+
+/// A candidate effect of one selection round that beats its penalty.
+#[derive(Clone)]
+struct Candidate {
+    family: usize,
+    fit: DropFit,
+    /// Held-out NLL per pixel with the effect.
+    nll: f64,
+    penalty: f64,
+    c_fit: f64,
+    halves: [f64; 2],
+    /// Held-out gain over the penalty.
+    margin: f64,
+}
+
+/// The round's strongest candidate: established families first, then by margin.
+fn strongest<'a>(viable: &'a [Candidate], families: &[&dyn DropFamily]) -> Option<&'a Candidate> {
+    viable.iter().reduce(|best, c| {
+        let (e, eb) = (
+            families[c.family].established(),
+            families[best.family].established(),
+        );
+        let better = if e != eb { e } else { c.margin > best.margin };
+        if better { c } else { best }
+    })
+}
+
+/// A candidate with fewer parameters than `best` that fits nearly as well (margins within
+/// [`MIN_GAIN_NATS`], the scale of what scene differences alone produce) and leaves `best`
+/// nothing to add (`explains`): the two read the same drops, and the simpler reading is
+/// named. A free rate per range band of depth edges can trace a range curve that thins the
+/// far field, where the range curve itself is the physics.
+fn simpler_rival<'a>(
+    best: &'a Candidate,
+    viable: &'a [Candidate],
+    families: &[&dyn DropFamily],
+    explains: impl Fn(&Candidate) -> bool,
+) -> Option<&'a Candidate> {
+    let established = families[best.family].established();
+    let mut rivals: Vec<&Candidate> = viable
+        .iter()
+        .filter(|c| {
+            c.family != best.family
+                && families[c.family].established() == established
+                && c.fit.n_params < best.fit.n_params
+                && best.margin - c.margin < MIN_GAIN_NATS
+        })
+        .collect();
+    rivals.sort_by(|a, b| b.margin.total_cmp(&a.margin));
+    rivals.into_iter().find(|c| explains(c))
 }
 
 /// Fits `family` on `train` given the chosen `effects` at the keep scale `c0`, or,
@@ -1319,6 +1414,74 @@ mod tests {
         assert_eq!((any[10], any[21]), (2, 1), "both enclosed by returns");
         assert_eq!(surface[10], ENCLOSURE_CAP_PX, "the sky between the crowns");
         assert_eq!(surface[21], 1, "the hole in the far crown");
+    }
+
+    #[test]
+    fn a_dead_laser_over_the_ground_of_a_sparse_sensor_is_a_hole_in_it() {
+        // Three rows 2 deg apart looking down at the ground 2 m below: their ground
+        // points lie 9.6, 11.4 and 14.2 m away (inverse ranges 30 % apart), one height.
+        // The middle laser is dead all round.
+        let elevation = |i: usize| -(12.0f32 - 2.0 * i as f32).to_radians();
+        let mut f = level_rows(3, |i| {
+            let e = elevation(2 - i);
+            (e, i != 1, 2.0 / -e.sin(), 0.0)
+        });
+        let (any, surface) = enclosures(&f);
+        assert_eq!(
+            (any[64 + 5], surface[64 + 5]),
+            (1, 1),
+            "the ground above and below"
+        );
+        // A wall 20 m away above the dead row and the ground below it: two surfaces.
+        for j in 0..64 {
+            f.range_m[j] = 20.0 / elevation(2).cos();
+        }
+        assert_eq!(
+            enclosures(&f).1[64 + 5],
+            ENCLOSURE_CAP_PX,
+            "a wall above, the ground below"
+        );
+    }
+
+    #[test]
+    fn of_two_readings_of_the_same_drops_the_simpler_is_named() {
+        use crate::diagnose::drop::{EdgeFamily, RangeFamily};
+        let families: [&dyn DropFamily; 2] = [&EdgeFamily, &RangeFamily];
+        let candidate = |family: usize, n_params: usize, margin: f64| Candidate {
+            family,
+            fit: DropFit {
+                drop_prob: vec![],
+                params: serde_json::Map::new(),
+                physics: serde_json::Map::new(),
+                n_params,
+                location: String::new(),
+            },
+            nll: 0.0,
+            penalty: MIN_GAIN_NATS,
+            c_fit: 1.0,
+            halves: [0.0; 2],
+            margin,
+        };
+        // Free edge rates per range band fit a little better than the range curve.
+        let viable = [candidate(0, 16, 0.0046), candidate(1, 2, 0.0033)];
+        let best = strongest(&viable, &families).unwrap();
+        assert_eq!(best.family, 0);
+        let rival = simpler_rival(best, &viable, &families, |_| true);
+        assert_eq!(
+            rival.map(|c| c.family),
+            Some(1),
+            "the range curve explains the edges away"
+        );
+        assert!(
+            simpler_rival(best, &viable, &families, |_| false).is_none(),
+            "edges add to it"
+        );
+        // Far apart, the better fit is the answer.
+        let apart = [
+            candidate(0, 16, 0.0046 + MIN_GAIN_NATS),
+            candidate(1, 2, 0.0033),
+        ];
+        assert!(simpler_rival(&apart[0], &apart, &families, |_| true).is_none());
     }
 
     #[test]
