@@ -1010,31 +1010,24 @@ fn forward(
             let both = mask_nll(test, &model_keep(test, &base_test, c_both, &given));
             rival.nll - both < best.penalty
         };
-        let best = simpler_rival(best, &viable, families, explains).unwrap_or(best);
-        let Candidate {
-            family: fi,
-            fit,
-            nll,
-            penalty,
-            c_fit,
-            halves,
-            ..
-        } = best.clone();
+        let best = simpler_rival(best, &viable, families, explains)
+            .unwrap_or(best)
+            .clone();
         chosen.push((
-            fi,
-            fit.clone(),
+            best.family,
+            best.fit.clone(),
             Selected {
-                id: families[fi].id(),
-                fit,
+                id: families[best.family].id(),
+                fit: best.fit,
                 nll_without: current_nll,
-                nll_with: nll,
-                penalty,
+                nll_with: best.nll,
+                penalty: best.penalty,
                 round,
             },
         ));
-        current_nll = nll;
-        current_halves = halves;
-        c = c_fit;
+        current_nll = best.nll;
+        current_halves = best.halves;
+        c = best.c_fit;
     }
     tried.sort_by(|a, b| (b.gain - b.penalty).total_cmp(&(a.gain - a.penalty)));
     Ok(DropSelection {
