@@ -454,19 +454,22 @@ fn scattered_restoration_mae(img: &RangeImage) -> (f64, f64) {
     (idw / n as f64, surfaces / n as f64)
 }
 
+/// The first file (by name) in `dir` whose name ends with `suffix`.
+fn first_file(dir: &Path, suffix: &str) -> PathBuf {
+    std::fs::read_dir(dir)
+        .unwrap()
+        .map(|e| e.unwrap().path())
+        .filter(|p| p.to_string_lossy().ends_with(suffix))
+        .min()
+        .unwrap()
+}
+
 #[test]
 fn scattered_restoration_beats_idw_on_three_real_sensors() {
     let Some(root) = real_data("scattered_restoration_beats_idw_on_three_real_sensors") else {
         return;
     };
-    let first = |dir: &str, suffix: &str| {
-        std::fs::read_dir(root.join(dir))
-            .unwrap()
-            .map(|e| e.unwrap().path())
-            .filter(|p| p.to_string_lossy().ends_with(suffix))
-            .min()
-            .unwrap()
-    };
+    let first = |dir: &str, suffix: &str| first_file(&root.join(dir), suffix);
     let sensors = [
         (
             "KITTI HDL-64E, 64 x 512",
@@ -776,14 +779,7 @@ fn column_upsampling_beats_nearest_on_other_real_sensors() {
     let Some(root) = real_data("column_upsampling_beats_nearest_on_other_real_sensors") else {
         return;
     };
-    let first = |dir: &str, suffix: &str| {
-        std::fs::read_dir(root.join(dir))
-            .unwrap()
-            .map(|e| e.unwrap().path())
-            .filter(|p| p.to_string_lossy().ends_with(suffix))
-            .min()
-            .unwrap()
-    };
+    let first = |dir: &str, suffix: &str| first_file(&root.join(dir), suffix);
     let bytes = std::fs::read(root.join("mcap/pointcloudset_test.mcap")).unwrap();
     let mut sensors = Vec::new();
     for msg in mcap::MessageStream::new(&bytes).unwrap() {

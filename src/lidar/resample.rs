@@ -820,13 +820,10 @@ mod tests {
         }
     }
 
-    #[test]
-    fn a_finer_azimuth_grid_keeps_each_return_where_it_was_measured() {
-        // 8 x 128, each return measured 0.3 of a pixel clockwise of its pixel's centre, as a
-        // projected scan's nearest return lies anywhere inside its pixel.
-        let p = uniform_profile(8, 128, 7.0, -7.0);
-        let mut img = smooth_image(&p);
-        let shift = 0.3 * std::f32::consts::TAU / 128.0;
+    /// Moves every return of `img` `fraction` of a column clockwise of its pixel's centre
+    /// (its range kept), as a projected scan's nearest return lies anywhere in its pixel.
+    fn measure_clockwise(img: &mut RangeImage, fraction: f32) {
+        let shift = fraction * std::f32::consts::TAU / img.width as f32;
         for k in 0..img.len() {
             let (phi, theta) = (
                 img.angles.elevation_rad[k],
@@ -839,6 +836,15 @@ mod tests {
                 d * phi.sin(),
             ];
         }
+    }
+
+    #[test]
+    fn a_finer_azimuth_grid_keeps_each_return_where_it_was_measured() {
+        // 8 x 128, each return measured 0.3 of a pixel clockwise of its pixel's centre, as a
+        // projected scan's nearest return lies anywhere inside its pixel.
+        let p = uniform_profile(8, 128, 7.0, -7.0);
+        let mut img = smooth_image(&p);
+        measure_clockwise(&mut img, 0.3);
         let fine = p.angle_grid().resized(8, 512);
         let out = resample_by_surface(&img, &fine, &SurfaceRule::default(), None);
         let bilinear = resample_image(&img, &fine, Interpolation::Bilinear);
@@ -871,24 +877,14 @@ mod tests {
         // return nearer than the wall's (projection keeps the nearest).
         let p = uniform_profile(8, 128, 7.0, -7.0);
         let mut img = smooth_image(&p);
-        let shift = 0.4 * std::f32::consts::TAU / 128.0;
         for k in 0..img.len() {
-            let d = if (40..44).contains(&(k % 128)) {
+            img.range_m[k] = if (40..44).contains(&(k % 128)) {
                 5.0
             } else {
                 30.0
             };
-            let (phi, theta) = (
-                img.angles.elevation_rad[k],
-                img.angles.azimuth_rad[k] - shift,
-            );
-            img.range_m[k] = d;
-            img.xyz[k] = [
-                d * phi.cos() * theta.cos(),
-                d * phi.cos() * theta.sin(),
-                d * phi.sin(),
-            ];
         }
+        measure_clockwise(&mut img, 0.4);
         let fine = p.angle_grid().resized(8, 512);
         let out = resample_by_surface(&img, &fine, &SurfaceRule::default(), None);
         for k in 0..fine.len() {
