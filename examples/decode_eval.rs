@@ -128,6 +128,7 @@ fn parse_args() -> Result<Args> {
                     tune_w_lr: p[5].parse()?,
                     pyramid_levels: 2,
                     coarse_steps,
+                    ..Schedule::fast()
                 });
             }
             other => bail!("unknown flag {other}"),

@@ -39,6 +39,13 @@ pub struct Schedule {
     /// generator's work is in its finest blocks).
     #[serde(default)]
     pub coarse_steps: Vec<usize>,
+    /// Pivotal tuning leaves every layer's bias and the blocks' output heads as trained, and
+    /// moves only the synthesis layers' weights and style maps. In the same steps it fits a scan
+    /// better than moving every weight (the paper's): a few steps cannot move a head or a bias
+    /// without shifting the whole scene (BENCHMARKS.md, "Pivotal tuning of weights and styles
+    /// only").
+    #[serde(default)]
+    pub keep_heads_and_biases: bool,
 }
 
 impl Schedule {
@@ -57,6 +64,7 @@ impl Schedule {
             tune_w_lr: 0.0,
             pyramid_levels: 2,
             coarse_steps: Vec::new(),
+            keep_heads_and_biases: true,
         }
     }
 
@@ -72,6 +80,7 @@ impl Schedule {
             tune_w_lr: 0.0,
             pyramid_levels: 2,
             coarse_steps: Vec::new(),
+            keep_heads_and_biases: false,
         }
     }
 
@@ -88,11 +97,12 @@ impl Schedule {
             w_steps: 0,
             w_lr: 0.02,
             tune_steps: 33,
-            tune_lr: 1e-2,
+            tune_lr: 2e-2,
             tune_decay: false,
             tune_w_lr: 0.0,
             pyramid_levels: 2,
             coarse_steps: Vec::new(),
+            keep_heads_and_biases: true,
         }
     }
 
@@ -266,7 +276,10 @@ pub fn invert(
             if joint && let Some(g) = w_t.grad_remove(&mut grads) {
                 adam_w.step(&mut w, &tensor_to_vec(g), schedule.tune_w_lr as f32);
             }
-            let grads = GradientsParams::from_grads(grads, &tuned);
+            let mut grads = GradientsParams::from_grads(grads, &tuned);
+            if schedule.keep_heads_and_biases {
+                keep_heads_and_biases(&tuned, &mut grads);
+            }
             tuned = opt.step(lr, tuned, grads);
         }
     }
@@ -274,6 +287,21 @@ pub fn invert(
         generator: tuned.valid(),
         w,
         losses,
+    }
+}
+
+/// Drops the gradients of every bias and of the output heads, so that the optimiser leaves
+/// them as they are ([`Schedule::keep_heads_and_biases`]).
+fn keep_heads_and_biases(generator: &Generator, grads: &mut GradientsParams) {
+    for block in &generator.blocks {
+        for layer in [&block.conv0, &block.conv1] {
+            grads.remove::<1>(layer.bias.id);
+        }
+        let head = &block.head;
+        grads.remove::<2>(head.weight.id);
+        grads.remove::<2>(head.affine.weight.id);
+        grads.remove::<1>(head.affine.bias.id);
+        grads.remove::<1>(head.bias.id);
     }
 }
 
@@ -329,6 +357,7 @@ mod tests {
             tune_w_lr: 0.0,
             pyramid_levels: 1,
             coarse_steps: Vec::new(),
+            keep_heads_and_biases: false,
         };
         let inv = invert(
             &g,

@@ -49,13 +49,16 @@ pub fn tune(
     schedule: &Schedule,
 ) -> Inverted {
     let mut net = Net::read(generator, cache);
-    let mut adam = Adam::new(net.params.len());
+    let moved = net.moved(schedule.keep_heads_and_biases);
+    let mut adam = Adam::new(moved.iter().filter(|m| **m).count());
     let mut losses = Vec::with_capacity(schedule.tune_steps);
     for step in 0..schedule.tune_steps {
         let lr = schedule.tuning_rate(step, schedule.tune_steps);
         let (loss, grads) = net.loss_and_gradients(&w, target, mask, schedule.pyramid_levels);
         losses.push(loss);
-        adam.step(&mut net.params, &grads, lr as f32);
+        let params = (net.params.iter_mut().zip(&moved)).filter_map(|(p, m)| m.then_some(p));
+        let grads = (grads.iter().zip(&moved)).filter_map(|(g, m)| m.then_some(g));
+        adam.step(params, grads, lr as f32);
     }
     Inverted {
         generator: net.write(generator),
@@ -334,6 +337,29 @@ impl Net {
             blocks,
             output_gain: generator.output_gain,
         }
+    }
+
+    /// Which of the flat weights pivotal tuning moves: all, or with `keep_heads_and_biases` the
+    /// synthesis layers' weights and style maps only ([`Schedule::keep_heads_and_biases`]).
+    fn moved(&self, keep_heads_and_biases: bool) -> Vec<bool> {
+        let mut moved = vec![true; self.params.len()];
+        if keep_heads_and_biases {
+            for block in &self.blocks {
+                for r in [&block.conv0.bias, &block.conv1.bias] {
+                    moved[r.clone()].fill(false);
+                }
+                let head = &block.head;
+                for r in [
+                    &head.affine_weight,
+                    &head.affine_bias,
+                    &head.weight,
+                    &head.bias,
+                ] {
+                    moved[r.clone()].fill(false);
+                }
+            }
+        }
+        moved
     }
 
     fn write(&self, generator: &Generator) -> Generator {
@@ -655,5 +681,21 @@ mod tests {
         // The shared generator is untouched.
         let untouched = render(&g);
         assert!(untouched.iter().zip(&x_hand).any(|(a, b)| a != b));
+        // Heads and biases stay as trained; the synthesis weights move.
+        for tuned in [&hand.generator, &auto.generator] {
+            for (b, t) in g.blocks.iter().zip(&tuned.blocks) {
+                let same1 = |a: &Param<Tensor<1>>, b: &Param<Tensor<1>>| {
+                    tensor_to_vec(a.val()) == tensor_to_vec(b.val())
+                };
+                let same2 = |a: &Param<Tensor<2>>, b: &Param<Tensor<2>>| {
+                    tensor_to_vec(a.val()) == tensor_to_vec(b.val())
+                };
+                assert!(same2(&b.head.weight, &t.head.weight) && same1(&b.head.bias, &t.head.bias));
+                assert!(same2(&b.head.affine.weight, &t.head.affine.weight));
+                assert!(same1(&b.conv0.bias, &t.conv0.bias) && same1(&b.conv1.bias, &t.conv1.bias));
+                assert!(!same2(&b.conv1.weight, &t.conv1.weight));
+                assert!(!same2(&b.conv0.affine.weight, &t.conv0.affine.weight));
+            }
+        }
     }
 }
