@@ -10,7 +10,7 @@
 //! the azimuth seam at +-pi needs no special case, and columns wrap around.
 
 use super::range_image::NO_POINT;
-use super::surface::{Guide, Neighbour, SurfaceRule, blend_depth, keep_surface};
+use super::surface::{Guide, Neighbour, SurfaceRule, blend_depth, keep_surface, renormalise};
 use super::{AngleGrid, RangeImage, SensorProfile};
 
 /// How [`resample_image`] reads the source image.
@@ -403,10 +403,7 @@ fn behind_own_return(image: &RangeImage, own: usize, corners: &mut Vec<Neighbour
     }
     let floor = image.range_m[own];
     corners.retain(|c| c.index == own || c.depth >= floor);
-    let total: f32 = corners.iter().map(|c| c.weight).sum();
-    for c in corners.iter_mut() {
-        c.weight /= total;
-    }
+    renormalise(corners);
 }
 
 /// Copies source pixel `from` (the measured return as is) to target pixel `to`.
@@ -491,10 +488,7 @@ fn valid_corners(
             });
         }
     }
-    let total: f32 = corners.iter().map(|c| c.weight).sum();
-    for c in corners.iter_mut() {
-        c.weight /= total;
-    }
+    renormalise(corners);
 }
 
 /// `image` resampled onto `profile`'s grid (another sensor, or the same sensor at

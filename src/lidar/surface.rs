@@ -159,7 +159,7 @@ pub(crate) fn keep_surface(ns: &mut Vec<Neighbour>, guide_target: f32, rule: &Su
     one
 }
 
-fn renormalise(ns: &mut [Neighbour]) {
+pub(crate) fn renormalise(ns: &mut [Neighbour]) {
     let total: f32 = ns.iter().map(|n| n.weight).sum();
     for n in ns.iter_mut() {
         n.weight /= total;
