@@ -9,7 +9,9 @@
 //! also prints the MAE in meters over the held-out pixels of the GAN rendering, of the
 //! default fill and of the guided one.
 //!
-//! With `WARMUP=S` in the environment, each chain's first scan is tuned for S steps.
+//! With `WARMUP=S` in the environment, each chain's first scan is tuned for S steps. With
+//! `RELAY=H`, one chain whose scans each start from the weights the scan before reached after
+//! H of its steps (`convert --hand-off H`); the strides are then ignored.
 //!
 //!     cargo run --release --example warm_start -- ../shared/real_lidar kitti_raw_drive_d 30 33,14 0,1,4 [16]
 
@@ -69,21 +71,32 @@ fn main() -> Result<()> {
             }
             Err(_) => None,
         };
+        // RELAY=h: one chain, each scan starting from the weights its predecessor reached
+        // after h steps (`convert --hand-off h`); the stride is then ignored.
+        let relay: Option<usize> = std::env::var("RELAY").ok().map(|h| h.parse()).transpose()?;
         let decoder = Decoder::new(Model::load(None, &device)?, opts)?;
         for stride in strides.split(',') {
             let stride: usize = stride.parse()?;
             let start = Instant::now();
             let mut tuned = Vec::new();
+            let mut handed: Option<rangegan_mcap::model::generator::Generator> = None;
             let mut errors = Vec::new();
             let mut held_out = [(0.0f64, 0usize); 3];
             for (k, scan) in scans.iter().enumerate() {
-                let from = (stride > 0 && k >= stride).then(|| &tuned[k - stride]);
+                let from = match &relay {
+                    Some(_) => handed.as_ref(),
+                    None => (stride > 0 && k >= stride).then(|| &tuned[k - stride]),
+                };
                 let chain_start = stride > 0 && k < stride;
-                let decoded = first
-                    .as_ref()
-                    .filter(|_| chain_start)
-                    .unwrap_or(&decoder)
-                    .decode_from(scan, k as u64, from)?;
+                let decoder = first.as_ref().filter(|_| chain_start).unwrap_or(&decoder);
+                let decoded = match relay {
+                    Some(h) => {
+                        let (next, partial) = decoder.begin(scan, k as u64, from, h)?;
+                        handed = Some(next);
+                        decoder.finish(partial)
+                    }
+                    None => decoder.decode_from(scan, k as u64, from)?,
+                };
                 errors.push(decoded.error.unwrap_or(f32::NAN) as f64);
                 if restore.is_some() {
                     for (sum, fill) in

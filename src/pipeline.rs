@@ -6,8 +6,10 @@
 //!
 //! A topic's scans may form chains ([`ConvertOptions::chain_stride`]): scan k continues
 //! from what scan k - stride left in its chain's [`ChainState`] (the decoder's tuned weights),
-//! so each chain runs in input order and chains run in parallel. The chains follow from the
-//! scans' order alone, never from the threads.
+//! so each chain runs in input order and chains run in parallel. A stage may hand its chain's
+//! state on before its scan is done ([`Staged::Later`]); the rest of that scan then runs
+//! beside the chain's next scan. The chains follow from the scans' order alone, never from the
+//! threads.
 
 use std::collections::{BTreeMap, HashMap};
 use std::io::{Read, Seek};
@@ -17,7 +19,7 @@ use std::sync::{Arc, Mutex};
 use mcap::records::Record;
 use rayon::prelude::*;
 
-use crate::decode::{Decoder, Fill, PreparedGrid, Rendered, scan_seed};
+use crate::decode::{Decoded, Decoder, Fill, PreparedGrid, Rendered, scan_seed};
 use crate::error::Location;
 use crate::io::encoders::{Kind, encode_f32_image, encode_mask, encode_points};
 use crate::io::{
@@ -68,7 +70,8 @@ pub const DEFAULT_BATCH_SCANS: usize = 16;
 /// than tied to the thread count, since a scan's result depends on its chain.
 pub const DEFAULT_CHAIN_STRIDE: usize = 2;
 
-/// What a chain of scans carries from one scan to the next: the last pivotal-tuned generator.
+/// What a chain of scans carries from one scan to the next: the pivotal-tuned weights the last
+/// scan handed on.
 pub type ChainState = Mutex<Option<Generator>>;
 
 /// A chain: its topic and number within the topic.
@@ -110,11 +113,22 @@ pub struct StageOutput {
     pub data: Vec<u8>,
 }
 
+/// What a stage gives for one scan.
+pub enum Staged<'s> {
+    Done(Vec<StageOutput>),
+    /// The part that the scan's chain waits for is done and its state handed on; this makes
+    /// the outputs, beside the chain's next scan.
+    Later(Later<'s>),
+}
+
+/// The rest of a stage's work on one scan ([`Staged::Later`]).
+pub type Later<'s> = Box<dyn FnOnce() -> anyhow::Result<Vec<StageOutput>> + Send + 's>;
+
 /// A per-scan stage: pure in its inputs, so results do not depend on threads.
-pub type Stage<'s> = dyn Fn(&ScanInput<'_>) -> anyhow::Result<Vec<StageOutput>> + Sync + 's;
+pub type Stage<'s> = dyn Fn(&ScanInput<'_>) -> anyhow::Result<Staged<'s>> + Sync + 's;
 
 /// The range image channel every converted topic gets: range in meters, 32FC1.
-pub fn range_stage(input: &ScanInput<'_>) -> anyhow::Result<Vec<StageOutput>> {
+pub fn range_stage(input: &ScanInput<'_>) -> anyhow::Result<Staged<'static>> {
     let img = input.image;
     let bytes = encode_f32_image(
         input.family,
@@ -123,11 +137,11 @@ pub fn range_stage(input: &ScanInput<'_>) -> anyhow::Result<Vec<StageOutput>> {
         (img.width, img.height),
         &img.range_m,
     );
-    Ok(vec![StageOutput {
+    Ok(Staged::Done(vec![StageOutput {
         suffix: "range".into(),
         kind: Kind::Image,
         data: bytes,
-    }])
+    }]))
 }
 
 /// The auto-decoding stage: for every scan, the completed depth, the ray-drop probability,
@@ -139,6 +153,7 @@ pub struct DecodeStage<'d> {
     /// `(suffix, grid)`: written as `depth_<suffix>` and `points_<suffix>`.
     extra_grids: Vec<(String, PreparedGrid)>,
     fill: Fill,
+    hand_off: Option<usize>,
 }
 
 /// What [`DecodeStage`] adds beyond the model-grid channels.
@@ -152,6 +167,10 @@ pub struct DecodeOutputs {
     pub target_sensors: Vec<SensorProfile>,
     /// What the extra grids and a restored model grid hold.
     pub fill: Fill,
+    /// With chains: the tuning step after which a scan hands its weights on to the chain's
+    /// next scan, which starts tuning while this one goes on (`None`: after all of them, so
+    /// the next scan starts from this one's final weights).
+    pub hand_off: Option<usize>,
 }
 
 impl<'d> DecodeStage<'d> {
@@ -188,6 +207,7 @@ impl<'d> DecodeStage<'d> {
             mask_samples: outputs.mask_samples,
             extra_grids,
             fill: outputs.fill,
+            hand_off: outputs.hand_off,
         })
     }
 
@@ -202,23 +222,38 @@ impl<'d> DecodeStage<'d> {
         names
     }
 
-    /// Decode one scan and encode its channels.
-    pub fn run(&self, input: &ScanInput<'_>) -> anyhow::Result<Vec<StageOutput>> {
+    /// Decode one scan and encode its channels. A chained scan hands its weights on to the
+    /// chain after [`DecodeOutputs::hand_off`] steps and finishes later.
+    pub fn run<'s>(&'s self, input: &ScanInput<'_>) -> anyhow::Result<Staged<'s>> {
         let seed = scan_seed(input.topic, input.log_time);
-        let lock = |c: &ChainState| c.lock().unwrap_or_else(|e| e.into_inner()).clone();
-        let start = input.chain.and_then(lock);
-        let decoded = self
-            .decoder
-            .decode_from(input.image, seed, start.as_ref())?;
-        if let Some(chain) = input.chain {
-            *chain.lock().unwrap_or_else(|e| e.into_inner()) =
-                Some(decoded.tuned_generator().clone());
-        }
-        let (family, stamp, frame) = (
-            input.family,
-            input.cloud.stamp_nanos,
-            input.cloud.frame_id.as_str(),
-        );
+        let stamp = (input.family, input.cloud.stamp_nanos);
+        let frame = input.cloud.frame_id.clone();
+        let Some(chain) = input.chain else {
+            let decoded = self.decoder.decode(input.image, seed)?;
+            return Ok(Staged::Done(self.outputs(&decoded, stamp, &frame)));
+        };
+        let mut state = chain.lock().unwrap_or_else(|e| e.into_inner());
+        let Some(hand_off) = self.hand_off else {
+            let decoded = (self.decoder).decode_from(input.image, seed, state.as_ref())?;
+            *state = Some(decoded.tuned_generator().clone());
+            return Ok(Staged::Done(self.outputs(&decoded, stamp, &frame)));
+        };
+        let (handed, partial) =
+            (self.decoder).begin(input.image, seed, state.as_ref(), hand_off)?;
+        *state = Some(handed);
+        Ok(Staged::Later(Box::new(move || {
+            let decoded = self.decoder.finish(partial);
+            Ok(self.outputs(&decoded, stamp, &frame))
+        })))
+    }
+
+    /// The channels of one decoded scan.
+    fn outputs(
+        &self,
+        decoded: &Decoded,
+        (family, stamp): (Family, u64),
+        frame: &str,
+    ) -> Vec<StageOutput> {
         let image = |suffix: String, r: &Rendered, values: &[f32]| StageOutput {
             suffix,
             kind: Kind::Image,
@@ -265,7 +300,7 @@ impl<'d> DecodeStage<'d> {
             out.push(image(format!("depth_{suffix}"), &r, &r.depth_m));
             out.push(points(format!("points_{suffix}"), &r));
         }
-        Ok(out)
+        out
     }
 }
 
@@ -343,9 +378,9 @@ struct Pending {
 }
 
 /// The per-scan work, shared by the worker threads.
-struct ScanProcessor<'a> {
+struct ScanProcessor<'a, 's> {
     opts: &'a ConvertOptions,
-    stages: &'a [&'a Stage<'a>],
+    stages: &'a [&'a Stage<'s>],
     profiles: Mutex<HashMap<String, (SensorProfile, Strategy)>>,
     file: std::path::PathBuf,
     fit_warnings: Mutex<Vec<Warning>>,
@@ -360,7 +395,32 @@ type Processed = (
     Vec<String>,
 );
 
-impl ScanProcessor<'_> {
+/// A scan whose stages have run up to what its chain waits for: each stage's result, in order.
+struct Begun<'s> {
+    staged: Vec<Result<Staged<'s>, String>>,
+    kept: f64,
+    projection: (SensorProfile, Strategy),
+}
+
+impl Begun<'_> {
+    /// Runs what the stages left for later, and collects their outputs in stage order.
+    fn complete(self) -> Processed {
+        let (mut outputs, mut failed) = (Vec::new(), Vec::new());
+        for staged in self.staged {
+            let result = staged.and_then(|s| match s {
+                Staged::Done(o) => Ok(o),
+                Staged::Later(later) => later().map_err(|e| format!("{e:#}")),
+            });
+            match result {
+                Ok(o) => outputs.extend(o),
+                Err(e) => failed.push(e),
+            }
+        }
+        (outputs, self.kept, self.projection, failed)
+    }
+}
+
+impl<'s> ScanProcessor<'_, 's> {
     /// The profile and strategy for `topic`, fixed by its first scan with returns.
     fn profile_for(
         &self,
@@ -404,7 +464,9 @@ impl ScanProcessor<'_> {
         Ok((profile, strategy))
     }
 
-    fn process(&self, p: &Pending, chain: Option<&ChainState>) -> Result<Processed, String> {
+    /// Runs the stages on scan `p` up to what its chain waits for ([`Begun::complete`] does
+    /// the rest).
+    fn begin(&self, p: &Pending, chain: Option<&ChainState>) -> Result<Begun<'s>, String> {
         let cloud = decode_cloud(p.format, &p.data).map_err(|e| e.to_string())?;
         let (profile, strategy) = self.profile_for(&p.topic, p.log_time, &cloud)?;
         let image = project(&cloud.scan, &profile, strategy).map_err(|e| e.to_string())?;
@@ -419,24 +481,24 @@ impl ScanProcessor<'_> {
             chain,
         };
         // One failing stage (e.g. a scan with nothing to decode) does not cost the others.
-        let (mut outputs, mut failed) = (Vec::new(), Vec::new());
-        for stage in self.stages {
-            match stage(&input) {
-                Ok(o) => outputs.extend(o),
-                Err(e) => failed.push(format!("{e:#}")),
-            }
-        }
+        let staged = (self.stages.iter())
+            .map(|stage| stage(&input).map_err(|e| format!("{e:#}")))
+            .collect();
         if let Some(counter) = &self.opts.scans_processed {
             counter.fetch_add(1, Ordering::Relaxed);
         }
-        Ok((outputs, kept, (profile, strategy), failed))
+        Ok(Begun {
+            staged,
+            kept,
+            projection: (profile, strategy),
+        })
     }
 }
 
-struct Converter<'a> {
+struct Converter<'a, 's> {
     out: McapOutput,
     opts: &'a ConvertOptions,
-    processor: ScanProcessor<'a>,
+    processor: ScanProcessor<'a, 's>,
     file: std::path::PathBuf,
     table: ChannelTable,
     batch: Vec<Pending>,
@@ -447,7 +509,7 @@ struct Converter<'a> {
     report: ConvertReport,
 }
 
-impl Converter<'_> {
+impl Converter<'_, '_> {
     /// The point-cloud format of a channel whose scans are converted (`--topic` selects).
     fn converted(opts: &ConvertOptions, channel: &ChannelEntry) -> Option<CloudFormat> {
         let selected = opts
@@ -564,9 +626,37 @@ impl Converter<'_> {
         let done: Vec<Vec<(usize, Result<Processed, String>)>> = groups
             .par_iter()
             .map(|(key, members)| {
-                let chain = key.as_ref().and_then(|k| chains.get(k));
-                let run = |&i: &usize| (i, processor.process(&batch[i], chain));
-                members.iter().map(run).collect()
+                let Some(chain) = key.as_ref().and_then(|k| chains.get(k)) else {
+                    let run = |&i: &usize| (i, processor.begin(&batch[i], None));
+                    return members.iter().map(run).map(complete).collect();
+                };
+                // The chain's scans start one after another on a thread of their own, outside
+                // the pool: a rayon worker waiting for a start would take on the scans' rests
+                // and hold the chain back. The rests run on the pool as the starts come.
+                let done = Mutex::new(Vec::with_capacity(members.len()));
+                std::thread::scope(|threads| {
+                    let (started, starts) = std::sync::mpsc::channel();
+                    threads.spawn(move || {
+                        for &i in members {
+                            let begun = processor.begin(&batch[i], Some(chain));
+                            if started.send((i, begun)).is_err() {
+                                return;
+                            }
+                        }
+                    });
+                    rayon::scope(|rests| {
+                        for begun in starts {
+                            let done = &done;
+                            rests.spawn(move |_| {
+                                let processed = complete(begun);
+                                done.lock()
+                                    .unwrap_or_else(|e| e.into_inner())
+                                    .push(processed);
+                            });
+                        }
+                    });
+                });
+                done.into_inner().unwrap_or_else(|e| e.into_inner())
             })
             .collect();
         let mut results: Vec<Option<Result<Processed, String>>> =
@@ -579,6 +669,10 @@ impl Converter<'_> {
             .map(|r| r.expect("every scan of the batch was processed"))
             .collect()
     }
+}
+
+fn complete((i, begun): (usize, Result<Begun, String>)) -> (usize, Result<Processed, String>) {
+    (i, begun.map(Begun::complete))
 }
 
 /// How far a conversion has come, for progress bars.

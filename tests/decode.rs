@@ -158,7 +158,7 @@ fn chained_scans_continue_their_chain_whatever_the_threads() {
     let dir = tempfile::tempdir().unwrap();
     let input = dir.path().join("in.mcap");
     write_recording(&input, &[Family::Ros2], 5, None);
-    let run_with = |name: &str, stride: &str, threads: &str| {
+    let run_with = |name: &str, chain: &[&str], threads: &str| {
         let output = dir.path().join(name);
         let o = bin()
             .args([
@@ -167,31 +167,59 @@ fn chained_scans_continue_their_chain_whatever_the_threads() {
                 output.to_str().unwrap(),
                 "--quiet",
                 "--tune-steps",
-                "3",
+                "4",
                 "--upsample-method",
                 "gan",
-                "--chain-stride",
-                stride,
             ])
+            .args(chain)
             .env("RAYON_NUM_THREADS", threads)
             .output()
             .expect("binary runs");
         assert!(o.status.success(), "{}", stderr(&o));
-        output
+        depth_messages(&output)
     };
-    let chained = run_with("chained1.mcap", "2", "1");
-    let chained2 = run_with("chained2.mcap", "2", "2");
-    let alone = run_with("alone.mcap", "0", "2");
-    let (c, a) = (depth_messages(&chained), depth_messages(&alone));
-    assert_eq!(c.len(), 5);
-    assert_eq!(c, depth_messages(&chained2), "1 and 2 threads, same chains");
+    let stride2 = ["--chain-stride", "2"];
+    let chained = run_with("chained1.mcap", &stride2, "1");
+    let alone = run_with("alone.mcap", &["--chain-stride", "0"], "2");
+    assert_eq!(chained.len(), 5);
     assert_eq!(
-        c[..2],
-        a[..2],
+        chained,
+        run_with("chained2.mcap", &stride2, "2"),
+        "1 and 2 threads, same chains"
+    );
+    assert_eq!(
+        chained[..2],
+        alone[..2],
         "each chain's first scan starts from the shared weights"
     );
     for k in 2..5 {
-        assert_ne!(c[k], a[k], "scan {k} continues its chain");
+        assert_ne!(chained[k], alone[k], "scan {k} continues its chain");
+    }
+    // One chain, each scan handed on half-way through its tuning.
+    let half = ["--chain-stride", "1", "--hand-off", "2"];
+    let relay = run_with("relay1.mcap", &half, "1");
+    assert_eq!(
+        relay,
+        run_with("relay2.mcap", &half, "2"),
+        "1 and 2 threads, same relay"
+    );
+    let after_all = run_with("after_all.mcap", &["--chain-stride", "1"], "2");
+    assert_eq!(
+        relay[0], alone[0],
+        "the chain's first scan starts from the shared weights"
+    );
+    assert_eq!(after_all[0], alone[0]);
+    for k in 1..5 {
+        assert_ne!(
+            relay[k],
+            alone[k],
+            "scan {k} starts from what scan {} handed on",
+            k - 1
+        );
+        assert_ne!(
+            relay[k], after_all[k],
+            "scan {k}: handed on after 2 steps, not 4"
+        );
     }
 }
 

@@ -20,6 +20,7 @@ use crate::lidar::{SensorProfile, Strategy};
 use crate::model::weights::Model;
 use crate::pipeline::{
     self, ConvertOptions, ConvertReport, DecodeOutputs, DecodeStage, SensorChoice, StageOutput,
+    Staged,
 };
 
 #[derive(Debug, clap::Args)]
@@ -92,12 +93,18 @@ pub struct ConvertArgs {
     /// `--tune-steps` that follow (default 5) then decay their rate to 0.
     #[arg(long, value_delimiter = ',')]
     pub coarse_steps: Vec<usize>,
-    /// Chain each topic's scans: scan k's pivotal tuning starts from scan k - N's tuned
-    /// weights (0: every scan from the shared generator). Consecutive scans see nearly the
+    /// Chain each topic's scans: scan k's pivotal tuning starts from the weights scan k - N
+    /// hands on (0: every scan from the shared generator). Consecutive scans see nearly the
     /// same scene, so a chain fits each scan better in the same steps (docs/decode.md); N
     /// chains per topic decode in parallel. The output depends on N, never on the threads.
     #[arg(long, default_value_t = pipeline::DEFAULT_CHAIN_STRIDE)]
     pub chain_stride: usize,
+    /// The tuning step after which a chained scan hands its weights on to the chain's next
+    /// scan, which starts tuning while this one goes on (default: after all of them, so the
+    /// next scan starts from this one's final weights). With `--chain-stride 1 --hand-off 16`
+    /// one chain keeps two cores busy (docs/decode.md).
+    #[arg(long)]
+    pub hand_off: Option<usize>,
     /// Write the generator's own x_n, without the per-beam calibration shipped with the model
     /// (`calibration.json`; `rangegan-mcap calibrate-raydrop` fits one).
     #[arg(long)]
@@ -238,6 +245,7 @@ pub(crate) fn resolve_decoding(
             upsample: args.upsample.clone(),
             target_sensors,
             fill: args.upsample_method,
+            hand_off: args.hand_off,
         },
     )))
 }
@@ -283,6 +291,7 @@ pub(crate) fn output_settings(args: &ConvertArgs) -> String {
         ),
         ("--w-steps", args.w_steps.map(|v| v.to_string())),
         ("--tune-steps", args.tune_steps.map(|v| v.to_string())),
+        ("--hand-off", args.hand_off.map(|v| v.to_string())),
         ("--restore-lines", args.restore_lines.map(|v| v.to_string())),
         (
             "--restore-fraction",
@@ -499,16 +508,19 @@ impl<'d> FileConverter<'d> {
             if self.write_range {
                 pipeline::range_stage(i)
             } else {
-                Ok(Vec::new())
+                Ok(Staged::Done(Vec::new()))
             }
         };
+        let selected = |mut outputs: Vec<StageOutput>| {
+            outputs.retain(|o| channel_selected(&self.channels, &o.suffix));
+            outputs
+        };
         let decode = |i: &pipeline::ScanInput<'_>| match &self.decode_stage {
-            Some(s) => {
-                let mut outputs: Vec<StageOutput> = s.run(i)?;
-                outputs.retain(|o| channel_selected(&self.channels, &o.suffix));
-                Ok(outputs)
-            }
-            None => Ok(Vec::new()),
+            Some(s) => Ok(match s.run(i)? {
+                Staged::Done(outputs) => Staged::Done(selected(outputs)),
+                Staged::Later(later) => Staged::Later(Box::new(move || later().map(selected))),
+            }),
+            None => Ok(Staged::Done(Vec::new())),
         };
         let stages: [&pipeline::Stage<'_>; 2] = [&range, &decode];
         let reader = std::io::BufReader::with_capacity(1 << 20, file);

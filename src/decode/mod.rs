@@ -453,6 +453,22 @@ impl Decoder {
         seed: u64,
         start: Option<&Generator>,
     ) -> Result<Decoded> {
+        let (_, partial) = self.begin(observed, seed, start, usize::MAX)?;
+        Ok(self.finish(partial))
+    }
+
+    /// The first part of [`Decoder::decode_from`]: everything up to the `hand_off`-th tuning
+    /// step. Returns the weights reached there, from which the next scan of a chain can start
+    /// while this one goes on ([`Decoder::finish`]); the result is the same as one call to
+    /// [`Decoder::decode_from`]. (Schedules that the hand-written tuning does not run hand on
+    /// their final weights.)
+    pub fn begin(
+        &self,
+        observed: &RangeImage,
+        seed: u64,
+        start: Option<&Generator>,
+        hand_off: usize,
+    ) -> Result<(Generator, PartialDecode)> {
         if observed.range_m.len() != observed.len() || observed.angles.len() != observed.len() {
             bail!(
                 "range image {}x{} has {} ranges and {} angles",
@@ -462,15 +478,22 @@ impl Decoder {
                 observed.angles.len()
             );
         }
-        self.pools.run(|| self.decode_here(observed, seed, start))
+        self.pools
+            .run(|| self.begin_here(observed, seed, start, hand_off))
     }
 
-    fn decode_here(
+    /// The rest of a decode that [`Decoder::begin`] started.
+    pub fn finish(&self, partial: PartialDecode) -> Decoded {
+        self.pools.run(|| self.finish_here(partial))
+    }
+
+    fn begin_here(
         &self,
         observed: &RangeImage,
         seed: u64,
         start: Option<&Generator>,
-    ) -> Result<Decoded> {
+        hand_off: usize,
+    ) -> Result<(Generator, PartialDecode)> {
         let grid = &self.model.grid;
         let (h, w) = (grid.height, grid.width);
         let mut rng = Rng::new(seed);
@@ -494,13 +517,43 @@ impl Decoder {
             }
             None => w_avg,
         };
-        let start = start.unwrap_or(&self.generator);
+        let start = start.unwrap_or(&self.generator).clone();
         let schedule = &self.opts.schedule;
-        let inv = if pivotal::supports(start, schedule) {
-            pivotal::tune(start, &self.cache_ad, &net, &mask, w0, schedule)
+        let (handed, tuning) = if pivotal::supports(&start, schedule) {
+            let mut tuning =
+                pivotal::Tuning::new(&start, &self.cache_ad, &net, &mask, w0, schedule);
+            tuning.run_to(hand_off);
+            (tuning.weights(&start), Tuning::Pivotal(Box::new(tuning)))
         } else {
             let (target, mask) = (target.autodiff(), mask_t.autodiff());
-            invert::invert(start, &self.cache_ad, target, mask, w0, schedule, &self.ad)
+            let inv = invert::invert(&start, &self.cache_ad, target, mask, w0, schedule, &self.ad);
+            (inv.generator.clone(), Tuning::Done(inv))
+        };
+        let partial = PartialDecode {
+            start,
+            tuning,
+            net,
+            mask,
+            full_mask,
+            observed_points: on_model_grid.then(|| observed.clone()),
+            seed,
+        };
+        Ok((handed, partial))
+    }
+
+    fn finish_here(&self, partial: PartialDecode) -> Decoded {
+        let PartialDecode {
+            start,
+            tuning,
+            net,
+            mask,
+            full_mask,
+            observed_points,
+            seed,
+        } = partial;
+        let inv = match tuning {
+            Tuning::Pivotal(tuning) => tuning.finish(&start),
+            Tuning::Done(inv) => inv,
         };
         let d_w = inv.w.len();
         let w_t = tensor_from(inv.w, [1, d_w], &self.device);
@@ -518,12 +571,12 @@ impl Decoder {
             w: w_t,
             calibration: self.calibration.clone(),
             model: Rendered {
-                grid: grid.clone(),
+                grid: self.model.grid.clone(),
                 depth_m: Vec::new(),
                 drop_prob: Vec::new(),
             },
             observed_m,
-            observed_points: on_model_grid.then(|| observed.clone()),
+            observed_points,
             held_out_m,
             error: None,
             held_out_error: None,
@@ -537,8 +590,27 @@ impl Decoder {
             .opts
             .restore
             .and_then(|_| relative_depth_error(&decoded.model.depth_m, &decoded.held_out_m));
-        Ok(decoded)
+        decoded
     }
+}
+
+/// A decode between [`Decoder::begin`] and [`Decoder::finish`].
+pub struct PartialDecode {
+    /// The weights its tuning started from.
+    start: Generator,
+    tuning: Tuning,
+    /// The observation on the model grid (network units) and its masks: what decoding saw,
+    /// and every measured pixel.
+    net: Vec<f32>,
+    mask: Vec<f32>,
+    full_mask: Vec<f32>,
+    observed_points: Option<RangeImage>,
+    seed: u64,
+}
+
+enum Tuning {
+    Pivotal(Box<pivotal::Tuning>),
+    Done(invert::Inverted),
 }
 
 /// The returns of `observed` on another grid: each measured pixel goes to the grid pixel of

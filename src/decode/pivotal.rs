@@ -48,22 +48,86 @@ pub fn tune(
     w: Vec<f32>,
     schedule: &Schedule,
 ) -> Inverted {
-    let mut net = Net::read(generator, cache);
-    let moved = net.moved(schedule.keep_heads_and_biases);
-    let mut adam = Adam::new(moved.iter().filter(|m| **m).count());
-    let mut losses = Vec::with_capacity(schedule.tune_steps);
-    for step in 0..schedule.tune_steps {
-        let lr = schedule.tuning_rate(step, schedule.tune_steps);
-        let (loss, grads) = net.loss_and_gradients(&w, target, mask, schedule.pyramid_levels);
-        losses.push(loss);
-        let params = (net.params.iter_mut().zip(&moved)).filter_map(|(p, m)| m.then_some(p));
-        let grads = (grads.iter().zip(&moved)).filter_map(|(g, m)| m.then_some(g));
-        adam.step(params, grads, lr as f32);
+    let mut tuning = Tuning::new(generator, cache, target, mask, w, schedule);
+    tuning.run_to(schedule.tune_steps);
+    tuning.finish(generator)
+}
+
+/// Pivotal tuning under way: it can stop after any step, hand on the weights reached so far
+/// ([`Tuning::weights`]) and go on later from exactly where it stopped.
+pub struct Tuning {
+    net: Net,
+    moved: Vec<bool>,
+    adam: Adam,
+    schedule: Schedule,
+    target: Vec<f32>,
+    mask: Vec<f32>,
+    w: Vec<f32>,
+    losses: Vec<f32>,
+}
+
+impl Tuning {
+    /// Tuning of a copy of `generator` at `w` ([`tune`]'s arguments), before its first step.
+    pub fn new(
+        generator: &Generator,
+        cache: &GridCache,
+        target: &[f32],
+        mask: &[f32],
+        w: Vec<f32>,
+        schedule: &Schedule,
+    ) -> Tuning {
+        let net = Net::read(generator, cache);
+        let moved = net.moved(schedule.keep_heads_and_biases);
+        Tuning {
+            adam: Adam::new(moved.iter().filter(|m| **m).count()),
+            moved,
+            net,
+            schedule: schedule.clone(),
+            target: target.to_vec(),
+            mask: mask.to_vec(),
+            w,
+            losses: Vec::with_capacity(schedule.tune_steps),
+        }
     }
-    Inverted {
-        generator: net.write(generator),
-        w,
-        losses,
+
+    /// Steps done so far.
+    pub fn steps(&self) -> usize {
+        self.losses.len()
+    }
+
+    /// Runs the steps up to `step` (at most the schedule's).
+    pub fn run_to(&mut self, step: usize) {
+        let total = self.schedule.tune_steps;
+        for step in self.steps()..step.min(total) {
+            let lr = self.schedule.tuning_rate(step, total);
+            let (loss, grads) = (self.net).loss_and_gradients(
+                &self.w,
+                &self.target,
+                &self.mask,
+                self.schedule.pyramid_levels,
+            );
+            self.losses.push(loss);
+            let moved = &self.moved;
+            let params =
+                (self.net.params.iter_mut().zip(moved)).filter_map(|(p, m)| m.then_some(p));
+            let grads = (grads.iter().zip(moved)).filter_map(|(g, m)| m.then_some(g));
+            self.adam.step(params, grads, lr as f32);
+        }
+    }
+
+    /// `generator` with the weights tuned so far.
+    pub fn weights(&self, generator: &Generator) -> Generator {
+        self.net.write(generator)
+    }
+
+    /// The rest of the schedule's steps, and the result.
+    pub fn finish(mut self, generator: &Generator) -> Inverted {
+        self.run_to(self.schedule.tune_steps);
+        Inverted {
+            generator: self.net.write(generator),
+            w: self.w,
+            losses: self.losses,
+        }
     }
 }
 
@@ -604,6 +668,39 @@ mod tests {
     use crate::model::generator::{GeneratorConfig, MappingConfig};
     use crate::model::layers::{self, kitti_like_grid};
     use crate::util::rng::Rng;
+
+    /// A tuning stopped after some steps and taken up again ends where one straight run does.
+    #[test]
+    fn a_tuning_taken_up_again_ends_where_a_straight_run_ends() {
+        let dev = Device::flex();
+        let g = GeneratorConfig::new()
+            .with_mapping(MappingConfig::new().with_d_z(8).with_d_w(8))
+            .with_channels(vec![12, 8])
+            .with_n_freq(vec![5, 4])
+            .with_lh(vec![3, 4])
+            .with_lw(vec![2, 3])
+            .with_seed(3)
+            .init(&dev);
+        let cache = g.prepare(&kitti_like_grid(4, 16), &dev);
+        let target: Vec<f32> = (0..64).map(|k| 0.3 * (k as f32 * 0.4).sin()).collect();
+        let mask: Vec<f32> = (0..64).map(|k| f32::from(u8::from(k % 5 != 2))).collect();
+        let w0: Vec<f32> = (0..8).map(|i| 0.2 * (i as f32).cos()).collect();
+        let schedule = Schedule {
+            tune_steps: 6,
+            ..Schedule::fast()
+        };
+        let straight = tune(&g, &cache, &target, &mask, w0.clone(), &schedule);
+        let mut tuning = Tuning::new(&g, &cache, &target, &mask, w0, &schedule);
+        tuning.run_to(2);
+        let handed = tuning.weights(&g);
+        assert_eq!(tuning.steps(), 2);
+        let resumed = tuning.finish(&g);
+        assert_eq!(straight.losses, resumed.losses);
+        let flat = |g: &Generator| tensor_to_vec(g.blocks[1].conv1.weight.val());
+        assert_eq!(flat(&straight.generator), flat(&resumed.generator));
+        assert_ne!(flat(&handed), flat(&resumed.generator));
+        assert_ne!(flat(&handed), flat(&g));
+    }
 
     #[test]
     fn upsampling_matches_the_generator_and_its_adjoint_is_the_transpose() {
