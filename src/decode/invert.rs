@@ -218,7 +218,7 @@ fn fits(
 /// `generator` lives on the inference device, `cache_ad` is its grid cache on `ad` (the
 /// autodiff device); target and mask are `[1, 1, H, W]` on `ad` (network units, {0, 1}).
 /// Starts at `w0`. The caller's generator is not modified: pivotal tuning works on a copy.
-/// [`super::pivotal::tune`] runs schedules of pivotal tuning alone faster, by hand.
+/// [`super::pivotal::Tuning`] runs schedules of pivotal tuning alone faster, by hand.
 pub fn invert(
     generator: &Generator,
     cache_ad: &GridCache,

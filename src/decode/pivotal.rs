@@ -29,7 +29,7 @@ use crate::util::tensor::{tensor_from, tensor_to_vec};
 const POS: f32 = SQRT_2;
 const NEG: f32 = 0.2 * SQRT_2;
 
-/// Whether [`tune`] runs `schedule` on `generator`: pivotal tuning alone (no steps on w, no
+/// Whether [`Tuning`] runs `schedule` on `generator`: pivotal tuning alone (no steps on w, no
 /// coarse steps), and no local 3x3 paths. Anything else takes the autodiff path.
 pub fn supports(generator: &Generator, schedule: &Schedule) -> bool {
     schedule.w_steps == 0
@@ -38,23 +38,9 @@ pub fn supports(generator: &Generator, schedule: &Schedule) -> bool {
         && generator.blocks.iter().all(|b| b.local.is_none())
 }
 
-/// Pivotal tuning of a copy of `generator` at the latent `w` against one observation
-/// (`target`, `mask`: the model grid's `H*W` pixels, network units and {0, 1}).
-pub fn tune(
-    generator: &Generator,
-    cache: &GridCache,
-    target: &[f32],
-    mask: &[f32],
-    w: Vec<f32>,
-    schedule: &Schedule,
-) -> Inverted {
-    let mut tuning = Tuning::new(generator, cache, target, mask, w, schedule);
-    tuning.run_to(schedule.tune_steps);
-    tuning.finish(generator)
-}
-
-/// Pivotal tuning under way: it can stop after any step, hand on the weights reached so far
-/// ([`Tuning::weights`]) and go on later from exactly where it stopped.
+/// Pivotal tuning of a copy of a generator at a frozen latent w against one observation. It
+/// can stop after any step, hand on the weights reached so far ([`Tuning::weights`]) and go
+/// on later from exactly where it stopped.
 pub struct Tuning {
     net: Net,
     moved: Vec<bool>,
@@ -67,7 +53,8 @@ pub struct Tuning {
 }
 
 impl Tuning {
-    /// Tuning of a copy of `generator` at `w` ([`tune`]'s arguments), before its first step.
+    /// Tuning of a copy of `generator` at `w` against `target` and `mask` (the model grid's
+    /// `H*W` pixels, network units and {0, 1}), before its first step.
     pub fn new(
         generator: &Generator,
         cache: &GridCache,
@@ -689,7 +676,7 @@ mod tests {
             tune_steps: 6,
             ..Schedule::fast()
         };
-        let straight = tune(&g, &cache, &target, &mask, w0.clone(), &schedule);
+        let straight = Tuning::new(&g, &cache, &target, &mask, w0.clone(), &schedule).finish(&g);
         let mut tuning = Tuning::new(&g, &cache, &target, &mask, w0, &schedule);
         tuning.run_to(2);
         let handed = tuning.weights(&g);
@@ -754,7 +741,7 @@ mod tests {
             ..Schedule::fast()
         };
         assert!(supports(&g, &schedule));
-        let hand = tune(&g, &cache_ad, &target, &mask, w0.clone(), &schedule);
+        let hand = Tuning::new(&g, &cache_ad, &target, &mask, w0.clone(), &schedule).finish(&g);
         let auto = invert(
             &g,
             &cache_ad,
