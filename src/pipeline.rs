@@ -626,35 +626,21 @@ impl Converter<'_, '_> {
         let done: Vec<Vec<(usize, Result<Processed, String>)>> = groups
             .par_iter()
             .map(|(key, members)| {
-                let Some(chain) = key.as_ref().and_then(|k| chains.get(k)) else {
-                    let run = |&i: &usize| (i, processor.begin(&batch[i], None));
-                    return members.iter().map(run).map(complete).collect();
-                };
-                // The chain's scans start one after another on a thread of their own, outside
-                // the pool: a rayon worker waiting for a start would take on the scans' rests
-                // and hold the chain back. The rests run on the pool as the starts come.
+                let chain = key.as_ref().and_then(|k| chains.get(k));
+                // The chain's scans start one after the other; each one's rest is left to
+                // whichever worker is free, beside the starts that follow.
                 let done = Mutex::new(Vec::with_capacity(members.len()));
-                std::thread::scope(|threads| {
-                    let (started, starts) = std::sync::mpsc::channel();
-                    threads.spawn(move || {
-                        for &i in members {
-                            let begun = processor.begin(&batch[i], Some(chain));
-                            if started.send((i, begun)).is_err() {
-                                return;
-                            }
-                        }
-                    });
-                    rayon::scope(|rests| {
-                        for begun in starts {
-                            let done = &done;
-                            rests.spawn(move |_| {
-                                let processed = complete(begun);
-                                done.lock()
-                                    .unwrap_or_else(|e| e.into_inner())
-                                    .push(processed);
-                            });
-                        }
-                    });
+                rayon::scope(|rests| {
+                    for &i in members {
+                        let begun = processor.begin(&batch[i], chain);
+                        let done = &done;
+                        rests.spawn(move |_| {
+                            let processed = complete((i, begun));
+                            done.lock()
+                                .unwrap_or_else(|e| e.into_inner())
+                                .push(processed);
+                        });
+                    }
                 });
                 done.into_inner().unwrap_or_else(|e| e.into_inner())
             })
