@@ -453,8 +453,10 @@ impl Decoder {
         seed: u64,
         start: Option<&Generator>,
     ) -> Result<Decoded> {
-        let (_, partial) = self.begin(observed, seed, start, usize::MAX)?;
-        Ok(self.finish(partial))
+        self.pools.run(|| {
+            let (_, partial) = self.begin_here(observed, seed, start, None)?;
+            Ok(self.finish_here(partial))
+        })
     }
 
     /// The first part of [`Decoder::decode_from`]: everything up to the `hand_off`-th tuning
@@ -469,6 +471,25 @@ impl Decoder {
         start: Option<&Generator>,
         hand_off: usize,
     ) -> Result<(Generator, PartialDecode)> {
+        let (handed, partial) =
+            (self.pools).run(|| self.begin_here(observed, seed, start, Some(hand_off)))?;
+        Ok((handed.expect("weights asked for"), partial))
+    }
+
+    /// The rest of a decode that [`Decoder::begin`] started.
+    pub fn finish(&self, partial: PartialDecode) -> Decoded {
+        self.pools.run(|| self.finish_here(partial))
+    }
+
+    /// [`Decoder::begin`] on the calling thread; without `hand_off`, nothing is handed on and
+    /// the tuning has not started.
+    fn begin_here(
+        &self,
+        observed: &RangeImage,
+        seed: u64,
+        start: Option<&Generator>,
+        hand_off: Option<usize>,
+    ) -> Result<(Option<Generator>, PartialDecode)> {
         if observed.range_m.len() != observed.len() || observed.angles.len() != observed.len() {
             bail!(
                 "range image {}x{} has {} ranges and {} angles",
@@ -478,22 +499,6 @@ impl Decoder {
                 observed.angles.len()
             );
         }
-        self.pools
-            .run(|| self.begin_here(observed, seed, start, hand_off))
-    }
-
-    /// The rest of a decode that [`Decoder::begin`] started.
-    pub fn finish(&self, partial: PartialDecode) -> Decoded {
-        self.pools.run(|| self.finish_here(partial))
-    }
-
-    fn begin_here(
-        &self,
-        observed: &RangeImage,
-        seed: u64,
-        start: Option<&Generator>,
-        hand_off: usize,
-    ) -> Result<(Generator, PartialDecode)> {
         let grid = &self.model.grid;
         let (h, w) = (grid.height, grid.width);
         let mut rng = Rng::new(seed);
@@ -522,12 +527,15 @@ impl Decoder {
         let (handed, tuning) = if pivotal::supports(&start, schedule) {
             let mut tuning =
                 pivotal::Tuning::new(&start, &self.cache_ad, &net, &mask, w0, schedule);
-            tuning.run_to(hand_off);
-            (tuning.weights(&start), Tuning::Pivotal(Box::new(tuning)))
+            let handed = hand_off.map(|step| {
+                tuning.run_to(step);
+                tuning.weights(&start)
+            });
+            (handed, Tuning::Pivotal(Box::new(tuning)))
         } else {
             let (target, mask) = (target.autodiff(), mask_t.autodiff());
             let inv = invert::invert(&start, &self.cache_ad, target, mask, w0, schedule, &self.ad);
-            (inv.generator.clone(), Tuning::Done(inv))
+            (hand_off.map(|_| inv.generator.clone()), Tuning::Done(inv))
         };
         let partial = PartialDecode {
             start,
