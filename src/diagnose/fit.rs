@@ -568,8 +568,12 @@ pub trait DropFamily: Sync {
 #[derive(Debug, Clone, PartialEq)]
 pub struct QTable {
     pub bins: usize,
-    /// Per (bin, level): (kept, dropped, sum of q).
+    /// The occupied (bin, level) cells, bin by bin, levels ascending: (kept,
+    /// dropped, sum of q). Most of a bin's levels are empty, and the fits read
+    /// each bin many times.
     cells: Vec<(f64, f64, f64)>,
+    /// Where each bin's cells start in `cells` (and, last, where they end).
+    starts: Vec<usize>,
     /// All pixels of the set (the NLL is per pixel of the whole set).
     pub pixels: f64,
 }
@@ -597,16 +601,28 @@ impl QTable {
             }
             cell.2 += q;
         }
+        let mut starts = Vec::with_capacity(bins + 1);
+        let mut occupied = Vec::new();
+        for bin in cells.chunks(Q_LEVELS) {
+            starts.push(occupied.len());
+            occupied.extend(bin.iter().filter(|c| c.0 + c.1 > 0.0));
+        }
+        starts.push(occupied.len());
         QTable {
             bins,
-            cells,
+            cells: occupied,
+            starts,
             pixels: px.len().max(1) as f64,
         }
     }
 
+    fn cells_of(&self, b: usize) -> &[(f64, f64, f64)] {
+        &self.cells[self.starts[b]..self.starts[b + 1]]
+    }
+
     /// (kept, dropped) pixels of bin `b`.
     pub fn counts(&self, b: usize) -> (f64, f64) {
-        self.cells[b * Q_LEVELS..(b + 1) * Q_LEVELS]
+        self.cells_of(b)
             .iter()
             .fold((0.0, 0.0), |a, c| (a.0 + c.0, a.1 + c.1))
     }
@@ -614,11 +630,8 @@ impl QTable {
     /// Total NLL (nats, not normalised) of bin `b` dropping with `p`.
     pub fn bin_nll(&self, b: usize, p: f64) -> f64 {
         let mut total = 0.0;
-        for &(kept, dropped, qs) in &self.cells[b * Q_LEVELS..(b + 1) * Q_LEVELS] {
+        for &(kept, dropped, qs) in self.cells_of(b) {
             let n = kept + dropped;
-            if n == 0.0 {
-                continue;
-            }
             let keep = (qs / n * (1.0 - p)).clamp(1e-12, KEEP_MAX);
             total -= kept * keep.ln() + dropped * (1.0 - keep).ln();
         }
