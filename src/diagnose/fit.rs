@@ -106,12 +106,17 @@ fn enclosures(f: &ScanFeatures) -> (Vec<u8>, Vec<u8>) {
         );
         let (ua, ub) = (1.0 / f.range_m[ka], 1.0 / f.range_m[kb]);
         let near = |x: f32, y: f32| (x - y).abs() <= SURFACE_TOLERANCE * x.abs().max(y.abs());
+        let height = |k: usize| f.range_m[k] * f.elevation_rad[k].sin();
+        let (za, zb) = (height(ka), height(kb));
+        let apart = za.abs().min(zb.abs()) >= LEVEL_MIN_HEIGHT_M;
+        // A return above the sensor and one below it (a ceiling and the floor of a
+        // corridor, a crown and the road) leave the horizon between them open: the
+        // rays there may pass both.
+        if step != 1 && apart && za * zb < 0.0 {
+            return (cap, cap);
+        }
         // Rows of a sparse sensor meet the ground at ranges far apart, at one height.
-        let level = step != 1 && {
-            let height = |k: usize| f.range_m[k] * f.elevation_rad[k].sin();
-            let (za, zb) = (height(ka), height(kb));
-            za.abs().min(zb.abs()) >= LEVEL_MIN_HEIGHT_M && za * zb > 0.0 && near(za, zb)
-        };
+        let level = step != 1 && apart && za * zb > 0.0 && near(za, zb);
         let one_surface = near(ua, ub) || level;
         (a.max(b), if one_surface { a.max(b) } else { cap })
     };
@@ -1447,6 +1452,36 @@ mod tests {
             ENCLOSURE_CAP_PX,
             "a wall above, the ground below"
         );
+    }
+
+    #[test]
+    fn the_horizon_between_a_ceiling_and_a_floor_is_not_enclosed() {
+        // A garage's corridor: the top row meets the ceiling 1.2 m above, the bottom
+        // row the floor 1.6 m below, and the row between them, just above the horizon,
+        // reaches neither within range: open space, whatever lies above and below.
+        let rows = [(1.4f32, 1.2f32), (0.4, f32::NAN), (-1.3, -1.6)];
+        let f = level_rows(3, |i| {
+            let (e_deg, z) = rows[i];
+            let e = e_deg.to_radians();
+            (
+                e,
+                !z.is_nan(),
+                if z.is_nan() { 200.0 } else { z / e.sin() },
+                0.0,
+            )
+        });
+        let (any, surface) = enclosures(&f);
+        assert_eq!(
+            (any[64 + 5], surface[64 + 5]),
+            (ENCLOSURE_CAP_PX, ENCLOSURE_CAP_PX)
+        );
+        // A wall 20 m away across the same rows encloses it: a hole in one surface.
+        let f = level_rows(3, |i| {
+            let e = rows[i].0.to_radians();
+            (e, i != 1, 20.0 / e.cos(), 0.0)
+        });
+        let (any, surface) = enclosures(&f);
+        assert_eq!((any[64 + 5], surface[64 + 5]), (1, 1));
     }
 
     #[test]
