@@ -106,17 +106,26 @@ fn enclosures(f: &ScanFeatures) -> (Vec<u8>, Vec<u8>) {
         );
         let (ua, ub) = (1.0 / f.range_m[ka], 1.0 / f.range_m[kb]);
         let near = |x: f32, y: f32| (x - y).abs() <= SURFACE_TOLERANCE * x.abs().max(y.abs());
-        let height = |k: usize| f.range_m[k] * f.elevation_rad[k].sin();
-        let (za, zb) = (height(ka), height(kb));
-        let apart = za.abs().min(zb.abs()) >= LEVEL_MIN_HEIGHT_M;
-        // A return above the sensor and one below it (a ceiling and the floor of a
-        // corridor, a crown and the road) leave the horizon between them open: the
-        // rays there may pass both.
-        if step != 1 && apart && za * zb < 0.0 {
-            return (cap, cap);
+        // Along a column, the heights of the two returns, where both lie at least
+        // `LEVEL_MIN_HEIGHT_M` above or below the sensor (nearer, at the horizon,
+        // every surface has such heights).
+        let heights = (step != 1)
+            .then(|| {
+                let height = |k: usize| f.range_m[k] * f.elevation_rad[k].sin();
+                (height(ka), height(kb))
+            })
+            .filter(|(za, zb)| za.abs().min(zb.abs()) >= LEVEL_MIN_HEIGHT_M);
+        let mut level = false;
+        if let Some((za, zb)) = heights {
+            // A return above the sensor and one below it (a ceiling and the floor of a
+            // corridor, a crown and the road) leave the horizon between them open: the
+            // rays there may pass both.
+            if za * zb < 0.0 {
+                return (cap, cap);
+            }
+            // Rows of a sparse sensor meet the ground at ranges far apart, at one height.
+            level = near(za, zb);
         }
-        // Rows of a sparse sensor meet the ground at ranges far apart, at one height.
-        let level = step != 1 && apart && za * zb > 0.0 && near(za, zb);
         let one_surface = near(ua, ub) || level;
         (a.max(b), if one_surface { a.max(b) } else { cap })
     };
