@@ -11,7 +11,8 @@
 //!
 //! With `WARMUP=S` in the environment, each chain's first scan is tuned for S steps. With
 //! `RELAY=H`, one chain whose scans each start from the weights the scan before reached after
-//! H of its steps (`convert --hand-off H`); the strides are then ignored.
+//! H of its steps (`convert --hand-off H`); the strides are then ignored. `TUNE_LR=R` sets
+//! the tuning learning rate (default: `fast`'s).
 //!
 //!     cargo run --release --example warm_start -- ../shared/real_lidar kitti_raw_drive_d 30 33,14 0,1,4 [16]
 
@@ -60,6 +61,9 @@ fn main() -> Result<()> {
     for steps in steps.split(',') {
         let mut opts = DecodeOptions::new(Quality::Fast);
         opts.schedule.set_tune_steps(steps.parse()?);
+        if let Ok(lr) = std::env::var("TUNE_LR") {
+            opts.schedule.tune_lr = lr.parse()?;
+        }
         opts.restore = restore.map(Sparsify::Lines);
         let device = burn::tensor::Device::flex();
         // A decoder of its own for the chains' first scans only where WARMUP asks for one.

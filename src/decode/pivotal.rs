@@ -43,7 +43,8 @@ pub fn supports(generator: &Generator, schedule: &Schedule) -> bool {
 /// on later from exactly where it stopped.
 pub struct Tuning {
     net: Net,
-    moved: Vec<bool>,
+    /// The tuned weights: runs of indices into the flat parameter vector.
+    moved: Vec<Range<usize>>,
     adam: Adam,
     schedule: Schedule,
     target: Vec<f32>,
@@ -66,7 +67,7 @@ impl Tuning {
         let net = Net::read(generator, cache);
         let moved = net.moved(schedule.keep_heads_and_biases);
         Tuning {
-            adam: Adam::new(moved.iter().filter(|m| **m).count()),
+            adam: Adam::new(moved.iter().map(Range::len).sum()),
             moved,
             net,
             schedule: schedule.clone(),
@@ -94,11 +95,7 @@ impl Tuning {
                 self.schedule.pyramid_levels,
             );
             self.losses.push(loss);
-            let moved = &self.moved;
-            let params =
-                (self.net.params.iter_mut().zip(moved)).filter_map(|(p, m)| m.then_some(p));
-            let grads = (grads.iter().zip(moved)).filter_map(|(g, m)| m.then_some(g));
-            self.adam.step(params, grads, lr as f32);
+            (self.adam).step_runs(&mut self.net.params, &grads, &self.moved, lr as f32);
         }
     }
 
@@ -116,6 +113,18 @@ impl Tuning {
             losses: self.losses,
         }
     }
+}
+
+/// The runs of consecutive `true` indices, in order.
+fn runs(flags: &[bool]) -> Vec<Range<usize>> {
+    let mut out: Vec<Range<usize>> = Vec::new();
+    for (i, _) in flags.iter().enumerate().filter(|(_, f)| **f) {
+        match out.last_mut() {
+            Some(r) if r.end == i => r.end = i + 1,
+            _ => out.push(i..i + 1),
+        }
+    }
+    out
 }
 
 /// Where one modulated layer's weights sit in the flat parameter vector, and its constants.
@@ -392,7 +401,8 @@ impl Net {
 
     /// Which of the flat weights pivotal tuning moves: all, or with `keep_heads_and_biases` the
     /// synthesis layers' weights and style maps only ([`Schedule::keep_heads_and_biases`]).
-    fn moved(&self, keep_heads_and_biases: bool) -> Vec<bool> {
+    /// The runs of weights that tuning moves.
+    fn moved(&self, keep_heads_and_biases: bool) -> Vec<Range<usize>> {
         let mut moved = vec![true; self.params.len()];
         if keep_heads_and_biases {
             for block in &self.blocks {
@@ -410,7 +420,7 @@ impl Net {
                 }
             }
         }
-        moved
+        runs(&moved)
     }
 
     fn write(&self, generator: &Generator) -> Generator {
@@ -655,6 +665,14 @@ mod tests {
     use crate::model::generator::{GeneratorConfig, MappingConfig};
     use crate::model::layers::{self, kitti_like_grid};
     use crate::util::rng::Rng;
+
+    #[test]
+    fn runs_are_the_stretches_of_true_flags() {
+        let f = |s: &str| s.chars().map(|c| c == '1').collect::<Vec<_>>();
+        assert_eq!(runs(&f("0110111001")), vec![1..3, 4..7, 9..10]);
+        assert_eq!(runs(&f("11")), vec![0..2]);
+        assert!(runs(&f("000")).is_empty());
+    }
 
     /// A tuning stopped after some steps and taken up again ends where one straight run does.
     #[test]
