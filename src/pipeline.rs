@@ -17,7 +17,6 @@ use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
 
 use mcap::records::Record;
-use rayon::prelude::*;
 
 use crate::decode::{Decoded, Decoder, Fill, PreparedGrid, Rendered, scan_seed};
 use crate::error::Location;
@@ -623,31 +622,43 @@ impl Converter<'_, '_> {
             self.chains.entry(key).or_default();
         }
         let (processor, chains) = (&self.processor, &self.chains);
-        let done: Vec<Vec<(usize, Result<Processed, String>)>> = groups
-            .par_iter()
-            .map(|(key, members)| {
-                let chain = key.as_ref().and_then(|k| chains.get(k));
-                // The chain's scans start one after the other; each one's rest is left to
-                // whichever worker is free, beside the starts that follow.
-                let done = Mutex::new(Vec::with_capacity(members.len()));
-                rayon::scope(|rests| {
-                    for &i in members {
-                        let begun = processor.begin(&batch[i], chain);
-                        let done = &done;
-                        rests.spawn(move |_| {
-                            let processed = complete((i, begun));
-                            done.lock()
-                                .unwrap_or_else(|e| e.into_inner())
-                                .push(processed);
-                        });
+        let done = Mutex::new(Vec::with_capacity(batch.len()));
+        let finish = |i: usize, begun: Result<Begun<'_>, String>| {
+            let processed = complete((i, begun));
+            done.lock()
+                .unwrap_or_else(|e| e.into_inner())
+                .push(processed);
+        };
+        // A chain's scans start one after the other on a thread of the chain's own; each one's
+        // rest goes to the rayon pool, beside the starts that follow. The decoder runs a scan
+        // on a pool of its own and a rayon worker waiting for it takes up other queued work, so
+        // a chain queued there would be taken up inside another chain's start, and run to its
+        // end before that chain went on: both chains on one core.
+        rayon::in_place_scope(|rests| {
+            std::thread::scope(|chain_threads| {
+                for (key, members) in &groups {
+                    let finish = &finish;
+                    match key.as_ref().and_then(|k| chains.get(k)) {
+                        Some(chain) => {
+                            chain_threads.spawn(move || {
+                                for &i in members {
+                                    let begun = processor.begin(&batch[i], Some(chain));
+                                    rests.spawn(move |_| finish(i, begun));
+                                }
+                            });
+                        }
+                        None => {
+                            for &i in members {
+                                rests.spawn(move |_| finish(i, processor.begin(&batch[i], None)));
+                            }
+                        }
                     }
-                });
-                done.into_inner().unwrap_or_else(|e| e.into_inner())
-            })
-            .collect();
+                }
+            });
+        });
         let mut results: Vec<Option<Result<Processed, String>>> =
             batch.iter().map(|_| None).collect();
-        for (i, r) in done.into_iter().flatten() {
+        for (i, r) in done.into_inner().unwrap_or_else(|e| e.into_inner()) {
             results[i] = Some(r);
         }
         results
