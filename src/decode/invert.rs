@@ -86,7 +86,7 @@ impl Schedule {
 
     /// The fast path's refinement after the encoder: 33 steps of pivotal tuning of the synthesis
     /// weights and styles at 40x the paper's tuning rate, no steps on w. 33 steps run `convert`
-    /// at about 4 scans/s end to end on 2 quiet cores (a step costs ~10 ms per scan and core by
+    /// at 9.4 scans/s end to end on 2 quiet AVX-512 cores (a step costs ~6 ms per scan and core by
     /// hand; BENCHMARKS.md); the learning rate was chosen on a KITTI drive left out of training
     /// (2e-2 among 1e-2..2.8e-2 with heads and biases kept; a cosine decay was worse). Steps on w
     /// after the encoder made the result worse.
