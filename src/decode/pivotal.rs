@@ -399,9 +399,8 @@ impl Net {
         }
     }
 
-    /// Which of the flat weights pivotal tuning moves: all, or with `keep_heads_and_biases` the
-    /// synthesis layers' weights and style maps only ([`Schedule::keep_heads_and_biases`]).
-    /// The runs of weights that tuning moves.
+    /// The runs of flat weights that pivotal tuning moves: all, or with `keep_heads_and_biases`
+    /// the synthesis layers' weights and style maps only ([`Schedule::keep_heads_and_biases`]).
     fn moved(&self, keep_heads_and_biases: bool) -> Vec<Range<usize>> {
         let mut moved = vec![true; self.params.len()];
         if keep_heads_and_biases {
