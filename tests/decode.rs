@@ -223,6 +223,37 @@ fn chained_scans_continue_their_chain_whatever_the_threads() {
     }
 }
 
+/// Two point-cloud topics make four chains in one batch, each started on a thread of its own:
+/// the output is the same bytes for 1 and 2 threads, and a topic's channels are what they are
+/// when the topic is converted alone.
+#[test]
+fn the_chains_of_two_topics_run_side_by_side_and_apart() {
+    let dir = tempfile::tempdir().unwrap();
+    let convert = |input: &Path, name: &str, threads: &str| {
+        let output = dir.path().join(name);
+        let o = bin()
+            .args(["convert", input.to_str().unwrap(), output.to_str().unwrap()])
+            .args(["--quiet", "--tune-steps", "4", "--channels", "depth"])
+            .env("RAYON_NUM_THREADS", threads)
+            .output()
+            .expect("binary runs");
+        assert!(o.status.success(), "{}", stderr(&o));
+        output
+    };
+    let (both, alone) = (dir.path().join("both.mcap"), dir.path().join("alone.mcap"));
+    write_recording(&both, &[Family::Ros2, Family::Ros1], 5, None);
+    write_recording(&alone, &[Family::Ros2], 5, None);
+    let one_thread = std::fs::read(convert(&both, "both1.mcap", "1")).unwrap();
+    let two_threads = convert(&both, "both2.mcap", "2");
+    assert_eq!(one_thread, std::fs::read(&two_threads).unwrap());
+    let depth = depth_messages(&two_threads);
+    assert_eq!(depth.len(), 5);
+    assert_eq!(
+        depth,
+        depth_messages(&convert(&alone, "alone_out.mcap", "2"))
+    );
+}
+
 #[test]
 fn bad_decoding_flags_are_clear_errors() {
     let dir = tempfile::tempdir().unwrap();
