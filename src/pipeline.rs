@@ -624,10 +624,10 @@ impl Converter<'_, '_> {
         let (processor, chains) = (&self.processor, &self.chains);
         let done = Mutex::new(Vec::with_capacity(batch.len()));
         let finish = |i: usize, begun: Result<Begun<'_>, String>| {
-            let processed = complete((i, begun));
+            let processed = begun.map(Begun::complete);
             done.lock()
                 .unwrap_or_else(|e| e.into_inner())
-                .push(processed);
+                .push((i, processed));
         };
         // A chain's scans start one after the other on a thread of the chain's own; each one's
         // rest goes to the rayon pool, beside the starts that follow. The decoder runs a scan
@@ -666,10 +666,6 @@ impl Converter<'_, '_> {
             .map(|r| r.expect("every scan of the batch was processed"))
             .collect()
     }
-}
-
-fn complete((i, begun): (usize, Result<Begun, String>)) -> (usize, Result<Processed, String>) {
-    (i, begun.map(Begun::complete))
 }
 
 /// How far a conversion has come, for progress bars.
