@@ -21,7 +21,7 @@ pub enum Fill {
     /// its own surface ([`SurfaceRule`]): across a trusted depth edge (adjacent pixels) the
     /// nearest return's surface, else the blend; inverse depth within a surface. From
     /// scattered returns: an inverse-depth plane where one explains the returns around the
-    /// pixel, else the side of a depth edge that carries most of their weight.
+    /// pixel, else the side of a depth edge the pixel lies in.
     EdgeAware,
     /// The same, then each row restored between two kept beams (`--restore-lines`) moved
     /// along its ray by a small network that reads the kept returns around it

@@ -134,20 +134,24 @@ const PLANE_GAP: f32 = 0.5;
 const BLEND_REACH: f32 = 2.0;
 /// ...from one side of their largest depth gap where it exceeds this (log depth)...
 const EDGE_GAP: f32 = 0.3;
-/// ...and that side carries at least this share of the weight.
-const EDGE_SHARE: f64 = 0.6;
+/// ...the front where the front side's local share ([`front_share`]) is at least this...
+const EDGE_FRONT: f64 = 0.65;
+/// ...the back where it is at most this. Far pixels lie behind an edge more often than in
+/// front of it, so the back wins ties: the bounds balance the near and far fields.
+const EDGE_BACK: f64 = 0.5;
 
 /// The depth at a new pixel from the returns `around` it (at least one): an inverse-depth
 /// plane where one explains the near returns; else, across a depth edge, the side the guide
-/// agrees with or that carries most of the weight; else the blend, weighted towards the
-/// nearest returns.
+/// agrees with or that the new pixel lies in, as that side's plane where one explains it;
+/// else the blend, weighted towards the nearest returns.
 fn local_surface(around: &[Return], guide_target: f32, guide_jump: f32) -> f32 {
-    if let Some(d) = plane_depth(&within(around, PLANE_REACH)) {
+    let wide = within(around, PLANE_REACH);
+    if let Some(d) = plane_depth(&wide) {
         return d;
     }
     let near = within(around, BLEND_REACH);
-    match edge_side(&near, guide_target, guide_jump) {
-        Some(side) => idw(&side, 2),
+    match edge_side(&near, &wide, guide_target, guide_jump) {
+        Some(side) => side.depth(&wide),
         None => idw(&near, 3),
     }
 }
@@ -185,17 +189,7 @@ fn plane_depth(returns: &[Return]) -> Option<f32> {
     {
         return None;
     }
-    let basis =
-        |r: &Return| Vector3::new(1.0, f64::from(r.elevation_deg), f64::from(r.azimuth_deg));
-    // A small ridge keeps a line of returns (one row) solvable.
-    let mut normal = Matrix3::identity() * 1e-4;
-    let mut rhs = Vector3::zeros();
-    for r in returns {
-        let (x, w) = (basis(r), r.weight(2));
-        normal += w * x * x.transpose();
-        rhs += w * x / f64::from(r.depth);
-    }
-    let coef = normal.lu().solve(&rhs)?;
+    let coef = weighted_plane(returns, |r| 1.0 / f64::from(r.depth))?;
     if coef[0] <= 0.0 {
         return None;
     }
@@ -215,28 +209,85 @@ fn plane_depth(returns: &[Return]) -> Option<f32> {
     Some(((1.0 / coef[0]) as f32).clamp(lo, hi))
 }
 
-/// The returns on the new pixel's side of the largest depth gap among `returns`, when the
-/// gap is an edge (> [`EDGE_GAP`]) and a side is clearly chosen: by the guide, or by
-/// carrying at least [`EDGE_SHARE`] of the weight.
-fn edge_side(returns: &[Return], guide_target: f32, guide_jump: f32) -> Option<Vec<Return>> {
-    let (split, gap) = largest_gap(returns)?;
+/// (1, elevation, azimuth) of a return, the basis of the local planes.
+fn basis(r: &Return) -> Vector3<f64> {
+    Vector3::new(1.0, f64::from(r.elevation_deg), f64::from(r.azimuth_deg))
+}
+
+/// Weighted least squares (weights 1 / pixels^2) of `value` against [`basis`]: the plane's
+/// coefficients, the first its value at the new pixel.
+fn weighted_plane(returns: &[Return], value: impl Fn(&Return) -> f64) -> Option<Vector3<f64>> {
+    // A small ridge keeps a line of returns (one row) solvable.
+    let mut normal = Matrix3::identity() * 1e-4;
+    let mut rhs = Vector3::zeros();
+    for r in returns {
+        let (x, w) = (basis(r), r.weight(2));
+        normal += w * x * x.transpose();
+        rhs += w * x * value(r);
+    }
+    normal.lu().solve(&rhs)
+}
+
+/// One side of a depth edge: its returns among the near ones, and which side it is.
+struct Side {
+    returns: Vec<Return>,
+    front: bool,
+    /// Between the two sides' depths (log-depth midpoint of the gap).
+    boundary: f32,
+}
+
+impl Side {
+    fn holds(&self, r: &Return) -> bool {
+        (r.depth < self.boundary) == self.front
+    }
+
+    /// The side's surface at the new pixel: the plane of its returns within `wide` where one
+    /// explains them, else the side's near returns blended.
+    fn depth(&self, wide: &[Return]) -> f32 {
+        let surface: Vec<Return> = wide.iter().filter(|r| self.holds(r)).copied().collect();
+        plane_depth(&surface).unwrap_or_else(|| idw(&self.returns, 2))
+    }
+}
+
+/// The new pixel's side of the largest depth gap among the `near` returns, when the gap is
+/// an edge (> [`EDGE_GAP`]) and a side is clearly chosen: by the guide, or by the front
+/// side's local share of the `wide` returns ([`EDGE_FRONT`], [`EDGE_BACK`]).
+fn edge_side(near: &[Return], wide: &[Return], guide_target: f32, guide_jump: f32) -> Option<Side> {
+    let (split, gap) = largest_gap(near)?;
     if gap <= EDGE_GAP {
         return None;
     }
-    let mut sorted = returns.to_vec();
+    let mut sorted = near.to_vec();
     sorted.sort_by(|a, b| a.depth.total_cmp(&b.depth));
+    let boundary = (sorted[split - 1].depth * sorted[split].depth).sqrt();
     let (front, back) = sorted.split_at(split);
-    let weight = |s: &[Return]| s.iter().map(|r| r.weight(2)).sum::<f64>();
-    let share = weight(front) / (weight(front) + weight(back));
-    let front_wins =
-        guide_side(front, back, guide_target, guide_jump).or(if share >= EDGE_SHARE {
-            Some(true)
-        } else if share <= 1.0 - EDGE_SHARE {
-            Some(false)
-        } else {
-            None
-        })?;
-    Some(if front_wins { front } else { back }.to_vec())
+    let front_wins = match guide_side(front, back, guide_target, guide_jump) {
+        Some(side) => side,
+        None => {
+            let share = front_share(wide, boundary)?;
+            if share >= EDGE_FRONT {
+                true
+            } else if share <= EDGE_BACK {
+                false
+            } else {
+                return None;
+            }
+        }
+    };
+    let returns = if front_wins { front } else { back };
+    Some(Side {
+        returns: returns.to_vec(),
+        front: front_wins,
+        boundary,
+    })
+}
+
+/// How much the new pixel belongs to the front of an edge at `boundary`: the value at the
+/// pixel of a plane fitted to the `returns` read as 1 (in front) or 0 (behind). Unlike their
+/// weight share, it follows the edge's line, so returns crowded on one side of the pixel do
+/// not outvote the side it lies in.
+fn front_share(returns: &[Return], boundary: f32) -> Option<f64> {
+    weighted_plane(returns, |r| f64::from(u8::from(r.depth < boundary))).map(|c| c[0])
 }
 
 /// The largest gap between consecutive depths of `returns` (log depth), with the number of
