@@ -462,4 +462,42 @@ mod tests {
             "plane {e_plane} m, IDW {e_plain} m"
         );
     }
+
+    #[test]
+    fn a_pixel_on_an_edge_takes_the_side_it_lies_in_not_the_nearer_returns() {
+        // A vertical edge: a pole at 10 m left of the new pixel's column, a wall at 40 m from
+        // it on. The pole's returns are the nearest; the wall's lie in the pixel's own column
+        // (two rows up and down) and to its right.
+        let at = |row: f32, col: f32, depth: f32| Return {
+            depth,
+            pixels: (row * row + col * col).sqrt(),
+            elevation_deg: 0.4 * row,
+            azimuth_deg: 0.7 * col,
+            guide: 0.0,
+        };
+        let around = [
+            at(0.0, -1.0, 10.0),
+            at(-1.0, -1.0, 10.0),
+            at(1.0, -1.0, 10.0),
+            at(-2.0, 0.0, 40.0),
+            at(2.0, 0.0, 40.0),
+            at(0.0, 2.0, 40.0),
+            at(-2.0, 1.0, 40.0),
+            at(2.0, 1.0, 40.0),
+        ];
+        let near = within(&around, BLEND_REACH);
+        let weight = |front: bool| {
+            near.iter()
+                .filter(|r| (r.depth < 20.0) == front)
+                .map(|r| r.weight(2))
+                .sum::<f64>()
+        };
+        assert!(
+            weight(true) > 2.0 * weight(false),
+            "the pole carries most of the weight"
+        );
+        let share = front_share(&within(&around, PLANE_REACH), 20.0).unwrap();
+        assert!(share < EDGE_BACK, "front share {share}");
+        assert_eq!(local_surface(&around, 0.0, 0.3), 40.0);
+    }
 }
