@@ -219,7 +219,7 @@ fn strongest(items: &[(String, f64)], n: usize) -> String {
 
 /// `beam_dropout`: one free drop rate per row (laser).
 /// A dropped pixel counts for a laser's rate when returns enclose it within
-/// this many pixels (`Pixels::enclosure_px`).
+/// this many pixels (`Pixels::laser_px`: one surface, or the ground above the bottom row).
 const BEAM_ENCLOSURE_PX: u8 = 3;
 /// ... and for a class's rate within this many.
 const CLASS_ENCLOSURE_PX: u8 = 8;
@@ -248,7 +248,7 @@ impl DropFamily for BeamFamily {
         let side = (px.column[i] as usize * BEAM_SIDES / px.width.max(1)).min(BEAM_SIDES - 1);
         // The last tenth of the reach is where surfaces pass out of range: a
         // hole there is range's, not a laser's.
-        (px.surface_px[i] <= BEAM_ENCLOSURE_PX && px.range_m[i] <= 0.9 * px.reach_m)
+        (px.laser_px[i] <= BEAM_ENCLOSURE_PX && px.range_m[i] <= 0.9 * px.reach_m)
             .then_some(px.row[i] as usize * BEAM_SIDES + side)
     }
     fn fit(&self, table: &QTable, _: &Pixels) -> Option<DropFit> {
@@ -981,6 +981,7 @@ mod tests {
                 px.class.push(0);
                 px.enclosure_px.push(0);
                 px.surface_px.push(0);
+                px.laser_px.push(0);
                 px.kept.push(true);
                 px.scan.push(0);
             }
@@ -1099,6 +1100,7 @@ mod tests {
                 px.range_m.push(10.0);
                 px.enclosure_px.push(1);
                 px.surface_px.push(1);
+                px.laser_px.push(1);
                 px.kept
                     .push(if weak(i, j) { j % 10 >= 3 } else { j % 20 != 0 });
             }
@@ -1145,6 +1147,7 @@ mod tests {
             kept: vec![false],
             enclosure_px: vec![1],
             surface_px: vec![ENCLOSURE_CAP_PX],
+            laser_px: vec![ENCLOSURE_CAP_PX],
             row_edge_px: vec![0],
             ..Default::default()
         };

@@ -139,6 +139,39 @@ fn enclosures(f: &ScanFeatures) -> (Vec<u8>, Vec<u8>) {
         .unzip()
 }
 
+/// [`Pixels::laser_px`] of every pixel of one scan: `surface` ([`enclosures`]), and the
+/// bottom row under level ground. The bottom row has nothing below it; where the two
+/// nearest returns above a pixel there lie on one level plane below the sensor, the
+/// ground runs on towards the car under it: the pixel sees that ground or lost its ray
+/// (a dead bottom laser). Kept and dropped pixels alike, from the returns above only.
+fn laser_enclosures(f: &ScanFeatures, surface: &[u8]) -> Vec<u8> {
+    let (h, w) = (f.height, f.width.max(1));
+    let cap = usize::from(ENCLOSURE_CAP_PX);
+    let mut out = surface.to_vec();
+    if h < 3 {
+        return out;
+    }
+    // The nearest return above `k` (its index and distance in rows), within the cap.
+    let above = |k: usize| -> Option<(usize, usize)> {
+        (1..=cap.min(k / w))
+            .find(|&d| f.kept[k - d * w])
+            .map(|d| (k - d * w, d))
+    };
+    let height = |k: usize| f.range_m[k] * f.elevation_rad[k].sin();
+    for k in (h - 1) * w..h * w {
+        let Some((ka, a)) = above(k) else { continue };
+        let Some((kb, _)) = above(ka) else { continue };
+        let (za, zb) = (height(ka), height(kb));
+        let level = za <= -LEVEL_MIN_HEIGHT_M
+            && zb <= -LEVEL_MIN_HEIGHT_M
+            && (za - zb).abs() <= SURFACE_TOLERANCE * za.abs().max(zb.abs());
+        if level {
+            out[k] = out[k].min(a as u8);
+        }
+    }
+    out
+}
+
 /// Elevation above which a pixel without geometry may be open space rather than
 /// a dropped ray: where a level ground `h` below the sensor lies beyond
 /// `GROUND_REACH_FRACTION` of the reach, `h` the median height of the bottom
@@ -314,6 +347,9 @@ pub struct Pixels {
     /// an object's outline open onto the sky is the scene's; `beam_dropout` and
     /// the baseline's split use this.
     pub surface_px: Vec<u8>,
+    /// As `surface_px`, with the bottom row under level ground enclosed by it
+    /// ([`laser_enclosures`]): what a laser can hit, for `beam_dropout`.
+    pub laser_px: Vec<u8>,
     /// A dropped pixel on the open ground within reach ([`open_ground_range`]) or
     /// under a level ceiling ([`ceiling_range`]), completed as that plane (range and
     /// incidence): where strong range or incidence physics empties the far field or a
@@ -361,6 +397,7 @@ impl Pixels {
             let scan = px.scan_range_m.len() as u32;
             px.scan_range_m.push(f.range_m.clone());
             let (enclosure, surface) = enclosures(f);
+            let laser = laser_enclosures(f, &surface);
             let ground_r = match ground_depth {
                 Some(h) => open_ground_range(f, &enclosure, open_above, h),
                 None => vec![f32::NAN; f.len()],
@@ -394,6 +431,7 @@ impl Pixels {
                 px.kept.push(f.kept[k]);
                 px.enclosure_px.push(enclosure);
                 px.surface_px.push(surface[k]);
+                px.laser_px.push(laser[k]);
                 px.level_plane.push(level_plane);
                 px.edge_px
                     .push(f.edge_px.get(k).copied().unwrap_or(u8::MAX));
@@ -1461,6 +1499,32 @@ mod tests {
             ENCLOSURE_CAP_PX,
             "a wall above, the ground below"
         );
+    }
+
+    #[test]
+    fn a_dead_bottom_laser_under_the_ground_is_a_hole_in_it() {
+        // Three rows 2 deg apart looking down at the ground 2 m below; the bottom laser
+        // is dead all round. Nothing lies below it, but the ground above runs on under it.
+        let elevation = |i: usize| -(8.0f32 + 2.0 * i as f32).to_radians();
+        let mut f = level_rows(3, |i| {
+            let e = elevation(i);
+            (e, i != 2, 2.0 / -e.sin(), 0.0)
+        });
+        let bottom = 2 * 64 + 5;
+        let laser = |f: &ScanFeatures| laser_enclosures(f, &enclosures(f).1)[bottom];
+        assert_eq!(enclosures(&f).1[bottom], ENCLOSURE_CAP_PX, "nothing below");
+        assert_eq!(laser(&f), 1, "the ground above");
+        f.kept[bottom] = true;
+        assert_eq!(
+            laser(&f),
+            1,
+            "a kept pixel there too: read from the returns above only"
+        );
+        // A wall 20 m away over the bottom row: not the ground.
+        for k in 0..2 * 64 {
+            f.range_m[k] = 20.0 / f.elevation_rad[k].cos();
+        }
+        assert_eq!(laser(&f), ENCLOSURE_CAP_PX, "a wall above");
     }
 
     #[test]
