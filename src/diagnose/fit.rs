@@ -158,7 +158,8 @@ fn laser_enclosures(f: &ScanFeatures, surface: &[u8]) -> Vec<u8> {
             .map(|d| (k - d * w, d))
     };
     let height = |k: usize| f.range_m[k] * f.elevation_rad[k].sin();
-    for k in (h - 1) * w..h * w {
+    let bottom = (h - 1) * w;
+    for (k, slot) in out.iter_mut().enumerate().skip(bottom) {
         let Some((ka, a)) = above(k) else { continue };
         let Some((kb, _)) = above(ka) else { continue };
         let (za, zb) = (height(ka), height(kb));
@@ -166,7 +167,7 @@ fn laser_enclosures(f: &ScanFeatures, surface: &[u8]) -> Vec<u8> {
             && zb <= -LEVEL_MIN_HEIGHT_M
             && (za - zb).abs() <= SURFACE_TOLERANCE * za.abs().max(zb.abs());
         if level {
-            out[k] = out[k].min(a as u8);
+            *slot = (*slot).min(a as u8);
         }
     }
     out
