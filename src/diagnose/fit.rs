@@ -1020,6 +1020,28 @@ fn forward(
             else {
                 continue;
             };
+            // A scale refitted beside a candidate can run past certainty where the
+            // baseline keeps most (the keep is clamped there, and each held-out drop
+            // in such a pixel costs 16 nats). Where the candidate fitted at the
+            // current scale fits the held-out scans better by more than the floor,
+            // the refit broke it, and the fit at the current scale is judged.
+            let (fit, c_fit) = if refit_scale && c_fit != c {
+                let held_out = |fit: &DropFit, c: f64| {
+                    let mut with = effects.clone();
+                    with.push((*family, fit));
+                    mask_nll(test, &model_keep(test, &base_test, c, &with))
+                };
+                match fit_given(*family, train, &base_train, c, &effects, false) {
+                    Some((fixed, _))
+                        if held_out(&fixed, c) < held_out(&fit, c_fit) - MIN_GAIN_NATS =>
+                    {
+                        (fixed, c)
+                    }
+                    _ => (fit, c_fit),
+                }
+            } else {
+                (fit, c_fit)
+            };
             let mut with = effects.clone();
             with.push((*family, &fit));
             let keep = model_keep(test, &base_test, c_fit, &with);
