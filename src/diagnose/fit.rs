@@ -345,8 +345,8 @@ pub struct Pixels {
     /// As `enclosure_px`, with the two returns on one surface (their ranges within
     /// [`SURFACE_TOLERANCE`]): a hole in a wall, not a gap between two tree crowns
     /// at different ranges that shows the sky. Which share of the pixels beside
-    /// an object's outline open onto the sky is the scene's; `beam_dropout` and
-    /// the baseline's split use this.
+    /// an object's outline open onto the sky is the scene's; the baseline's split
+    /// uses this, `beam_dropout` its [`Pixels::laser_px`].
     pub surface_px: Vec<u8>,
     /// As `surface_px`, with the bottom row under level ground enclosed by it
     /// ([`laser_enclosures`]): what a laser can hit, for `beam_dropout`.
