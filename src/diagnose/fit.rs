@@ -1015,37 +1015,38 @@ fn forward(
             if chosen.iter().any(|(i, ..)| *i == fi) {
                 continue;
             }
-            let Some((fit, c_fit)) =
-                fit_given(*family, train, &base_train, c, &effects, refit_scale)
+            let Some((at_scale, refit)) =
+                fit_both(*family, train, &base_train, c, &effects, refit_scale)
             else {
                 continue;
+            };
+            let held_out = |fit: &DropFit, c: f64| {
+                let mut with = effects.clone();
+                with.push((*family, fit));
+                let keep = model_keep(test, &base_test, c, &with);
+                (mask_nll(test, &keep), keep)
             };
             // A scale refitted beside a candidate can run past certainty where the
             // baseline keeps most (the keep is clamped there, and each held-out drop
             // in such a pixel costs 16 nats). Where the candidate fitted at the
             // current scale fits the held-out scans better by more than the floor,
             // the refit broke it, and the fit at the current scale is judged.
-            let (fit, c_fit) = if refit_scale && c_fit != c {
-                let held_out = |fit: &DropFit, c: f64| {
-                    let mut with = effects.clone();
-                    with.push((*family, fit));
-                    mask_nll(test, &model_keep(test, &base_test, c, &with))
-                };
-                match fit_given(*family, train, &base_train, c, &effects, false) {
-                    Some((fixed, _))
-                        if held_out(&fixed, c) < held_out(&fit, c_fit) - MIN_GAIN_NATS =>
-                    {
-                        (fixed, c)
+            let (fit, c_fit, (nll, keep)) = match refit {
+                Some((fit, c_fit)) if c_fit != c => {
+                    let refitted = held_out(&fit, c_fit);
+                    let fixed = held_out(&at_scale, c);
+                    if fixed.0 < refitted.0 - MIN_GAIN_NATS {
+                        (at_scale, c, fixed)
+                    } else {
+                        (fit, c_fit, refitted)
                     }
-                    _ => (fit, c_fit),
                 }
-            } else {
-                (fit, c_fit)
+                refit => {
+                    let (fit, c_fit) = refit.unwrap_or((at_scale, c));
+                    let judged = held_out(&fit, c_fit);
+                    (fit, c_fit, judged)
+                }
             };
-            let mut with = effects.clone();
-            with.push((*family, &fit));
-            let keep = model_keep(test, &base_test, c_fit, &with);
-            let nll = mask_nll(test, &keep);
             let halves = mask_nll_ahead_behind(test, &keep);
             let penalty = (fit.n_params as f64 * n.ln() / (2.0 * n)).max(MIN_GAIN_NATS);
             // A direction-invariant effect that helps only on one side of the
@@ -1191,6 +1192,20 @@ fn fit_given(
     effects: &[(&dyn DropFamily, &DropFit)],
     refit_scale: bool,
 ) -> Option<(DropFit, f64)> {
+    let (at_scale, refit) = fit_both(family, train, base, c0, effects, refit_scale)?;
+    Some(refit.unwrap_or((at_scale, c0)))
+}
+
+/// [`fit_given`]'s fit at the scale `c0`, and with `refit_scale` the fit alternated with
+/// the scale (fit, scale); None where a fit fails.
+fn fit_both(
+    family: &dyn DropFamily,
+    train: &Pixels,
+    base: &[f64],
+    c0: f64,
+    effects: &[(&dyn DropFamily, &DropFit)],
+    refit_scale: bool,
+) -> Option<(DropFit, Option<(DropFit, f64)>)> {
     let rest_unit = model_keep(train, base, 1.0, effects);
     let fit_at = |c: f64| {
         let rest: Vec<f64> = rest_unit
@@ -1211,13 +1226,13 @@ fn fit_given(
             .collect();
         best_scale(train, &with_effect)
     };
-    let fit = fit_at(c0)?;
+    let at_scale = fit_at(c0)?;
     if !refit_scale {
-        return Some((fit, c0));
+        return Some((at_scale, None));
     }
-    let fit = fit_at(scale_beside(&fit))?;
+    let fit = fit_at(scale_beside(&at_scale))?;
     let c = scale_beside(&fit);
-    Some((fit, c))
+    Some((at_scale, Some((fit, c))))
 }
 
 #[cfg(test)]
