@@ -56,6 +56,71 @@ fn scan(points: usize, seed: usize) -> Scan {
     scan
 }
 
+/// ROS 2 clouds of 8 x 12 points with hand-made layouts: an INT8 ring field holding
+/// -4..3, a FLOAT32 ring with a NaN, coordinates scaled to ~1e30, and the same cloud
+/// organized (8 x 12) and not (1 x 96).
+fn hostile_layouts(seed: usize) -> Vec<Vec<u8>> {
+    use rangegan_mcap::io::encoders::Payload;
+    use rangegan_mcap::io::pointcloud::{CloudLayout, Field, Numeric};
+    let field = |name: &str, offset: u32, numeric: Numeric| Field {
+        name: name.into(),
+        offset,
+        numeric,
+        count: 1,
+    };
+    let message = |ring: Option<Numeric>, scale: f32, organized: bool| {
+        let mut fields = vec![
+            field("x", 0, Numeric::F32),
+            field("y", 4, Numeric::F32),
+            field("z", 8, Numeric::F32),
+        ];
+        fields.extend(ring.map(|n| field("ring", 12, n)));
+        let mut data = Vec::new();
+        for b in 0..8usize {
+            for c in 0..12usize {
+                let (el, az) = ((b as f32 - 4.0) * 0.05, c as f32 * 0.52 + seed as f32);
+                let r = 6.0 * if c == 3 { scale } else { 1.0 };
+                for v in [
+                    r * el.cos() * az.cos(),
+                    r * el.cos() * az.sin(),
+                    r * el.sin(),
+                ] {
+                    data.extend_from_slice(&v.to_le_bytes());
+                }
+                let ring_bytes = match ring {
+                    Some(Numeric::I8) => vec![(b as i8 - 4) as u8, 0, 0, 0],
+                    Some(_) => (if b == 2 { f32::NAN } else { b as f32 })
+                        .to_le_bytes()
+                        .to_vec(),
+                    None => vec![0; 4],
+                };
+                data.extend_from_slice(&ring_bytes);
+            }
+        }
+        let (height, width) = if organized { (8, 12) } else { (1, 96) };
+        let layout = CloudLayout {
+            fields,
+            point_step: 16,
+            row_step: 16 * width,
+            height,
+            width,
+            big_endian: false,
+        };
+        let payload = Payload::Cloud {
+            layout: &layout,
+            data: &data,
+        };
+        encoders::encode(Family::Ros2, 1, "lidar", &payload)
+    };
+    vec![
+        message(Some(Numeric::I8), 1.0, false),
+        message(Some(Numeric::F32), 1.0, false),
+        message(None, 1e29, false),
+        message(None, 1.0, true),
+        message(None, 1.0, false),
+    ]
+}
+
 /// Valid recordings the mutations start from.
 fn seeds() -> Vec<Vec<u8>> {
     let mut out = Vec::new();
@@ -92,6 +157,7 @@ fn seeds() -> Vec<Vec<u8>> {
                         scan: scan(60, k + c + i as usize),
                         stamp_nanos: i,
                         frame_id: "lidar".into(),
+                        notes: Vec::new(),
                     };
                     let header = mcap::records::MessageHeader {
                         channel_id: channel,
@@ -120,6 +186,22 @@ fn seeds() -> Vec<Vec<u8>> {
                 publish_time: 1,
             };
             w.write_to_known_channel(&header, json).expect("message");
+            // Layouts that once lost returns without a word: signed and non-finite ring
+            // values, coordinates near 1e30, a topic turning from organized to unorganized.
+            let s = encoders::schema(Family::Ros2, encoders::Kind::Cloud);
+            let schema = w.add_schema(&s.name, &s.encoding, &s.data).expect("schema");
+            let channel = w
+                .add_channel(schema, "/layouts", "cdr", &BTreeMap::new())
+                .expect("channel");
+            for (i, data) in hostile_layouts(k).iter().enumerate() {
+                let header = mcap::records::MessageHeader {
+                    channel_id: channel,
+                    sequence: i as u32,
+                    log_time: 10 + i as u64,
+                    publish_time: 10 + i as u64,
+                };
+                w.write_to_known_channel(&header, data).expect("message");
+            }
             w.attach(&mcap::Attachment {
                 log_time: 1,
                 create_time: 1,

@@ -68,6 +68,7 @@ fn write(path: &Path, scans: &[Scan], chunk_size: Option<u64>) -> Vec<u8> {
             scan: scan.clone(),
             stamp_nanos: t,
             frame_id: "lidar".into(),
+            notes: Vec::new(),
         };
         let header = mcap::records::MessageHeader {
             channel_id: channel,

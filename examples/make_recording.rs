@@ -86,6 +86,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
                 scan: cloud(i),
                 stamp_nanos: t,
                 frame_id: "velodyne".into(),
+                notes: Vec::new(),
             };
             let data = encoders::encode_scan(Family::Ros2, &c, &[]);
             written += data.len() as u64;

@@ -377,20 +377,40 @@ struct Pending {
 }
 
 /// The per-scan work, shared by the worker threads.
+/// What decides a scan's row strategy: its organisation (and shape) and whether it has a
+/// ring field.
+#[derive(Debug, Clone, PartialEq, Eq, Hash)]
+struct LayoutKey {
+    organized: Option<(usize, usize)>,
+    ring: bool,
+}
+
+impl LayoutKey {
+    fn of(scan: &crate::lidar::Scan) -> Self {
+        LayoutKey {
+            organized: scan.is_organized().then_some((scan.height, scan.width)),
+            ring: scan.ring.is_some(),
+        }
+    }
+}
+
 struct ScanProcessor<'a, 's> {
     opts: &'a ConvertOptions,
     stages: &'a [&'a Stage<'s>],
-    profiles: Mutex<HashMap<String, (SensorProfile, Strategy)>>,
+    /// The profile and strategy of each topic's layouts.
+    profiles: Mutex<HashMap<(String, LayoutKey), (SensorProfile, Strategy)>>,
     file: std::path::PathBuf,
     fit_warnings: Mutex<Vec<Warning>>,
 }
 
 /// A processed scan: the stages' outputs, the kept fraction, the profile and projection used,
-/// and the errors of stages that failed (the other stages' channels are still written).
+/// the errors of stages that failed (the other stages' channels are still written) and the
+/// decoder's notes on the cloud (see [`DecodedCloud::notes`]).
 type Processed = (
     Vec<StageOutput>,
     f64,
     (SensorProfile, Strategy),
+    Vec<String>,
     Vec<String>,
 );
 
@@ -399,6 +419,7 @@ struct Begun<'s> {
     staged: Vec<Result<Staged<'s>, String>>,
     kept: f64,
     projection: (SensorProfile, Strategy),
+    notes: Vec<String>,
 }
 
 impl Begun<'_> {
@@ -415,12 +436,14 @@ impl Begun<'_> {
                 Err(e) => failed.push(e),
             }
         }
-        (outputs, self.kept, self.projection, failed)
+        (outputs, self.kept, self.projection, failed, self.notes)
     }
 }
 
 impl<'s> ScanProcessor<'_, 's> {
-    /// The profile and strategy for `topic`, fixed by its first scan with returns.
+    /// The profile and strategy for `topic`. The profile is fixed by the topic's first scan;
+    /// the strategy by the first scan of each layout (see [`LayoutKey`]), so a topic whose
+    /// clouds turn from organized to unorganized projects each kind its own way.
     fn profile_for(
         &self,
         topic: &str,
@@ -428,8 +451,16 @@ impl<'s> ScanProcessor<'_, 's> {
         cloud: &DecodedCloud,
     ) -> Result<(SensorProfile, Strategy), String> {
         let mut map = self.profiles.lock().unwrap_or_else(|e| e.into_inner());
-        if let Some(found) = map.get(topic) {
+        let key = (topic.to_string(), LayoutKey::of(&cloud.scan));
+        if let Some(found) = map.get(&key) {
             return Ok(found.clone());
+        }
+        let first = map.iter().find(|((t, _), _)| t == topic);
+        if let Some((_, (profile, _))) = first {
+            let profile = profile.clone();
+            let strategy = self.strategy(&cloud.scan, &profile);
+            map.insert(key, (profile.clone(), strategy));
+            return Ok((profile, strategy));
         }
         let profile = match &self.opts.sensor {
             SensorChoice::Fixed(p) => p.clone(),
@@ -443,11 +474,8 @@ impl<'s> ScanProcessor<'_, 's> {
             Some(c) => profile.with_columns(c),
             None => profile,
         };
-        let strategy = match self.opts.strategy {
-            Strategy::Auto => crate::lidar::projection::choose_strategy(&cloud.scan, &profile),
-            s => s,
-        };
-        map.insert(topic.to_string(), (profile.clone(), strategy));
+        let strategy = self.strategy(&cloud.scan, &profile);
+        map.insert(key, (profile.clone(), strategy));
         if self.opts.check_model_fit
             && let Some(w) = crate::decode::fit::model_fit(&cloud.scan)
                 .and_then(|f| f.warning(&format!("{}, {} beams", profile.name, profile.beams())))
@@ -461,6 +489,14 @@ impl<'s> ScanProcessor<'_, 's> {
             });
         }
         Ok((profile, strategy))
+    }
+
+    /// The row strategy for `scan`: `--projection`, or else chosen from the data.
+    fn strategy(&self, scan: &crate::lidar::Scan, profile: &SensorProfile) -> Strategy {
+        match self.opts.strategy {
+            Strategy::Auto => crate::lidar::projection::choose_strategy(scan, profile),
+            s => s,
+        }
     }
 
     /// Runs the stages on scan `p` up to what its chain waits for ([`Begun::complete`] does
@@ -490,6 +526,7 @@ impl<'s> ScanProcessor<'_, 's> {
             staged,
             kept,
             projection: (profile, strategy),
+            notes: cloud.notes.clone(),
         })
     }
 }
@@ -565,7 +602,15 @@ impl Converter<'_, '_> {
         for (p, result) in batch.iter().zip(results) {
             let topic_report = self.report.topics.entry(p.topic.clone()).or_default();
             match result {
-                Ok((outputs, kept, (profile, strategy), failed)) => {
+                Ok((outputs, kept, (profile, strategy), failed, notes)) => {
+                    for note in notes {
+                        let loc = Location::message(&self.file, &p.topic, p.log_time);
+                        self.report.warnings.push(Warning {
+                            topic: p.topic.clone(),
+                            log_time_nanos: p.log_time,
+                            message: format!("{loc}: {note}"),
+                        });
+                    }
                     for message in failed {
                         topic_report.stage_failures += 1;
                         let loc = Location::message(&self.file, &p.topic, p.log_time);

@@ -247,6 +247,7 @@ fn malformed_clouds_are_copied_and_reported() {
             scan: synthetic_scan(7.0, i as u32),
             stamp_nanos: i,
             frame_id: "l".into(),
+            notes: Vec::new(),
         };
         let mut data = encoders::encode_scan(Family::Ros2, &cloud, &[]);
         if i % 3 == 1 {

@@ -351,6 +351,7 @@ fn a_scan_with_nothing_to_decode_keeps_its_range_channel_and_is_reported() {
                 scan: synthetic_scan(range_m, i as u32),
                 stamp_nanos: t,
                 frame_id: "lidar".into(),
+                notes: Vec::new(),
             };
             let header = mcap::records::MessageHeader {
                 channel_id: channel,

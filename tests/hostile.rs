@@ -183,6 +183,7 @@ fn distinct_ring_values_beyond_any_sensor_are_bounded_and_reported() {
         scan: scan.clone(),
         stamp_nanos: 5,
         frame_id: "lidar".into(),
+        notes: Vec::new(),
     };
     let data = encoders::encode_scan(Family::Ros2, &cloud, &[]);
     let header = mcap::records::MessageHeader {
@@ -234,6 +235,7 @@ fn distinct_ring_values_beyond_any_sensor_are_bounded_and_reported() {
             scan,
             stamp_nanos: stamp,
             frame_id: "lidar".into(),
+            notes: Vec::new(),
         };
         let header = mcap::records::MessageHeader {
             channel_id: channel,
@@ -679,6 +681,7 @@ fn an_input_topic_named_like_ours_is_not_duplicated() {
             scan: common::synthetic_scan(6.0, k as u32),
             stamp_nanos: 9,
             frame_id: "lidar".into(),
+            notes: Vec::new(),
         };
         let header = mcap::records::MessageHeader {
             channel_id: channel,

@@ -76,7 +76,7 @@ pub fn run(global: &GlobalArgs, args: CalibrateArgs) -> Result<Outcome> {
         .with_context(|| format!("failed to write '{}'", args.out.display()))?;
     if global.json {
         let summary = serde_json::json!({
-            "out": args.out, "scans": n, "pixels": pixels,
+            "out": args.out.display().to_string(), "scans": n, "pixels": pixels,
             "nll_uncalibrated": before, "nll_calibrated": after,
         });
         println!("{summary}");

@@ -109,8 +109,10 @@ pub struct ConvertArgs {
     /// (`calibration.json`; `rangegan-mcap calibrate-raydrop` fits one).
     #[arg(long)]
     pub raw_raydrop: bool,
-    /// Bernoulli ray-drop masks written per scan (`raydrop_mask`, `raydrop_mask_1`, ...).
-    #[arg(long, default_value_t = 1)]
+    /// Bernoulli ray-drop masks written per scan (`raydrop_mask`, `raydrop_mask_1`, ...),
+    /// at most 64.
+    #[arg(long, default_value_t = 1,
+          value_parser = clap::builder::RangedU64ValueParser::<usize>::new().range(0..=64))]
     pub mask_samples: usize,
     /// Also render the decoded scene on the model grid upsampled by these factors, e.g.
     /// `2,4` -> `depth_128x1024`, `points_128x1024`, `depth_256x2048`, `points_256x2048`.
@@ -142,8 +144,10 @@ pub struct ConvertArgs {
 #[derive(Debug, clap::Args)]
 pub struct DatasetArgs {
     /// Files converted at once; the threads (`--threads`, default one per core) are split
-    /// between them and the scans inside each file. Outputs are the same bytes whatever N.
-    #[arg(long, default_value_t = 1)]
+    /// between them and the scans inside each file. Outputs are the same bytes whatever N
+    /// (1 to 1024).
+    #[arg(long, default_value_t = 1,
+          value_parser = clap::builder::RangedU64ValueParser::<usize>::new().range(1..=1024))]
     pub jobs: usize,
     /// Convert only shard I of N (0-based, e.g. `--shard 3/8`): a fixed subset chosen by a
     /// hash of each file's relative path, so N machines each run one shard into a shared
@@ -710,8 +714,8 @@ pub fn run(global: &GlobalArgs, args: ConvertArgs) -> anyhow::Result<Outcome> {
         );
         finish_entry(&mut entry, &args.output)?;
         let summary = serde_json::json!({
-            "input": input,
-            "output": args.output,
+            "input": input.display().to_string(),
+            "output": args.output.display().to_string(),
             "seconds": converted.seconds,
             "report": converted.report,
             "manifest": entry,

@@ -68,6 +68,10 @@ fn plan(
             let output = out.join(&file.rel);
             let ours = earlier.get(&file.rel).filter(|e| e.status == Status::Ok);
             let todo = match (output.exists(), ours, &input_hash) {
+                _ if file.lossy_name => Todo::Refused(format!(
+                    "{:?}: the file's name is not UTF-8, so its output could not keep its relative path; rename it",
+                    file.path
+                )),
                 (true, None, _) => match in_input {
                     Some(dir) => in_input_folder(&output, dir),
                     None if force => Todo::New,
@@ -191,7 +195,7 @@ pub fn run(global: &GlobalArgs, args: &ConvertArgs) -> anyhow::Result<Outcome> {
         .count();
     let totals = totals(&entries, started.elapsed().as_secs_f64());
     if global.json {
-        let summary = serde_json::json!({ "output": out, "files": entries, "total": totals });
+        let summary = serde_json::json!({ "output": out.display().to_string(), "files": entries, "total": totals });
         println!("{}", serde_json::to_string_pretty(&summary)?);
     }
     if !global.quiet {
@@ -245,7 +249,7 @@ fn dry_run(global: &GlobalArgs, planned: &[Planned]) -> anyhow::Result<Outcome> 
                 Todo::New => ("convert", "new"),
             };
             serde_json::json!({
-                "input": p.file.rel, "path": p.file.path, "size": p.file.size,
+                "input": p.file.rel, "path": p.file.path.display().to_string(), "size": p.file.size,
                 "action": action, "reason": reason,
             })
         })

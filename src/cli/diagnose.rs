@@ -61,7 +61,7 @@ pub struct DiagnoseArgs {
     pub max_effects: usize,
     /// Real ego speed, m/s, to turn a seam shift into a motion-distortion scale
     /// (default: the real recording's `simulate` metadata, else unknown).
-    #[arg(long)]
+    #[arg(long, value_parser = super::parse_speed_mps)]
     pub real_speed_mps: Option<f64>,
     /// How dropped pixels get their geometry before incidence and edges are
     /// computed: `gan` (the GAN's completed depth, auto-decoded for every scan)
@@ -276,7 +276,7 @@ pub fn run(global: &GlobalArgs, args: DiagnoseArgs) -> anyhow::Result<Outcome> {
     if global.json {
         println!(
             "{}",
-            serde_json::json!({"report": args.report, "effects": r.effects.iter().map(|e| &e.id).collect::<Vec<_>>(),
+            serde_json::json!({"report": args.report.display().to_string(), "effects": r.effects.iter().map(|e| &e.id).collect::<Vec<_>>(),
                 "fit": r.fit, "files": files, "skipped_scans": skipped,
                 "completion": completion.name(), "completion_seconds": completion_s})
         );

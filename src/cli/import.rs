@@ -80,6 +80,33 @@ fn files_with_extension(dir: &Path, ext: &str) -> anyhow::Result<Vec<PathBuf>> {
     Ok(files)
 }
 
+/// `.bin` files in the subfolders of `dir` (at any depth, symlinked folders not followed):
+/// not scans of this dataset, but worth a word, since a user may have meant them.
+fn nested_bins(dir: &Path) -> Vec<PathBuf> {
+    let mut found = Vec::new();
+    let mut todo: Vec<PathBuf> = Vec::new();
+    let subdirs = |d: &Path| -> Vec<PathBuf> {
+        std::fs::read_dir(d)
+            .map(|it| {
+                it.filter_map(|e| e.ok())
+                    .filter(|e| e.file_type().is_ok_and(|t| t.is_dir()))
+                    .map(|e| e.path())
+                    .collect()
+            })
+            .unwrap_or_default()
+    };
+    todo.extend(subdirs(dir));
+    // Bounded: a deep tree is reported by its first files, not walked to its end.
+    while let Some(d) = todo.pop()
+        && found.len() < 10_000
+    {
+        found.extend(files_with_extension(&d, "bin").unwrap_or_default());
+        todo.extend(subdirs(&d));
+    }
+    found.sort();
+    found
+}
+
 /// The scans of `velodyne/*.bin` (or `*.bin` in `dir`), with labels from `labels/` or
 /// beside the `.bin` files (SemanticKITTI layouts differ).
 fn dataset_files(dir: &Path) -> anyhow::Result<Dataset> {
@@ -117,6 +144,7 @@ fn dataset_files(dir: &Path) -> anyhow::Result<Dataset> {
             (bin, found)
         })
         .collect::<Vec<_>>();
+    let nested = nested_bins(&velodyne);
     let mut warnings: Vec<String> = labels
         .iter()
         .zip(&used)
@@ -128,6 +156,14 @@ fn dataset_files(dir: &Path) -> anyhow::Result<Dataset> {
             )
         })
         .collect();
+    if let Some(first) = nested.first() {
+        warnings.push(format!(
+            "{} .bin files in subfolders of {} are not read (first: {}); import each folder on its own",
+            nested.len(),
+            velodyne.display(),
+            first.display()
+        ));
+    }
     let unlabelled: Vec<_> = scans.iter().filter(|s| s.1.is_none()).collect();
     let any_labels = !(labels.is_empty() && boxes.is_empty());
     if any_labels && !unlabelled.is_empty() {
@@ -166,6 +202,7 @@ pub fn run(global: &GlobalArgs, args: ImportArgs) -> anyhow::Result<Outcome> {
     let channel = out.own_channel(&args.out.topic, Family::Ros2, Kind::Cloud)?;
     let bar = super::progress_bar(global, files.len() as u64);
     let mut written = 0u64;
+    let mut labelled = 0u64;
     let mut unreadable = 0usize;
     for (bin, label) in &files {
         let read = match label {
@@ -199,6 +236,7 @@ pub fn run(global: &GlobalArgs, args: ImportArgs) -> anyhow::Result<Outcome> {
         );
         let stamp = start_nanos + written * 100_000_000;
         written += 1;
+        labelled += u64::from(label.is_some());
         let msg = encode_cloud(Family::Ros2, stamp, &args.out.frame_id, &scan, &[]);
         out.write_own(channel, stamp, stamp, &msg)?;
         bar.inc(1);
@@ -206,6 +244,14 @@ pub fn run(global: &GlobalArgs, args: ImportArgs) -> anyhow::Result<Outcome> {
     bar.finish_and_clear();
     for w in &warnings {
         eprintln!("warning: {w}");
+    }
+    if written == 0 {
+        out.discard();
+        bail!(
+            "{}: none of its {} scans could be written (see the warnings above); no output",
+            args.dir.display(),
+            files.len()
+        );
     }
     if args.strict && unreadable > 0 {
         out.discard();
@@ -216,11 +262,10 @@ pub fn run(global: &GlobalArgs, args: ImportArgs) -> anyhow::Result<Outcome> {
         return Ok(Outcome::DataSkipped);
     }
     out.finish()?;
-    let labelled = files.iter().filter(|f| f.1.is_some()).count();
     if global.json {
         println!(
             "{}",
-            serde_json::json!({ "output": args.out.output, "scans": written, "unreadable": unreadable, "labelled": labelled, "topic": args.out.topic, "warnings": warnings })
+            serde_json::json!({ "output": args.out.output.display().to_string(), "scans": written, "unreadable": unreadable, "labelled": labelled, "topic": args.out.topic, "warnings": warnings })
         );
     } else if !global.quiet {
         eprintln!(

@@ -112,7 +112,8 @@ pub fn run(global: &GlobalArgs, args: InfoArgs) -> anyhow::Result<Outcome> {
 
     if global.json {
         let out = serde_json::json!({
-            "file": args.input,
+            // Displayed, not serialised: a path that is not UTF-8 has no JSON string.
+            "file": args.input.display().to_string(),
             "bytes": len,
             "complete": report.complete,
             "read": report,

@@ -38,8 +38,9 @@ pub struct GlobalArgs {
     /// Print a machine-readable JSON summary on stdout.
     #[arg(long, global = true)]
     pub json: bool,
-    /// Worker threads (default: one per core).
-    #[arg(long, global = true)]
+    /// Worker threads (default: one per core; at most 1024).
+    #[arg(long, global = true,
+          value_parser = clap::builder::RangedU64ValueParser::<usize>::new().range(1..=1024))]
     pub threads: Option<usize>,
 }
 
@@ -156,12 +157,22 @@ impl Outcome {
     }
 }
 
+/// A speed flag in m/s: a finite number from 0 to 100 (360 km/h).
+pub(crate) fn parse_speed_mps(text: &str) -> Result<f64, String> {
+    let v: f64 = text.parse().map_err(|e| format!("{text:?}: {e}"))?;
+    if !(0.0..=100.0).contains(&v) {
+        return Err(format!("{text}: give a speed from 0 to 100 m/s"));
+    }
+    Ok(v)
+}
+
 /// Runs the parsed command.
 pub fn run(args: Args) -> anyhow::Result<Outcome> {
     if let Some(n) = args.global.threads {
         rayon::ThreadPoolBuilder::new()
             .num_threads(n)
-            .build_global()?;
+            .build_global()
+            .map_err(|e| anyhow::anyhow!("--threads {n}: cannot start {n} worker threads: {e}"))?;
     }
     match args.command {
         Command::Convert(a) if convert_dataset::is_dataset(&a) => {

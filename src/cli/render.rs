@@ -232,6 +232,7 @@ pub fn run(global: &GlobalArgs, args: RenderArgs) -> anyhow::Result<Outcome> {
                             scan: scan.to_scan(cloud.scan.is_organized()),
                             stamp_nanos: cloud.stamp_nanos,
                             frame_id: cloud.frame_id,
+                            notes: Vec::new(),
                         };
                         Ok(encode_scan(format.family(), &out_cloud, &[]))
                     });
@@ -382,7 +383,7 @@ fn finish(
     if global.json {
         println!(
             "{}",
-            serde_json::json!({"output": args.output, "scans": scans, "keep_rate": keep, "applied": words, "skipped": skipped.len()})
+            serde_json::json!({"output": args.output.display().to_string(), "scans": scans, "keep_rate": keep, "applied": words, "skipped": skipped.len()})
         );
     } else if !global.quiet {
         eprintln!(

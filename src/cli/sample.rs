@@ -168,7 +168,7 @@ pub fn run(global: &GlobalArgs, args: SampleArgs) -> anyhow::Result<Outcome> {
     if global.json {
         println!(
             "{}",
-            serde_json::json!({ "output": args.output, "scans": scans.len(), "rows": h, "columns": w,
+            serde_json::json!({ "output": args.output.display().to_string(), "scans": scans.len(), "rows": h, "columns": w,
                 "keep_rate": keep, "model": model.source, "topic_prefix": args.topic_prefix })
         );
     } else if !global.quiet {

@@ -47,8 +47,9 @@ pub struct TrainArgs {
     /// Random seed of the initial weights and the batches (saved with a new run).
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
-    /// Scans per step (saved with a new run).
-    #[arg(long, default_value_t = 8)]
+    /// Scans per step (saved with a new run; 1 to 1024).
+    #[arg(long, default_value_t = 8,
+          value_parser = clap::builder::RangedU64ValueParser::<usize>::new().range(1..=1024))]
     pub batch_size: usize,
     /// Stop after this many minutes with a checkpoint; run again to resume.
     #[arg(long)]

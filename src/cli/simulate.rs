@@ -54,9 +54,14 @@ fn resolve(args: &SimulateArgs) -> anyhow::Result<Resolved> {
     let mut profile = SensorProfile::resolve(&args.sensor)
         .with_context(|| format!("--sensor {}", args.sensor))?;
     if let Some(c) = args.columns {
-        anyhow::ensure!(c > 0, "--columns must be > 0");
+        crate::lidar::profile::check_columns(c).map_err(anyhow::Error::msg)?;
         profile = profile.with_columns(c);
     }
+    // Built-in profiles and loaded files are checked already; --columns is checked again
+    // with the rest, before anything (the scene, the ray caster) is sized by the profile.
+    profile
+        .validate()
+        .map_err(|why| anyhow::anyhow!("--sensor {}: {why}", args.sensor))?;
     let physics = PhysicsConfig::resolve_for_beams(&args.physics, profile.beams())
         .with_context(|| format!("--physics {}", args.physics))?;
     physics
@@ -155,7 +160,7 @@ pub fn run(global: &GlobalArgs, args: SimulateArgs) -> anyhow::Result<Outcome> {
     if global.json {
         println!(
             "{}",
-            serde_json::json!({ "output": args.out.output, "scans": args.scans, "points": points, "keep_rate": keep,
+            serde_json::json!({ "output": args.out.output.display().to_string(), "scans": args.scans, "points": points, "keep_rate": keep,
                 "sensor": profile.name, "physics": effects.ids(), "topic": args.out.topic })
         );
     } else if !global.quiet {

@@ -107,8 +107,8 @@ pub struct TrainArgs {
     /// Architecture of a new run.
     #[arg(long, value_enum, default_value = "dusty2")]
     pub arch: ArchArg,
-    /// Batch size of a new run.
-    #[arg(long)]
+    /// Batch size of a new run (1 to 4096).
+    #[arg(long, value_parser = clap::builder::RangedU64ValueParser::<usize>::new().range(1..=4096))]
     pub batch: Option<usize>,
     /// Stop after this many real images (also extends a resumed run).
     #[arg(long)]
@@ -167,6 +167,11 @@ pub struct TrainArgs {
 pub fn run_train(global: &GlobalArgs, args: TrainArgs) -> anyhow::Result<Outcome> {
     // Before any data is read or written: a backend this build lacks is a usage error.
     Backend::from(args.run.backend).device()?;
+    // A resumed run's settings are checked before any data is read or anything is sized.
+    let saved = args.run.run_dir.join("config.json");
+    if saved.exists() {
+        load_config(&saved)?;
+    }
     let mut config = match &args.init_from {
         // A fine-tuning run keeps the pretrained network's shapes and recipe; it is past the
         // early pixel-dropout phase, and its image budget is its own.
@@ -222,6 +227,7 @@ pub fn run_train(global: &GlobalArgs, args: TrainArgs) -> anyhow::Result<Outcome
         Some(_) => vec![],
         None => args.run.training_files()?,
     };
+    config.check().context("the run's settings")?;
     let opts = TrainOptions {
         dataset_cache,
         max_duration: args.run.max_duration(),

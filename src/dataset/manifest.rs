@@ -6,7 +6,7 @@
 
 use std::collections::HashMap;
 use std::fs::{File, OpenOptions};
-use std::io::{Read, Seek, SeekFrom, Write};
+use std::io::{Read, Write};
 use std::path::{Path, PathBuf};
 
 use anyhow::Context;
@@ -163,7 +163,13 @@ impl ManifestWriter {
             let keep = text.iter().rposition(|&b| b == b'\n').map_or(0, |i| i + 1);
             file.set_len(keep as u64)?;
         }
-        file.seek(SeekFrom::End(0))?;
+        drop(file);
+        // Appending (O_APPEND), not writing at a position found once: two runs into one
+        // folder then each put their whole lines at the end, never over each other's.
+        let file = OpenOptions::new()
+            .append(true)
+            .open(path)
+            .with_context(|| format!("cannot open {}", path.display()))?;
         Ok(ManifestWriter {
             file,
             path: path.to_path_buf(),
@@ -270,5 +276,26 @@ mod tests {
             reason(&e, "blake3:aa", "--quality off"),
             Some("failed before")
         );
+    }
+
+    /// Two runs appending to one manifest at once (each opened before the other wrote):
+    /// every line is whole, none is blank, and none is lost.
+    #[test]
+    fn two_writers_on_one_manifest_never_write_over_each_other() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join(MANIFEST_NAME);
+        let mut a = ManifestWriter::open(&path).unwrap();
+        let mut b = ManifestWriter::open(&path).unwrap();
+        for k in 0..20 {
+            a.append(&entry(&format!("a{k}.mcap"), Status::Ok)).unwrap();
+            b.append(&entry(&format!("b{k}.mcap"), Status::Ok)).unwrap();
+        }
+        let text = std::fs::read_to_string(&path).unwrap();
+        assert_eq!(text.lines().count(), 40);
+        assert!(
+            text.lines()
+                .all(|l| serde_json::from_str::<Entry>(l).is_ok())
+        );
+        assert_eq!(load_latest(dir.path()).unwrap().len(), 40);
     }
 }

@@ -18,6 +18,10 @@ pub struct DatasetFile {
     /// has the same relative path below the output folder.
     pub rel: String,
     pub size: u64,
+    /// Its relative path holds bytes that are not UTF-8, so `rel` is a lossy rendering
+    /// that could not name its output (two such names may even render alike): such a file
+    /// is refused, by name, rather than written under another name.
+    pub lossy_name: bool,
 }
 
 /// Every `*.mcap` below `inputs` (files are taken as given, folders searched recursively),
@@ -44,9 +48,15 @@ pub fn list(inputs: &[PathBuf], exclude: &[PathBuf]) -> anyhow::Result<Vec<Datas
                 path: input.clone(),
                 rel: name.to_string_lossy().into_owned(),
                 size: meta.len(),
+                lossy_name: name.to_str().is_none(),
             });
         }
         for f in files {
+            if f.lossy_name {
+                // Refused later, by its own path: it takes part in no name collision.
+                found.insert(format!("{}\0{}", f.rel, f.path.display()), f);
+                continue;
+            }
             if let Some(other) = found.get(&f.rel) {
                 bail!(
                     "{} and {} would both be written as {}; convert them into different output folders",
@@ -94,6 +104,7 @@ fn walk(
         let hidden = entry.file_name().to_string_lossy().starts_with('.');
         if meta.is_file() && is_mcap && !hidden {
             let rel = path.strip_prefix(root).unwrap_or(&path);
+            let lossy_name = rel.to_str().is_none();
             let rel: Vec<String> = rel
                 .components()
                 .map(|c| c.as_os_str().to_string_lossy().into_owned())
@@ -102,6 +113,7 @@ fn walk(
                 path: path.clone(),
                 rel: rel.join("/"),
                 size: meta.len(),
+                lossy_name,
             });
         }
     }

@@ -60,6 +60,9 @@ pub struct DecodedCloud {
     /// The header stamp (sensor time), nanoseconds.
     pub stamp_nanos: u64,
     pub frame_id: String,
+    /// What was read differently from the message's word (see [`CloudLayout::decode`]):
+    /// each a warning for whoever reports on the scan.
+    pub notes: Vec<String>,
 }
 
 /// Decodes one message of `format`.
@@ -139,10 +142,12 @@ fn decode_ros(mut r: WireReader<'_>) -> Result<DecodedCloud, CloudError> {
         width,
         big_endian,
     };
+    let (scan, notes) = layout.decode(data)?;
     Ok(DecodedCloud {
-        scan: layout.decode(data)?,
+        scan,
         stamp_nanos,
         frame_id: frame_id.to_string(),
+        notes,
     })
 }
 
@@ -174,9 +179,11 @@ fn decode_foxglove(msg: &foxglove::messages::PointCloud) -> Result<DecodedCloud,
         width,
         big_endian: false,
     };
+    let (scan, notes) = layout.decode(&msg.data)?;
     Ok(DecodedCloud {
-        scan: layout.decode(&msg.data)?,
+        scan,
         stamp_nanos: msg.timestamp.map_or(0, |t| t.total_nanos()),
         frame_id: msg.frame_id.clone(),
+        notes,
     })
 }

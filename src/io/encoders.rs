@@ -404,6 +404,7 @@ mod tests {
             scan,
             stamp_nanos: 1_700_000_000_123_456_789,
             frame_id: "lidar".into(),
+            notes: Vec::new(),
         }
     }
 

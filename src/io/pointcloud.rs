@@ -207,8 +207,10 @@ impl CloudLayout {
     }
 
     /// Decodes `data` laid out as `self` into a scan. Integer time fields are taken as
-    /// nanoseconds (Ouster `t`), float ones as seconds.
-    pub fn decode(&self, data: &[u8]) -> Result<Scan, CloudError> {
+    /// nanoseconds (Ouster `t`), float ones as seconds. Also returns notes on what was read
+    /// differently from the message's word (a ring field that could not be used, points too
+    /// far to be returns, bytes past the last point), for the caller to report.
+    pub fn decode(&self, data: &[u8]) -> Result<(Scan, Vec<String>), CloudError> {
         let found = || {
             self.fields
                 .iter()
@@ -259,20 +261,75 @@ impl CloudLayout {
         } else {
             1e-9
         };
-        Ok(Scan {
+        let mut scan = Scan {
             xyz,
             intensity: column(self.find(&INTENSITY), 1.0),
-            ring: self
-                .find(&RING)
-                .map(|f| (0..n).map(|i| value(f, record(i)) as u16).collect()),
+            ring: None,
             time_s: column(time, time_scale),
             label: self
                 .find(&LABEL)
                 .map(|f| (0..n).map(|i| value(f, record(i)) as u32).collect()),
             height: self.height as usize,
             width: self.width as usize,
-        })
+        };
+        let mut notes = Vec::new();
+        if let Some(f) = self.find(&RING) {
+            let values: Vec<f64> = (0..n).map(|i| value(f, record(i))).collect();
+            match ring_ids(&values, |i| scan.is_return(i)) {
+                Ok(ids) => scan.ring = Some(ids),
+                Err(bad) => notes.push(format!(
+                    "ring field \"{}\" holds {bad} non-finite values at returns; rows taken from the cloud's order or elevation instead",
+                    f.name
+                )),
+            }
+        }
+        let absurd = scan.absurd_points();
+        if absurd > 0 {
+            notes.push(format!(
+                "{absurd} points lie beyond {} m or overflow; they are not taken as returns",
+                crate::lidar::scan::MAX_RETURN_RANGE_M
+            ));
+        }
+        let extra = data.len() as u64 - self.height as u64 * self.row_step as u64;
+        if extra > 0 {
+            notes.push(format!(
+                "{extra} bytes after the last point ignored (data holds {}, height x row_step is {})",
+                data.len(),
+                self.height as u64 * self.row_step as u64
+            ));
+        }
+        Ok((scan, notes))
     }
+}
+
+/// Ring ids from a ring field's raw values. Non-negative integers below 65 536 (every
+/// driver's numbering) are kept as they are. Other finite values (negative rings of a signed
+/// field, fractions, values past u16) are renumbered 0, 1, ... in the order of their values,
+/// so that no two rings merge: projection orders rings by their median elevation, so only
+/// which points share a ring matters. A non-finite value at a return leaves no usable ring
+/// field: `Err` with how many such returns there are. At a point without a return any value
+/// is harmless (it is never projected).
+fn ring_ids(values: &[f64], is_return: impl Fn(usize) -> bool) -> Result<Vec<u16>, usize> {
+    let bad = (0..values.len())
+        .filter(|&i| !values[i].is_finite() && is_return(i))
+        .count();
+    if bad > 0 {
+        return Err(bad);
+    }
+    let plain = |v: f64| (0.0..=u16::MAX as f64).contains(&v) && v.fract() == 0.0;
+    if values.iter().all(|&v| plain(v) || !v.is_finite()) {
+        return Ok(values.iter().map(|&v| v as u16).collect());
+    }
+    let mut distinct: Vec<f64> = values.iter().copied().filter(|v| v.is_finite()).collect();
+    distinct.sort_by(f64::total_cmp);
+    distinct.dedup();
+    Ok(values
+        .iter()
+        .map(|v| {
+            let rank = distinct.partition_point(|d| d < v);
+            rank.min(u16::MAX as usize) as u16
+        })
+        .collect())
 }
 
 /// Packs a scan's fields (x, y, z, then intensity, ring, time, label where present,
@@ -375,7 +432,7 @@ mod tests {
             width: 2,
         };
         let (layout, data) = encode(&scan, &[]);
-        let back = layout.decode(&data).unwrap();
+        let (back, _) = layout.decode(&data).unwrap();
         assert_eq!(back.xyz[0], scan.xyz[0]);
         assert!(back.xyz[1][2].is_nan());
         assert_eq!(
@@ -433,7 +490,7 @@ mod tests {
         data.extend_from_slice(&50_000_000u32.to_be_bytes());
         data.extend_from_slice(&300u16.to_be_bytes());
         data.extend_from_slice(&[0, 0]);
-        let scan = layout.decode(&data).unwrap();
+        let (scan, _) = layout.decode(&data).unwrap();
         assert_eq!(scan.xyz, vec![[1.5, -2.0, 0.25]]);
         assert_eq!(scan.time_s, Some(vec![0.05]));
         assert_eq!(scan.intensity, Some(vec![300.0]));
@@ -460,6 +517,27 @@ mod tests {
         assert!(
             err.contains("no \"x\" field") && err.contains("found: y, z"),
             "{err}"
+        );
+    }
+
+    /// Ring values of any sign or size keep their rings apart; unsigned ones are kept as
+    /// they are; a non-finite value at a return leaves no ring field, at a point without a
+    /// return it is harmless.
+    #[test]
+    fn ring_values_of_any_sign_keep_their_rings_apart() {
+        let all = |_: usize| true;
+        assert_eq!(ring_ids(&[3.0, 0.0, 63.0], all), Ok(vec![3, 0, 63]));
+        assert_eq!(
+            ring_ids(&[-16.0, 15.0, -1.0, 0.0, -16.0], all),
+            Ok(vec![0, 3, 1, 2, 0])
+        );
+        let min = i32::MIN as f64;
+        assert_eq!(ring_ids(&[min, 1.0, 2.0, min], all), Ok(vec![0, 1, 2, 0]));
+        assert_eq!(ring_ids(&[0.5, 1.5, 70_000.0], all), Ok(vec![0, 1, 2]));
+        assert_eq!(ring_ids(&[1.0, f64::NAN, 2.0], all), Err(1));
+        assert_eq!(
+            ring_ids(&[1.0, f64::NAN, 2.0], |i| i != 1),
+            Ok(vec![1, 0, 2])
         );
     }
 }

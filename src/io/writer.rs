@@ -54,7 +54,10 @@ pub struct McapOutput {
     used_schema_ids: HashSet<u16>,
     used_channel_ids: HashSet<u16>,
     own_schemas: HashMap<(Family, Kind), u16>,
-    own_channels: HashMap<String, u16>,
+    /// This output's channels by topic and family: one topic carried by channels of two
+    /// families (ROS 2 and Foxglove, say) gets a channel of each, so every message is in
+    /// the encoding its channel declares.
+    own_channels: HashMap<(String, Family), u16>,
     own_sequence: HashMap<u16, u32>,
     /// Topics of input channels (copied or announced by the input's summary): our own
     /// channels never take one of these names.
@@ -293,7 +296,7 @@ impl McapOutput {
     /// channel already has gets a `~N` suffix (said in [`notes`](Self::notes)), so no
     /// output holds two channels of one name with different schemas.
     pub fn own_channel(&mut self, topic: &str, family: Family, kind: Kind) -> anyhow::Result<u16> {
-        if let Some(&id) = self.own_channels.get(topic) {
+        if let Some(&id) = self.own_channels.get(&(topic.to_string(), family)) {
             return Ok(id);
         }
         let name = self.free_topic(topic);
@@ -318,8 +321,13 @@ impl McapOutput {
         self.used_channel_ids.insert(id);
         let encoding = encoders::message_encoding(family);
         self.write(|w| w.add_channel_with_id(id, schema_id, &name, encoding, &BTreeMap::new()))?;
-        self.own_channels.insert(topic.to_string(), id);
+        self.own_channels.insert((topic.to_string(), family), id);
         Ok(id)
+    }
+
+    /// Whether a channel of this output's own has `topic`.
+    fn owns_topic(&self, topic: &str) -> bool {
+        self.own_channels.keys().any(|(t, _)| t == topic)
     }
 
     /// `topic`, or `topic~2`, `topic~3`, ... when an input channel already has that name.
@@ -329,7 +337,7 @@ impl McapOutput {
         }
         let name = (2..)
             .map(|k| format!("{topic}~{k}"))
-            .find(|n| !self.input_topics.contains(n) && !self.own_channels.contains_key(n))
+            .find(|n| !self.input_topics.contains(n) && !self.owns_topic(n))
             .unwrap_or_default();
         self.notes.push(format!(
             "the input already has a channel {topic}; this output's is named {name}"

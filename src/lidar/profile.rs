@@ -234,8 +234,20 @@ impl SensorProfile {
                 self.min_range_m, self.max_range_m
             ));
         }
-        if self.elevation_deg.iter().any(|e| !e.is_finite()) {
-            return Err("non-finite elevation".into());
+        let max = crate::lidar::scan::MAX_RETURN_RANGE_M;
+        if self.max_range_m > max {
+            return Err(format!(
+                "max_range_m {} is beyond {max} m, farther than any LiDAR measures",
+                self.max_range_m
+            ));
+        }
+        if let Some(e) = (self.elevation_deg.iter()).find(|e| !(-90.0..=90.0).contains(*e)) {
+            return Err(format!("elevation {e} deg is outside -90..90 deg"));
+        }
+        if let Some(off) = &self.azimuth_offset_deg
+            && let Some(a) = off.iter().find(|a| !(-360.0..=360.0).contains(*a))
+        {
+            return Err(format!("azimuth offset {a} deg is outside -360..360 deg"));
         }
         Ok(())
     }

@@ -1,5 +1,9 @@
 //! One LiDAR sweep as decoded from a message or a dataset file, in the sensor frame.
 
+/// Farthest range a return may have. No LiDAR measures beyond a few hundred metres; a
+/// point past this is a corrupt or placeholder value and never reaches a pixel.
+pub const MAX_RETURN_RANGE_M: f32 = 2_000.0;
+
 /// A decoded point cloud, structure of arrays, points in message order.
 ///
 /// Organized clouds (`height > 1`) keep every cell, with non-finite or all-zero
@@ -47,11 +51,22 @@ impl Scan {
         self.height > 1
     }
 
-    /// Whether point `i` is a real return: finite and not the all-zero placeholder
-    /// that drivers (Ouster, Velodyne organized mode) write for no return.
+    /// Whether point `i` is a real return: finite, not the all-zero placeholder that
+    /// drivers (Ouster, Velodyne organized mode) write for no return, and within
+    /// [`MAX_RETURN_RANGE_M`] (coordinates near 1e30 would overflow the range to infinity).
     pub fn is_return(&self, i: usize) -> bool {
         let [x, y, z] = self.xyz[i];
-        x.is_finite() && y.is_finite() && z.is_finite() && (x != 0.0 || y != 0.0 || z != 0.0)
+        let r2 = x * x + y * y + z * z;
+        r2 > 0.0 && r2 <= MAX_RETURN_RANGE_M * MAX_RETURN_RANGE_M
+    }
+
+    /// Points with finite coordinates that are still no return: beyond
+    /// [`MAX_RETURN_RANGE_M`], or so large that their range overflows.
+    pub fn absurd_points(&self) -> usize {
+        let finite = |p: &[f32; 3]| p.iter().all(|c| c.is_finite());
+        (0..self.len())
+            .filter(|&i| finite(&self.xyz[i]) && self.xyz[i] != [0.0; 3] && !self.is_return(i))
+            .count()
     }
 
     /// Number of real returns.

@@ -92,6 +92,16 @@ pub struct Discriminator {
 }
 
 impl DiscriminatorConfig {
+    /// Refuses sizes that cannot be built or would not fit in memory.
+    pub fn check(&self) -> anyhow::Result<()> {
+        use crate::util::bounds;
+        bounds::size("discriminator.height", self.height, 1..=512)?;
+        bounds::size("discriminator.width", self.width, 1..=16384)?;
+        bounds::sizes("discriminator.channels", &self.channels, 1..=8, 1..=4096)?;
+        bounds::size("discriminator.stem", self.stem, 1..=8)?;
+        bounds::size("discriminator.mbstd_group", self.mbstd_group, 1..=64)
+    }
+
     /// The CPU configuration chosen by measurement (docs/model_benchmarks.md).
     pub fn cpu() -> Self {
         Self::new().with_channels(vec![8, 16, 32, 64, 128])

@@ -200,10 +200,40 @@ pub fn parse_config(text: &str) -> Result<TrainConfig> {
     }
     let mut merged = serde_json::to_value(TrainConfig::new())?;
     crate::util::json::merge(&mut merged, saved);
-    Ok(serde_json::from_value(merged)?)
+    let config: TrainConfig = serde_json::from_value(merged)?;
+    config.check()?;
+    Ok(config)
 }
 
 impl TrainConfig {
+    /// Refuses settings that cannot train: sizes that cannot be built or would not fit in
+    /// memory, an empty batch, rates that are not positive numbers. Every command that reads
+    /// a run's `config.json` checks it here, before anything is sized by it.
+    pub fn check(&self) -> Result<()> {
+        use crate::util::bounds;
+        self.model().check()?;
+        self.discriminator.check()?;
+        for d in &self.stage_discriminators {
+            d.check()?;
+        }
+        bounds::size("batch_size", self.batch_size, 1..=4096)?;
+        bounds::size("g_every", self.g_every, 1..=1024)?;
+        bounds::size("r1_interval", self.r1_interval, 1..=1_000_000)?;
+        bounds::size("ada_interval", self.ada_interval, 1..=1_000_000)?;
+        let positive = |what: &str, v: f64| {
+            anyhow::ensure!(
+                v.is_finite() && v > 0.0,
+                "{what} must be a positive number (got {v})"
+            );
+            Ok(())
+        };
+        positive("lr", self.lr)?;
+        if let Some(g_lr) = self.g_lr {
+            positive("g_lr", g_lr)?;
+        }
+        Ok(())
+    }
+
     /// The generator this run trains, as its model folder's config describes it.
     pub fn model(&self) -> ModelConfig {
         ModelConfig {

@@ -42,6 +42,13 @@ pub fn cloud_path(format: rangegan_mcap::io::CloudFormat, data: &[u8]) {
         .map(|e| e.profile)
         .unwrap_or_else(|_| SensorProfile::kitti_hdl64e());
     for strategy in [Strategy::Auto, Strategy::Spherical, Strategy::RingField] {
-        let _ = project(&cloud.scan, &profile, strategy);
+        if let Ok(image) = project(&cloud.scan, &profile, strategy) {
+            // A silent corruption is a bug as much as a panic: no pixel may hold an
+            // infinite or absurd range, whatever the message held.
+            let max = rangegan_mcap::lidar::scan::MAX_RETURN_RANGE_M;
+            if let Some(r) = image.range_m.iter().find(|r| !(0.0..=max).contains(*r)) {
+                panic!("a range of {r} m reached a pixel ({strategy:?})");
+            }
+        }
     }
 }

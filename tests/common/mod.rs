@@ -107,6 +107,7 @@ pub fn write_recording_with(
                 scan: synthetic_scan(5.0 + i as f32, i as u32),
                 stamp_nanos: t,
                 frame_id: "lidar".into(),
+                notes: Vec::new(),
             };
             let data = encoders::encode_scan(*family, &cloud, &[]);
             let header = mcap::records::MessageHeader {
