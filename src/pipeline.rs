@@ -212,7 +212,7 @@ impl<'d> DecodeStage<'d> {
 
     /// The channels (suffixes) [`run`](Self::run) writes; `raydrop_mask` stands for every mask.
     pub fn channel_names(&self) -> Vec<String> {
-        let mut names: Vec<String> = ["depth", "raydrop_prob", "raydrop_mask", "points"]
+        let mut names: Vec<String> = ["depth", "x_d", "raydrop_prob", "raydrop_mask", "points"]
             .map(String::from)
             .into();
         for (suffix, _) in &self.extra_grids {
@@ -280,6 +280,7 @@ impl<'d> DecodeStage<'d> {
         let m = &model;
         let mut out = vec![
             image("depth".into(), m, &m.depth_m),
+            image("x_d".into(), m, &decoded.model.depth_m),
             image("raydrop_prob".into(), m, &m.drop_prob),
         ];
         for (i, mask) in decoded.sample_masks(self.mask_samples).iter().enumerate() {

@@ -56,9 +56,9 @@ fn decoded_channels_open_in_foxglove_readers() {
         ],
         "2",
     );
-    // Per scan: range, depth, raydrop_prob, 2 masks, points, depth/points at 128x1024 and
-    // for the VLP-16.
-    let per_scan = 10;
+    // Per scan: range, depth, x_d, raydrop_prob, 2 masks, points, depth/points at 128x1024
+    // and for the VLP-16.
+    let per_scan = 11;
     let scans = 2 * FAMILIES.len() as u64;
     assert_eq!(summary["report"]["outputs_written"], scans * per_scan);
     let Some(node) = node() else { return };
@@ -72,6 +72,7 @@ fn decoded_channels_open_in_foxglove_readers() {
             serde_json::json!([64, 512, "32FC1", 2048, 64 * 2048])
         );
         assert_eq!(image("raydrop_prob"), image("depth"));
+        assert_eq!(image("x_d"), image("depth"));
         assert_eq!(
             image("raydrop_mask_1"),
             serde_json::json!([64, 512, "mono8", 512, 64 * 512])

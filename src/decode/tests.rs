@@ -216,6 +216,40 @@ fn fills_keep_measured_returns_and_complete_with_the_rendering() {
     }
 }
 
+/// Without restoration, `depth` is the completed scan: every measured return exactly, a
+/// dropped ray near returns filled from them, and x_d deep inside a large hole.
+#[test]
+fn depth_keeps_every_return_and_fills_dropped_rays_by_reach() {
+    let model = Model::shipped(&Device::flex()).expect("shipped model");
+    let mut scan = generated_scan(&model, 6);
+    // A 20 x 40 hole: its middle lies 10 steps from any return.
+    for i in 20..40 {
+        for j in 200..240 {
+            scan.range_m[i * 512 + j] = 0.0;
+        }
+    }
+    let r = decoder(0, 1, None).decode(&scan, 4).expect("decode");
+    let out = r.model_output(Fill::DEFAULT);
+    assert_eq!(r.model_output(Fill::Gan), r.model, "gan: x_d everywhere");
+    let distance = crate::lidar::holes::distance_to_returns(&r.observed_m, 64, 512);
+    let (mut filled, mut rendered) = (0, 0);
+    for k in 0..64 * 512 {
+        if r.observed_m[k] > 0.0 {
+            assert_eq!(out.depth_m[k].to_bits(), r.observed_m[k].to_bits(), "{k}");
+        } else if distance[k] > super::fill::COMPLETION_REACH {
+            assert_eq!(out.depth_m[k], r.model.depth_m[k], "{k}: x_d beyond reach");
+            rendered += 1;
+        } else if out.depth_m[k] != r.model.depth_m[k] {
+            filled += 1;
+        }
+    }
+    assert!(rendered >= 14 * 34, "{rendered} pixels of x_d");
+    assert!(
+        filled >= 20 * 40 - 14 * 34 - 50,
+        "{filled} pixels filled from returns"
+    );
+}
+
 #[test]
 fn an_empty_scan_is_a_clear_error() {
     let d = decoder(1, 1, None);

@@ -7,6 +7,7 @@
 
 pub mod edges;
 pub mod estimate;
+pub mod holes;
 pub mod kitti;
 pub mod kitti_boxes;
 pub mod nuscenes;
