@@ -22,9 +22,9 @@
 //! full-resolution `semantickitti_ssv3`, `patchworkpp` (~2010 per ring; ground truth for the
 //! 512 -> 2048 column test). Scans are decoded in parallel (rayon over scans, one thread each).
 //!
-//! One file per part: [`args`], [`scans`] (loading), [`cases`] (upsampling and
-//! restoration) with [`baselines`] and [`errors`], [`raydrop`] (calibration curves) and
-//! [`tune`] (surface rules on training scans).
+//! One file per part: `args`, `scans` (loading), `cases` (upsampling and
+//! restoration) with `baselines` and `errors`, `raydrop` (calibration curves) and
+//! `tune` (surface rules on training scans).
 
 use std::path::PathBuf;
 use std::time::Instant;

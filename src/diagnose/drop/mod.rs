@@ -12,8 +12,8 @@
 //! | `self_occlusion` | (row, azimuth sector) in the lower half | per sector a "skyline" of blocked bottom rows and a probability |
 //! | `motion_distortion` (coverage) | distance to the nearest moved return along the pixel's column and along its row, in half pixels | a logistic curve per axis; only where the seam step found motion |
 //!
-//! One file per kind: [`curve`] (range and incidence curves), [`rates`] (free rates
-//! per laser, edge distance and class), [`self_occlusion`] and [`motion`] (coverage
+//! One file per kind: `curve` (range and incidence curves), `rates` (free rates
+//! per laser, edge distance and class), `self_occlusion` and `motion` (coverage
 //! under motion distortion).
 
 mod curve;

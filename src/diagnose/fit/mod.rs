@@ -23,11 +23,9 @@
 //! [`QTable`] by (candidate bin, level of the rest-of-model keep probability `q`),
 //! and the likelihood of any per-bin drop curve is a sum over its cells.
 //!
-//! One file per part: [`pixels`] (the pixels a fit uses) with [`enclosure`] and
-//! [`level_plane`], [`baseline`] (`B(x)`), [`likelihood`] (the NLL and the fit of one
-//! candidate given the others) and [`select`] (the forward selection).
-//!
-//! [`simpler_rival`]: select::simpler_rival
+//! One file per part: `pixels` (the pixels a fit uses) with `enclosure` and
+//! `level_plane`, `baseline` (`B(x)`), `likelihood` (the NLL and the fit of one
+//! candidate given the others) and `select` (the forward selection).
 
 mod baseline;
 mod enclosure;
@@ -37,6 +35,9 @@ mod pixels;
 mod select;
 #[cfg(test)]
 mod tests;
+
+#[cfg(doc)]
+use select::simpler_rival;
 
 pub use baseline::Baseline;
 pub use enclosure::{ENCLOSED_PX, ENCLOSURE_CAP_PX};

@@ -312,7 +312,7 @@ fn forward(
 
 /// A candidate effect of one selection round that beats its penalty.
 #[derive(Clone)]
-struct Candidate {
+pub(super) struct Candidate {
     family: usize,
     fit: DropFit,
     /// Held-out NLL per pixel with the effect.
@@ -341,7 +341,7 @@ fn strongest<'a>(viable: &'a [Candidate], families: &[&dyn DropFamily]) -> Optio
 /// nothing to add (`explains`): the two read the same drops, and the simpler reading is
 /// named. A free rate per range band of depth edges can trace a range curve that thins the
 /// far field, where the range curve itself is the physics.
-fn simpler_rival<'a>(
+pub(super) fn simpler_rival<'a>(
     best: &'a Candidate,
     viable: &'a [Candidate],
     families: &[&dyn DropFamily],

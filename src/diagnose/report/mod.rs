@@ -5,9 +5,9 @@
 //! the numbers the report and its plots show. No I/O: the CLI reads the
 //! recordings and writes the report (`crate::report`).
 //!
-//! One file per part: [`inputs`] (their check, and which candidates they can test),
-//! [`effects`] (the named effects, candidates and fitted physics), [`plots`] (curves
-//! and maps) and [`check`] (the posterior-predictive check).
+//! One file per part: `inputs` (their check, and which candidates they can test),
+//! `effects` (the named effects, candidates and fitted physics), `plots` (curves
+//! and maps) and `check` (the posterior-predictive check).
 
 use serde::Serialize;
 use serde_json::{Map, Value};

@@ -9,7 +9,7 @@
 //! width. Angles are interpolated as (cos, sin) pairs and recovered with `atan2`, so
 //! the azimuth seam at +-pi needs no special case, and columns wrap around.
 //!
-//! [`grid`] resizes angle grids and sensor profiles; this file resamples range images.
+//! `grid` resizes angle grids and sensor profiles; this file resamples range images.
 
 mod grid;
 #[cfg(test)]

@@ -6,8 +6,8 @@
 //! Run directory layout: `config.json` (written first), `checkpoint/` (g, g_ema, d, optimiser
 //! records, state.json; replaced atomically), `log.jsonl`, `snapshots/*.png`.
 //!
-//! One file per part: [`start`] (a fresh, resumed or fine-tuning start), [`step`] (one D
-//! and G step) and [`checkpoint`] (checkpoints and snapshots).
+//! One file per part: `start` (a fresh, resumed or fine-tuning start), `step` (one D
+//! and G step) and `checkpoint` (checkpoints and snapshots).
 
 use std::fs::OpenOptions;
 use std::io::Write;
