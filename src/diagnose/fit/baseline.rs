@@ -1,5 +1,5 @@
-//! The baseline `B(x)`: the simulated recording's own keep rate per pixel cell, with
-//! the sim's own blind spots, which holds what sim and real share.
+//! The baseline `B(x)`: the simulated recording's own keep rate per pixel cell (times an
+//! azimuth factor for the sim's own blind spots), which holds what sim and real share.
 
 use super::Pixels;
 
