@@ -12,7 +12,7 @@ use anyhow::{Context, bail};
 use clap::ValueEnum;
 
 use super::{GlobalArgs, Outcome};
-use crate::dataset::manifest::{self, Entry, Status};
+use crate::dataset::manifest::{self, Counts};
 use crate::decode::amortised::TrainedEncoder;
 use crate::decode::{DecodeOptions, Decoder, Fill, Quality, Sparsify};
 use crate::io::{McapOutput, OnError, WriterSettings};
@@ -575,47 +575,15 @@ pub(crate) fn data_skipped(report: &ConvertReport) -> bool {
     report.skipped_anything()
 }
 
-/// What was read and how it went; the output fields are filled by [`finish_entry`].
-pub(crate) fn manifest_entry(
-    rel_input: &str,
-    size: u64,
-    input_hash: String,
-    rel_output: &str,
-    settings: &str,
-    result: &anyhow::Result<Converted>,
-) -> Entry {
-    let (status, error, report, seconds) = match result {
-        Ok(c) => (Status::Ok, None, Some(&c.report), c.seconds),
-        Err(e) => (Status::Failed, Some(format!("{e:#}")), None, 0.0),
-    };
-    Entry {
-        input: rel_input.into(),
-        input_size: size,
-        input_hash,
-        output: rel_output.into(),
-        output_size: None,
-        output_hash: None,
-        status,
-        error,
-        records_copied: report.map_or(0, records_copied),
-        scans: report.map_or(0, total_scans),
-        malformed: report.map_or(0, total_malformed),
-        warnings: report.map_or(0, warning_count),
-        seconds,
-        tool: "rangegan-mcap".into(),
-        version: env!("CARGO_PKG_VERSION").into(),
-        args: settings.into(),
+/// The manifest's counts of a converted file.
+pub(crate) fn manifest_counts(c: &Converted) -> Counts {
+    Counts {
+        records_copied: records_copied(&c.report),
+        scans: total_scans(&c.report),
+        malformed: total_malformed(&c.report),
+        warnings: warning_count(&c.report),
+        seconds: c.seconds,
     }
-}
-
-/// Adds the output's size and hash to an entry of a converted file.
-pub(crate) fn finish_entry(entry: &mut Entry, output: &Path) -> anyhow::Result<()> {
-    // A --strict run that skipped data keeps no output.
-    if entry.status == Status::Ok && output.exists() {
-        entry.output_size = Some(std::fs::metadata(output)?.len());
-        entry.output_hash = Some(manifest::hash_file(output)?);
-    }
-    Ok(())
 }
 
 /// Prints a file's warnings and its summary line on stderr.
@@ -701,18 +669,15 @@ pub fn run(global: &GlobalArgs, args: ConvertArgs) -> anyhow::Result<Outcome> {
     if global.json {
         // The manifest line of this file, so a driver running one file per task (e.g. on
         // Ray) can assemble a dataset's manifest.
-        let mut entry = manifest_entry(
+        let mut entry = manifest::manifest_entry(
             &name,
             size,
             manifest::hash_file(input)?,
             &args.output.display().to_string(),
             &converter.settings,
-            &Ok(Converted {
-                report: converted.report.clone(),
-                seconds: converted.seconds,
-            }),
+            Ok(manifest_counts(&converted)),
         );
-        finish_entry(&mut entry, &args.output)?;
+        manifest::finish_entry(&mut entry, &args.output)?;
         let summary = serde_json::json!({
             "input": input.display().to_string(),
             "output": args.output.display().to_string(),

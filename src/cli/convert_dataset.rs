@@ -10,7 +10,7 @@ use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
 use anyhow::bail;
 use rayon::prelude::*;
 
-use super::convert::{self, ConvertArgs, Counters, FileConverter, finish_entry, manifest_entry};
+use super::convert::{self, ConvertArgs, Counters, FileConverter};
 use super::{GlobalArgs, Outcome};
 use crate::dataset::manifest::{self, Entry, ManifestWriter, Status};
 use crate::dataset::{self, DatasetFile, Shard};
@@ -371,15 +371,18 @@ fn convert_one(
         Err(e) => eprintln!("error: {e:#}"), // errors name the file
     }
     let hash = p.input_hash.clone().unwrap_or_default();
-    let mut entry = manifest_entry(
+    let mut entry = manifest::manifest_entry(
         &p.file.rel,
         p.file.size,
         hash,
         &p.file.rel,
         &converter.settings,
-        &result,
+        result
+            .as_ref()
+            .map(convert::manifest_counts)
+            .map_err(|e| format!("{e:#}")),
     );
-    if let Err(e) = finish_entry(&mut entry, &output) {
+    if let Err(e) = manifest::finish_entry(&mut entry, &output) {
         entry.status = Status::Failed;
         entry.error = Some(format!("{e:#}"));
     }

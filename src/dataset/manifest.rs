@@ -85,6 +85,61 @@ pub fn hash_file(path: &Path) -> anyhow::Result<String> {
     Ok(format!("blake3:{}", hasher.finalize().to_hex()))
 }
 
+/// What a conversion of one file counted, as its manifest line records it.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct Counts {
+    /// Input records copied (schemas, channels, messages, attachments, metadata).
+    pub records_copied: u64,
+    pub scans: u64,
+    pub malformed: u64,
+    pub warnings: u64,
+    pub seconds: f64,
+}
+
+/// What was read and how it went (`result`: the conversion's counts, or its error); the
+/// output fields are filled by [`finish_entry`].
+pub fn manifest_entry(
+    rel_input: &str,
+    size: u64,
+    input_hash: String,
+    rel_output: &str,
+    settings: &str,
+    result: Result<Counts, String>,
+) -> Entry {
+    let (status, error, counts) = match result {
+        Ok(c) => (Status::Ok, None, c),
+        Err(e) => (Status::Failed, Some(e), Counts::default()),
+    };
+    Entry {
+        input: rel_input.into(),
+        input_size: size,
+        input_hash,
+        output: rel_output.into(),
+        output_size: None,
+        output_hash: None,
+        status,
+        error,
+        records_copied: counts.records_copied,
+        scans: counts.scans,
+        malformed: counts.malformed,
+        warnings: counts.warnings,
+        seconds: counts.seconds,
+        tool: "rangegan-mcap".into(),
+        version: env!("CARGO_PKG_VERSION").into(),
+        args: settings.into(),
+    }
+}
+
+/// Adds the output's size and hash to an entry of a converted file.
+pub fn finish_entry(entry: &mut Entry, output: &Path) -> anyhow::Result<()> {
+    // A --strict run that skipped data keeps no output.
+    if entry.status == Status::Ok && output.exists() {
+        entry.output_size = Some(std::fs::metadata(output)?.len());
+        entry.output_hash = Some(hash_file(output)?);
+    }
+    Ok(())
+}
+
 /// The latest line per input of every manifest in `dir` (the whole and the shards'), so a
 /// run resumes whatever split the earlier runs used. Unreadable lines (a torn last line)
 /// are ignored.
@@ -244,6 +299,64 @@ mod tests {
         let latest = load_latest(dir.path()).unwrap();
         assert_eq!(latest.len(), 3);
         assert!(latest.contains_key("d.mcap"));
+    }
+
+    #[test]
+    fn an_entry_records_the_counts_or_the_error_and_then_the_output() {
+        let counts = Counts {
+            records_copied: 7,
+            scans: 3,
+            malformed: 1,
+            warnings: 2,
+            seconds: 0.5,
+        };
+        let ok = manifest_entry(
+            "a.mcap",
+            10,
+            "blake3:aa".into(),
+            "a.mcap",
+            "--quality off",
+            Ok(counts),
+        );
+        assert_eq!((ok.status, ok.error.as_deref()), (Status::Ok, None));
+        assert_eq!(
+            (ok.records_copied, ok.scans, ok.malformed, ok.warnings),
+            (7, 3, 1, 2)
+        );
+        assert_eq!((ok.seconds, ok.args.as_str()), (0.5, "--quality off"));
+        let failed = manifest_entry(
+            "a.mcap",
+            10,
+            String::new(),
+            "a.mcap",
+            "",
+            Err("boom".into()),
+        );
+        assert_eq!(
+            (failed.status, failed.error.as_deref()),
+            (Status::Failed, Some("boom"))
+        );
+        assert_eq!(
+            (failed.records_copied, failed.scans, failed.seconds),
+            (0, 0, 0.0)
+        );
+
+        let dir = tempfile::tempdir().unwrap();
+        let out = dir.path().join("a.mcap");
+        let mut e = ok.clone();
+        finish_entry(&mut e, &out).unwrap();
+        assert_eq!(
+            (e.output_size, e.output_hash.as_deref()),
+            (None, None),
+            "no output"
+        );
+        std::fs::write(&out, b"abc").unwrap();
+        finish_entry(&mut e, &out).unwrap();
+        assert_eq!(e.output_size, Some(3));
+        assert_eq!(e.output_hash, Some(hash_file(&out).unwrap()));
+        let mut f = failed.clone();
+        finish_entry(&mut f, &out).unwrap();
+        assert_eq!(f.output_size, None, "a failed file keeps no output");
     }
 
     #[test]

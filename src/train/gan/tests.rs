@@ -1,8 +1,9 @@
 //! The GAN loop end to end on tiny networks and synthetic scans: training, checkpoints,
 //! resume, coarse-to-fine growth and the baselines.
 
+use super::step::{BatchStats, batch_parts, drop_rate_anchor, row_drop_rates};
 use super::*;
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 
 use crate::lidar::SensorProfile;
 use crate::model::baseline::ConvGeneratorConfig;
@@ -11,6 +12,9 @@ use crate::model::generator::GeneratorConfig;
 use crate::train::growth::Stage;
 use crate::train::reconstruct::ReconstructionConfig;
 use crate::train::{Backend, load_generator};
+use crate::util::rng::Rng;
+use crate::util::tensor::tensor_to_vec;
+use burn::module::Module;
 use burn::module::ParamId;
 use burn::module::{ModuleVisitor, Param};
 

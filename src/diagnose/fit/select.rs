@@ -1,0 +1,417 @@
+//! Greedy forward selection of the drop effects, with backward elimination: which
+//! candidates beat their penalty on held-out scans, and of two that read the same
+//! drops, the simpler.
+
+use super::likelihood::{best_scale, fit_both, fit_given, mask_nll_ahead_behind, model_keep};
+use super::{Baseline, DropFamily, DropFit, MIN_GAIN_NATS, Pixels, mask_nll};
+
+/// One effect the selection kept, with its held-out numbers.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Selected {
+    pub id: &'static str,
+    pub fit: DropFit,
+    /// Held-out NLL per pixel of the model before this effect was added (c refitted).
+    pub nll_without: f64,
+    /// ... and with it.
+    pub nll_with: f64,
+    pub penalty: f64,
+    /// Selection round (0 = strongest).
+    pub round: usize,
+}
+
+impl Selected {
+    pub fn gain(&self) -> f64 {
+        self.nll_without - self.nll_with
+    }
+}
+
+/// A candidate's result in the last round it was tried (for the report).
+#[derive(Debug, Clone, PartialEq)]
+pub struct Tried {
+    pub id: &'static str,
+    pub gain: f64,
+    pub penalty: f64,
+    pub n_params: usize,
+}
+
+/// The outcome of forward selection.
+#[derive(Debug, Clone, PartialEq)]
+pub struct DropSelection {
+    pub selected: Vec<Selected>,
+    /// Every candidate's held-out gain when first tried (round 0), strongest first.
+    pub tried: Vec<Tried>,
+    /// Held-out NLL per pixel: the sim as given (c = 1), the null (c fitted) and
+    /// the final model.
+    pub before_nll: f64,
+    pub null_nll: f64,
+    pub after_nll: f64,
+    pub keep_scale: f64,
+    /// Whether the keep scale was refitted beside the candidates (else held).
+    pub scale_refitted: bool,
+    pub test_pixels: usize,
+}
+
+/// Errors of a fit.
+#[derive(Debug, thiserror::Error, PartialEq)]
+pub enum FitError {
+    #[error("no pixel within the sensor's reach in the {0} scans; nothing to fit")]
+    NoPixels(&'static str),
+}
+
+/// The fitted model's per-pixel keep probability on `px` (for curves and maps).
+pub fn keep_under(
+    families: &[&dyn DropFamily],
+    selection: &DropSelection,
+    baseline: &Baseline,
+    px: &Pixels,
+) -> Vec<f64> {
+    let base = baseline.keep_of(px);
+    let effects: Vec<(&dyn DropFamily, &DropFit)> = selection
+        .selected
+        .iter()
+        .filter_map(|s| {
+            families
+                .iter()
+                .find(|f| f.id() == s.id)
+                .map(|f| (*f, &s.fit))
+        })
+        .collect();
+    model_keep(px, &base, selection.keep_scale, &effects)
+}
+
+/// Greedy forward selection of `families` (at most `max_effects`), then
+/// backward elimination: an effect that no longer beats its penalty once the
+/// others are refitted without it (a proxy chosen early, e.g. range for grazing
+/// incidence on far ground) is removed and the selection rerun without it.
+pub fn select(
+    families: &[&dyn DropFamily],
+    baseline: &Baseline,
+    train: &Pixels,
+    test: &Pixels,
+    max_effects: usize,
+) -> Result<DropSelection, FitError> {
+    let mut allowed: Vec<&dyn DropFamily> = families.to_vec();
+    let mut first_tried = None;
+    loop {
+        let mut selection = forward(&allowed, baseline, train, test, max_effects)?;
+        let tried = first_tried.get_or_insert_with(|| selection.tried.clone());
+        let redundant = redundant_effect(&allowed, &selection, baseline, train, test);
+        match redundant {
+            Some(id) => allowed.retain(|f| f.id() != id),
+            None => {
+                selection.tried = tried.clone();
+                return Ok(selection);
+            }
+        }
+    }
+}
+
+/// The selected effect whose removal (the others refitted in their order)
+/// costs the least held-out NLL below its penalty, if any.
+fn redundant_effect(
+    families: &[&dyn DropFamily],
+    selection: &DropSelection,
+    baseline: &Baseline,
+    train: &Pixels,
+    test: &Pixels,
+) -> Option<&'static str> {
+    if selection.selected.len() < 2 {
+        return None;
+    }
+    let base_train = baseline.keep_of(train);
+    let base_test = baseline.keep_of(test);
+    let family = |id: &str| families.iter().copied().find(|f| f.id() == id);
+    selection
+        .selected
+        .iter()
+        .filter(|drop| family(drop.id).is_some_and(|f| !f.established()))
+        .filter_map(|drop| {
+            let mut c = selection.keep_scale;
+            let mut fits: Vec<(&dyn DropFamily, DropFit)> = Vec::new();
+            for s in selection.selected.iter().filter(|s| s.id != drop.id) {
+                let f = family(s.id)?;
+                let given: Vec<(&dyn DropFamily, &DropFit)> =
+                    fits.iter().map(|(f, d)| (*f, d)).collect();
+                let (fit, c_fit) =
+                    fit_given(f, train, &base_train, c, &given, selection.scale_refitted)?;
+                c = c_fit;
+                fits.push((f, fit));
+            }
+            let given: Vec<(&dyn DropFamily, &DropFit)> =
+                fits.iter().map(|(f, d)| (*f, d)).collect();
+            let without = mask_nll(test, &model_keep(test, &base_test, c, &given));
+            let loss = without - selection.after_nll;
+            (loss < drop.penalty).then_some((drop.id, loss - drop.penalty))
+        })
+        .min_by(|a, b| a.1.total_cmp(&b.1))
+        .map(|(id, _)| id)
+}
+
+/// Greedy forward selection of `families` (at most `max_effects`).
+fn forward(
+    families: &[&dyn DropFamily],
+    baseline: &Baseline,
+    train: &Pixels,
+    test: &Pixels,
+    max_effects: usize,
+) -> Result<DropSelection, FitError> {
+    if train.is_empty() {
+        return Err(FitError::NoPixels("training"));
+    }
+    if test.is_empty() {
+        return Err(FitError::NoPixels("held-out"));
+    }
+    let base_train = baseline.keep_of(train);
+    let base_test = baseline.keep_of(test);
+    let before_nll = mask_nll(test, &model_keep(test, &base_test, 1.0, &[]));
+    // The null (only the overall rate differs) is adopted only where it beats
+    // the sim as given on held-out scans. The scale may still be refitted beside
+    // an effect: a sim whose overall rate was matched to the real one (its uniform
+    // dropout raised) keeps too few of the pixels the effect spares, and only a
+    // scale above 1 says so. An effect is judged against the better of the sim as
+    // given and the null, so the scale's own gain is never credited to it.
+    let c_null = best_scale(train, &base_train);
+    let scale_only_nll = mask_nll(test, &model_keep(test, &base_test, c_null, &[]));
+    let (mut c, null_nll) = if before_nll - scale_only_nll > MIN_GAIN_NATS {
+        (c_null, scale_only_nll)
+    } else {
+        (1.0, before_nll)
+    };
+    // Where the scale alone fits the held-out scans clearly worse than the sim as
+    // given, the training scenes drop more or fewer rays than the held-out ones, and
+    // a scale refitted beside a candidate would cost it that loss.
+    let refit_scale = scale_only_nll - before_nll < MIN_GAIN_NATS;
+    let n = train.len() as f64;
+    let mut chosen: Vec<(usize, DropFit, Selected)> = Vec::new();
+    let mut current_nll = before_nll.min(scale_only_nll);
+    let mut current_halves = mask_nll_ahead_behind(test, &model_keep(test, &base_test, c, &[]));
+    let mut tried = Vec::new();
+    for round in 0..max_effects {
+        let effects: Vec<(&dyn DropFamily, &DropFit)> =
+            chosen.iter().map(|(i, f, _)| (families[*i], f)).collect();
+        let mut viable: Vec<Candidate> = Vec::new();
+        for (fi, family) in families.iter().enumerate() {
+            if chosen.iter().any(|(i, ..)| *i == fi) {
+                continue;
+            }
+            let Some((at_scale, refit)) =
+                fit_both(*family, train, &base_train, c, &effects, refit_scale)
+            else {
+                continue;
+            };
+            let held_out = |fit: &DropFit, c: f64| {
+                let mut with = effects.clone();
+                with.push((*family, fit));
+                let keep = model_keep(test, &base_test, c, &with);
+                (mask_nll(test, &keep), keep)
+            };
+            // A scale refitted beside a candidate can run past certainty where the
+            // baseline keeps most (the keep is clamped there, and each held-out drop
+            // in such a pixel costs 16 nats). Where the candidate fitted at the
+            // current scale fits the held-out scans better by more than the floor,
+            // the refit broke it, and the fit at the current scale is judged.
+            let (fit, c_fit, (nll, keep)) = match refit {
+                Some((fit, c_fit)) if c_fit != c => {
+                    let refitted = held_out(&fit, c_fit);
+                    let fixed = held_out(&at_scale, c);
+                    if fixed.0 < refitted.0 - MIN_GAIN_NATS {
+                        (at_scale, c, fixed)
+                    } else {
+                        (fit, c_fit, refitted)
+                    }
+                }
+                refit => {
+                    let (fit, c_fit) = refit.unwrap_or((at_scale, c));
+                    let judged = held_out(&fit, c_fit);
+                    (fit, c_fit, judged)
+                }
+            };
+            let halves = mask_nll_ahead_behind(test, &keep);
+            let penalty = (fit.n_params as f64 * n.ln() / (2.0 * n)).max(MIN_GAIN_NATS);
+            // A direction-invariant effect that helps only on one side of the
+            // sensor is the scenes' difference, not physics: no gain.
+            let one_sided =
+                family.azimuth_invariant() && (0..2).any(|h| halves[h] >= current_halves[h]);
+            let gain = if one_sided {
+                (current_nll - nll).min(0.0)
+            } else {
+                current_nll - nll
+            };
+            if round == 0 {
+                tried.push(Tried {
+                    id: family.id(),
+                    gain,
+                    penalty,
+                    n_params: fit.n_params,
+                });
+            }
+            let margin = gain - penalty;
+            if margin > 0.0 {
+                viable.push(Candidate {
+                    family: fi,
+                    fit,
+                    nll,
+                    penalty,
+                    c_fit,
+                    halves,
+                    margin,
+                });
+            }
+        }
+        let Some(best) = strongest(&viable, families) else {
+            break;
+        };
+        let explains = |rival: &Candidate| {
+            let mut given = effects.clone();
+            given.push((families[rival.family], &rival.fit));
+            let Some((fit, c_both)) = fit_given(
+                families[best.family],
+                train,
+                &base_train,
+                rival.c_fit,
+                &given,
+                refit_scale,
+            ) else {
+                return true;
+            };
+            given.push((families[best.family], &fit));
+            let both = mask_nll(test, &model_keep(test, &base_test, c_both, &given));
+            rival.nll - both < best.penalty
+        };
+        let best = simpler_rival(best, &viable, families, explains)
+            .unwrap_or(best)
+            .clone();
+        chosen.push((
+            best.family,
+            best.fit.clone(),
+            Selected {
+                id: families[best.family].id(),
+                fit: best.fit,
+                nll_without: current_nll,
+                nll_with: best.nll,
+                penalty: best.penalty,
+                round,
+            },
+        ));
+        current_nll = best.nll;
+        current_halves = best.halves;
+        c = best.c_fit;
+    }
+    tried.sort_by(|a, b| (b.gain - b.penalty).total_cmp(&(a.gain - a.penalty)));
+    Ok(DropSelection {
+        selected: chosen.into_iter().map(|(.., s)| s).collect(),
+        tried,
+        before_nll,
+        null_nll,
+        after_nll: current_nll,
+        keep_scale: c,
+        scale_refitted: refit_scale,
+        test_pixels: test.len(),
+    })
+}
+
+/// A candidate effect of one selection round that beats its penalty.
+#[derive(Clone)]
+pub(super) struct Candidate {
+    family: usize,
+    fit: DropFit,
+    /// Held-out NLL per pixel with the effect.
+    nll: f64,
+    penalty: f64,
+    c_fit: f64,
+    halves: [f64; 2],
+    /// Held-out gain over the penalty.
+    margin: f64,
+}
+
+/// The round's strongest candidate: established families first, then by margin.
+fn strongest<'a>(viable: &'a [Candidate], families: &[&dyn DropFamily]) -> Option<&'a Candidate> {
+    viable.iter().reduce(|best, c| {
+        let (e, eb) = (
+            families[c.family].established(),
+            families[best.family].established(),
+        );
+        let better = if e != eb { e } else { c.margin > best.margin };
+        if better { c } else { best }
+    })
+}
+
+/// A candidate with fewer parameters than `best` that fits nearly as well (margins within
+/// [`MIN_GAIN_NATS`], the scale of what scene differences alone produce) and leaves `best`
+/// nothing to add (`explains`): the two read the same drops, and the simpler reading is
+/// named. A free rate per range band of depth edges can trace a range curve that thins the
+/// far field, where the range curve itself is the physics.
+pub(super) fn simpler_rival<'a>(
+    best: &'a Candidate,
+    viable: &'a [Candidate],
+    families: &[&dyn DropFamily],
+    explains: impl Fn(&Candidate) -> bool,
+) -> Option<&'a Candidate> {
+    let established = families[best.family].established();
+    let mut rivals: Vec<&Candidate> = viable
+        .iter()
+        .filter(|c| {
+            c.family != best.family
+                && families[c.family].established() == established
+                && c.fit.n_params < best.fit.n_params
+                && best.margin - c.margin < MIN_GAIN_NATS
+        })
+        .collect();
+    rivals.sort_by(|a, b| b.margin.total_cmp(&a.margin));
+    rivals.into_iter().find(|c| explains(c))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn of_two_readings_of_the_same_drops_the_simpler_is_named() {
+        use crate::diagnose::drop::{EdgeFamily, RangeFamily};
+        let families: [&dyn DropFamily; 2] = [&EdgeFamily, &RangeFamily];
+        let candidate = |family: usize, n_params: usize, margin: f64| Candidate {
+            family,
+            fit: DropFit {
+                drop_prob: vec![],
+                params: serde_json::Map::new(),
+                physics: serde_json::Map::new(),
+                n_params,
+                location: String::new(),
+            },
+            nll: 0.0,
+            penalty: MIN_GAIN_NATS,
+            c_fit: 1.0,
+            halves: [0.0; 2],
+            margin,
+        };
+        // Free edge rates per range band fit a little better than the range curve.
+        let viable = [candidate(0, 16, 0.0046), candidate(1, 2, 0.0033)];
+        let best = strongest(&viable, &families).unwrap();
+        assert_eq!(best.family, 0);
+        let rival = simpler_rival(best, &viable, &families, |_| true);
+        assert_eq!(
+            rival.map(|c| c.family),
+            Some(1),
+            "the range curve explains the edges away"
+        );
+        assert!(
+            simpler_rival(best, &viable, &families, |_| false).is_none(),
+            "edges add to it"
+        );
+        // Far apart, the better fit is the answer.
+        let apart = [
+            candidate(0, 16, 0.0046 + MIN_GAIN_NATS),
+            candidate(1, 2, 0.0033),
+        ];
+        assert!(simpler_rival(&apart[0], &apart, &families, |_| true).is_none());
+    }
+
+    #[test]
+    fn no_pixels_is_an_error_not_a_panic() {
+        let b = Baseline::from_sim(&Pixels::default(), 50.0);
+        assert_eq!(
+            select(&[], &b, &Pixels::default(), &Pixels::default(), 2),
+            Err(FitError::NoPixels("training"))
+        );
+    }
+}
