@@ -1,7 +1,7 @@
 //! End-to-end auto-decoding through `convert`: the new channels open in Foxglove's
 //! own readers, outputs do not depend on the thread count, and bad decoding flags are clear
 //! errors. Few optimisation steps keep these fast; the quality is measured by
-//! `examples/decode_eval.rs` (BENCHMARKS.md).
+//! `examples/decode_eval/` (BENCHMARKS.md).
 
 mod common;
 

@@ -25,15 +25,24 @@ with open(path, "rb") as f:
         elif isinstance(record, Metadata):
             report["metadata"][record.name] = record.metadata
 
-# Message level: every ROS message must decode.
+# Message level: every ROS message must decode. Decoders are chosen per channel, not per
+# topic: one topic may be carried by channels of several encodings (ROS 2 and Foxglove).
+factories = [Ros1Decoders(), Ros2Decoders()]
+decoders = {}
 with open(path, "rb") as f:
-    reader = make_reader(f, decoder_factories=[Ros1Decoders(), Ros2Decoders()])
+    reader = make_reader(f)
     for schema, channel, message in reader.iter_messages():
         topic = report["topics"].setdefault(channel.topic, {"messages": 0, "encoding": channel.message_encoding,
                                                             "schema": schema.name if schema else ""})
         topic["messages"] += 1
-    for schema, channel, message, decoded in reader.iter_decoded_messages(
-            topics=[t for t, v in report["topics"].items() if v["encoding"] in ("cdr", "ros1")]):
+        if channel.message_encoding not in ("cdr", "ros1"):
+            continue
+        if channel.id not in decoders:
+            found = [d for d in (fac.decoder_for(channel.message_encoding, schema) for fac in factories) if d]
+            if not found:
+                raise SystemExit(f"no decoder for {channel.topic} ({channel.message_encoding})")
+            decoders[channel.id] = found[0]
+        decoded = decoders[channel.id](message.data)
         report["decoded"] += 1
         if hasattr(decoded, "encoding") and hasattr(decoded, "step"):
             report["images"].setdefault(channel.topic, [decoded.height, decoded.width, decoded.encoding, decoded.step,
