@@ -457,6 +457,12 @@ fn absurd_flags_and_configs_are_refused_before_anything_is_sized() {
             "--threads",
         ),
         (
+            run_limited(&["convert", in_s, out_s, "--tune-steps", "4294967297"]),
+            2,
+            "--tune-steps",
+        ),
+        (sim("vlp16", &["--speed-mps", "4294967297"]), 2, "--speed-mps"),
+        (
             run_limited(&["train", run_s, "--batch", "0", "--data", "nowhere"]),
             2,
             "--batch",

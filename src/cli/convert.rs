@@ -82,28 +82,30 @@ pub struct ConvertArgs {
     /// shipped weights).
     #[arg(long)]
     pub encoder: Option<PathBuf>,
-    /// Override the optimisation steps on w after the encoder (default 0).
-    #[arg(long)]
+    /// Override the optimisation steps on w after the encoder (default 0; at most 100 000).
+    #[arg(long, value_parser = super::steps())]
     pub w_steps: Option<usize>,
-    /// Override the pivotal-tuning steps on the generator weights (fast: 33, paper: 500).
-    #[arg(long)]
+    /// Override the pivotal-tuning steps on the generator weights (fast: 33, paper: 500; at
+    /// most 100 000).
+    #[arg(long, value_parser = super::steps())]
     pub tune_steps: Option<usize>,
     /// Tune coarse to fine first: steps at 1/8, 1/4 and 1/2 of the model grid's resolution
     /// (coarsest first, e.g. `48,48,4`), each a fraction of a full-resolution step's cost; the
     /// `--tune-steps` that follow (default 5) then decay their rate to 0.
-    #[arg(long, value_delimiter = ',')]
+    #[arg(long, value_delimiter = ',', value_parser = super::steps())]
     pub coarse_steps: Vec<usize>,
     /// Chain each topic's scans: scan k's pivotal tuning starts from the weights scan k - N
     /// hands on (0: every scan from the shared generator). Consecutive scans see nearly the
     /// same scene, so a chain fits each scan better in the same steps (docs/decode.md); N
     /// chains per topic decode in parallel. The output depends on N, never on the threads.
-    #[arg(long, default_value_t = pipeline::DEFAULT_CHAIN_STRIDE)]
+    #[arg(long, default_value_t = pipeline::DEFAULT_CHAIN_STRIDE,
+          value_parser = clap::builder::RangedU64ValueParser::<usize>::new().range(0..=1024))]
     pub chain_stride: usize,
     /// The tuning step after which a chained scan hands its weights on to the chain's next
     /// scan, which starts tuning while this one goes on (default: after all of them, so the
     /// next scan starts from this one's final weights). With `--chain-stride 1 --hand-off 16`
     /// one chain keeps two cores busy (docs/decode.md).
-    #[arg(long)]
+    #[arg(long, value_parser = super::steps())]
     pub hand_off: Option<usize>,
     /// Write the generator's own x_n, without the per-beam calibration shipped with the model
     /// (`calibration.json`; `rangegan-mcap calibrate-raydrop` fits one).

@@ -91,7 +91,7 @@ pub struct GanArgs {
     /// Pivotal-tuning steps per scan (`diagnose` default 0: the encoder's
     /// prediction alone, which keeps two 100-scan recordings under a minute;
     /// `render` default 33, `convert --quality fast`'s, ~0.8 s per scan per core).
-    #[arg(long)]
+    #[arg(long, value_parser = super::steps())]
     pub tune_steps: Option<usize>,
 }
 

@@ -157,6 +157,11 @@ impl Outcome {
     }
 }
 
+/// An optimisation step count: 0 to 100 000 (the paper's schedule is 1 000).
+pub(crate) fn steps() -> clap::builder::RangedU64ValueParser<usize> {
+    clap::builder::RangedU64ValueParser::<usize>::new().range(0..=100_000)
+}
+
 /// A speed flag in m/s: a finite number from 0 to 100 (360 km/h).
 pub(crate) fn parse_speed_mps(text: &str) -> Result<f64, String> {
     let v: f64 = text.parse().map_err(|e| format!("{text:?}: {e}"))?;
@@ -164,6 +169,11 @@ pub(crate) fn parse_speed_mps(text: &str) -> Result<f64, String> {
         return Err(format!("{text}: give a speed from 0 to 100 m/s"));
     }
     Ok(v)
+}
+
+/// [`parse_speed_mps`] for an `f32` flag.
+pub(crate) fn parse_speed_mps_f32(text: &str) -> Result<f32, String> {
+    parse_speed_mps(text).map(|v| v as f32)
 }
 
 /// Runs the parsed command.

@@ -37,8 +37,8 @@ pub struct SimulateArgs {
     /// the returns only.
     #[arg(long)]
     pub organized: bool,
-    /// Ego speed along the route, m/s.
-    #[arg(long, default_value_t = 10.0)]
+    /// Ego speed along the route, m/s (0 to 100).
+    #[arg(long, default_value_t = 10.0, value_parser = super::parse_speed_mps_f32)]
     pub speed_mps: f32,
     #[command(flatten)]
     pub out: super::CloudOutputArgs,

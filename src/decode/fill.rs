@@ -8,7 +8,7 @@ use super::row_fill::{RowFill, rows_image};
 use super::{Decoded, PreparedGrid, Rendered, Sparsify};
 use crate::lidar::holes;
 use crate::lidar::{
-    Guide, Interpolation, RangeImage, ScatterFill, SurfaceRule, fill_scattered,
+    Guide, Interpolation, RangeImage, ScatterFill, SurfaceRule, fill_scattered, fill_scattered_where,
     resample_by_surface, resample_image,
 };
 
@@ -164,14 +164,10 @@ impl Decoded {
         };
         let grid = &self.model.grid;
         let how = self.scatter_fill(fill, &SurfaceRule::default());
-        let mut filled = fill_scattered(&self.observed_m, grid, how);
         let distance = holes::distance_to_returns(&self.observed_m, grid.height, grid.width);
-        for (f, &d) in filled.iter_mut().zip(&distance) {
-            if d > COMPLETION_REACH {
-                *f = 0.0;
-            }
-        }
-        filled
+        fill_scattered_where(&self.observed_m, grid, how, |k| {
+            distance[k] <= COMPLETION_REACH
+        })
     }
 
     /// The observation (restored first by [`Decoded::interpolate_restored`] when decoding

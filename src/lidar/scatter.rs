@@ -36,6 +36,17 @@ pub const SCATTER_RADIUS: isize = 8;
 /// pixels keep their depth exactly, other pixels are estimated from the observed ones within
 /// [`SCATTER_RADIUS`] pixels and stay 0 where there are none.
 pub fn fill_scattered(observed: &[f32], grid: &AngleGrid, how: ScatterFill) -> Vec<f32> {
+    fill_scattered_where(observed, grid, how, |_| true)
+}
+
+/// [`fill_scattered`] for the unobserved pixels `wanted` says (by index); the others stay 0
+/// and cost nothing.
+pub fn fill_scattered_where(
+    observed: &[f32],
+    grid: &AngleGrid,
+    how: ScatterFill,
+    wanted: impl Fn(usize) -> bool,
+) -> Vec<f32> {
     let (height, width) = (grid.height, grid.width);
     let mut out = vec![0.0f32; height * width];
     if observed.len() != height * width || grid.len() != height * width || width == 0 {
@@ -48,6 +59,17 @@ pub fn fill_scattered(observed: &[f32], grid: &AngleGrid, how: ScatterFill) -> V
         ScatterFill::Surfaces { guide, .. } => guide.and_then(|g| g.get(idx)).copied(),
         _ => None,
     };
+    // Whether the square ring at Chebyshev distance `c` around (i, j) holds a return.
+    let ring_has_return = |i: isize, j: isize, c: isize| {
+        ((i - c).max(0)..(i + c + 1).min(height as isize)).any(|ii| {
+            let on_edge = (ii - i).abs() == c;
+            let step = if on_edge { 1 } else { 2 * c as usize };
+            (-c..=c).step_by(step.max(1)).any(|dj| {
+                let jj = (j + dj).rem_euclid(width as isize) as usize;
+                returned(observed[ii as usize * width + jj])
+            })
+        })
+    };
     for i in 0..height as isize {
         for j in 0..width as isize {
             let k = i as usize * width + j as usize;
@@ -55,9 +77,20 @@ pub fn fill_scattered(observed: &[f32], grid: &AngleGrid, how: ScatterFill) -> V
                 out[k] = observed[k];
                 continue;
             }
+            if !wanted(k) {
+                continue;
+            }
+            // Every fill reads only the returns within PLANE_REACH times the nearest one's
+            // distance, which lie within the Chebyshev radius `reach` of the nearest ring
+            // that holds one: the scan stops there (the same returns, less work).
+            let Some(ring) = (1..=r).find(|&c| ring_has_return(i, j, c)) else {
+                continue;
+            };
+            let reach = ((PLANE_REACH * std::f32::consts::SQRT_2 * ring as f32).ceil() as isize)
+                .min(r);
             around.clear();
-            for ii in (i - r).max(0)..(i + r + 1).min(height as isize) {
-                for dj in -r..=r {
+            for ii in (i - reach).max(0)..(i + reach + 1).min(height as isize) {
+                for dj in -reach..=reach {
                     let jj = (j + dj).rem_euclid(width as isize) as usize;
                     let idx = ii as usize * width + jj;
                     if returned(observed[idx]) {
