@@ -172,20 +172,12 @@ fn objects(truth: &RangeImage, rng: &mut Rng, mask: &mut [bool]) {
 
 /// The returns of `image` outside `mask`, as a scan whose ring field is the row.
 fn degraded_scan(image: &RangeImage, mask: &[bool]) -> Scan {
-    let mut scan = Scan {
-        ring: Some(Vec::new()),
-        intensity: Some(Vec::new()),
-        ..Default::default()
-    };
-    for k in 0..image.range_m.len() {
-        if image.range_m[k] > 0.0 && !mask[k] {
-            scan.xyz.push(image.xyz[k]);
-            scan.ring.as_mut().map(|r| r.push((k / image.width) as u16));
-            scan.intensity.as_mut().map(|v| v.push(image.intensity[k]));
-        }
-    }
-    scan.height = 1;
-    scan.width = scan.xyz.len();
+    let kept: Vec<usize> = (0..image.range_m.len())
+        .filter(|&k| image.range_m[k] > 0.0 && !mask[k])
+        .collect();
+    let mut scan = Scan::from_xyz(kept.iter().map(|&k| image.xyz[k]).collect());
+    scan.ring = Some(kept.iter().map(|&k| (k / image.width) as u16).collect());
+    scan.intensity = Some(kept.iter().map(|&k| image.intensity[k]).collect());
     scan
 }
 
@@ -358,7 +350,7 @@ fn main() -> Result<()> {
             .iter()
             .enumerate()
             .map(|(s, (_, image))| {
-                let seed = 0x5eed ^ ((s as u64) << 8) ^ kind.len() as u64 * 0x9e37;
+                let seed = 0x5eed ^ ((s as u64) << 8) ^ (kind.len() as u64 * 0x9e37);
                 holes(kind, image, &mut Rng(seed ^ kind.as_bytes()[0] as u64))
             })
             .collect();

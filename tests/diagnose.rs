@@ -362,3 +362,67 @@ fn independent_generator_pairs_are_named() {
         assert!(d.report.fit.after < d.report.fit.before, "{context}");
     }
 }
+
+/// Two simulated streets are alike; a simulated street against a real Ouster OS1-64
+/// recording of a small indoor space is said to differ, on the report's first screen and
+/// on stderr, and the effects named there get half the confidence.
+#[test]
+fn a_street_against_a_real_room_is_said_to_be_another_scene() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let (a, b) = (d.join("a.mcap"), d.join("b.mcap"));
+    simulate(&a, 31, "ideal", false);
+    simulate(&b, 32, "realistic", false);
+    let report = d.join("streets");
+    let o = diagnose(&a, &b, &report, &[]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let json: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(report.join("report.json")).unwrap())
+            .unwrap();
+    let scene = &json["inputs"]["scene"];
+    assert_eq!(scene["differs"], false, "{scene}");
+    assert!(
+        !std::fs::read_to_string(report.join("report.html"))
+            .unwrap()
+            .contains("Different scenes")
+    );
+
+    let Some(data) = common::real_data("a_street_against_a_real_room_is_said_to_be_another_scene")
+    else {
+        return;
+    };
+    let real = data.join("mcap/pointcloudset_test.mcap");
+    let sim = d.join("os1.mcap");
+    let o = run(&[
+        "--quiet",
+        "simulate",
+        "--scene",
+        "3",
+        "--sensor",
+        "os1-64",
+        "--columns",
+        "512",
+        "--scans",
+        "6",
+        "--physics",
+        "ideal",
+        sim.to_str().unwrap(),
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let report = d.join("room");
+    let o = diagnose(&sim, &real, &report, &["--columns", "512"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert!(stderr(&o).contains("scenes differ"), "{}", stderr(&o));
+    let json: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(report.join("report.json")).unwrap())
+            .unwrap();
+    let scene = &json["inputs"]["scene"];
+    assert_eq!(scene["differs"], true, "{scene}");
+    assert!(scene["range_distance"].as_f64().unwrap() > 0.5, "{scene}");
+    for e in json["effects"].as_array().unwrap() {
+        assert!(e["confidence"].as_f64().unwrap() <= 0.5, "{e}");
+    }
+    let html = std::fs::read_to_string(report.join("report.html")).unwrap();
+    let first_screen = &html[..html.find("Missing physics").expect("a summary")];
+    assert!(first_screen.contains("Different scenes"), "{first_screen}");
+}

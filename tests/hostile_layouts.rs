@@ -54,6 +54,9 @@ fn no_temporary_files(dir: &Path) {
     assert!(left.is_empty(), "temporary files left behind: {left:?}");
 }
 
+/// A ring field's value for each beam.
+type RingValue<'a> = &'a dyn Fn(usize) -> f64;
+
 /// Beams and columns of the synthetic sensor: a wall 10 m away, +10 to -20 deg.
 const BEAMS: usize = 32;
 const COLUMNS: usize = 64;
@@ -74,7 +77,7 @@ fn point(b: usize, c: usize) -> [f32; 3] {
 /// for beam `b` is `ring_value(b)`; `organized` lays it out beams x columns, else 1 x n.
 /// `points` may replace a point's coordinates.
 fn cloud(
-    ring: Option<(Numeric, &dyn Fn(usize) -> f64)>,
+    ring: Option<(Numeric, RingValue)>,
     organized: bool,
     points: &dyn Fn(usize, usize) -> [f32; 3],
 ) -> Vec<u8> {
@@ -247,7 +250,7 @@ fn signed_and_non_finite_ring_values_lose_no_return() {
     let int8 = |b: usize| b as f64 - 16.0;
     let int32 = |b: usize| if b == 0 { i32::MIN as f64 } else { b as f64 };
     let nan = |b: usize| if b == 5 { f64::NAN } else { b as f64 };
-    let cases: [(Numeric, &dyn Fn(usize) -> f64, &str); 3] = [
+    let cases: [(Numeric, RingValue, &str); 3] = [
         (Numeric::I8, &int8, "int8"),
         (Numeric::I32, &int32, "int32"),
         (Numeric::F32, &nan, "nan"),
@@ -274,7 +277,11 @@ fn absurd_coordinates_never_reach_a_pixel() {
     let (input, output) = (dir.path().join("in.mcap"), dir.path().join("out.mcap"));
     let at = |b: usize, c: usize| {
         let p = point(b, c);
-        if c % 8 == 0 { p.map(|v| v * 1e29) } else { p }
+        if c.is_multiple_of(8) {
+            p.map(|v| v * 1e29)
+        } else {
+            p
+        }
     };
     let ring = |b: usize| b as f64;
     write(
@@ -461,7 +468,11 @@ fn absurd_flags_and_configs_are_refused_before_anything_is_sized() {
             2,
             "--tune-steps",
         ),
-        (sim("vlp16", &["--speed-mps", "4294967297"]), 2, "--speed-mps"),
+        (
+            sim("vlp16", &["--speed-mps", "4294967297"]),
+            2,
+            "--speed-mps",
+        ),
         (
             run_limited(&["train", run_s, "--batch", "0", "--data", "nowhere"]),
             2,

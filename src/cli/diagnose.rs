@@ -273,11 +273,14 @@ pub fn run(global: &GlobalArgs, args: DiagnoseArgs) -> anyhow::Result<Outcome> {
         }
     }
     let r = &diagnosis.report;
+    if r.inputs.scene.differs && !global.quiet {
+        eprintln!("warning: {}", r.inputs.scene.sentence());
+    }
     if global.json {
         println!(
             "{}",
             serde_json::json!({"report": args.report.display().to_string(), "effects": r.effects.iter().map(|e| &e.id).collect::<Vec<_>>(),
-                "fit": r.fit, "files": files, "skipped_scans": skipped,
+                "fit": r.fit, "scene": r.inputs.scene, "files": files, "skipped_scans": skipped,
                 "completion": completion.name(), "completion_seconds": completion_s})
         );
     } else if !global.quiet {

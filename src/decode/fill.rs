@@ -8,8 +8,8 @@ use super::row_fill::{RowFill, rows_image};
 use super::{Decoded, PreparedGrid, Rendered, Sparsify};
 use crate::lidar::holes;
 use crate::lidar::{
-    Guide, Interpolation, RangeImage, ScatterFill, SurfaceRule, fill_scattered, fill_scattered_where,
-    resample_by_surface, resample_image,
+    Guide, Interpolation, RangeImage, ScatterFill, SurfaceRule, fill_scattered,
+    fill_scattered_where, resample_by_surface, resample_image,
 };
 
 /// How a grid other than the observed one is filled.

@@ -233,10 +233,10 @@ fn depth_keeps_every_return_and_fills_dropped_rays_by_reach() {
     assert_eq!(r.model_output(Fill::Gan), r.model, "gan: x_d everywhere");
     let distance = crate::lidar::holes::distance_to_returns(&r.observed_m, 64, 512);
     let (mut filled, mut rendered) = (0, 0);
-    for k in 0..64 * 512 {
+    for (k, &steps) in distance.iter().enumerate() {
         if r.observed_m[k] > 0.0 {
             assert_eq!(out.depth_m[k].to_bits(), r.observed_m[k].to_bits(), "{k}");
-        } else if distance[k] > super::fill::COMPLETION_REACH {
+        } else if steps > super::fill::COMPLETION_REACH {
             assert_eq!(out.depth_m[k], r.model.depth_m[k], "{k}: x_d beyond reach");
             rendered += 1;
         } else if out.depth_m[k] != r.model.depth_m[k] {

@@ -86,8 +86,8 @@ pub fn fill_scattered_where(
             let Some(ring) = (1..=r).find(|&c| ring_has_return(i, j, c)) else {
                 continue;
             };
-            let reach = ((PLANE_REACH * std::f32::consts::SQRT_2 * ring as f32).ceil() as isize)
-                .min(r);
+            let reach =
+                ((PLANE_REACH * std::f32::consts::SQRT_2 * ring as f32).ceil() as isize).min(r);
             around.clear();
             for ii in (i - reach).max(0)..(i + reach + 1).min(height as isize) {
                 for dj in -reach..=reach {

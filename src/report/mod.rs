@@ -397,7 +397,15 @@ fn summary(r: &Report) -> String {
             100.0 * t.rate_sim
         );
     }
-    s.push_str(".</p><p><b>Missing physics:</b></p>");
+    s.push_str(".</p>");
+    if i.scene.differs {
+        let _ = write!(
+            s,
+            "<p class='warn'><b>Different scenes:</b> {}.</p>",
+            escape(&i.scene.sentence())
+        );
+    }
+    s.push_str("<p><b>Missing physics:</b></p>");
     if r.effects.is_empty() {
         s.push_str("<p>none found: no candidate beats the null on held-out scans.</p>");
     } else {

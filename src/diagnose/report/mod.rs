@@ -22,9 +22,11 @@ mod check;
 mod effects;
 mod inputs;
 mod plots;
+mod scene;
 
 pub use check::{CHECK_MIN_PIXELS, CLOSE, FeatureCheck, MisfitBin, check_curves};
 pub use plots::{Curve, Maps};
+pub use scene::SceneContrast;
 
 use effects::{adjust_uniform, candidates, drop_effects, rank, residual_effects};
 use inputs::{MIN_GRAZING_CONTRAST, check_inputs, grazing_contrast, labelled, motion_coverage};
@@ -115,6 +117,9 @@ pub struct InputsReport {
     /// Tests and candidates left out, and why: one side lacks their feature, or (for
     /// `incidence_dropout`) the drop rates by incidence show no grazing contrast.
     pub left_out: Vec<String>,
+    /// How far apart the two scenes are; where they differ, the effects' confidence is
+    /// halved (a scene difference can look like a missing effect).
+    pub scene: SceneContrast,
 }
 
 /// The report (`report.json`): `effects` and `fit` are the contract other
@@ -274,6 +279,12 @@ pub fn diagnose(
         .map(|f| f.id())
         .collect();
     rank(&mut effects, &established);
+    let scene = SceneContrast::measure(sim, real);
+    if scene.differs {
+        for e in &mut effects {
+            e.confidence *= 0.5;
+        }
+    }
     let candidates = candidates(&selection, &residual_fits);
     let mismatch = comparison
         .significant()
@@ -308,6 +319,7 @@ pub fn diagnose(
         completion_model: None,
         completion_fallback_scans: 0,
         left_out,
+        scene,
     };
 
     let keep_after = fit::keep_under(&families, &selection, &baseline, &px_test);
