@@ -1,6 +1,6 @@
 //! How well `diagnose` names left-out physics on sensors and scenes it was not
 //! tuned on: randomised concealed sim/real pairs from the independent generator
-//! of the tests (`tests/common/testgen.rs`: its own scenes and ray caster,
+//! of the tests (`tests/common/testgen/`: its own scenes and ray caster,
 //! 16 / 32 / 64 / 128 beams, organized or not, ring field or not), every pair
 //! diagnosed with the neighbour completion and judged against the truth.
 //!
@@ -10,7 +10,7 @@
 //! Prints one row per pair, the summary, and the summary per sensor family (beams,
 //! organized or not) as Markdown tables, so a gap shows where it is.
 
-#[path = "../tests/common/testgen.rs"]
+#[path = "../tests/common/testgen/mod.rs"]
 mod testgen;
 
 use rangegan_mcap::diagnose::Diagnosis;

@@ -7,7 +7,7 @@
 #[path = "common/browser.rs"]
 mod browser;
 mod common;
-#[path = "common/testgen.rs"]
+#[path = "common/testgen/mod.rs"]
 mod testgen;
 
 use std::path::Path;

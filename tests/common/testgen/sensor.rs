@@ -1,0 +1,187 @@
+//! Randomised sensors (beams, spacing, columns, mounting height, cloud layout) and the
+//! ideal scan one casts in a scene.
+
+use rangegan_mcap::lidar::{RangeImage, SensorProfile};
+use rangegan_mcap::sim::raycast::intensity;
+use rangegan_mcap::sim::{Material, SensorPose, SimScan};
+
+use super::{Rng, Scene};
+
+/// A randomised sensor: beams, spacing, columns, mounting height, cloud layout.
+#[derive(Debug, Clone)]
+pub struct Sensor {
+    pub profile: SensorProfile,
+    pub height_m: f32,
+    pub organized: bool,
+    pub ring_field: bool,
+}
+
+impl Sensor {
+    /// `beams` lasers between a drawn top and bottom elevation, either evenly
+    /// spaced or denser near the horizon.
+    pub fn random(rng: &mut Rng, beams: usize) -> Sensor {
+        let (top, bottom) = match beams {
+            16 => (rng.range(10.0, 15.0), -rng.range(10.0, 15.0)),
+            32 => (rng.range(8.0, 15.0), -rng.range(16.0, 30.0)),
+            64 => (rng.range(2.0, 16.0), -rng.range(16.0, 26.0)),
+            _ => (rng.range(10.0, 22.0), -rng.range(16.0, 22.0)),
+        };
+        let dense = rng.chance(0.5);
+        let elevation_deg: Vec<f32> = (0..beams)
+            .map(|i| {
+                let u = i as f32 / (beams - 1) as f32;
+                // Horizon-dense: a cubic ease that packs beams near the middle.
+                let s = if dense {
+                    let c = 2.0 * u - 1.0;
+                    0.5 + 0.5 * (0.6 * c + 0.4 * c * c * c)
+                } else {
+                    u
+                };
+                top + (bottom - top) * s
+            })
+            .collect();
+        let columns = match beams {
+            16 => rng.pick(&[1024usize, 2048]),
+            32 => rng.pick(&[1024usize, 1800]),
+            64 => rng.pick(&[512usize, 1024]),
+            _ => 512,
+        };
+        Sensor {
+            profile: SensorProfile {
+                name: format!("testgen-{beams}"),
+                elevation_deg,
+                azimuth_offset_deg: None,
+                columns,
+                min_range_m: rng.range(0.5, 2.0),
+                max_range_m: rng.range(80.0, 120.0),
+            },
+            height_m: rng.range(1.2, 2.2),
+            organized: rng.chance(0.5),
+            ring_field: rng.chance(0.5),
+        }
+    }
+
+    pub fn describe(&self) -> String {
+        format!(
+            "{} beams x {} ({:.1}..{:.1} deg, {:.2} m up, {}, {})",
+            self.profile.beams(),
+            self.profile.columns,
+            self.profile.elevation_deg[0],
+            self.profile.elevation_deg[self.profile.beams() - 1],
+            self.height_m,
+            if self.organized {
+                "organized"
+            } else {
+                "unorganized"
+            },
+            if self.ring_field {
+                "ring field"
+            } else {
+                "no ring field"
+            },
+        )
+    }
+}
+
+/// Scans a side and their spacing in time.
+pub const SCANS: u32 = 16;
+pub(super) const STRIDE_S: f32 = 0.3;
+
+/// Ideal scan `index` of `scene` with `sensor`: one ray per pixel from the pose
+/// at the scan start, each column timed within the 10 Hz sweep (starting straight
+/// ahead, counter-clockwise).
+pub fn cast_scan(scene: &Scene, sensor: &Sensor, index: u32) -> SimScan {
+    let profile = &sensor.profile;
+    let angles = profile.angle_grid();
+    let (h, w) = (angles.height, angles.width);
+    let t = index as f32 * STRIDE_S;
+    let origin = [scene.speed_mps * t, scene.lane_y_m, sensor.height_m];
+    // Cull: each object under the columns its footprint spans.
+    let mut by_column: Vec<Vec<u32>> = vec![Vec::new(); w];
+    let col_of = |a: f32| {
+        let j = (std::f32::consts::PI - a) / std::f32::consts::TAU * w as f32;
+        j.rem_euclid(w as f32) as usize % w
+    };
+    for (i, obj) in scene.objects.iter().enumerate() {
+        let (c, r) = obj.footprint();
+        let (dx, dy) = (c[0] - origin[0], c[1] - origin[1]);
+        let dist = (dx * dx + dy * dy).sqrt();
+        if dist - r > profile.max_range_m {
+            continue;
+        }
+        if dist <= r + 0.5 {
+            by_column.iter_mut().for_each(|v| v.push(i as u32));
+            continue;
+        }
+        let a = dy.atan2(dx);
+        let half = (r / dist).asin() + 2.0 * std::f32::consts::TAU / w as f32;
+        let (ja, jb) = (col_of(a + half), col_of(a - half));
+        let mut j = ja;
+        loop {
+            by_column[j].push(i as u32);
+            if j == jb {
+                break;
+            }
+            j = (j + 1) % w;
+        }
+    }
+    let mut image = RangeImage::empty(angles);
+    let n = h * w;
+    let mut material = vec![Material::None; n];
+    let mut incidence_rad = vec![0.0f32; n];
+    let mut reflectivity = vec![0.0f32; n];
+    let mut true_label = vec![0u32; n];
+    let period = 0.1f32;
+    let time_s: Vec<f32> = (0..n)
+        .map(|k| {
+            let a = image.angles.azimuth_rad[k];
+            a.rem_euclid(std::f32::consts::TAU) / std::f32::consts::TAU * period
+        })
+        .collect();
+    for k in 0..n {
+        let d = image.angles.direction(k);
+        let Some((t_hit, normal, s)) =
+            scene.cast(origin, d, profile.max_range_m, &by_column[k % w])
+        else {
+            continue;
+        };
+        let cos_inc = (-(normal[0] * d[0] + normal[1] * d[1] + normal[2] * d[2])).clamp(0.0, 1.0);
+        material[k] = s.material;
+        incidence_rad[k] = cos_inc.acos();
+        reflectivity[k] = s.reflectivity;
+        true_label[k] = s.label;
+        if t_hit < profile.min_range_m {
+            continue;
+        }
+        image.range_m[k] = t_hit;
+        image.xyz[k] = d.map(|c| c * t_hit);
+        image.intensity[k] = intensity(s.reflectivity, cos_inc, t_hit);
+        image.label[k] = s.label;
+        image.point_index[k] = k as u32;
+    }
+    let true_range_m = image.range_m.clone();
+    SimScan {
+        image,
+        material,
+        incidence_rad,
+        reflectivity,
+        time_s,
+        true_range_m,
+        true_label,
+        index,
+        start_time_s: f64::from(t),
+        pose: SensorPose {
+            origin: rangegan_mcap::sim::geometry::v3(origin[0], origin[1], origin[2]),
+            axes: [
+                rangegan_mcap::sim::geometry::v3(1.0, 0.0, 0.0),
+                rangegan_mcap::sim::geometry::v3(0.0, 1.0, 0.0),
+                rangegan_mcap::sim::geometry::v3(0.0, 0.0, 1.0),
+            ],
+            velocity_mps: [scene.speed_mps, 0.0, 0.0],
+            yaw_rate_rps: 0.0,
+            yaw_rad: 0.0,
+        },
+        min_range_m: profile.min_range_m,
+        max_range_m: profile.max_range_m,
+    }
+}
