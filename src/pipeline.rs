@@ -478,7 +478,7 @@ impl<'s> ScanProcessor<'_, 's> {
         let strategy = self.strategy(&cloud.scan, &profile);
         map.insert(key, (profile.clone(), strategy));
         if self.opts.check_model_fit
-            && let Some(w) = crate::decode::fit::model_fit(&cloud.scan)
+            && let Some(w) = crate::decode::fit::model_fit(&cloud.scan, &profile)
                 .and_then(|f| f.warning(&format!("{}, {} beams", profile.name, profile.beams())))
         {
             let loc = Location::message(&self.file, topic, log_time);

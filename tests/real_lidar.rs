@@ -825,3 +825,34 @@ fn column_upsampling_beats_nearest_on_other_real_sensors() {
         }
     }
 }
+
+/// The warning that a sensor is far from the decoding model's view fires on real scans of
+/// other makes and names their beam tables: nuScenes' HDL-32E (+10.7 to -30.7 deg, most
+/// returns inside the model's view but a third of its beams outside) and an indoor VLP-16.
+/// KITTI's own HDL-64E gets none.
+#[test]
+fn the_model_fit_warning_names_the_beam_table_of_other_makes() {
+    let Some(root) = real_data("the_model_fit_warning_names_the_beam_table_of_other_makes") else {
+        return;
+    };
+    use rangegan_mcap::decode::fit::model_fit;
+    let first = |dir: &str, suffix: &str| first_file(&root.join(dir), suffix);
+    let hdl32 = SensorProfile::builtin("hdl32e").unwrap();
+    let nus = nuscenes::read_bin(&first("nuscenes", ".pcd.bin")).unwrap();
+    let fit = model_fit(&nus, &hdl32).unwrap();
+    let w = fit
+        .warning("hdl32e")
+        .expect("a third of the HDL-32E's beams lie outside");
+    assert!(w.contains("beams +10.7 to -30.7 deg"), "{w}");
+    assert!(fit.beams_outside >= 8, "{fit:?}");
+    let vlp = SensorProfile::builtin("vlp16").unwrap();
+    let room = pcd::read_pcd(&first("nebula", ".pcd")).unwrap();
+    let w = model_fit(&room, &vlp)
+        .unwrap()
+        .warning("vlp16")
+        .expect("an indoor VLP-16");
+    assert!(w.contains("beams +15.0 to -15.0 deg"), "{w}");
+    let (_, kitti) = kitti_scans(&root).into_iter().next().expect("a KITTI scan");
+    let fit = model_fit(&kitti, &SensorProfile::kitti_hdl64e()).unwrap();
+    assert!(fit.warning("hdl64e").is_none(), "{fit:?}");
+}

@@ -2,21 +2,29 @@
 //! elevations of [`super::model_grid`], ranges 1.45-80 m), so a user decoding, say, an
 //! indoor Ouster scan is told what the decoded channels are worth there.
 
-use crate::lidar::Scan;
+use crate::lidar::{Scan, SensorProfile};
 use crate::model::data::{MAX_DEPTH_M, MIN_DEPTH_M};
 
-/// Returns of a scan inside the model's view, with the scan's own spans (5th-95th
-/// percentiles).
+/// Returns of a scan inside the model's view, with the scan's range span (5th-95th
+/// percentiles), and the sensor's beams outside it.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct ModelFit {
     pub inside_fraction: f64,
-    pub elevation_deg: (f32, f32),
+    /// The sensor's top and bottom beams, degrees (its beam table).
+    pub beam_elevation_deg: (f32, f32),
+    /// Beams of the sensor above or below the model's outermost beams (by more than half a
+    /// model beam spacing): their rows are not decoded from what the model learnt.
+    pub beams_outside: usize,
+    pub beams: usize,
     pub range_m: (f32, f32),
+    /// The model's top and bottom beams, degrees.
     pub model_elevation_deg: (f32, f32),
 }
 
-/// Below this fraction of returns inside the model's view, a warning is due.
+/// Below this fraction of returns inside the model's view, a warning is due...
 pub const WARN_BELOW: f64 = 0.7;
+/// ...and above this fraction of the sensor's beams outside it.
+pub const WARN_BEAMS_OUTSIDE: f64 = 0.1;
 
 fn percentiles(mut v: Vec<f32>) -> (f32, f32) {
     v.sort_by(f32::total_cmp);
@@ -24,8 +32,9 @@ fn percentiles(mut v: Vec<f32>) -> (f32, f32) {
     (at(0.05), at(0.95))
 }
 
-/// `None` for a scan without returns.
-pub fn model_fit(scan: &Scan) -> Option<ModelFit> {
+/// How `scan` of a sensor with `profile` fits the model's view; `None` for a scan without
+/// returns.
+pub fn model_fit(scan: &Scan, profile: &SensorProfile) -> Option<ModelFit> {
     let grid = super::model_grid();
     let (lo, hi) = grid
         .elevation_rad
@@ -33,42 +42,50 @@ pub fn model_fit(scan: &Scan) -> Option<ModelFit> {
         .fold((f32::MAX, f32::MIN), |(a, b), &e| (a.min(e), b.max(e)));
     // Half a beam spacing of margin around the model's outermost beams.
     let margin = (hi - lo) / (grid.height.max(2) - 1) as f32 / 2.0;
-    let (mut elevations, mut ranges, mut inside) = (Vec::new(), Vec::new(), 0usize);
+    let within = |e: f32| e >= lo - margin && e <= hi + margin;
+    let (mut ranges, mut inside) = (Vec::new(), 0usize);
     for &[x, y, z] in &scan.xyz {
         let r = (x * x + y * y + z * z).sqrt();
         if !(r > 0.0 && r.is_finite()) {
             continue;
         }
         let e = z.atan2(x.hypot(y));
-        inside += usize::from(
-            e >= lo - margin && e <= hi + margin && (MIN_DEPTH_M..=MAX_DEPTH_M).contains(&r),
-        );
-        elevations.push(e.to_degrees());
+        inside += usize::from(within(e) && (MIN_DEPTH_M..=MAX_DEPTH_M).contains(&r));
         ranges.push(r);
     }
     if ranges.is_empty() {
         return None;
     }
+    let beams = &profile.elevation_deg;
+    let (top, bottom) = beams
+        .iter()
+        .fold((f32::MIN, f32::MAX), |(t, b), &e| (t.max(e), b.min(e)));
     Some(ModelFit {
         inside_fraction: inside as f64 / ranges.len() as f64,
-        elevation_deg: percentiles(elevations),
+        beam_elevation_deg: (top, bottom),
+        beams_outside: beams.iter().filter(|e| !within(e.to_radians())).count(),
+        beams: beams.len(),
         range_m: percentiles(ranges),
-        model_elevation_deg: (lo.to_degrees(), hi.to_degrees()),
+        model_elevation_deg: (hi.to_degrees(), lo.to_degrees()),
     })
 }
 
 impl ModelFit {
-    /// The warning for a topic whose scans are mostly outside the model's view.
+    /// The warning for a topic whose scans are mostly outside the model's view, or whose
+    /// sensor has beams outside it.
     pub fn warning(&self, sensor: &str) -> Option<String> {
-        (self.inside_fraction < WARN_BELOW).then(|| {
+        let beams_out = self.beams_outside as f64 > WARN_BEAMS_OUTSIDE * self.beams as f64;
+        (self.inside_fraction < WARN_BELOW || beams_out).then(|| {
             format!(
-                "its sensor ({sensor}: elevations {:.0} to {:.0} deg, ranges {:.1}-{:.1} m) is far from the decoding model's (KITTI HDL-64E: {:.0} to {:.0} deg, {MIN_DEPTH_M}-{MAX_DEPTH_M} m): only {:.0} % of returns are where the model has learnt scenes, so `depth`, `raydrop_prob`, `raydrop_mask` and `points` are guesses elsewhere (the rest of the image is filled from an outdoor-driving prior); `range` is exact",
-                self.elevation_deg.0,
-                self.elevation_deg.1,
+                "its sensor ({sensor}: beams {:+.1} to {:+.1} deg, ranges {:.1}-{:.1} m) is far from the decoding model's (KITTI HDL-64E: {:+.1} to {:+.1} deg, {MIN_DEPTH_M}-{MAX_DEPTH_M} m): {} of its {} beams lie outside the model's view and only {:.0} % of returns are where the model has learnt scenes, so `depth`, `raydrop_prob`, `raydrop_mask` and `points` are guesses elsewhere (the rest of the image is filled from an outdoor-driving prior); `range` is exact",
+                self.beam_elevation_deg.0,
+                self.beam_elevation_deg.1,
                 self.range_m.0,
                 self.range_m.1,
                 self.model_elevation_deg.0,
                 self.model_elevation_deg.1,
+                self.beams_outside,
+                self.beams,
                 100.0 * self.inside_fraction
             )
         })
@@ -97,17 +114,41 @@ mod tests {
 
     #[test]
     fn an_indoor_ouster_scan_is_flagged_and_a_kitti_street_is_not() {
-        let street = model_fit(&scan("hdl64e", |k| 5.0 + (k % 50) as f32)).unwrap();
+        let hdl = SensorProfile::builtin("hdl64e").unwrap();
+        let street = model_fit(&scan("hdl64e", |k| 5.0 + (k % 50) as f32), &hdl).unwrap();
         assert!(street.inside_fraction > 0.95, "{street:?}");
+        assert_eq!(street.beams_outside, 0);
         assert!(street.warning("hdl64e").is_none());
-        // OS1-64 at +-16 deg in a room: 0.6-15 m.
-        let room = model_fit(&scan("os1-64", |k| 0.6 + (k % 30) as f32 * 0.5)).unwrap();
+        // OS1-64 at +-22.5 deg in a room: 0.6-15 m.
+        let os1 = SensorProfile::builtin("os1-64").unwrap();
+        let room = model_fit(&scan("os1-64", |k| 0.6 + (k % 30) as f32 * 0.5), &os1).unwrap();
         assert!(room.inside_fraction < WARN_BELOW, "{room:?}");
         let w = room.warning("os1-64").unwrap();
         assert!(
-            w.contains("os1-64") && w.contains("`range` is exact"),
+            w.contains("os1-64") && w.contains("`range` is exact") && w.contains("+22.5 to -22.5"),
             "{w}"
         );
-        assert!(model_fit(&Scan::default()).is_none());
+        assert!(model_fit(&Scan::default(), &os1).is_none());
+    }
+
+    /// A VLP-32C outdoors keeps most returns inside the model's view, but its beams reach
+    /// +15 deg, far above the HDL-64E's +2 deg: the warning says so by its beams.
+    #[test]
+    fn beams_outside_the_model_warn_even_where_most_returns_are_inside() {
+        let vlp = SensorProfile::builtin("vlp32c").unwrap();
+        let grid = vlp.clone().with_columns(256).angle_grid();
+        // Returns on the rows inside the model's view only (the sky above gives none).
+        let xyz = (0..grid.len())
+            .filter(|&k| grid.elevation_rad[k].to_degrees() < 3.0)
+            .map(|k| grid.direction(k).map(|c| c * 12.0))
+            .collect();
+        let fit = model_fit(&Scan::from_xyz(xyz), &vlp).unwrap();
+        assert!(fit.inside_fraction >= WARN_BELOW, "{fit:?}");
+        assert!(
+            fit.beams_outside as f64 > WARN_BEAMS_OUTSIDE * 32.0,
+            "{fit:?}"
+        );
+        let w = fit.warning("vlp32c").unwrap();
+        assert!(w.contains("of its 32 beams lie outside"), "{w}");
     }
 }
