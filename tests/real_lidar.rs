@@ -856,3 +856,38 @@ fn the_model_fit_warning_names_the_beam_table_of_other_makes() {
     let fit = model_fit(&kitti, &SensorProfile::kitti_hdl64e()).unwrap();
     assert!(fit.warning("hdl64e").is_none(), "{fit:?}");
 }
+
+/// The real OS1-64 of the Ouster recording is a gen 1 unit (33.2 deg of view): its beams,
+/// estimated from the cloud's ring field, sit on `os1-64-gen1`'s table (uniform, +16.6 to
+/// -16.6 deg) and not on the gen 2 `os1-64`'s (+-22.5 deg).
+#[test]
+fn the_ouster_recording_matches_the_gen1_profile() {
+    let Some(root) = real_data("the_ouster_recording_matches_the_gen1_profile") else {
+        return;
+    };
+    let bytes = std::fs::read(root.join("mcap/pointcloudset_test.mcap")).unwrap();
+    let mut scans = Vec::new();
+    for msg in mcap::MessageStream::new(&bytes).unwrap() {
+        let msg = msg.unwrap();
+        let Some(schema) = msg.channel.schema.as_ref() else {
+            continue;
+        };
+        if let Some(format) = CloudFormat::detect(&msg.channel.message_encoding, &schema.name) {
+            scans.push(decode_cloud(format, &msg.data).unwrap().scan);
+        }
+    }
+    let est = estimate_profile(&scans).unwrap();
+    assert_eq!(est.beams.len(), 64, "{est}");
+    let off = |name: &str| {
+        let table = SensorProfile::builtin(name).unwrap().elevation_deg;
+        est.beams
+            .iter()
+            .zip(&table)
+            .map(|(b, e)| (b.elevation_deg - e).abs())
+            .fold(0.0f32, f32::max)
+    };
+    let (gen1, gen2) = (off("os1-64-gen1"), off("os1-64"));
+    eprintln!("OS1-64: largest beam offset {gen1:.2} deg from os1-64-gen1, {gen2:.2} from os1-64");
+    assert!(gen1 < 0.35, "{gen1}");
+    assert!(gen2 > 5.0, "{gen2}");
+}

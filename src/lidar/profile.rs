@@ -86,8 +86,23 @@ pub fn check_columns(columns: usize) -> Result<(), String> {
 
 impl SensorProfile {
     /// Names accepted by [`SensorProfile::builtin`].
-    pub const BUILTIN: [&'static str; 7] = [
-        "hdl64e", "hdl32e", "vlp16", "vlp32c", "os1-32", "os1-64", "os1-128",
+    pub const BUILTIN: [&'static str; 16] = [
+        "hdl64e",
+        "hdl32e",
+        "vlp16",
+        "vlp32c",
+        "os0-32",
+        "os0-64",
+        "os0-128",
+        "os1-32",
+        "os1-64",
+        "os1-128",
+        "os1-16-gen1",
+        "os1-32-gen1",
+        "os1-64-gen1",
+        "os2-32",
+        "os2-64",
+        "os2-128",
     ];
 
     /// KITTI's HDL-64E at its native ~2048 columns per revolution, 1.45-80 m as in
@@ -120,10 +135,22 @@ impl SensorProfile {
             "hdl32e" => make(uniform(10.67, -30.67, 32), 1084, 0.5, 70.0),
             "vlp16" => make(uniform(15.0, -15.0, 16), 1800, 0.4, 100.0),
             "vlp32c" => make(VLP32C_ELEVATION_DEG.to_vec(), 1800, 0.5, 200.0),
-            // Ouster OS1 (gen 2): 45 deg vertical field of view, uniform spacing.
+            // Ouster, uniform beam spacing as the data sheets give it (a unit's own
+            // `beam_altitude_angles`, e.g. a gradient or below-horizon OS1-32, come with its
+            // metadata JSON: `--sensor metadata.json`). OS1 gen 2 and later: 45 deg of
+            // vertical view; OS1 gen 1: 33.2 deg; OS0: 90 deg; OS2: 22.5 deg.
             "os1-32" => make(uniform(22.5, -22.5, 32), 1024, 0.3, 120.0),
             "os1-64" => make(uniform(22.5, -22.5, 64), 2048, 0.3, 120.0),
             "os1-128" => make(uniform(22.5, -22.5, 128), 2048, 0.3, 120.0),
+            "os1-16-gen1" => make(uniform(16.6, -16.6, 16), 1024, 0.3, 120.0),
+            "os1-32-gen1" => make(uniform(16.6, -16.6, 32), 1024, 0.3, 120.0),
+            "os1-64-gen1" => make(uniform(16.6, -16.6, 64), 2048, 0.3, 120.0),
+            "os0-32" => make(uniform(45.0, -45.0, 32), 1024, 0.3, 75.0),
+            "os0-64" => make(uniform(45.0, -45.0, 64), 1024, 0.3, 75.0),
+            "os0-128" => make(uniform(45.0, -45.0, 128), 1024, 0.3, 75.0),
+            "os2-32" => make(uniform(11.25, -11.25, 32), 1024, 0.8, 350.0),
+            "os2-64" => make(uniform(11.25, -11.25, 64), 2048, 0.8, 350.0),
+            "os2-128" => make(uniform(11.25, -11.25, 128), 2048, 0.8, 350.0),
             _ => return Err(ProfileError::Unknown(name.to_string())),
         })
     }
