@@ -891,3 +891,39 @@ fn the_ouster_recording_matches_the_gen1_profile() {
     assert!(gen1 < 0.35, "{gen1}");
     assert!(gen2 > 5.0, "{gen2}");
 }
+
+/// A ring field numbering the beams in elevation order keeps every beam on its own row,
+/// even where parallax swaps two neighbouring rings' median elevations (near returns) and
+/// where beams have no return at all (a dead laser): real KITTI scans projected, written
+/// back as clouds with their rows as the ring field (all 64, then 60 with 4 beams
+/// removed), project onto exactly the same pixels.
+#[test]
+fn a_ring_field_in_elevation_order_keeps_every_beam_on_its_row() {
+    let Some(root) = real_data("a_ring_field_in_elevation_order_keeps_every_beam_on_its_row")
+    else {
+        return;
+    };
+    let (_, files) = rangegan_mcap::model::data::kitti_validation_split(
+        &root,
+        &["kitti_raw_drive_d".to_string()],
+    )
+    .unwrap();
+    let profile = SensorProfile::kitti_hdl64e().with_columns(512);
+    for removed in [vec![], vec![5usize, 20, 21, 40]] {
+        let mut wrong = 0;
+        for f in files.iter().step_by(3).take(10) {
+            let img = project(&kitti::read_bin(f).unwrap(), &profile, Strategy::Auto).unwrap();
+            let keep: Vec<usize> = (0..img.range_m.len())
+                .filter(|&k| img.range_m[k] > 0.0 && !removed.contains(&(k / 512)))
+                .collect();
+            let mut cloud = Scan::from_xyz(keep.iter().map(|&k| img.xyz[k]).collect());
+            cloud.ring = Some(keep.iter().map(|&k| (k / 512) as u16).collect());
+            let back = project(&cloud, &profile, Strategy::Auto).unwrap();
+            wrong += (0..img.range_m.len())
+                .filter(|k| !removed.contains(&(k / 512)))
+                .filter(|&k| back.range_m[k] != img.range_m[k])
+                .count();
+        }
+        assert_eq!(wrong, 0, "beams {removed:?} removed: {wrong} pixels moved");
+    }
+}

@@ -166,6 +166,10 @@ fn rows_by_median_elevation(
             (g, e[e.len() / 2])
         })
         .collect();
+    if let Some(row_of) = rows_by_id(&medians, profile.beams()) {
+        let rows = group.iter().map(|g| row_of(*g)).collect();
+        return (rows, medians.len());
+    }
     medians.sort_by(|a, b| b.1.total_cmp(&a.1));
     let table: Vec<f32> = profile
         .elevation_deg
@@ -185,6 +189,37 @@ fn rows_by_median_elevation(
         .collect();
     (rows, medians.len())
 }
+
+/// Rows straight from the group ids, where the ids number the beams in elevation order
+/// (either way: Ouster top-down, Velodyne drivers bottom-up) and span exactly `beams`
+/// values: a beam without returns then leaves its own row empty, and two neighbouring
+/// beams keep their rows where parallax (a laser's offset from the sensor's centre moves a
+/// ring's median elevation by up to a beam spacing at a few metres) swaps their medians.
+/// "In elevation order": at least [`ID_ORDER_AGREEMENT`] of the steps between consecutive
+/// ids go the same way in median elevation (a firing-order numbering, like the VLP-16's
+/// raw laser ids, alternates). `medians` are (id, median elevation), sorted by id. `None`
+/// where the ids do not follow elevation or do not span the beams.
+fn rows_by_id(medians: &[(u32, f32)], beams: usize) -> Option<impl Fn(u32) -> u32> {
+    let (first, last) = (medians.first()?.0, medians.last()?.0);
+    if medians.len() < 2 || (last - first) as usize + 1 != beams {
+        return None;
+    }
+    let steps = (medians.len() - 1) as f64;
+    let down = medians.windows(2).filter(|w| w[0].1 > w[1].1).count() as f64;
+    let falling = down >= ID_ORDER_AGREEMENT * steps;
+    if !falling && steps - down < ID_ORDER_AGREEMENT * steps {
+        return None;
+    }
+    Some(move |g: u32| match g.checked_sub(first) {
+        Some(k) if g <= last && falling => k,
+        Some(_) if g <= last => last - g,
+        _ => u32::MAX,
+    })
+}
+
+/// Share of consecutive ring ids whose median elevations step the same way, for the ids to
+/// be taken as the beams' order ([`rows_by_id`]).
+const ID_ORDER_AGREEMENT: f64 = 0.9;
 
 /// Order-preserving assignment of `medians` (decreasing) to rows of `table`
 /// (decreasing) minimising the total elevation mismatch: identity when the counts
