@@ -254,3 +254,13 @@ pub fn real_data(test: &str) -> Option<PathBuf> {
         None
     }
 }
+
+/// The first file (by name) in `dir` whose name ends with `suffix`.
+pub fn first_file(dir: &Path, suffix: &str) -> PathBuf {
+    std::fs::read_dir(dir)
+        .unwrap()
+        .map(|e| e.unwrap().path())
+        .filter(|p| p.to_string_lossy().ends_with(suffix))
+        .min()
+        .unwrap()
+}
