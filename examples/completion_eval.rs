@@ -140,14 +140,7 @@ fn objects(truth: &RangeImage, rng: &mut Rng, mask: &mut [bool]) {
         while k < region.len() && region.len() < 600 {
             let p = region[k];
             k += 1;
-            let (i, j) = (p / w, p % w);
-            let around = [
-                (i > 0).then(|| p - w),
-                (i + 1 < h).then(|| p + w),
-                Some(i * w + (j + w - 1) % w),
-                Some(i * w + (j + 1) % w),
-            ];
-            for q in around.into_iter().flatten() {
+            for q in lidar::holes::neighbours(p, h, w) {
                 if seen.contains(&q) {
                     continue;
                 }

@@ -4,55 +4,19 @@
 //! and names that are not UTF-8. Each test builds its own bad input.
 
 mod common;
+#[path = "common/hostile.rs"]
+mod hostile_support;
 
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use std::process::Output;
 
 use common::{bin, stderr};
+use hostile_support::{expect_exit, json, no_temporary_files, run_limited};
 use rangegan_mcap::io::decoders::Family;
 use rangegan_mcap::io::encoders::{self, Kind, Payload};
 use rangegan_mcap::io::pointcloud::{CloudLayout, Field, Numeric};
 use rangegan_mcap::io::wire::WireReader;
-
-/// Address space allowed to a command under test (KiB): far below what the absurd flags
-/// used to allocate (3.5-40 GB).
-const ADDRESS_SPACE_KIB: u64 = 3 << 20;
-
-/// Runs the binary with `args` under an address-space limit.
-fn run_limited(args: &[&str]) -> Output {
-    std::process::Command::new("sh")
-        .arg("-c")
-        .arg(format!("ulimit -v {ADDRESS_SPACE_KIB}; exec \"$0\" \"$@\""))
-        .arg(env!("CARGO_BIN_EXE_rangegan-mcap"))
-        .args(args)
-        .output()
-        .expect("binary runs")
-}
-
-fn json(o: &Output) -> serde_json::Value {
-    serde_json::from_slice(&o.stdout)
-        .unwrap_or_else(|e| panic!("{e}: {}\n{}", String::from_utf8_lossy(&o.stdout), stderr(o)))
-}
-
-fn expect_exit(o: &Output, code: i32, needle: &str) {
-    assert_eq!(o.status.code(), Some(code), "{}", stderr(o));
-    assert!(
-        stderr(o).contains(needle),
-        "wanted {needle:?} in: {}",
-        stderr(o)
-    );
-}
-
-fn no_temporary_files(dir: &Path) {
-    let left: Vec<_> = std::fs::read_dir(dir)
-        .unwrap()
-        .filter_map(|e| e.ok())
-        .map(|e| e.file_name().to_string_lossy().into_owned())
-        .filter(|n| n.ends_with(".tmp"))
-        .collect();
-    assert!(left.is_empty(), "temporary files left behind: {left:?}");
-}
 
 /// A ring field's value for each beam.
 type RingValue<'a> = &'a dyn Fn(usize) -> f64;
@@ -186,19 +150,9 @@ fn write(path: &Path, messages: &[(&str, Family, Vec<u8>)]) {
     w.finish().unwrap();
 }
 
+/// `convert --quality off --json` with extra flags, under the address-space limit.
 fn convert_json(input: &Path, output: &Path, flags: &[&str]) -> Output {
-    let mut args = vec![
-        "--json",
-        "convert",
-        input.to_str().unwrap(),
-        output.to_str().unwrap(),
-        "--quality",
-        "off",
-        "--quiet",
-        "--force",
-    ];
-    args.extend_from_slice(flags);
-    run_limited(&args)
+    hostile_support::convert(input, output, &[&["--json"], flags].concat())
 }
 
 /// A topic's mean fraction of returns that kept a pixel, and its malformed count.

@@ -4,6 +4,20 @@
 
 use std::collections::VecDeque;
 
+/// The 4-neighbours of pixel `k` on a `height x width` image: the pixels above and below
+/// (where there are rows) and left and right (columns wrap around).
+pub fn neighbours(k: usize, height: usize, width: usize) -> impl Iterator<Item = usize> {
+    let (i, j) = (k / width, k % width);
+    [
+        (i > 0).then(|| k - width),
+        (i + 1 < height).then(|| k + width),
+        Some(i * width + (j + width - 1) % width),
+        Some(i * width + (j + 1) % width),
+    ]
+    .into_iter()
+    .flatten()
+}
+
 /// Steps (4-neighbour, columns wrapping around) from every pixel to the nearest pixel
 /// with a return: 0 on a return, `u32::MAX` when the image has none.
 pub fn distance_to_returns(observed: &[f32], height: usize, width: usize) -> Vec<u32> {
@@ -19,15 +33,8 @@ pub fn distance_to_returns(observed: &[f32], height: usize, width: usize) -> Vec
         }
     }
     while let Some(k) = queue.pop_front() {
-        let (i, j) = (k / width, k % width);
         let next = distance[k] + 1;
-        let around = [
-            (i > 0).then(|| k - width),
-            (i + 1 < height).then(|| k + width),
-            Some(i * width + (j + width - 1) % width),
-            Some(i * width + (j + 1) % width),
-        ];
-        for q in around.into_iter().flatten() {
+        for q in neighbours(k, height, width) {
             if distance[q] > next {
                 distance[q] = next;
                 queue.push_back(q);
