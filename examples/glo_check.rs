@@ -9,6 +9,7 @@
 //!
 //! ```text
 //! cargo run --release --example glo_check -- OUT.png DATASET_CACHE MODEL... [--scans 16] [--steps 300]
+//! cargo run --release --example glo_check -- OUT.png heldout:../shared/real_lidar MODEL... # held-out scans
 //! ```
 //! MODEL: a run or model directory, `fresh-dusty2` (the CPU-size implicit generator) or
 //! `fresh-dusty1` (the transposed-convolution generator of the same widths);
@@ -16,7 +17,8 @@
 //! generator's Fourier pairs, channels and log2 bandwidths (elevation, azimuth) per block and
 //! gives its N finest blocks the local 3x3 path;
 //! `DIR:local=N` adds that path to a trained implicit generator. Prints the masked
-//! L1 of inverse depth (network units) every 25 steps and the relative depth error at the end;
+//! L1 of inverse depth (network units) every 25 steps and the relative depth error at the end,
+//! over all returns and at depth edges;
 //! the PNG shows, per scan, the real scan, then each model's fit.
 
 use std::path::PathBuf;
@@ -26,9 +28,10 @@ use burn::module::Module;
 use burn::optim::{AdamConfig, GradientsParams};
 use burn::tensor::{Device, Tensor};
 use rangegan_mcap::decode::loss::{network_to_depth, relative_depth_error};
+use rangegan_mcap::lidar::edges::edge_strength;
 use rangegan_mcap::model::AnyGenerator;
 use rangegan_mcap::model::baseline::ConvGeneratorConfig;
-use rangegan_mcap::model::data::{DROPPED, RangeDataset};
+use rangegan_mcap::model::data::{DROPPED, RangeDataset, kitti_heldout_files};
 use rangegan_mcap::model::generator::{GeneratorConfig, GridCache};
 use rangegan_mcap::model::weights::Model;
 use rangegan_mcap::train::reconstruct::returns_l1;
@@ -123,6 +126,20 @@ fn fit(
     tensor_to_vec(render(&generator, tensor_from(z, [n, d_z], device)))
 }
 
+/// Relative depth error on the returns at a depth edge of the observed scans (a 4-neighbour
+/// more than 10 % nearer or farther): where objects' outlines are.
+fn edge_error(fitted: &[f32], observed: &[f32], width: usize) -> f32 {
+    let strength = edge_strength(observed, width);
+    let (mut sum, mut n) = (0.0f64, 0usize);
+    for k in 0..observed.len() {
+        if observed[k] > 0.0 && strength[k] > 0.1f32.ln_1p() {
+            sum += ((fitted[k] - observed[k]).abs() / observed[k]) as f64;
+            n += 1;
+        }
+    }
+    (sum / n.max(1) as f64) as f32
+}
+
 fn main() -> Result<()> {
     let mut args: Vec<String> = std::env::args().skip(1).collect();
     let mut option = |name: &str, default: usize| -> Result<usize> {
@@ -145,7 +162,13 @@ fn main() -> Result<()> {
         bail!("name at least one MODEL");
     }
     let device = Device::flex().autodiff();
-    let data = RangeDataset::load(&PathBuf::from(cache))?;
+    // `heldout:DIR`: the held-out KITTI scans under DIR (SemanticKITTI 00 and 07, never trained on).
+    let data = match cache.strip_prefix("heldout:") {
+        Some(dir) => {
+            RangeDataset::from_kitti_files(&kitti_heldout_files(&PathBuf::from(dir))?, 512)?
+        }
+        None => RangeDataset::load(&PathBuf::from(cache))?,
+    };
     let (h, w) = (data.height, data.width);
     let n = n.clamp(1, data.len());
     let every = data.len() / n;
@@ -168,9 +191,11 @@ fn main() -> Result<()> {
         let start = std::time::Instant::now();
         let x = fit(spec, &g, grid.as_ref(), &real, steps, &device);
         let secs = start.elapsed().as_secs_f64();
-        let err = relative_depth_error(&network_to_depth(&x), &observed).unwrap_or(f32::NAN);
+        let fitted = network_to_depth(&x);
+        let err = relative_depth_error(&fitted, &observed).unwrap_or(f32::NAN);
+        let edges = edge_error(&fitted, &observed, w);
         println!(
-            "{spec}: relative depth error {err:.4} over {n} scans after {steps} steps ({secs:.0} s)"
+            "{spec}: relative depth error {err:.4} over {n} scans, {edges:.4} at depth edges, after {steps} steps ({secs:.0} s)"
         );
         fits.push(x);
     }

@@ -1,7 +1,9 @@
 //! End-to-end auto-decoding through `convert`: the new channels open in Foxglove's
 //! own readers, outputs do not depend on the thread count, and bad decoding flags are clear
-//! errors. Few optimisation steps keep these fast; the quality is measured by
-//! `examples/decode_eval/` (BENCHMARKS.md).
+//! errors. The test recordings hold 16-beam scans, which the shipped model does not cover:
+//! these tests name the model (`--model`) to decode them through it anyway, except where the
+//! prior-free channels are the point. Few optimisation steps keep these fast; the quality is
+//! measured by `examples/decode_eval/` (BENCHMARKS.md).
 
 mod common;
 
@@ -19,14 +21,29 @@ const FAMILIES: [Family; 3] = [Family::Ros2, Family::Ros1, Family::Foxglove];
 /// Quick decoding flags: 2 + 2 optimisation steps.
 const QUICK: [&str; 4] = ["--w-steps", "2", "--tune-steps", "2"];
 
+/// The shipped model's directory: naming it decodes every topic through it.
+const MODEL: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/models/dusty2");
+
 fn convert(input: &Path, output: &Path, extra: &[&str], threads: &str) -> serde_json::Value {
+    convert_with(input, output, &["--model", MODEL], extra, threads)
+}
+
+fn convert_with(
+    input: &Path,
+    output: &Path,
+    model: &[&str],
+    extra: &[&str],
+    threads: &str,
+) -> serde_json::Value {
     let mut args = vec![
         "convert",
         input.to_str().unwrap(),
         output.to_str().unwrap(),
         "--json",
         "--quiet",
+        "--force",
     ];
+    args.extend_from_slice(model);
     args.extend_from_slice(&QUICK);
     args.extend_from_slice(extra);
     let o = bin()
@@ -56,8 +73,8 @@ fn decoded_channels_open_in_foxglove_readers() {
         ],
         "2",
     );
-    // Per scan: range, depth, x_d, raydrop_prob, 2 masks, points, depth/points at 128x1024
-    // and for the VLP-16.
+    // Per scan, on the scans' own 16 x 360 grid: range, depth, x_d, raydrop_prob, 2 masks,
+    // points, depth/points at twice the grid (32 x 720) and for the VLP-16.
     let per_scan = 11;
     let scans = 2 * FAMILIES.len() as u64;
     assert_eq!(summary["report"]["outputs_written"], scans * per_scan);
@@ -69,17 +86,18 @@ fn decoded_channels_open_in_foxglove_readers() {
         let image = |s: &str| r["images"][format!("{t}/{s}")].clone();
         assert_eq!(
             image("depth"),
-            serde_json::json!([64, 512, "32FC1", 2048, 64 * 2048])
+            serde_json::json!([16, 360, "32FC1", 1440, 16 * 1440])
         );
+        assert_eq!(image("range"), image("depth"));
         assert_eq!(image("raydrop_prob"), image("depth"));
         assert_eq!(image("x_d"), image("depth"));
         assert_eq!(
             image("raydrop_mask_1"),
-            serde_json::json!([64, 512, "mono8", 512, 64 * 512])
+            serde_json::json!([16, 360, "mono8", 360, 16 * 360])
         );
         assert_eq!(
-            image("depth_128x1024"),
-            serde_json::json!([128, 1024, "32FC1", 4096, 128 * 4096])
+            image("depth_32x720"),
+            serde_json::json!([32, 720, "32FC1", 2880, 32 * 2880])
         );
         assert_eq!(image("depth_vlp16")[0], 16);
         let values = |s: &str| r["values"][format!("{t}/{s}")].clone();
@@ -88,13 +106,27 @@ fn decoded_channels_open_in_foxglove_readers() {
         let [lo, hi] = [0, 1].map(|i| values("depth")[i].as_f64().unwrap());
         assert!(lo >= 1.44 && hi <= 80.01, "depth in meters: {lo}..{hi}");
         assert_eq!(values("raydrop_mask"), serde_json::json!([0, 255]));
-        for cloud in ["points", "points_128x1024", "points_vlp16"] {
+        for cloud in ["points", "points_32x720", "points_vlp16"] {
             assert_eq!(
                 r["clouds"][format!("{t}/{cloud}")],
                 serde_json::json!(["x", "y", "z", "range", "raydrop_prob"]),
                 "{t}/{cloud}"
             );
         }
+    }
+    // Without a model named, the 16-beam scans get the prior-free channels (no x_d): they
+    // open in the same readers.
+    let summary = convert_with(&input, &output, &[], &["--upsample", "2"], "2");
+    assert_eq!(summary["report"]["outputs_written"], scans * 7);
+    let r = node_read(&node, &output);
+    assert_eq!(r["decoded"], messages + scans * 7, "{r}");
+    for family in FAMILIES {
+        let t = format!("/lidar_{family:?}/rangegan").to_lowercase();
+        let image = |s: &str| r["images"][format!("{t}/{s}")].clone();
+        assert_eq!(image("depth"), image("range"));
+        assert_eq!(image("raydrop_prob"), image("range"));
+        assert!(image("x_d").is_null());
+        assert_eq!(image("depth_32x720")[0], 32);
     }
 }
 
@@ -108,12 +140,8 @@ fn decoding_is_identical_with_one_and_two_threads() {
     let outs: Vec<Vec<u8>> = ["1", "2"]
         .iter()
         .map(|threads| {
-            convert(
-                &input,
-                &out,
-                &["--restore-fraction", "0.5", "--force"],
-                threads,
-            );
+            // A restoration decodes through the model on any sensor.
+            convert_with(&input, &out, &[], &["--restore-fraction", "0.5"], threads);
             std::fs::read(&out).unwrap()
         })
         .collect();
@@ -167,6 +195,8 @@ fn chained_scans_continue_their_chain_whatever_the_threads() {
                 input.to_str().unwrap(),
                 output.to_str().unwrap(),
                 "--quiet",
+                "--model",
+                MODEL,
                 "--tune-steps",
                 "4",
                 "--upsample-method",
@@ -398,6 +428,8 @@ fn a_scan_with_nothing_to_decode_keeps_its_range_channel_and_is_reported() {
             dir.path().join("strict.mcap").to_str().unwrap(),
             "--strict",
             "--quiet",
+            "--model",
+            MODEL,
         ])
         .args(QUICK)
         .output()

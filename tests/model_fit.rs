@@ -1,55 +1,203 @@
-//! The warning for a sensor far from the decoding model's, on a real recording: the Ouster
-//! OS1-64 clouds of an indoor MCAP (+-16 deg, 0.6-15 m) decoded against the KITTI HDL-64E
-//! model. Skips when the real data folder is absent.
+//! What `convert` writes for sensors the decoding model does not cover, on real recordings:
+//! the Ouster OS1-64 clouds of an indoor MCAP (+-16 deg, 0.6-15 m) and an indoor VLP-16 get
+//! prior-free channels on their own grids (every beam, the measured returns kept, the
+//! recording's own drop rates), with one line saying so; `--model` decodes them through the
+//! KITTI model anyway, with the warning of how far they are from it; a KITTI recording is
+//! decoded through the model on its own grid. Skips when the real data folder is absent.
 
 mod common;
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 
 use common::*;
+use rangegan_mcap::io::wire::WireReader;
+use rangegan_mcap::lidar::{kitti, pcd};
 
-#[test]
-fn an_indoor_ouster_recording_is_warned_about_and_still_converted() {
-    // `../shared/real_lidar` beside the repository, else the shared checkout's copy.
-    let Some(root) = real_data("an_indoor_ouster_recording_is_warned_about")
+/// One image message: height, width, values.
+type Image = (usize, usize, Vec<f32>);
+
+/// The `32FC1` images of `topic` in `path`, in log-time order (ROS 1 or ROS 2).
+fn images(path: &Path, topic: &str) -> Vec<Image> {
+    let bytes = std::fs::read(path).unwrap();
+    let mut out = Vec::new();
+    for m in mcap::MessageStream::new(&bytes).unwrap() {
+        let m = m.unwrap();
+        if m.channel.topic != topic {
+            continue;
+        }
+        let mut r = match m.channel.message_encoding.as_str() {
+            "ros1" => WireReader::ros1(&m.data),
+            _ => WireReader::cdr(&m.data).unwrap(),
+        };
+        r.header().unwrap();
+        let (h, w) = (r.u32("height").unwrap(), r.u32("width").unwrap());
+        r.string("encoding").unwrap();
+        r.u8("is_bigendian").unwrap();
+        r.u32("step").unwrap();
+        let values = (r.bytes("data").unwrap().chunks_exact(4))
+            .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
+            .collect();
+        out.push((m.log_time, (h as usize, w as usize, values)));
+    }
+    out.sort_by_key(|(t, _)| *t);
+    out.into_iter().map(|(_, i)| i).collect()
+}
+
+fn real_root(test: &str) -> Option<PathBuf> {
+    real_data(test)
         .or_else(|| Some(PathBuf::from("/work/shared/real_lidar")).filter(|p| p.is_dir()))
-    else {
-        return;
-    };
-    let input = root.join("mcap/pointcloudset_test.mcap");
-    let dir = tempfile::tempdir().unwrap();
-    let output = dir.path().join("out.mcap");
-    let o = run(&[
+}
+
+/// Converts `input` with `flags` (fast, few steps) and returns stderr and the output's path.
+fn convert(input: &Path, dir: &Path, flags: &[&str]) -> (String, PathBuf) {
+    let output = dir.join("out.mcap");
+    let mut args = vec![
         "convert",
         input.to_str().unwrap(),
         output.to_str().unwrap(),
-        "--channels",
-        "range,depth",
+        "--force",
         "--w-steps",
         "1",
         "--tune-steps",
         "1",
         "--json",
-    ]);
+    ];
+    args.extend_from_slice(flags);
+    let o = run(&args);
     assert!(o.status.success(), "{}", stderr(&o));
-    let err = stderr(&o);
+    (stderr(&o), output)
+}
+
+/// Checks the prior-free channels of `topic`: `depth` and `raydrop_prob` on the grid of
+/// `range`, every measured return kept exactly, drop rates strictly between 0 and 1 that
+/// put the scans' drops more likely than their returns.
+fn check_prior_free(output: &Path, topic: &str) {
+    let ch = |s: &str| images(output, &format!("{topic}/rangegan/{s}"));
+    let (range, depth, drop) = (ch("range"), ch("depth"), ch("raydrop_prob"));
+    assert!(!range.is_empty() && range.len() == depth.len() && range.len() == drop.len());
+    assert!(ch("x_d").is_empty(), "no x_d without a prior");
+    for ((r, d), p) in range.iter().zip(&depth).zip(&drop) {
+        assert_eq!((r.0, r.1), (d.0, d.1), "depth on the sensor's grid");
+        assert_eq!((r.0, r.1), (p.0, p.1), "raydrop_prob on the sensor's grid");
+        let returns: Vec<usize> = (0..r.2.len()).filter(|&k| r.2[k] > 0.0).collect();
+        assert!(
+            returns.iter().all(|&k| d.2[k] == r.2[k]),
+            "measured returns kept"
+        );
+        let filled = (0..r.2.len())
+            .filter(|&k| r.2[k] == 0.0 && d.2[k] > 0.0)
+            .count();
+        assert!(filled > 0, "dropped rays next to returns are completed");
+        assert!(p.2.iter().all(|&x| x > 0.0 && x < 1.0));
+        let mean = |keep: bool| {
+            let v: Vec<f32> = (0..r.2.len())
+                .filter(|&k| (r.2[k] > 0.0) == keep)
+                .map(|k| p.2[k])
+                .collect();
+            v.iter().sum::<f32>() / v.len().max(1) as f32
+        };
+        assert!(
+            mean(false) > mean(true) + 0.2,
+            "drops {} returns {}",
+            mean(false),
+            mean(true)
+        );
+    }
+}
+
+#[test]
+fn sensors_the_model_does_not_cover_get_prior_free_channels_on_their_own_grid() {
+    let Some(root) = real_root("sensors_the_model_does_not_cover_get_prior_free_channels") else {
+        return;
+    };
+    let dir = tempfile::tempdir().unwrap();
+    // The real OS1-64 recording (two organized 64 x 2048 clouds, indoors).
+    let input = root.join("mcap/pointcloudset_test.mcap");
+    let topic = "/os1_cloud_node/points";
+    let (err, output) = convert(&input, dir.path(), &[]);
     assert!(
-        err.contains("/os1_cloud_node/points") && err.contains("far from the decoding model's"),
+        err.contains(topic) && err.contains("no decoding model covers"),
         "{err}"
     );
-    let summary: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
-    let fit = summary["report"]["model_fit"].as_array().unwrap();
-    assert_eq!(fit.len(), 1, "one warning per topic, not per scan");
-    let inside: f64 = fit[0]["message"]
-        .as_str()
-        .unwrap()
-        .split("only ")
-        .nth(1)
-        .and_then(|t| t.split(' ').next())
-        .and_then(|n| n.parse().ok())
-        .unwrap();
-    assert!(inside < 50.0, "{inside} % inside the model's view");
-    // Both chosen channels are written for both scans.
-    assert_eq!(summary["report"]["outputs_written"], 4);
-    assert_eq!(summary["manifest"]["warnings"], 1);
+    assert_eq!(
+        err.matches("no decoding model covers").count(),
+        1,
+        "one line per topic: {err}"
+    );
+    check_prior_free(&output, topic);
+    let range = images(&output, &format!("{topic}/rangegan/range"));
+    assert_eq!(range[0].0, 64, "every beam of the OS1-64");
+    // An indoor VLP-16 (an unorganized cloud with a ring field).
+    let scan = pcd::read_pcd(&first_file(&root.join("nebula"), ".pcd")).unwrap();
+    let vlp = dir.path().join("vlp16.mcap");
+    write_scans(&vlp, &[scan]);
+    let (err, output) = convert(&vlp, dir.path(), &[]);
+    assert!(err.contains("no decoding model covers"), "{err}");
+    check_prior_free(&output, "/points");
+    // A row per beam that returned (15 of the 16 indoors), none invented.
+    assert!((15..=16).contains(&images(&output, "/points/rangegan/depth")[0].0));
+}
+
+/// `--model` decodes an uncovered sensor through the model: `x_d` is written, the warning says
+/// how far the sensor is from the model, and the rows outside the model's view have no
+/// rendering (x_d 0, x_n 1) while `depth` still keeps every return there.
+#[test]
+fn a_named_model_decodes_every_topic_and_says_how_far_it_is() {
+    let Some(root) = real_root("a_named_model_decodes_every_topic") else {
+        return;
+    };
+    let dir = tempfile::tempdir().unwrap();
+    let input = root.join("mcap/pointcloudset_test.mcap");
+    let topic = "/os1_cloud_node/points";
+    let model = Path::new(env!("CARGO_MANIFEST_DIR")).join("models/dusty2");
+    let (err, output) = convert(&input, dir.path(), &["--model", model.to_str().unwrap()]);
+    assert!(err.contains("far from the decoding model's"), "{err}");
+    let ch = |s: &str| images(&output, &format!("{topic}/rangegan/{s}"));
+    let (range, depth, x_d) = (ch("range"), ch("depth"), ch("x_d"));
+    assert_eq!(x_d.len(), range.len());
+    let (h, w) = (range[0].0, range[0].1);
+    assert_eq!((x_d[0].0, x_d[0].1), (h, w), "x_d on the sensor's grid");
+    let r = &range[0].2;
+    assert!(
+        (0..r.len())
+            .filter(|&k| r[k] > 0.0)
+            .all(|k| depth[0].2[k] == r[k])
+    );
+    // The OS1-64 gen 1's top rows (+16.6 deg) lie far above the model's +2.6 deg.
+    assert!(x_d[0].2[..w].iter().all(|&d| d == 0.0));
+    assert!(x_d[0].2[(h - 1) * w..].iter().any(|&d| d > 0.0));
+}
+
+/// A full-resolution KITTI scan (about 2 000 columns) is decoded through the model and
+/// written on its own grid: `depth`, `x_d` and `raydrop_prob` as wide as `range`, every return
+/// kept.
+#[test]
+fn full_resolution_kitti_is_decoded_on_its_own_columns() {
+    let Some(root) = real_root("full_resolution_kitti_is_decoded_on_its_own_columns") else {
+        return;
+    };
+    let dir = tempfile::tempdir().unwrap();
+    let scan = kitti::read_bin(&first_file(&root.join("semantickitti_ssv3"), ".bin")).unwrap();
+    let input = dir.path().join("kitti.mcap");
+    write_scans(&input, &[scan]);
+    let (err, output) = convert(&input, dir.path(), &[]);
+    assert!(!err.contains("no decoding model covers"), "{err}");
+    let ch = |s: &str| images(&output, &format!("/points/rangegan/{s}"));
+    let (range, depth, x_d, drop) = (ch("range"), ch("depth"), ch("x_d"), ch("raydrop_prob"));
+    let (h, w) = (range[0].0, range[0].1);
+    assert!(h == 64 && w > 1900, "{h} x {w}");
+    for img in [&depth[0], &x_d[0], &drop[0]] {
+        assert_eq!((img.0, img.1), (h, w));
+    }
+    let r = &range[0].2;
+    assert!(
+        (0..r.len())
+            .filter(|&k| r[k] > 0.0)
+            .all(|k| depth[0].2[k] == r[k])
+    );
+    let rendered = x_d[0].2.iter().filter(|&&d| d > 0.0).count();
+    assert!(
+        rendered as f64 > 0.95 * r.len() as f64,
+        "x_d covers the HDL-64E's rows"
+    );
 }

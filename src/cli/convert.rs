@@ -16,11 +16,12 @@ use crate::dataset::manifest::{self, Counts};
 use crate::decode::amortised::TrainedEncoder;
 use crate::decode::{DecodeOptions, Decoder, Fill, Quality, Sparsify};
 use crate::io::{McapOutput, OnError, WriterSettings};
+use crate::lidar::drop_census::X_N_WEIGHT;
 use crate::lidar::{SensorProfile, Strategy};
 use crate::model::weights::Model;
 use crate::pipeline::{
-    self, ConvertOptions, ConvertReport, DecodeOutputs, DecodeStage, SensorChoice, StageOutput,
-    Staged,
+    self, ConvertOptions, ConvertReport, DecodeOutputs, DecodeStage, PriorUse, SensorChoice,
+    StageOutput, Staged,
 };
 
 #[derive(Debug, clap::Args)]
@@ -75,8 +76,10 @@ pub struct ConvertArgs {
     /// images only).
     #[arg(long, value_enum, default_value = "fast")]
     pub quality: QualityArg,
-    /// Generator: a model directory (config.json + g_ema.bpk) or a training run directory
-    /// (default: the shipped weights).
+    /// Generator: a model directory (config.json + g_ema.bpk) or a training run directory.
+    /// Default: the shipped weights, used only on topics whose sensor they cover (their
+    /// training beams and ranges span it); other topics get prior-free channels. A model
+    /// named here decodes every topic.
     #[arg(long)]
     pub model: Option<PathBuf>,
     /// Encoder that starts each decode: a `train-encoder` run or model directory (default: the
@@ -117,8 +120,9 @@ pub struct ConvertArgs {
     #[arg(long, default_value_t = 1,
           value_parser = clap::builder::RangedU64ValueParser::<usize>::new().range(0..=64))]
     pub mask_samples: usize,
-    /// Also render the decoded scene on the model grid upsampled by these factors, e.g.
-    /// `2,4` -> `depth_128x1024`, `points_128x1024`, `depth_256x2048`, `points_256x2048`.
+    /// Also write the scan on its sensor's grid upsampled by these factors (beams and
+    /// columns), named by the grid's size: `2,4` on a 64 x 512 scan -> `depth_128x1024`,
+    /// `points_128x1024`, `depth_256x2048`, `points_256x2048`.
     #[arg(long, value_delimiter = ',')]
     pub upsample: Vec<usize>,
     /// Also render it on another sensor's grid (built-in name or profile JSON), e.g.
@@ -240,6 +244,7 @@ pub(crate) fn resolve_decoding(
     if let Some(dir) = &args.encoder {
         decoder = decoder.with_encoder(TrainedEncoder::from_dir(dir, &device)?)?;
     }
+    let x_n_weight = x_n_weight(args, &decoder);
     let target_sensors = args
         .target_sensor
         .iter()
@@ -253,8 +258,29 @@ pub(crate) fn resolve_decoding(
             target_sensors,
             fill: args.upsample_method,
             hand_off: args.hand_off,
+            x_n_weight,
         },
     )))
+}
+
+/// Where the decoder's model is used: on every topic when a model is named (`--model`) or
+/// the decode restores a sparse model grid, else where it covers the sensor.
+fn prior_use(args: &ConvertArgs, decoder: &Decoder) -> PriorUse {
+    if args.model.is_some() || decoder.options().restore.is_some() {
+        return PriorUse::Always;
+    }
+    PriorUse::WhereCovered
+}
+
+/// The weight of the generator's x_n against each recording's own drop rates in
+/// `raydrop_prob` ([`X_N_WEIGHT`]): 0 (the rates alone) for a model without a ray-drop
+/// calibration, and `None` (x_n alone) for `--raw-raydrop`.
+fn x_n_weight(args: &ConvertArgs, decoder: &Decoder) -> Option<f32> {
+    match (args.raw_raydrop, decoder.calibration_source()) {
+        (true, _) => None,
+        (false, Some(_)) => Some(X_N_WEIGHT),
+        (false, None) => Some(0.0),
+    }
 }
 
 /// Resolves the sensor argument shared by several subcommands.
@@ -468,7 +494,13 @@ impl<'d> FileConverter<'d> {
                 ("decode_steps".to_string(), schedule.describe()),
                 (
                     "raydrop_calibration".to_string(),
-                    decoder.calibration_source().unwrap_or("none").to_string(),
+                    match (decoder.calibration_source(), args.raw_raydrop) {
+                        (_, true) => "none".to_string(),
+                        (Some(source), false) => source.to_string(),
+                        (None, false) => {
+                            "none: raydrop_prob is each recording's own drop rates".to_string()
+                        }
+                    },
                 ),
             ]);
         }
@@ -484,7 +516,7 @@ impl<'d> FileConverter<'d> {
                 on_error: args.on_error,
                 metadata,
                 scans_processed: Some(counters.scans.clone()),
-                check_model_fit: decoding.is_some(),
+                prior: decoding.map(|(decoder, _)| prior_use(args, decoder)),
                 chain_stride: args.chain_stride,
                 ..ConvertOptions::default()
             },

@@ -95,6 +95,67 @@ fn resample(
     out.range_m
 }
 
+/// How scattered returns are filled by `fill`, `guide` (the rendering on the same grid)
+/// picking the surface at a depth edge for guided fills ([`Fill::Gan`]: as guided).
+fn scatter_fill<'a>(fill: Fill, guide: &'a [f32], rule: &SurfaceRule) -> ScatterFill<'a> {
+    match fill {
+        Fill::Nearest => ScatterFill::Nearest,
+        Fill::Bilinear => ScatterFill::Idw,
+        Fill::EdgeAware | Fill::Learned => ScatterFill::Surfaces {
+            guide: None,
+            guide_jump: rule.guide_jump,
+        },
+        Fill::Guided | Fill::Gan => ScatterFill::Surfaces {
+            guide: Some(guide),
+            guide_jump: rule.guide_jump,
+        },
+    }
+}
+
+/// The completed scan on its own grid, `rendered` being the decoded scene there: each
+/// measured return of `observed` as measured (at any range the sensor gives), each dropped
+/// ray within [`COMPLETION_REACH`] steps of a return filled from the returns around it by
+/// `fill` (guided by the rendering, as on the model grid), and the rendering x_d farther in.
+/// [`Fill::Gan`] gives the rendering everywhere.
+pub fn complete_observed(observed: &RangeImage, rendered: Rendered, fill: Fill) -> Rendered {
+    let fill = match fill {
+        Fill::Gan => return rendered,
+        Fill::Learned => Fill::Guided,
+        other => other,
+    };
+    let (h, w) = (observed.height, observed.width);
+    let rule = SurfaceRule::default();
+    let distance = holes::distance_to_returns(&observed.range_m, h, w);
+    let how = scatter_fill(fill, &rendered.depth_m, &rule);
+    let values = fill_scattered_where(&observed.range_m, &observed.angles, how, |k| {
+        distance[k] <= COMPLETION_REACH
+    });
+    complete(rendered, &values)
+}
+
+/// `rendered`'s grid (denser than `source`'s, or another sensor's) filled from the scan
+/// `source` by `fill`, guided by `guide_source` (the rendering on `source`'s grid) and the
+/// rendering itself; the rendering where no observed return reaches. [`Fill::Gan`] gives
+/// the rendering.
+pub fn fill_from(
+    source: &RangeImage,
+    guide_source: &[f32],
+    rendered: Rendered,
+    fill: Fill,
+) -> Rendered {
+    if fill == Fill::Gan {
+        return rendered;
+    }
+    let values = resample(
+        source,
+        guide_source,
+        &rendered,
+        fill,
+        &SurfaceRule::default(),
+    );
+    complete(rendered, &values)
+}
+
 /// The rendering `r` with `values` wherever they are set (> 0).
 fn complete(mut r: Rendered, values: &[f32]) -> Rendered {
     for (d, v) in r.depth_m.iter_mut().zip(values) {
@@ -133,21 +194,10 @@ impl Decoded {
         }
     }
 
-    /// How scattered returns on the model grid are filled by `fill` ([`Fill::Gan`]: as
-    /// guided, the rendering picking the surface).
+    /// How scattered returns on the model grid are filled by `fill`, the rendering x_d as
+    /// the guide ([`scatter_fill`]).
     fn scatter_fill(&self, fill: Fill, rule: &SurfaceRule) -> ScatterFill<'_> {
-        match fill {
-            Fill::Nearest => ScatterFill::Nearest,
-            Fill::Bilinear => ScatterFill::Idw,
-            Fill::EdgeAware | Fill::Learned => ScatterFill::Surfaces {
-                guide: None,
-                guide_jump: rule.guide_jump,
-            },
-            Fill::Guided | Fill::Gan => ScatterFill::Surfaces {
-                guide: Some(&self.model.depth_m),
-                guide_jump: rule.guide_jump,
-            },
-        }
+        scatter_fill(fill, &self.model.depth_m, rule)
     }
 
     /// The completed scan on the model grid: each measured return as measured, and each

@@ -71,11 +71,36 @@ pub fn model_fit(scan: &Scan, profile: &SensorProfile) -> Option<ModelFit> {
 }
 
 impl ModelFit {
+    /// Whether the model covers this sensor: at most [`WARN_BEAMS_OUTSIDE`] of its beams
+    /// outside the model's view (an estimated beam table is off by a degree or two at its
+    /// ends) and at least [`WARN_BELOW`] of the returns inside it. Where it does not,
+    /// `convert` writes prior-free channels unless a model is forced (`--model`).
+    pub fn covers(&self) -> bool {
+        let beams_out = self.beams_outside as f64 > WARN_BEAMS_OUTSIDE * self.beams as f64;
+        self.inside_fraction >= WARN_BELOW && !beams_out
+    }
+
+    /// What a user is told about a topic the model does not cover: its channels are
+    /// prior-free, and how to get a prior for the sensor.
+    pub fn prior_free_note(&self, sensor: &str) -> String {
+        format!(
+            "no decoding model covers its sensor ({sensor}: beams {:+.1} to {:+.1} deg, ranges {:.1}-{:.1} m; the model's: KITTI HDL-64E, {:+.1} to {:+.1} deg, {MIN_DEPTH_M}-{MAX_DEPTH_M} m; {} of its {} beams outside, {:.0} % of returns inside), so its channels are prior-free on the sensor's own grid: `depth` is the edge-aware completion of the measured returns, `raydrop_prob` and the masks the recording's own drop rates (each scan's fitted on its other scans), and no `x_d` is written. Train a prior for this sensor with `rangegan-mcap train`, or decode through a model anyway with --model",
+            self.beam_elevation_deg.0,
+            self.beam_elevation_deg.1,
+            self.range_m.0,
+            self.range_m.1,
+            self.model_elevation_deg.0,
+            self.model_elevation_deg.1,
+            self.beams_outside,
+            self.beams,
+            100.0 * self.inside_fraction
+        )
+    }
+
     /// The warning for a topic whose scans are mostly outside the model's view, or whose
     /// sensor has beams outside it.
     pub fn warning(&self, sensor: &str) -> Option<String> {
-        let beams_out = self.beams_outside as f64 > WARN_BEAMS_OUTSIDE * self.beams as f64;
-        (self.inside_fraction < WARN_BELOW || beams_out).then(|| {
+        (!self.covers()).then(|| {
             format!(
                 "its sensor ({sensor}: beams {:+.1} to {:+.1} deg, ranges {:.1}-{:.1} m) is far from the decoding model's (KITTI HDL-64E: {:+.1} to {:+.1} deg, {MIN_DEPTH_M}-{MAX_DEPTH_M} m): {} of its {} beams lie outside the model's view and only {:.0} % of returns are where the model has learnt scenes, so `depth`, `raydrop_prob`, `raydrop_mask` and `points` are guesses elsewhere (the rest of the image is filled from an outdoor-driving prior); `range` is exact",
                 self.beam_elevation_deg.0,

@@ -319,7 +319,14 @@ fn ring_order_groups(scans: &[Scan]) -> Option<Vec<Vec<u32>>> {
             if e.len() < 32 {
                 return None;
             }
-            medians.push(median_in_place(&mut e));
+            let median = median_in_place(&mut e);
+            // A ring is one beam: its elevations lie close together. A cloud in firing
+            // order (every beam in each "ring" between two azimuth wraps) spreads over all.
+            let mut dev: Vec<f32> = e.iter().map(|x| (x - median).abs()).collect();
+            if median_in_place(&mut dev) > RING_ORDER_MAX_SPREAD_RAD {
+                return None;
+            }
+            medians.push(median);
         }
         if !medians.windows(2).all(|m| m[0] > m[1]) {
             return None;
@@ -328,6 +335,10 @@ fn ring_order_groups(scans: &[Scan]) -> Option<Vec<Vec<u32>>> {
     }
     Some(all)
 }
+
+/// The largest median absolute deviation of elevation a ring of [`ring_order_groups`] may
+/// have (KITTI's rings: about 0.1 deg, parallax included).
+const RING_ORDER_MAX_SPREAD_RAD: f32 = 1.0f32.to_radians();
 
 /// Histogram bin of the elevation clustering.
 const CLUSTER_BIN_DEG: f32 = 0.01;

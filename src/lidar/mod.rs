@@ -3,8 +3,10 @@
 //! from data ([`estimate`]), the projection of a scan onto a profile's angle grid
 //! ([`project`]), the way back to points, and resampling of angle grids and range
 //! images ([`resample`]). Readers for dataset files on disk (KITTI, nuScenes, PCD)
-//! live here too; MCAP is left to `io`, models to later modules.
+//! live here too, and a recording's own ray-drop rates ([`drop_census`]); MCAP is left to
+//! `io`, models to later modules.
 
+pub mod drop_census;
 pub mod edges;
 pub mod estimate;
 pub mod holes;

@@ -18,15 +18,20 @@ use std::sync::{Arc, Mutex};
 
 use mcap::records::Record;
 
-use crate::decode::{Decoded, Decoder, Fill, PreparedGrid, Rendered, scan_seed};
 use crate::error::Location;
-use crate::io::encoders::{Kind, encode_f32_image, encode_mask, encode_points};
+use crate::io::encoders::Kind;
 use crate::io::{
     ChannelEntry, ChannelTable, CloudFormat, DecodedCloud, Family, McapOutput, OnError, ReadReport,
     decode_cloud, read_records,
 };
+use crate::lidar::drop_census::DropCensus;
 use crate::lidar::{RangeImage, SensorProfile, Strategy, estimate_profile, project};
 use crate::model::generator::Generator;
+
+mod stages;
+mod survey;
+
+pub use stages::{DecodeOutputs, DecodeStage, range_stage};
 
 /// Which sensor grid a topic's scans are projected onto.
 #[derive(Debug, Clone)]
@@ -54,10 +59,22 @@ pub struct ConvertOptions {
     pub strict: bool,
     /// Counts scans as their stages finish (before their batch is written), for progress.
     pub scans_processed: Option<Arc<AtomicU64>>,
-    /// Warn when a topic's scans are far from what the decoding model saw.
-    pub check_model_fit: bool,
+    /// Whether and where scans go through the decoding model (`None`: nothing is decoded,
+    /// no coverage is checked). When decoding, a first pass over the file counts every
+    /// converted topic's drops ([`survey`]): the recording's own rates.
+    pub prior: Option<PriorUse>,
     /// Scans of a topic in chains: scan k continues from scan k - stride (0: each scan alone).
     pub chain_stride: usize,
+}
+
+/// Where the decoding stage uses its model.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum PriorUse {
+    /// On topics whose sensor the model covers ([`crate::decode::fit::ModelFit::covers`]);
+    /// the others get prior-free channels.
+    WhereCovered,
+    /// On every topic (`--model` given): a warning says where the model does not cover.
+    Always,
 }
 
 /// Scans per parallel batch. Fixed rather than tied to the thread count: outputs of a batch are
@@ -88,7 +105,7 @@ impl Default for ConvertOptions {
             metadata: BTreeMap::new(),
             strict: false,
             scans_processed: None,
-            check_model_fit: false,
+            prior: None,
             chain_stride: DEFAULT_CHAIN_STRIDE,
         }
     }
@@ -101,6 +118,11 @@ pub struct ScanInput<'a> {
     pub family: Family,
     pub cloud: &'a DecodedCloud,
     pub image: &'a RangeImage,
+    /// Whether the scan goes through the decoding model: it covers the topic's sensor, or a
+    /// model was named (true where nothing checks).
+    pub covered: bool,
+    /// The recording's own drop counts on this topic's grid, where the first pass made them.
+    pub census: Option<&'a DropCensus>,
     /// The scan's chain, when scans are chained; its scans reach the stages in input order.
     pub chain: Option<&'a ChainState>,
 }
@@ -125,184 +147,6 @@ pub type Later<'s> = Box<dyn FnOnce() -> anyhow::Result<Vec<StageOutput>> + Send
 
 /// A per-scan stage: pure in its inputs, so results do not depend on threads.
 pub type Stage<'s> = dyn Fn(&ScanInput<'_>) -> anyhow::Result<Staged<'s>> + Sync + 's;
-
-/// The range image channel every converted topic gets: range in meters, 32FC1.
-pub fn range_stage(input: &ScanInput<'_>) -> anyhow::Result<Staged<'static>> {
-    let img = input.image;
-    let bytes = encode_f32_image(
-        input.family,
-        input.cloud.stamp_nanos,
-        &input.cloud.frame_id,
-        (img.width, img.height),
-        &img.range_m,
-    );
-    Ok(Staged::Done(vec![StageOutput {
-        suffix: "range".into(),
-        kind: Kind::Image,
-        data: bytes,
-    }]))
-}
-
-/// The auto-decoding stage: for every scan, the completed depth, the ray-drop probability,
-/// sampled ray-drop masks and the completed point cloud on the model grid, plus depth and points
-/// on extra grids (denser or another sensor's).
-pub struct DecodeStage<'d> {
-    decoder: &'d Decoder,
-    mask_samples: usize,
-    /// `(suffix, grid)`: written as `depth_<suffix>` and `points_<suffix>`.
-    extra_grids: Vec<(String, PreparedGrid)>,
-    fill: Fill,
-    hand_off: Option<usize>,
-}
-
-/// What [`DecodeStage`] adds beyond the model-grid channels.
-#[derive(Debug, Clone, Default)]
-pub struct DecodeOutputs {
-    /// Bernoulli ray-drop masks per scan (`raydrop_mask`, `raydrop_mask_1`, ...).
-    pub mask_samples: usize,
-    /// Upsampling factors of the model grid (2 -> 128 x 1024).
-    pub upsample: Vec<usize>,
-    /// Other sensors to render for (their own grids).
-    pub target_sensors: Vec<SensorProfile>,
-    /// What the extra grids and a restored model grid hold.
-    pub fill: Fill,
-    /// With chains: the tuning step after which a scan hands its weights on to the chain's
-    /// next scan, which starts tuning while this one goes on (`None`: after all of them, so
-    /// the next scan starts from this one's final weights).
-    pub hand_off: Option<usize>,
-}
-
-impl<'d> DecodeStage<'d> {
-    /// Prepares every extra grid once (their Fourier bases are shared by all scans).
-    pub fn new(decoder: &'d Decoder, outputs: &DecodeOutputs) -> anyhow::Result<Self> {
-        let model = decoder.model_grid();
-        let mut extra_grids = Vec::new();
-        for &f in &outputs.upsample {
-            if !(1..=8).contains(&f) {
-                anyhow::bail!("--upsample {f}: factors from 1 to 8 are supported");
-            }
-            let grid = model.resized(model.height * f, model.width * f);
-            extra_grids.push((
-                format!("{}x{}", grid.height, grid.width),
-                decoder.prepare(&grid),
-            ));
-        }
-        for p in &outputs.target_sensors {
-            let name: String = p
-                .name
-                .chars()
-                .map(|c| {
-                    if c.is_ascii_alphanumeric() {
-                        c.to_ascii_lowercase()
-                    } else {
-                        '_'
-                    }
-                })
-                .collect();
-            extra_grids.push((name, decoder.prepare(&p.angle_grid())));
-        }
-        Ok(DecodeStage {
-            decoder,
-            mask_samples: outputs.mask_samples,
-            extra_grids,
-            fill: outputs.fill,
-            hand_off: outputs.hand_off,
-        })
-    }
-
-    /// The channels (suffixes) [`run`](Self::run) writes; `raydrop_mask` stands for every mask.
-    pub fn channel_names(&self) -> Vec<String> {
-        let mut names: Vec<String> = ["depth", "x_d", "raydrop_prob", "raydrop_mask", "points"]
-            .map(String::from)
-            .into();
-        for (suffix, _) in &self.extra_grids {
-            names.extend([format!("depth_{suffix}"), format!("points_{suffix}")]);
-        }
-        names
-    }
-
-    /// Decode one scan and encode its channels. A chained scan hands its weights on to the
-    /// chain after [`DecodeOutputs::hand_off`] steps and finishes later.
-    pub fn run<'s>(&'s self, input: &ScanInput<'_>) -> anyhow::Result<Staged<'s>> {
-        let seed = scan_seed(input.topic, input.log_time);
-        let stamp = (input.family, input.cloud.stamp_nanos);
-        let frame = input.cloud.frame_id.clone();
-        let Some(chain) = input.chain else {
-            let decoded = self.decoder.decode(input.image, seed)?;
-            return Ok(Staged::Done(self.outputs(&decoded, stamp, &frame)));
-        };
-        let mut state = chain.lock().unwrap_or_else(|e| e.into_inner());
-        let Some(hand_off) = self.hand_off else {
-            let decoded = (self.decoder).decode_from(input.image, seed, state.as_ref())?;
-            *state = Some(decoded.tuned_generator().clone());
-            return Ok(Staged::Done(self.outputs(&decoded, stamp, &frame)));
-        };
-        let (handed, partial) =
-            (self.decoder).begin(input.image, seed, state.as_ref(), hand_off)?;
-        *state = Some(handed);
-        Ok(Staged::Later(Box::new(move || {
-            let decoded = self.decoder.finish(partial);
-            Ok(self.outputs(&decoded, stamp, &frame))
-        })))
-    }
-
-    /// The channels of one decoded scan.
-    fn outputs(
-        &self,
-        decoded: &Decoded,
-        (family, stamp): (Family, u64),
-        frame: &str,
-    ) -> Vec<StageOutput> {
-        let image = |suffix: String, r: &Rendered, values: &[f32]| StageOutput {
-            suffix,
-            kind: Kind::Image,
-            data: encode_f32_image(family, stamp, frame, (r.grid.width, r.grid.height), values),
-        };
-        let points = |suffix: String, r: &Rendered| {
-            let keep: Vec<usize> = (0..r.grid.len()).filter(|&k| r.depth_m[k] > 0.0).collect();
-            let all = r.points();
-            let xyz = keep.iter().map(|&k| all[k]).collect();
-            let range: Vec<f32> = keep.iter().map(|&k| r.depth_m[k]).collect();
-            let drop: Vec<f32> = keep.iter().map(|&k| r.drop_prob[k]).collect();
-            StageOutput {
-                suffix,
-                kind: Kind::Cloud,
-                data: encode_points(
-                    family,
-                    stamp,
-                    frame,
-                    xyz,
-                    &[("range", &range), ("raydrop_prob", &drop)],
-                ),
-            }
-        };
-        let model = decoded.model_output(self.fill);
-        let m = &model;
-        let mut out = vec![
-            image("depth".into(), m, &m.depth_m),
-            image("x_d".into(), m, &decoded.model.depth_m),
-            image("raydrop_prob".into(), m, &m.drop_prob),
-        ];
-        for (i, mask) in decoded.sample_masks(self.mask_samples).iter().enumerate() {
-            out.push(StageOutput {
-                suffix: if i == 0 {
-                    "raydrop_mask".into()
-                } else {
-                    format!("raydrop_mask_{i}")
-                },
-                kind: Kind::Image,
-                data: encode_mask(family, stamp, frame, (m.grid.width, m.grid.height), mask),
-            });
-        }
-        out.push(points("points".into(), m));
-        for (suffix, grid) in &self.extra_grids {
-            let r = decoded.render_output(grid, self.fill);
-            out.push(image(format!("depth_{suffix}"), &r, &r.depth_m));
-            out.push(points(format!("points_{suffix}"), &r));
-        }
-        out
-    }
-}
 
 /// Per-topic results for the summary.
 #[derive(Debug, Clone, Default, serde::Serialize)]
@@ -402,6 +246,10 @@ struct ScanProcessor<'a, 's> {
     profiles: Mutex<HashMap<(String, LayoutKey), (SensorProfile, Strategy)>>,
     file: std::path::PathBuf,
     fit_warnings: Mutex<Vec<Warning>>,
+    /// Per topic: whether the decoding model covers its sensor (see [`PriorUse`]).
+    coverage: Mutex<HashMap<String, bool>>,
+    /// Per topic: the recording's own drop counts, from the first pass ([`survey`]).
+    census: HashMap<String, DropCensus>,
 }
 
 /// A processed scan: the stages' outputs, the kept fraction, the profile and projection used,
@@ -448,7 +296,6 @@ impl<'s> ScanProcessor<'_, 's> {
     fn profile_for(
         &self,
         topic: &str,
-        log_time: u64,
         cloud: &DecodedCloud,
     ) -> Result<(SensorProfile, Strategy), String> {
         let mut map = self.profiles.lock().unwrap_or_else(|e| e.into_inner());
@@ -477,10 +324,35 @@ impl<'s> ScanProcessor<'_, 's> {
         };
         let strategy = self.strategy(&cloud.scan, &profile);
         map.insert(key, (profile.clone(), strategy));
-        if self.opts.check_model_fit
-            && let Some(w) = crate::decode::fit::model_fit(&cloud.scan, &profile)
-                .and_then(|f| f.warning(&format!("{}, {} beams", profile.name, profile.beams())))
-        {
+        Ok((profile, strategy))
+    }
+
+    /// Decides, on the first scan of `topic` with returns, whether the decoding model covers
+    /// its sensor, and says so where it does not (see [`PriorUse`]).
+    fn check_coverage(
+        &self,
+        topic: &str,
+        log_time: u64,
+        scan: &crate::lidar::Scan,
+        profile: &SensorProfile,
+    ) {
+        let Some(prior) = self.opts.prior else {
+            return;
+        };
+        let mut coverage = self.coverage.lock().unwrap_or_else(|e| e.into_inner());
+        if coverage.contains_key(topic) {
+            return;
+        }
+        let Some(fit) = crate::decode::fit::model_fit(scan, profile) else {
+            return;
+        };
+        coverage.insert(topic.to_string(), fit.covers());
+        let sensor = format!("{}, {} beams", profile.name, profile.beams());
+        let message = match prior {
+            PriorUse::Always => fit.warning(&sensor),
+            PriorUse::WhereCovered => (!fit.covers()).then(|| fit.prior_free_note(&sensor)),
+        };
+        if let Some(w) = message {
             let loc = Location::message(&self.file, topic, log_time);
             let mut warnings = self.fit_warnings.lock().unwrap_or_else(|e| e.into_inner());
             warnings.push(Warning {
@@ -489,7 +361,43 @@ impl<'s> ScanProcessor<'_, 's> {
                 message: format!("{loc}: {w}"),
             });
         }
-        Ok((profile, strategy))
+    }
+
+    /// Fixes the profile (and coverage) of each topic of `batch` not seen before on its first
+    /// scan in file order, before the batch's scans run in parallel: otherwise whichever scan
+    /// a thread reached first would choose, and two runs could project on different grids.
+    fn fix_profiles(&self, batch: &[Pending]) {
+        for p in batch {
+            let known = {
+                let map = self.profiles.lock().unwrap_or_else(|e| e.into_inner());
+                map.keys().any(|(t, _)| *t == p.topic)
+            };
+            if known && !self.coverage_pending(&p.topic) {
+                continue;
+            }
+            if let Ok(cloud) = decode_cloud(p.format, &p.data)
+                && let Ok((profile, _)) = self.profile_for(&p.topic, &cloud)
+            {
+                self.check_coverage(&p.topic, p.log_time, &cloud.scan, &profile);
+            }
+        }
+    }
+
+    /// Whether `topic`'s coverage is still to be decided (decoding, and no scan with returns
+    /// seen yet).
+    fn coverage_pending(&self, topic: &str) -> bool {
+        let coverage = self.coverage.lock().unwrap_or_else(|e| e.into_inner());
+        self.opts.prior.is_some() && !coverage.contains_key(topic)
+    }
+
+    /// Whether `topic`'s scans go through the model: always with [`PriorUse::Always`], else
+    /// where it covers the sensor (true until a scan with returns says).
+    fn covered(&self, topic: &str) -> bool {
+        if self.opts.prior == Some(PriorUse::Always) {
+            return true;
+        }
+        let coverage = self.coverage.lock().unwrap_or_else(|e| e.into_inner());
+        coverage.get(topic).copied().unwrap_or(true)
     }
 
     /// The row strategy for `scan`: `--projection`, or else chosen from the data.
@@ -504,7 +412,8 @@ impl<'s> ScanProcessor<'_, 's> {
     /// the rest).
     fn begin(&self, p: &Pending, chain: Option<&ChainState>) -> Result<Begun<'s>, String> {
         let cloud = decode_cloud(p.format, &p.data).map_err(|e| e.to_string())?;
-        let (profile, strategy) = self.profile_for(&p.topic, p.log_time, &cloud)?;
+        let (profile, strategy) = self.profile_for(&p.topic, &cloud)?;
+        self.check_coverage(&p.topic, p.log_time, &cloud.scan, &profile);
         let image = project(&cloud.scan, &profile, strategy).map_err(|e| e.to_string())?;
         let returns = cloud.scan.returns().max(1);
         let kept = image.valid_count() as f64 / returns as f64;
@@ -514,6 +423,8 @@ impl<'s> ScanProcessor<'_, 's> {
             family: p.format.family(),
             cloud: &cloud,
             image: &image,
+            covered: self.covered(&p.topic),
+            census: self.census.get(&p.topic),
             chain,
         };
         // One failing stage (e.g. a scan with nothing to decode) does not cost the others.
@@ -599,6 +510,7 @@ impl Converter<'_, '_> {
 
     fn flush(&mut self) -> anyhow::Result<()> {
         let batch = std::mem::take(&mut self.batch);
+        self.processor.fix_profiles(&batch);
         let results = self.process_batch(&batch);
         for (p, result) in batch.iter().zip(results) {
             let topic_report = self.report.topics.entry(p.topic.clone()).or_default();
@@ -749,6 +661,8 @@ pub fn convert(
             profiles: Mutex::new(HashMap::new()),
             file: input.to_path_buf(),
             fit_warnings: Mutex::new(Vec::new()),
+            coverage: Mutex::new(HashMap::new()),
+            census: HashMap::new(),
         },
         file: input.to_path_buf(),
         table: ChannelTable::default(),
@@ -758,6 +672,7 @@ pub fn convert(
         scans_done: 0,
         report: ConvertReport::default(),
     };
+    survey::survey(&mut conv.processor, &mut src, file_len);
     let scans = std::cell::Cell::new(0u64);
     let read = read_records(
         src,

@@ -1,0 +1,58 @@
+//! The first pass of a conversion that decodes: each converted topic's profile, row strategy
+//! and coverage are fixed on its first scans in file order, and every topic's drops are
+//! counted ([`DropCensus`]), so each scan's `raydrop_prob` can draw on the recording's other
+//! scans. Damaged records are passed over here; the main pass reports them.
+
+use std::collections::HashMap;
+use std::io::{Read, Seek};
+
+use mcap::records::Record;
+
+use super::{Converter, ScanProcessor};
+use crate::io::{ChannelTable, OnError, decode_cloud, read_records};
+use crate::lidar::drop_census::DropCensus;
+use crate::lidar::project;
+
+/// Runs the first pass over `src` and leaves its counts in `processor`.
+pub(super) fn survey(
+    processor: &mut ScanProcessor<'_, '_>,
+    src: &mut (impl Read + Seek),
+    file_len: Option<u64>,
+) {
+    if processor.opts.prior.is_none() {
+        return;
+    }
+    let mut table = ChannelTable::default();
+    let mut census: HashMap<String, DropCensus> = HashMap::new();
+    let opts = processor.opts;
+    let proc_ref = &*processor;
+    let visit = |record: &Record<'_>| {
+        table.observe(record);
+        let Record::Message { header, data } = record else {
+            return Ok(());
+        };
+        let Some(channel) = table.get(header.channel_id) else {
+            return Ok(());
+        };
+        let Some(format) = Converter::converted(opts, channel) else {
+            return Ok(());
+        };
+        let Ok(cloud) = decode_cloud(format, data) else {
+            return Ok(());
+        };
+        let topic = &channel.topic;
+        let Ok((profile, strategy)) = proc_ref.profile_for(topic, &cloud) else {
+            return Ok(());
+        };
+        proc_ref.check_coverage(topic, header.log_time, &cloud.scan, &profile);
+        if let Ok(image) = project(&cloud.scan, &profile, strategy) {
+            (census.entry(topic.clone()))
+                .or_insert_with(|| DropCensus::new(image.height, image.width))
+                .add(&image);
+        }
+        Ok(())
+    };
+    // A file the main pass cannot read either: it says why.
+    let _ = read_records(&mut *src, file_len, OnError::Skip, visit, |_| {});
+    processor.census = census;
+}
