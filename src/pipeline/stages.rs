@@ -223,9 +223,13 @@ impl<'d> DecodeStage<'d> {
             (main, decoded.model.depth_m.clone(), extra)
         } else {
             let grids = self.grids(&observed.angles);
-            // On the model grid the decode has rendered it already.
-            let rendered = match grids.own.grid == decoded.model.grid {
-                true => decoded.model.clone(),
+            // On the model grid (or one within a fraction of a degree of it, as an estimated
+            // HDL-64E table is) the decode has rendered it already.
+            let rendered = match near_grid(&grids.own.grid, &decoded.model.grid) {
+                true => Rendered {
+                    grid: grids.own.grid.clone(),
+                    ..decoded.model.clone()
+                },
                 false => decoded.render_prepared(&grids.own),
             };
             let x_d = rendered.depth_m.clone();
@@ -312,6 +316,21 @@ impl<'d> DecodeStage<'d> {
         }
         channels
     }
+}
+
+/// How far (radians) a pixel of a sensor's grid may look from the model grid's pixel for the
+/// model's rendering to stand for a rendering of its own: a quarter of the HDL-64E's beam
+/// spacing (an HDL-64E table estimated from a scan is within 0.06 deg of the model's).
+const NEAR_GRID_RAD: f32 = 0.1 * std::f32::consts::PI / 180.0;
+
+/// Whether grids `a` and `b` have the same size and every pixel of `a` looks within
+/// [`NEAR_GRID_RAD`] of `b`'s.
+fn near_grid(a: &AngleGrid, b: &AngleGrid) -> bool {
+    let close = |x: &[f32], y: &[f32]| x.iter().zip(y).all(|(p, q)| (p - q).abs() <= NEAR_GRID_RAD);
+    (a.height, a.width) == (b.height, b.width)
+        && a.len() == b.len()
+        && close(&a.elevation_rad, &b.elevation_rad)
+        && close(&a.azimuth_rad, &b.azimuth_rad)
 }
 
 /// `r`'s drop probability on another grid (nearest pixel; 1 outside its rows).
