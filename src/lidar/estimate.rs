@@ -730,6 +730,30 @@ mod tests {
         assert_eq!(text.lines().count(), 5 + 1 + 32, "{text}");
     }
 
+    /// A cloud in firing order (every beam of a column, then the next column), starting a
+    /// little before straight ahead as a Hesai XT32's does: the azimuth wraps once inside
+    /// it, which KITTI's ring order would read as two "rings" of every beam. Each such ring
+    /// spreads over the whole field of view, so it is not taken for ring order; the
+    /// clustering finds the 32 beams.
+    #[test]
+    fn a_cloud_in_firing_order_is_not_read_as_ring_order() {
+        let table: Vec<f32> = (0..32).map(|b| 15.0 - b as f32).collect();
+        let mut rng = Rng(7);
+        let columns = 2000;
+        let mut xyz = Vec::new();
+        for c in 0..columns {
+            let az = -0.2 + c as f32 * TAU / columns as f32;
+            for e in &table {
+                let e = (e + 0.02 * rng.normal()).to_radians();
+                let r = 3.0 + 30.0 * rng.next();
+                xyz.push([r * e.cos() * az.cos(), r * e.cos() * az.sin(), r * e.sin()]);
+            }
+        }
+        let est = estimate_profile(&[Scan::from_xyz(xyz)]).unwrap();
+        assert_eq!(est.method, EstimateMethod::ElevationClusters, "{est:#}");
+        assert_eq!(est.beams.len(), 32, "{est:#}");
+    }
+
     #[test]
     fn empty_and_degenerate_input_is_an_error() {
         assert_eq!(estimate_profile(&[]).unwrap_err(), EstimateError::NoScans);
