@@ -1,8 +1,9 @@
-//! `rangegan-mcap import DIR OUT`: a KITTI / SemanticKITTI folder becomes an MCAP of
-//! ROS 2 PointCloud2 messages (x, y, z, intensity, ring, label) at 10 Hz, so
-//! datasets and recordings go through one path. Labels come from SemanticKITTI
-//! `labels/*.label` files, or from KITTI object boxes (`label_2/` with `calib/`) as the
-//! partial labels of [`kitti_boxes`].
+//! `rangegan-mcap import DIR OUT`: a folder of scans becomes an MCAP of ROS 2 PointCloud2
+//! messages at 10 Hz, so datasets and recordings go through one path. KITTI / SemanticKITTI
+//! `.bin` scans (x, y, z, intensity, their ring order made a ring field, labels), nuScenes
+//! `.pcd.bin` scans (with their ring field) and `.pcd` files (ASCII or binary, any sensor,
+//! with the fields they hold). Labels come from SemanticKITTI `labels/*.label` files, or from
+//! KITTI object boxes (`label_2/` with `calib/`) as the partial labels of [`kitti_boxes`].
 
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
@@ -12,14 +13,15 @@ use anyhow::{Context, bail};
 use super::{GlobalArgs, Outcome};
 use crate::io::Family;
 use crate::io::encoders::{Kind, encode_cloud};
-use crate::lidar::{kitti, kitti_boxes, projection::ring_order_ids};
+use crate::lidar::{kitti, kitti_boxes, nuscenes, pcd, projection::ring_order_ids};
 
 #[derive(Debug, clap::Args)]
 pub struct ImportArgs {
-    /// Dataset folder: holds `velodyne/*.bin` (or the `.bin` files themselves) and
-    /// optionally `labels/*.label`, or KITTI object boxes in `label_2/*.txt` with
+    /// Dataset folder: holds KITTI scans in `velodyne/*.bin` (or the `.bin` files themselves)
+    /// and optionally `labels/*.label`, or KITTI object boxes in `label_2/*.txt` with
     /// `calib/*.txt` (cars and pedestrians labelled, the rest of the camera's view marked as
-    /// neither).
+    /// neither); or nuScenes `*.pcd.bin` scans; or `*.pcd` files of any sensor. Scans are
+    /// written in file-name order.
     pub dir: PathBuf,
     #[command(flatten)]
     pub out: super::CloudOutputArgs,
@@ -61,8 +63,83 @@ impl Labels {
 /// A dataset folder's scans, sorted, each with its labels if present, and
 /// warnings for files that cannot take part (label files that match no scan).
 struct Dataset {
+    format: ScanFormat,
     scans: Vec<(PathBuf, Option<Labels>)>,
     warnings: Vec<String>,
+}
+
+/// How a folder's scans are stored.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum ScanFormat {
+    /// KITTI `.bin`: float32 x, y, z, reflectance, ring after ring.
+    Kitti,
+    /// nuScenes `.pcd.bin`: float32 x, y, z, intensity, ring.
+    NuScenes,
+    /// Point Cloud Data files.
+    Pcd,
+}
+
+impl ScanFormat {
+    /// Reads one scan; KITTI's ring order becomes a ring field.
+    fn read(self, path: &Path, labels: Option<&Labels>) -> anyhow::Result<crate::lidar::Scan> {
+        Ok(match self {
+            ScanFormat::Kitti => {
+                let mut scan = match labels {
+                    Some(labels) => labels.attach(path)?,
+                    None => kitti::read_bin(path)?,
+                };
+                // KITTI stores rings one after another; make the ring explicit for every reader.
+                scan.ring = Some(
+                    ring_order_ids(&scan)
+                        .into_iter()
+                        .map(|r| r.min(u16::MAX as u32) as u16)
+                        .collect(),
+                );
+                scan
+            }
+            ScanFormat::NuScenes => nuscenes::read_bin(path)?,
+            ScanFormat::Pcd => pcd::read_pcd(path)?,
+        })
+    }
+}
+
+fn is_nuscenes(p: &Path) -> bool {
+    p.to_string_lossy()
+        .to_ascii_lowercase()
+        .ends_with(".pcd.bin")
+}
+
+/// The folder's nuScenes or PCD scans, when it holds no KITTI `.bin`; an error when it
+/// holds scans of more than one kind.
+fn other_format(
+    dir: &Path,
+    bins: &[PathBuf],
+) -> anyhow::Result<Option<(ScanFormat, Vec<PathBuf>)>> {
+    let nus: Vec<PathBuf> = bins.iter().filter(|p| is_nuscenes(p)).cloned().collect();
+    let pcds = files_with_extension(dir, "pcd")?;
+    let kitti = bins.len() - nus.len();
+    let kinds = [
+        (kitti, ".bin (KITTI)"),
+        (nus.len(), ".pcd.bin (nuScenes)"),
+        (pcds.len(), ".pcd"),
+    ];
+    let present: Vec<&str> = kinds
+        .iter()
+        .filter(|(n, _)| *n > 0)
+        .map(|(_, k)| *k)
+        .collect();
+    if present.len() > 1 {
+        bail!(
+            "{}: holds scans of more than one kind ({}); import each kind from a folder of its own",
+            dir.display(),
+            present.join(", ")
+        );
+    }
+    Ok(match (nus.is_empty(), pcds.is_empty()) {
+        (false, _) => Some((ScanFormat::NuScenes, nus)),
+        (true, false) => Some((ScanFormat::Pcd, pcds)),
+        (true, true) => None,
+    })
 }
 
 fn files_with_extension(dir: &Path, ext: &str) -> anyhow::Result<Vec<PathBuf>> {
@@ -116,8 +193,19 @@ fn dataset_files(dir: &Path) -> anyhow::Result<Dataset> {
         dir.to_path_buf()
     };
     let bins = files_with_extension(&velodyne, "bin")?;
+    if let Some((format, files)) = other_format(&velodyne, &bins)? {
+        let scans = files.into_iter().map(|f| (f, None)).collect();
+        return Ok(Dataset {
+            format,
+            scans,
+            warnings: Vec::new(),
+        });
+    }
     if bins.is_empty() {
-        bail!("{}: no .bin scans (expected velodyne/*.bin)", dir.display());
+        bail!(
+            "{}: no scans (expected KITTI velodyne/*.bin, nuScenes *.pcd.bin or *.pcd files)",
+            dir.display()
+        );
     }
     let mut labels = files_with_extension(&dir.join("labels"), "label")?;
     labels.extend(files_with_extension(&velodyne, "label")?);
@@ -174,11 +262,16 @@ fn dataset_files(dir: &Path) -> anyhow::Result<Dataset> {
             unlabelled[0].0.display()
         ));
     }
-    Ok(Dataset { scans, warnings })
+    Ok(Dataset {
+        format: ScanFormat::Kitti,
+        scans,
+        warnings,
+    })
 }
 
 pub fn run(global: &GlobalArgs, args: ImportArgs) -> anyhow::Result<Outcome> {
     let Dataset {
+        format,
         scans: files,
         mut warnings,
     } = dataset_files(&args.dir)?;
@@ -205,15 +298,11 @@ pub fn run(global: &GlobalArgs, args: ImportArgs) -> anyhow::Result<Outcome> {
     let mut labelled = 0u64;
     let mut unreadable = 0usize;
     for (bin, label) in &files {
-        let read = match label {
-            Some(labels) => labels.attach(bin),
-            None => kitti::read_bin(bin),
-        };
-        let mut scan = match read {
+        let scan = match format.read(bin, label.as_ref()) {
             Ok(scan) => scan,
             Err(e) => {
                 // One bad file does not cost the others (errors name the file).
-                warnings.push(format!("{e}; scan not written"));
+                warnings.push(format!("{e:#}; scan not written"));
                 unreadable += 1;
                 bar.inc(1);
                 continue;
@@ -227,13 +316,6 @@ pub fn run(global: &GlobalArgs, args: ImportArgs) -> anyhow::Result<Outcome> {
             bar.inc(1);
             continue;
         }
-        // KITTI stores rings one after another; make the ring explicit for every reader.
-        scan.ring = Some(
-            ring_order_ids(&scan)
-                .into_iter()
-                .map(|r| r.min(u16::MAX as u32) as u16)
-                .collect(),
-        );
         let stamp = start_nanos + written * 100_000_000;
         written += 1;
         labelled += u64::from(label.is_some());

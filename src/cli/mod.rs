@@ -54,7 +54,8 @@ pub enum Command {
     Diagnose(diagnose::DiagnoseArgs),
     /// Channels, schemas, message counts, point-cloud topics and their sensor layout.
     Info(info::InfoArgs),
-    /// Turn a KITTI / SemanticKITTI folder into an MCAP of ROS 2 PointCloud2 messages.
+    /// Turn a folder of scans (KITTI / SemanticKITTI `.bin`, nuScenes `.pcd.bin`, `.pcd`) into an
+    /// MCAP of ROS 2 PointCloud2 messages.
     Import(import::ImportArgs),
     /// Apply (fitted) physics or a baseline ray-drop model to a simulated recording.
     Render(render::RenderArgs),
