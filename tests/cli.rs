@@ -123,7 +123,11 @@ fn import_of_an_empty_folder_is_a_clear_error() {
         dir.path().join("o.mcap").to_str().unwrap(),
     ]);
     assert_eq!(o.status.code(), Some(1));
-    assert!(stderr(&o).contains("no scans (expected KITTI velodyne/*.bin"), "{}", stderr(&o));
+    assert!(
+        stderr(&o).contains("no scans (expected KITTI velodyne/*.bin"),
+        "{}",
+        stderr(&o)
+    );
     assert!(!dir.path().join("o.mcap").exists());
 }
 

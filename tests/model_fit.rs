@@ -172,7 +172,7 @@ fn a_named_model_decodes_every_topic_and_says_how_far_it_is() {
 
 /// A full-resolution KITTI scan (about 2 000 columns) is decoded through the model and
 /// written on its own grid: `depth`, `x_d` and `raydrop_prob` as wide as `range`, every return
-/// kept.
+/// kept; `--upsample 2` doubles that grid.
 #[test]
 fn full_resolution_kitti_is_decoded_on_its_own_columns() {
     let Some(root) = real_root("full_resolution_kitti_is_decoded_on_its_own_columns") else {
@@ -202,6 +202,16 @@ fn full_resolution_kitti_is_decoded_on_its_own_columns() {
         rendered as f64 > 0.95 * r.len() as f64,
         "x_d covers the HDL-64E's rows"
     );
+    // `--upsample 2` doubles the scan's own grid, and `--channels` takes its name.
+    let name = format!("depth_128x{}", 2 * w);
+    let (_, output) = convert(
+        &input,
+        dir.path(),
+        &["--upsample", "2", "--channels", &name],
+    );
+    let up = images(&output, &format!("/points/rangegan/{name}"));
+    assert_eq!((up[0].0, up[0].1), (128, 2 * w));
+    assert!(images(&output, "/points/rangegan/depth").is_empty());
 }
 
 /// Folders of PCD files (an HDL-32E-like pair) and of nuScenes `.pcd.bin` scans import and

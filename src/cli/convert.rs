@@ -475,7 +475,18 @@ impl<'d> FileConverter<'d> {
         let known: Vec<String> = std::iter::once("range".to_string())
             .chain(decode_stage.iter().flat_map(|s| s.channel_names()))
             .collect();
-        if let Some(unknown) = args.channels.iter().find(|c| !known.contains(c)) {
+        // Upsampled grids are named by their size, which follows each sensor's grid.
+        let upsampled = |c: &str| {
+            let size = c
+                .strip_prefix("depth_")
+                .or_else(|| c.strip_prefix("points_"));
+            let dims = size.and_then(|s| s.split_once('x'));
+            !args.upsample.is_empty()
+                && dims
+                    .is_some_and(|(h, w)| h.parse::<usize>().is_ok() && w.parse::<usize>().is_ok())
+        };
+        let unknown = (args.channels.iter()).find(|c| !known.contains(c) && !upsampled(c));
+        if let Some(unknown) = unknown {
             bail!(
                 "--channels {unknown}: this conversion writes {}{}",
                 known.join(", "),
