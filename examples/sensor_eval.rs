@@ -1,5 +1,5 @@
 //! What `convert` writes for real recordings of several makes, judged on each sensor's own
-//! pixels: KITTI's HDL-64E at the model's 512 columns and at full resolution, a real OS1-64
+//! pixels: KITTI's HDL-64E (the validation drive, SemanticKITTI 00, full resolution), a real OS1-64
 //! recording, an HDL-32E-like pair, nuScenes' HDL-32E, an indoor VLP-16, a Hesai XT32 and a
 //! VLS-128 (from `../shared/real_lidar`). Per recording:
 //!
@@ -7,7 +7,9 @@
 //!   and the share of the sensor's returns that land on a row of `depth` at all;
 //! - `depth` at the returns: relative L1 against `range`;
 //! - `raydrop_prob`: NLL per pixel of each scan's actual drops, beside the per-row drop rate
-//!   of the recording's other scans (of the scan itself where a recording has one scan).
+//!   of the recording's other scans (of the scan itself where a recording has one scan), the
+//!   recording's own per-pixel rates (`DropCensus`) and products of `raydrop_prob` with them
+//!   at three weights (how the weight `convert` uses was chosen, on the validation drive).
 //!
 //! With `--old BINARY` the same rows for another build, side by side. A build whose outputs
 //! lie on another grid than the sensor's is scored where its pixels are: each of the sensor's
@@ -417,7 +419,7 @@ fn main() -> Result<()> {
     let dir = tempfile::tempdir()?;
     let cases = cases(&data, dir.path())?;
     println!(
-        "| recording | build | `depth` grid (range grid) | returns on a row | depth rel. L1 at returns | x_n NLL | per-row rate NLL | recording's rates NLL | blends 0.3 / 0.5 / 0.7 | x_n / per-row |"
+        "| recording | build | `depth` grid (range grid) | returns on a row | depth rel. L1 at returns | x_n NLL | per-row rate NLL | recording's rates NLL | products at weights {BLENDS:?} | x_n / per-row |"
     );
     println!("|---|---|---|---|---|---|---|---|---|---|");
     for case in &cases {
