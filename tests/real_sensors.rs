@@ -113,3 +113,39 @@ fn a_ring_field_in_elevation_order_keeps_every_beam_on_its_row() {
         assert_eq!(wrong, 0, "beams {removed:?} removed: {wrong} pixels moved");
     }
 }
+
+/// The built-in Hesai PandarXT32 and Velodyne VLS-128 beam tables match the real units'
+/// calibration files in `../shared/real_lidar/other_sensors` (nebula's decoder tests): every
+/// beam within 0.1 deg (XT32: 1 deg apart) and 0.01 deg (VLS-128: the maker's table).
+#[test]
+fn the_hesai_and_vls128_built_ins_match_real_calibrations() {
+    let Some(root) = real_data("the_hesai_and_vls128_built_ins_match_real_calibrations") else {
+        return;
+    };
+    let dir = root.join("other_sensors");
+    let sorted = |mut v: Vec<f32>| {
+        v.sort_by(|a, b| b.total_cmp(a));
+        v
+    };
+    let csv = std::fs::read_to_string(dir.join("nebula_hesai_xt32/PandarXT32.csv")).unwrap();
+    let xt32: Vec<f32> = (csv.lines().skip(1))
+        .filter_map(|l| l.split(',').nth(1)?.trim().parse().ok())
+        .collect();
+    let yaml = std::fs::read_to_string(dir.join("nebula_velodyne_vls128/VLS128.yaml")).unwrap();
+    let vls: Vec<f32> = (yaml.lines())
+        .filter_map(|l| l.trim().strip_prefix("vert_correction:"))
+        .filter_map(|v| v.trim().trim_end_matches(',').parse::<f32>().ok())
+        .map(f32::to_degrees)
+        .collect();
+    for (name, real, tolerance) in [("pandarxt32", xt32, 0.1), ("vls128", vls, 0.01)] {
+        let table = SensorProfile::builtin(name).unwrap().elevation_deg;
+        let real = sorted(real);
+        assert_eq!(table.len(), real.len(), "{name}");
+        for (t, r) in table.iter().zip(&real) {
+            assert!((t - r).abs() < tolerance, "{name}: {t} vs {r}");
+        }
+    }
+    let pandar64 = SensorProfile::builtin("pandar64").unwrap();
+    assert_eq!(pandar64.beams(), 64);
+    pandar64.validate().unwrap();
+}

@@ -36,9 +36,9 @@ pub struct ConvertArgs {
     /// Point-cloud topics to process (repeatable); default: every point-cloud topic.
     #[arg(long)]
     pub topic: Vec<String>,
-    /// Sensor profile: `auto`, a built-in name (hdl64e, hdl32e, vlp16, vlp32c; Ouster
-    /// os0-N, os1-N (gen 2), os1-N-gen1, os2-N with N beams), or a profile / Ouster
-    /// metadata JSON file (a unit's own beam angles).
+    /// Sensor profile: `auto`, a built-in name (hdl64e, hdl32e, vlp16, vlp32c, vls128,
+    /// pandar64, pandarxt32; Ouster os0-N, os1-N (gen 2), os1-N-gen1, os2-N with N beams), or
+    /// a profile / Ouster metadata JSON file (a unit's own beam angles).
     #[arg(long, default_value = "auto")]
     pub sensor: String,
     /// Range-image columns (default: the sensor profile's).

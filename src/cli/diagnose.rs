@@ -42,8 +42,8 @@ pub struct DiagnoseArgs {
     pub force: bool,
     /// Sensor profile both are projected onto: `auto` (the sim's `simulate`
     /// metadata, else estimated from its first scan), a built-in name (hdl64e,
-    /// hdl32e, vlp16, vlp32c, os0-N, os1-N, os1-N-gen1, os2-N), or a profile / Ouster
-    /// metadata JSON file.
+    /// hdl32e, vlp16, vlp32c, vls128, pandar64, pandarxt32, os0-N, os1-N, os1-N-gen1, os2-N),
+    /// or a profile / Ouster metadata JSON file.
     #[arg(long, default_value = "auto")]
     pub sensor: String,
     /// Range-image columns.

@@ -62,6 +62,31 @@ const VLP32C_ELEVATION_DEG: [f32; 32] = [
     -7.254, -8.843, -11.31, -15.639, -25.0,
 ];
 
+/// Hesai Pandar64 beam elevations (the maker's nominal table, as PandaSet uses it), top first:
+/// dense (0.17 deg) from +2 to -6 deg.
+const PANDAR64_ELEVATION_DEG: [f32; 64] = [
+    14.882, 11.032, 8.059, 5.057, 3.04, 2.028, 1.86, 1.688, 1.522, 1.351, 1.184, 1.013, 0.846,
+    0.675, 0.508, 0.337, 0.169, 0.0, -0.169, -0.337, -0.508, -0.675, -0.846, -1.013, -1.184,
+    -1.351, -1.522, -1.688, -1.86, -2.028, -2.198, -2.365, -2.536, -2.7, -2.873, -3.04, -3.21,
+    -3.375, -3.548, -3.712, -3.884, -4.05, -4.221, -4.385, -4.558, -4.72, -4.892, -5.057, -5.229,
+    -5.391, -5.565, -5.726, -5.898, -6.061, -7.063, -8.059, -9.06, -9.885, -11.032, -12.006,
+    -12.974, -13.93, -18.889, -24.897,
+];
+
+/// Velodyne VLS-128 (Alpha Prime) beam elevations (the maker's table, the same as nebula's
+/// `VLS128.yaml` calibration), sorted top first.
+const VLS128_ELEVATION_DEG: [f32; 128] = [
+    15.0, 11.75, 9.7, 8.43, 7.58, 6.98, 6.48, 6.08, 5.73, 5.43, 5.18, 4.98, 4.83, 4.72, 4.61, 4.5,
+    4.39, 4.28, 4.17, 4.06, 3.95, 3.84, 3.73, 3.62, 3.51, 3.4, 3.29, 3.18, 3.07, 2.96, 2.85, 2.74,
+    2.63, 2.52, 2.41, 2.3, 2.19, 2.08, 1.97, 1.86, 1.75, 1.64, 1.53, 1.42, 1.31, 1.2, 1.09, 0.98,
+    0.87, 0.76, 0.65, 0.54, 0.43, 0.32, 0.21, 0.1, -0.01, -0.12, -0.23, -0.34, -0.45, -0.56, -0.67,
+    -0.78, -0.89, -1.0, -1.11, -1.22, -1.33, -1.44, -1.55, -1.66, -1.77, -1.88, -1.99, -2.1, -2.21,
+    -2.32, -2.43, -2.54, -2.65, -2.76, -2.87, -2.98, -3.09, -3.2, -3.31, -3.42, -3.53, -3.64,
+    -3.75, -3.86, -3.97, -4.08, -4.19, -4.3, -4.41, -4.52, -4.63, -4.74, -4.85, -4.96, -5.07,
+    -5.18, -5.29, -5.4, -5.51, -5.62, -5.73, -5.84, -5.95, -6.06, -6.17, -6.28, -6.39, -6.5, -6.65,
+    -6.85, -7.15, -7.65, -8.352, -9.244, -10.346, -11.742, -13.565, -16.042, -19.582, -25.0,
+];
+
 fn uniform(top_deg: f32, bottom_deg: f32, beams: usize) -> Vec<f32> {
     let step = (top_deg - bottom_deg) / (beams - 1) as f32;
     (0..beams).map(|i| top_deg - step * i as f32).collect()
@@ -86,11 +111,14 @@ pub fn check_columns(columns: usize) -> Result<(), String> {
 
 impl SensorProfile {
     /// Names accepted by [`SensorProfile::builtin`].
-    pub const BUILTIN: [&'static str; 16] = [
+    pub const BUILTIN: [&'static str; 19] = [
         "hdl64e",
         "hdl32e",
         "vlp16",
         "vlp32c",
+        "vls128",
+        "pandar64",
+        "pandarxt32",
         "os0-32",
         "os0-64",
         "os0-128",
@@ -135,6 +163,10 @@ impl SensorProfile {
             "hdl32e" => make(uniform(10.67, -30.67, 32), 1084, 0.5, 70.0),
             "vlp16" => make(uniform(15.0, -15.0, 16), 1800, 0.4, 100.0),
             "vlp32c" => make(VLP32C_ELEVATION_DEG.to_vec(), 1800, 0.5, 200.0),
+            "vls128" => make(VLS128_ELEVATION_DEG.to_vec(), 1800, 1.0, 245.0),
+            "pandar64" => make(PANDAR64_ELEVATION_DEG.to_vec(), 1800, 0.3, 200.0),
+            // Hesai PandarXT32: +15 to -16 deg, 1 deg apart, 0.18 deg at 10 Hz.
+            "pandarxt32" => make(uniform(15.0, -16.0, 32), 2000, 0.05, 120.0),
             // Ouster, uniform beam spacing as the data sheets give it (a unit's own
             // `beam_altitude_angles`, e.g. a gradient or below-horizon OS1-32, come with its
             // metadata JSON: `--sensor metadata.json`). OS1 gen 2 and later: 45 deg of
