@@ -75,6 +75,7 @@ const PANDAR64_ELEVATION_DEG: [f32; 64] = [
 
 /// Velodyne VLS-128 (Alpha Prime) beam elevations (the maker's table, the same as nebula's
 /// `VLS128.yaml` calibration), sorted top first.
+#[allow(clippy::approx_constant)] // -6.28 deg is a beam, not -tau
 const VLS128_ELEVATION_DEG: [f32; 128] = [
     15.0, 11.75, 9.7, 8.43, 7.58, 6.98, 6.48, 6.08, 5.73, 5.43, 5.18, 4.98, 4.83, 4.72, 4.61, 4.5,
     4.39, 4.28, 4.17, 4.06, 3.95, 3.84, 3.73, 3.62, 3.51, 3.4, 3.29, 3.18, 3.07, 2.96, 2.85, 2.74,
