@@ -18,9 +18,7 @@ use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
 use anyhow::{Context, Result, bail};
-use rangegan_mcap::io::decoders::{DecodedCloud, Family};
-use rangegan_mcap::io::encoders;
-use rangegan_mcap::io::wire::WireReader;
+use rangegan_mcap::io::roundtrip;
 use rangegan_mcap::lidar::{self, RangeImage, Scan, SensorProfile, Strategy};
 use rangegan_mcap::model::data::{kitti_heldout_files, kitti_validation_split};
 
@@ -174,60 +172,11 @@ fn degraded_scan(image: &RangeImage, mask: &[bool]) -> Scan {
     scan
 }
 
-/// Writes the scans as one ROS 2 recording, 100 ms apart.
-fn write(path: &Path, scans: &[Scan]) -> Result<()> {
-    let file = std::io::BufWriter::new(std::fs::File::create(path)?);
-    let mut w = mcap::WriteOptions::new().create(file)?;
-    let s = encoders::schema(Family::Ros2, encoders::Kind::Cloud);
-    let schema = w.add_schema(&s.name, &s.encoding, &s.data)?;
-    let channel = w.add_channel(schema, TOPIC, "cdr", &BTreeMap::new())?;
-    for (k, scan) in scans.iter().enumerate() {
-        let t = 1_000_000_000 + k as u64 * 100_000_000;
-        let cloud = DecodedCloud {
-            scan: scan.clone(),
-            stamp_nanos: t,
-            frame_id: "velodyne".into(),
-            notes: Vec::new(),
-        };
-        let header = mcap::records::MessageHeader {
-            channel_id: channel,
-            sequence: k as u32,
-            log_time: t,
-            publish_time: t,
-        };
-        w.write_to_known_channel(&header, &encoders::encode_scan(Family::Ros2, &cloud, &[]))?;
-    }
-    w.finish()?;
-    Ok(())
-}
-
 /// The images of channel `suffix` in `path`, in log-time order.
 fn images(path: &Path, suffix: &str) -> Result<Vec<Vec<f32>>> {
-    let bytes = std::fs::read(path)?;
     let topic = format!("{TOPIC}/rangegan/{suffix}");
-    let mut out = Vec::new();
-    for m in mcap::MessageStream::new(&bytes)? {
-        let m = m?;
-        if m.channel.topic != topic {
-            continue;
-        }
-        let mut r = WireReader::cdr(&m.data)?;
-        r.header()?;
-        r.u32("height")?;
-        r.u32("width")?;
-        r.string("encoding")?;
-        r.u8("is_bigendian")?;
-        r.u32("step")?;
-        let data = r.bytes("data")?;
-        out.push((
-            m.log_time,
-            data.chunks_exact(4)
-                .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
-                .collect(),
-        ));
-    }
-    out.sort_by_key(|(t, _)| *t);
-    Ok(out.into_iter().map(|(_, v)| v).collect())
+    let images = roundtrip::float_images(&std::fs::read(path)?, &topic)?;
+    Ok(images.into_iter().map(|i| i.values).collect())
 }
 
 /// Each missing pixel of `observed` (0 = none) on a line between the nearest returns before
@@ -353,7 +302,7 @@ fn main() -> Result<()> {
             .map(|((_, image), mask)| degraded_scan(image, mask))
             .collect();
         let (input, output) = (dir.path().join("in.mcap"), dir.path().join("out.mcap"));
-        write(&input, &degraded)?;
+        roundtrip::write_scans(&input, TOPIC, "velodyne", &degraded)?;
         let status = std::process::Command::new(&bin)
             .args(["--quiet", "convert"])
             .arg(&input)

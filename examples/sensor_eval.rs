@@ -20,25 +20,18 @@
 //!     cargo run --release --example sensor_eval -- [--data ../shared/real_lidar] [--old BIN]
 //!         [-- CONVERT FLAGS...]
 
-use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
 use anyhow::{Context, Result, bail};
-use rangegan_mcap::io::decoders::{CloudFormat, DecodedCloud, Family, decode_cloud};
-use rangegan_mcap::io::encoders;
-use rangegan_mcap::io::wire::WireReader;
-use rangegan_mcap::lidar::drop_census::{DropCensus, row_rates as row_rates_of};
+use rangegan_mcap::io::decoders::{CloudFormat, decode_cloud};
+use rangegan_mcap::io::roundtrip::{self, FloatImage as Image};
+use rangegan_mcap::lidar::drop_census::{
+    DropCensus, combine_with_rates, pixel_nll, row_rates as row_rates_of,
+};
 use rangegan_mcap::lidar::projection::ring_order_ids;
 use rangegan_mcap::lidar::{Scan, estimate_profile, kitti, nuscenes, pcd};
 
 const TOPIC: &str = "/points";
-
-/// One image message: its size and values.
-struct Image {
-    height: usize,
-    width: usize,
-    values: Vec<f32>,
-}
 
 /// A recording to judge: a name and the MCAP holding it, with the topic to read.
 struct Case {
@@ -49,69 +42,9 @@ struct Case {
     first: Scan,
 }
 
-/// Writes the scans as one ROS 2 recording on [`TOPIC`], 100 ms apart.
-fn write(path: &Path, scans: &[Scan]) -> Result<()> {
-    let file = std::io::BufWriter::new(std::fs::File::create(path)?);
-    let mut w = mcap::WriteOptions::new().create(file)?;
-    let s = encoders::schema(Family::Ros2, encoders::Kind::Cloud);
-    let schema = w.add_schema(&s.name, &s.encoding, &s.data)?;
-    let channel = w.add_channel(schema, TOPIC, "cdr", &BTreeMap::new())?;
-    for (k, scan) in scans.iter().enumerate() {
-        let t = 1_000_000_000 + k as u64 * 100_000_000;
-        let cloud = DecodedCloud {
-            scan: scan.clone(),
-            stamp_nanos: t,
-            frame_id: "lidar".into(),
-            notes: Vec::new(),
-        };
-        let header = mcap::records::MessageHeader {
-            channel_id: channel,
-            sequence: k as u32,
-            log_time: t,
-            publish_time: t,
-        };
-        w.write_to_known_channel(&header, &encoders::encode_scan(Family::Ros2, &cloud, &[]))?;
-    }
-    w.finish()?;
-    Ok(())
-}
-
-/// The images of `topic` in `path` (ROS 1 or ROS 2 `sensor_msgs/Image`, 32FC1), in log-time
-/// order.
+/// The float images of `topic` in `path`, in log-time order.
 fn images(path: &Path, topic: &str) -> Result<Vec<Image>> {
-    let bytes = std::fs::read(path)?;
-    let mut out = Vec::new();
-    for m in mcap::MessageStream::new(&bytes)? {
-        let m = m?;
-        if m.channel.topic != topic {
-            continue;
-        }
-        let mut r = if m.channel.message_encoding == "ros1" {
-            WireReader::ros1(&m.data)
-        } else {
-            WireReader::cdr(&m.data)?
-        };
-        r.header()?;
-        let height = r.u32("height")? as usize;
-        let width = r.u32("width")? as usize;
-        r.string("encoding")?;
-        r.u8("is_bigendian")?;
-        r.u32("step")?;
-        let data = r.bytes("data")?;
-        let values = (data.chunks_exact(4))
-            .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
-            .collect();
-        out.push((
-            m.log_time,
-            Image {
-                height,
-                width,
-                values,
-            },
-        ));
-    }
-    out.sort_by_key(|(t, _)| *t);
-    Ok(out.into_iter().map(|(_, v)| v).collect())
+    roundtrip::float_images(&std::fs::read(path)?, topic)
 }
 
 fn sorted_files(dir: &Path, suffix: &str) -> Result<Vec<PathBuf>> {
@@ -132,7 +65,7 @@ fn cases(data: &Path, dir: &Path) -> Result<Vec<Case>> {
             return Ok(());
         }
         let mcap = dir.join(format!("{name}.mcap"));
-        write(&mcap, &scans)?;
+        roundtrip::write_scans(&mcap, TOPIC, "lidar", &scans)?;
         out.push(Case {
             name: format!("{name} ({} scans)", scans.len()),
             mcap,
@@ -267,21 +200,6 @@ fn mapping(sensor: (usize, usize), out: (usize, usize), elevations: &[f32]) -> V
 /// Weights of x_n against the recording's rates tried in the product of experts.
 const BLENDS: [f32; 3] = [0.15, 0.25, 0.35];
 
-/// sigmoid(w logit(a) + (1 - w) logit(b)).
-fn blend(a: f32, b: f32, w: f32) -> f32 {
-    let logit = |p: f32| {
-        let p = p.clamp(1e-4, 1.0 - 1e-4);
-        (p / (1.0 - p)).ln()
-    };
-    let l = w * logit(a) + (1.0 - w) * logit(b);
-    1.0 / (1.0 + (-l).exp())
-}
-
-fn nll(p: f32, dropped: bool) -> f64 {
-    let p = (p as f64).clamp(1e-6, 1.0 - 1e-6);
-    if dropped { -p.ln() } else { -(1.0 - p).ln() }
-}
-
 /// Per-row drop rates of `range[s]`'s recording without scan `s` (the scan's own where the
 /// recording has one scan).
 fn row_rates(range: &[Image], s: usize) -> Vec<f64> {
@@ -350,11 +268,13 @@ fn score(range: &[Image], depth: &[Image], drop: &[Image], elevations: &[f32]) -
                 l1 += ((d.values[o] - t).abs() / t) as f64;
                 n_l1 += 1;
             }
-            sc.nll += nll(p.values[o], dropped);
-            sc.nll_rows += nll(rows[k / img.width] as f32, dropped);
-            sc.nll_census += nll(census[k], dropped);
+            sc.nll += pixel_nll(p.values[o], dropped);
+            sc.nll_rows += pixel_nll(rows[k / img.width] as f32, dropped);
+            sc.nll_census += pixel_nll(census[k], dropped);
             for (b, wt) in BLENDS.iter().enumerate() {
-                sc.nll_blend[b] += nll(blend(p.values[o], census[k], *wt), dropped);
+                let mut combined = [p.values[o]];
+                combine_with_rates(&mut combined, &census[k..=k], *wt);
+                sc.nll_blend[b] += pixel_nll(combined[0], dropped);
             }
             sc.scored += 1;
         }

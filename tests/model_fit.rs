@@ -11,7 +11,7 @@ mod common;
 use std::path::{Path, PathBuf};
 
 use common::*;
-use rangegan_mcap::io::wire::WireReader;
+use rangegan_mcap::io::roundtrip::float_images;
 use rangegan_mcap::lidar::{kitti, pcd};
 
 /// One image message: height, width, values.
@@ -19,29 +19,11 @@ type Image = (usize, usize, Vec<f32>);
 
 /// The `32FC1` images of `topic` in `path`, in log-time order (ROS 1 or ROS 2).
 fn images(path: &Path, topic: &str) -> Vec<Image> {
-    let bytes = std::fs::read(path).unwrap();
-    let mut out = Vec::new();
-    for m in mcap::MessageStream::new(&bytes).unwrap() {
-        let m = m.unwrap();
-        if m.channel.topic != topic {
-            continue;
-        }
-        let mut r = match m.channel.message_encoding.as_str() {
-            "ros1" => WireReader::ros1(&m.data),
-            _ => WireReader::cdr(&m.data).unwrap(),
-        };
-        r.header().unwrap();
-        let (h, w) = (r.u32("height").unwrap(), r.u32("width").unwrap());
-        r.string("encoding").unwrap();
-        r.u8("is_bigendian").unwrap();
-        r.u32("step").unwrap();
-        let values = (r.bytes("data").unwrap().chunks_exact(4))
-            .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
-            .collect();
-        out.push((m.log_time, (h as usize, w as usize, values)));
-    }
-    out.sort_by_key(|(t, _)| *t);
-    out.into_iter().map(|(_, i)| i).collect()
+    let images = float_images(&std::fs::read(path).unwrap(), topic).unwrap();
+    images
+        .into_iter()
+        .map(|i| (i.height, i.width, i.values))
+        .collect()
 }
 
 fn real_root(test: &str) -> Option<PathBuf> {

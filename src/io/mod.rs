@@ -3,7 +3,8 @@
 //! ([`writer`]: atomic, records copied unchanged, temporary files cleaned by [`cleanup`]), what each channel carries
 //! ([`channels`]), the ROS wire formats ([`wire`]), point-cloud decoding ([`decoders`],
 //! [`pointcloud`]) and the single encoding layer for every output channel
-//! ([`encoders`]). Knows MCAP, not GANs.
+//! ([`encoders`]), and both ends of a conversion for evaluations and tests ([`roundtrip`]).
+//! Knows MCAP, not GANs.
 
 pub mod channels;
 pub mod cleanup;
@@ -11,6 +12,7 @@ pub mod decoders;
 pub mod encoders;
 pub mod pointcloud;
 pub mod reader;
+pub mod roundtrip;
 pub mod wire;
 pub mod writer;
 

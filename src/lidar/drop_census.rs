@@ -132,6 +132,12 @@ pub fn combine_with_rates(x_n: &mut [f32], rates: &[f32], weight: f32) {
     }
 }
 
+/// Negative log-likelihood of one pixel's outcome (`dropped` or not) under drop probability `p`.
+pub fn pixel_nll(p: f32, dropped: bool) -> f64 {
+    let p = (p as f64).clamp(1e-6, 1.0 - 1e-6);
+    if dropped { -p.ln() } else { -(1.0 - p).ln() }
+}
+
 /// Mean negative log-likelihood per pixel of `image`'s drops under `drop_prob`.
 pub fn drop_nll(image: &RangeImage, drop_prob: &[f32]) -> f64 {
     let n = image.range_m.len().min(drop_prob.len());
@@ -139,14 +145,7 @@ pub fn drop_nll(image: &RangeImage, drop_prob: &[f32]) -> f64 {
         return f64::NAN;
     }
     let total: f64 = (0..n)
-        .map(|k| {
-            let p = (drop_prob[k] as f64).clamp(1e-6, 1.0 - 1e-6);
-            if dropped(image.range_m[k]) {
-                -p.ln()
-            } else {
-                -(1.0 - p).ln()
-            }
-        })
+        .map(|k| pixel_nll(drop_prob[k], dropped(image.range_m[k])))
         .sum();
     total / n as f64
 }

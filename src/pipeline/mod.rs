@@ -292,8 +292,21 @@ impl Begun<'_> {
 impl<'s> ScanProcessor<'_, 's> {
     /// The profile and strategy for `topic`. The profile is fixed by the topic's first scan;
     /// the strategy by the first scan of each layout (see [`LayoutKey`]), so a topic whose
-    /// clouds turn from organized to unorganized projects each kind its own way.
+    /// clouds turn from organized to unorganized projects each kind its own way. The model's
+    /// coverage of the topic is settled on the way ([`Self::check_coverage`]).
     fn profile_for(
+        &self,
+        topic: &str,
+        log_time: u64,
+        cloud: &DecodedCloud,
+    ) -> Result<(SensorProfile, Strategy), String> {
+        let (profile, strategy) = self.layout_profile(topic, cloud)?;
+        self.check_coverage(topic, log_time, &cloud.scan, &profile);
+        Ok((profile, strategy))
+    }
+
+    /// [`Self::profile_for`] without the coverage.
+    fn layout_profile(
         &self,
         topic: &str,
         cloud: &DecodedCloud,
@@ -375,10 +388,8 @@ impl<'s> ScanProcessor<'_, 's> {
             if known && !self.coverage_pending(&p.topic) {
                 continue;
             }
-            if let Ok(cloud) = decode_cloud(p.format, &p.data)
-                && let Ok((profile, _)) = self.profile_for(&p.topic, &cloud)
-            {
-                self.check_coverage(&p.topic, p.log_time, &cloud.scan, &profile);
+            if let Ok(cloud) = decode_cloud(p.format, &p.data) {
+                let _ = self.profile_for(&p.topic, p.log_time, &cloud);
             }
         }
     }
@@ -412,8 +423,7 @@ impl<'s> ScanProcessor<'_, 's> {
     /// the rest).
     fn begin(&self, p: &Pending, chain: Option<&ChainState>) -> Result<Begun<'s>, String> {
         let cloud = decode_cloud(p.format, &p.data).map_err(|e| e.to_string())?;
-        let (profile, strategy) = self.profile_for(&p.topic, &cloud)?;
-        self.check_coverage(&p.topic, p.log_time, &cloud.scan, &profile);
+        let (profile, strategy) = self.profile_for(&p.topic, p.log_time, &cloud)?;
         let image = project(&cloud.scan, &profile, strategy).map_err(|e| e.to_string())?;
         let returns = cloud.scan.returns().max(1);
         let kept = image.valid_count() as f64 / returns as f64;

@@ -182,8 +182,7 @@ impl<'d> DecodeStage<'d> {
         }
         let rates =
             (self.x_n_weight).and_then(|w| Some((w, input.census?.rates_for(input.image, true)?)));
-        let image = input.image.clone();
-        let finish = move |decoded: &Decoded| self.outputs(decoded, &image, rates.as_ref(), &out);
+        let finish = |decoded: &Decoded| self.outputs(decoded, input.image, rates.as_ref(), &out);
         let Some(chain) = input.chain else {
             let decoded = self.decoder.decode(input.image, seed)?;
             return Ok(Staged::Done(finish(&decoded)));
@@ -197,9 +196,11 @@ impl<'d> DecodeStage<'d> {
         let (handed, partial) =
             (self.decoder).begin(input.image, seed, state.as_ref(), hand_off)?;
         *state = Some(handed);
+        // The rest runs after this scan's input is gone: it keeps its own copy of the image.
+        let image = input.image.clone();
         Ok(Staged::Later(Box::new(move || {
             let decoded = self.decoder.finish(partial);
-            Ok(finish(&decoded))
+            Ok(self.outputs(&decoded, &image, rates.as_ref(), &out))
         })))
     }
 

@@ -41,10 +41,9 @@ pub(super) fn survey(
             return Ok(());
         };
         let topic = &channel.topic;
-        let Ok((profile, strategy)) = proc_ref.profile_for(topic, &cloud) else {
+        let Ok((profile, strategy)) = proc_ref.profile_for(topic, header.log_time, &cloud) else {
             return Ok(());
         };
-        proc_ref.check_coverage(topic, header.log_time, &cloud.scan, &profile);
         if let Ok(image) = project(&cloud.scan, &profile, strategy) {
             (census.entry(topic.clone()))
                 .or_insert_with(|| DropCensus::new(image.height, image.width))

@@ -70,31 +70,7 @@ pub fn write_recording(
 
 /// Writes `scans` as one ROS 2 recording on `/points`, 100 ms apart.
 pub fn write_scans(path: &Path, scans: &[Scan]) {
-    let file = std::io::BufWriter::new(std::fs::File::create(path).unwrap());
-    let mut w = mcap::WriteOptions::new().create(file).unwrap();
-    let s = encoders::schema(Family::Ros2, Kind::Cloud);
-    let schema = w.add_schema(&s.name, &s.encoding, &s.data).unwrap();
-    let channel = w
-        .add_channel(schema, "/points", "cdr", &BTreeMap::new())
-        .unwrap();
-    for (k, scan) in scans.iter().enumerate() {
-        let t = 1_000_000_000 + k as u64 * 100_000_000;
-        let cloud = DecodedCloud {
-            scan: scan.clone(),
-            stamp_nanos: t,
-            frame_id: "lidar".into(),
-            notes: Vec::new(),
-        };
-        let header = mcap::records::MessageHeader {
-            channel_id: channel,
-            sequence: k as u32,
-            log_time: t,
-            publish_time: t,
-        };
-        let data = encoders::encode_scan(Family::Ros2, &cloud, &[]);
-        w.write_to_known_channel(&header, &data).unwrap();
-    }
-    w.finish().unwrap();
+    rangegan_mcap::io::roundtrip::write_scans(path, "/points", "lidar", scans).unwrap();
 }
 
 /// [`write_recording`] with the chunk compression given.
