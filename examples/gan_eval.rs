@@ -98,7 +98,12 @@ fn main() -> Result<()> {
     heldout_files.extend(validation);
     let heldout = RangeDataset::from_kitti_files(&heldout_files, 512)?;
     let train = match &args.cache {
-        Some(c) => RangeDataset::load_or_build(c, &train_files, 512)?,
+        Some(c) if c.exists() => RangeDataset::load(c)?,
+        Some(c) => {
+            let ds = RangeDataset::from_kitti_files(&train_files, 512)?;
+            ds.save(c)?;
+            ds
+        }
         None => RangeDataset::from_kitti_files(&train_files, 512)?,
     };
     let configs: Vec<SwdConfig> = (0..args.seeds.max(1))

@@ -27,10 +27,11 @@ use anyhow::{Result, bail};
 use burn::module::Module;
 use burn::optim::{AdamConfig, GradientsParams};
 use burn::tensor::{Device, Tensor};
-use rangegan_mcap::decode::loss::{network_to_depth, relative_depth_error};
+use rangegan_mcap::decode::loss::relative_depth_error;
 use rangegan_mcap::lidar::edges::edge_strength;
 use rangegan_mcap::model::AnyGenerator;
 use rangegan_mcap::model::baseline::ConvGeneratorConfig;
+use rangegan_mcap::model::data::DepthRange;
 use rangegan_mcap::model::data::{DROPPED, RangeDataset, kitti_heldout_files};
 use rangegan_mcap::model::generator::{GeneratorConfig, GridCache};
 use rangegan_mcap::model::weights::Model;
@@ -176,7 +177,8 @@ fn main() -> Result<()> {
         .flat_map(|i| data.image(i * every).to_vec())
         .collect();
     let real = tensor_from(reals.clone(), [n, 1, h, w], &device);
-    let observed: Vec<f32> = network_to_depth(&reals)
+    let observed: Vec<f32> = DepthRange::KITTI
+        .clamped_depths(&reals)
         .iter()
         .zip(&reals)
         .map(|(d, x)| if *x > DROPPED { *d } else { 0.0 })
@@ -191,7 +193,7 @@ fn main() -> Result<()> {
         let start = std::time::Instant::now();
         let x = fit(spec, &g, grid.as_ref(), &real, steps, &device);
         let secs = start.elapsed().as_secs_f64();
-        let fitted = network_to_depth(&x);
+        let fitted = DepthRange::KITTI.clamped_depths(&x);
         let err = relative_depth_error(&fitted, &observed).unwrap_or(f32::NAN);
         let edges = edge_error(&fitted, &observed, w);
         println!(

@@ -25,7 +25,8 @@ fn the_model_fit_warning_names_the_beam_table_of_other_makes() {
     let first = |dir: &str, suffix: &str| first_file(&root.join(dir), suffix);
     let hdl32 = SensorProfile::builtin("hdl32e").unwrap();
     let nus = nuscenes::read_bin(&first("nuscenes", ".pcd.bin")).unwrap();
-    let fit = model_fit(&nus, &hdl32).unwrap();
+    let shipped = rangegan_mcap::model::config::default_sensor();
+    let fit = model_fit(&nus, &hdl32, &shipped).unwrap();
     let w = fit
         .warning("hdl32e")
         .expect("a third of the HDL-32E's beams lie outside");
@@ -33,13 +34,13 @@ fn the_model_fit_warning_names_the_beam_table_of_other_makes() {
     assert_eq!(fit.beams_outside, 12, "{fit:?}");
     let vlp = SensorProfile::builtin("vlp16").unwrap();
     let room = pcd::read_pcd(&first("nebula", ".pcd")).unwrap();
-    let w = model_fit(&room, &vlp)
+    let w = model_fit(&room, &vlp, &shipped)
         .unwrap()
         .warning("vlp16")
         .expect("an indoor VLP-16");
     assert!(w.contains("beams +15.0 to -15.0 deg"), "{w}");
     let kitti = kitti::read_bin(&first_file(&root.join("kitti_raw_drive_a"), ".bin")).unwrap();
-    let fit = model_fit(&kitti, &SensorProfile::kitti_hdl64e()).unwrap();
+    let fit = model_fit(&kitti, &SensorProfile::kitti_hdl64e(), &shipped).unwrap();
     assert!(fit.warning("hdl64e").is_none(), "{fit:?}");
 }
 

@@ -272,6 +272,20 @@ fn prior_use(args: &ConvertArgs, decoder: &Decoder) -> PriorUse {
     PriorUse::WhereCovered
 }
 
+/// Says, once per run, that a model without a ray-drop calibration gives `raydrop_prob` no
+/// x_n: each recording's own drop rates stand in for it.
+pub(crate) fn warn_uncalibrated(global: &GlobalArgs, decoding: Option<&(Decoder, DecodeOutputs)>) {
+    if let Some((decoder, outputs)) = decoding
+        && outputs.x_n_weight == Some(0.0)
+        && !global.quiet
+    {
+        eprintln!(
+            "warning: model {} has no ray-drop calibration (calibration.json beside its weights), so `raydrop_prob` and the masks are each recording's own drop rates, without x_n; fit one with `rangegan-mcap calibrate-raydrop --data RECORDINGS --model DIR --out DIR/calibration.json`, or take the raw x_n with --raw-raydrop",
+            decoder.source()
+        );
+    }
+}
+
 /// The weight of the generator's x_n against each recording's own drop rates in
 /// `raydrop_prob` ([`X_N_WEIGHT`]): 0 (the rates alone) for a model without a ray-drop
 /// calibration, and `None` (x_n alone) for `--raw-raydrop`.
@@ -528,6 +542,9 @@ impl<'d> FileConverter<'d> {
                 metadata,
                 scans_processed: Some(counters.scans.clone()),
                 prior: decoding.map(|(decoder, _)| prior_use(args, decoder)),
+                model_sensor: decoding
+                    .map(|(decoder, _)| decoder.model_sensor().clone())
+                    .unwrap_or_else(crate::model::config::default_sensor),
                 chain_stride: args.chain_stride,
                 ..ConvertOptions::default()
             },
@@ -701,6 +718,7 @@ pub fn run(global: &GlobalArgs, args: ConvertArgs) -> anyhow::Result<Outcome> {
     }
     std::fs::File::open(input).with_context(|| format!("cannot open {}", input.display()))?;
     let decoding = resolve_decoding(&args)?;
+    warn_uncalibrated(global, decoding.as_ref());
     let counters = Counters::default();
     let mut converter = FileConverter::new(&args, decoding.as_ref(), &counters)?;
     // One file: a --strict run that exits non-zero keeps no output.

@@ -178,6 +178,7 @@ pub fn run(global: &GlobalArgs, args: &ConvertArgs) -> anyhow::Result<Outcome> {
         let manifest_path = out.join(manifest::manifest_name(shard));
         let writer = Mutex::new(ManifestWriter::open(&manifest_path)?);
         let decoding = super::convert::resolve_decoding(args)?;
+        super::convert::warn_uncalibrated(global, decoding.as_ref());
         let counters = Counters::default();
         let converter = FileConverter::new(args, decoding.as_ref(), &counters)?;
         let bytes = todo.iter().map(|p| p.file.size).sum();

@@ -9,7 +9,6 @@ use super::{GlobalArgs, Outcome};
 use crate::io::encoders::{Kind, encode_f32_image, encode_mask, encode_points};
 use crate::io::{Family, McapOutput};
 use crate::lidar::SensorProfile;
-use crate::model::data::MIN_DEPTH_M;
 use crate::model::layers::AngleGridExt;
 use crate::model::sample::{SampleOptions, SampledScan, sample};
 use crate::model::weights::Model;
@@ -71,7 +70,7 @@ fn scan_messages(
     s: &SampledScan,
 ) -> Vec<(&'static str, Kind, Vec<u8>)> {
     let size = (s.angles.width, s.angles.height);
-    let depth_m: Vec<f32> = s.x_d.iter().map(|x| MIN_DEPTH_M / x).collect();
+    let depth_m = &s.depth_m;
     let image = |values: &[f32]| encode_f32_image(family, stamp, frame_id, size, values);
     let returns: Vec<usize> = (0..s.range_m.len()).filter(|&k| s.mask[k]).collect();
     let range: Vec<f32> = returns.iter().map(|&k| s.range_m[k]).collect();
@@ -84,7 +83,7 @@ fn scan_messages(
         &[("range", &range), ("raydrop_prob", &drop_prob)],
     );
     vec![
-        ("depth", Kind::Image, image(&depth_m)),
+        ("depth", Kind::Image, image(depth_m)),
         ("raydrop_prob", Kind::Image, image(&s.drop_prob)),
         (
             "raydrop_mask",

@@ -1,5 +1,6 @@
 //! `rangegan-mcap train RUN_DIR`: train the range-image GAN (DUSty v2 or a baseline) on the
-//! KITTI training scans; an existing run directory resumes from its checkpoint.
+//! scans of one sensor (MCAP recordings, or KITTI's folders) or on simulated scans of its
+//! beam layout; an existing run directory resumes from its checkpoint.
 
 use std::path::{Path, PathBuf};
 
@@ -7,13 +8,14 @@ use anyhow::Context;
 use std::time::Duration;
 
 use super::{GlobalArgs, Outcome};
+use crate::lidar::{SensorProfile, Strategy};
 use crate::model::Arch;
-use crate::model::data::kitti_validation_split;
 use crate::model::discriminator::DiscriminatorConfig;
 use crate::model::generator::GeneratorConfig;
 use crate::physics::pretraining::PretrainingSet;
 use crate::train::growth::{Stage, parse_stage};
 use crate::train::reconstruct::ReconstructionConfig;
+use crate::train::scans::{Layout, ScanSource};
 use crate::train::widen::widen_run;
 use crate::train::{Backend, CHECKPOINT, TrainConfig, TrainOptions, load_config, run};
 
@@ -50,15 +52,57 @@ impl From<BackendArg> for Backend {
     }
 }
 
+/// How recordings' clouds become range images: the `convert` flags of the same names.
+#[derive(Debug, Clone, clap::Args)]
+pub struct LayoutArgs {
+    /// The point-cloud topic of the recordings (default: each one's only or first).
+    #[arg(long)]
+    pub topic: Option<String>,
+    /// Sensor profile: `auto` (estimated from the first recording's first scan), a built-in
+    /// name (hdl64e, hdl32e, vlp16, vlp32c, vls128, pandar64, pandarxt32; Ouster os0-N,
+    /// os1-N (gen 2), os1-N-gen1, os2-N with N beams), or a profile / Ouster metadata JSON
+    /// file.
+    #[arg(long, default_value = "auto")]
+    pub sensor: String,
+    /// Range-image columns (default: the profile's; KITTI folders: 512).
+    #[arg(long)]
+    pub columns: Option<usize>,
+    /// How each point finds its row.
+    #[arg(long, value_enum, default_value = "auto")]
+    pub projection: Strategy,
+}
+
+impl LayoutArgs {
+    pub(crate) fn layout(&self) -> anyhow::Result<Layout> {
+        let sensor = match self.sensor.as_str() {
+            "auto" => None,
+            name => Some(SensorProfile::resolve(name)?),
+        };
+        if let Some(c) = self.columns {
+            crate::lidar::profile::check_columns(c)
+                .map_err(|e| anyhow::anyhow!("--columns: {e}"))?;
+        }
+        Ok(Layout {
+            topic: self.topic.clone(),
+            sensor,
+            columns: self.columns,
+            strategy: self.projection,
+        })
+    }
+}
+
 /// What every resumable training run takes: where it lives, its data, when to stop, its seed.
 #[derive(Debug, clap::Args)]
 pub struct RunArgs {
     /// Run directory (config.json, checkpoint/, log.jsonl, ...). Resumes if it exists.
     pub run_dir: PathBuf,
-    /// Folder of the real scans: every kitti_raw_* drive and semantickitti_mini/
-    /// (sequences 00 and 07 held out).
-    #[arg(long, default_value = "../shared/real_lidar")]
-    pub data: PathBuf,
+    /// The real scans (repeatable): MCAP recordings and folders of them, all of one sensor;
+    /// or one KITTI folder of kitti_raw_* drives and semantickitti_mini/ (sequences 00 and
+    /// 07 held out). Not needed once the dataset cache exists.
+    #[arg(long, value_name = "PATH")]
+    pub data: Vec<PathBuf>,
+    #[command(flatten)]
+    pub layout: LayoutArgs,
     /// Projected-dataset cache (default: RUN_DIR/dataset.bin).
     #[arg(long)]
     pub cache: Option<PathBuf>,
@@ -68,10 +112,14 @@ pub struct RunArgs {
     /// Seed of a new run.
     #[arg(long)]
     pub seed: Option<u64>,
-    /// Set this KITTI raw drive (a folder name such as `kitti_raw_drive_d`) aside for
-    /// validation: it is left out of the training scans when the dataset cache is built.
-    /// Repeatable.
-    #[arg(long, value_name = "DRIVE")]
+    /// Set this KITTI raw drive (a folder name such as `kitti_raw_drive_d`) or recording
+    /// (its file name, with or without `.mcap`) aside for validation: it is left out of the
+    /// training scans when the dataset cache is built. Repeatable.
+    #[arg(
+        long,
+        value_name = "DRIVE|RECORDING",
+        visible_alias = "validation-recording"
+    )]
     pub validation_drive: Vec<String>,
     /// Backend to compute on; a run may resume on another one.
     #[arg(long, value_enum, default_value = "flex")]
@@ -85,14 +133,18 @@ impl RunArgs {
             .unwrap_or_else(|| self.run_dir.join("dataset.bin"))
     }
 
-    /// The real scans to build the dataset cache from: every training folder but the
-    /// validation drives. None where the cache exists already, so a machine that holds only
-    /// the cache (a GPU host, say) needs no scans.
-    pub(crate) fn training_files(&self) -> anyhow::Result<Vec<PathBuf>> {
+    /// The real scans to build the dataset cache from: every training scan but the
+    /// validation drives or recordings. None where the cache exists already, so a machine
+    /// that holds only the cache (a GPU host, say) needs no scans.
+    pub(crate) fn source(&self) -> anyhow::Result<Option<ScanSource>> {
         if self.cache_path().exists() {
-            return Ok(Vec::new());
+            return Ok(None);
         }
-        Ok(kitti_validation_split(&self.data, &self.validation_drive)?.0)
+        Ok(Some(ScanSource {
+            data: self.data.clone(),
+            validation: self.validation_drive.clone(),
+            layout: self.layout.layout()?,
+        }))
     }
 
     pub(crate) fn max_duration(&self) -> Option<Duration> {
@@ -116,8 +168,10 @@ pub struct TrainArgs {
     /// Use the paper's network widths instead of the CPU ones.
     #[arg(long)]
     pub reference_size: bool,
-    /// Pretrain on this many simulated HDL-64E scans (many procedural scenes, `realistic`
-    /// physics with randomised strengths) instead of the real ones.
+    /// Pretrain on this many simulated scans (many procedural scenes, `realistic` physics
+    /// with randomised strengths) instead of real ones, ray-cast with the sensor of
+    /// `--sensor` at `--columns` (default: KITTI's HDL-64E at 512 columns); then fine-tune
+    /// on that sensor's recordings with `--init-from`.
     #[arg(long, value_name = "N")]
     pub sim_scans: Option<usize>,
     /// Start a new run from a pretrained run (or model directory) and fine-tune it: its
@@ -221,17 +275,26 @@ pub fn run_train(global: &GlobalArgs, args: TrainArgs) -> anyhow::Result<Outcome
     }
     let dataset_cache = args.run.cache_path();
     if let Some(n) = args.sim_scans {
-        build_simulated_cache(global, &dataset_cache, n)?;
+        anyhow::ensure!(
+            args.run.data.is_empty(),
+            "--sim-scans trains on simulated scans only: drop --data (fine-tune on real ones with --init-from)"
+        );
+        let layout = args.run.layout.layout()?;
+        let profile = layout
+            .sensor
+            .unwrap_or_else(SensorProfile::kitti_hdl64e)
+            .with_columns(layout.columns.unwrap_or(crate::train::scans::KITTI_COLUMNS));
+        build_simulated_cache(global, &dataset_cache, n, profile)?;
     }
-    let scans = match args.sim_scans {
-        Some(_) => vec![],
-        None => args.run.training_files()?,
+    let source = match args.sim_scans {
+        Some(_) => None,
+        None => args.run.source()?,
     };
     config.check().context("the run's settings")?;
     let opts = TrainOptions {
         dataset_cache,
         max_duration: args.run.max_duration(),
-        scans,
+        source,
         run_dir: args.run.run_dir,
         config,
         backend: args.run.backend.into(),
@@ -260,7 +323,12 @@ fn widen_once(src: &Path, args: &TrainArgs) -> anyhow::Result<()> {
 }
 
 /// Simulates the pretraining set into `cache` unless it is there already (a resumed run).
-fn build_simulated_cache(global: &GlobalArgs, cache: &Path, scans: usize) -> anyhow::Result<()> {
+fn build_simulated_cache(
+    global: &GlobalArgs,
+    cache: &Path,
+    scans: usize,
+    profile: SensorProfile,
+) -> anyhow::Result<()> {
     anyhow::ensure!(scans > 0, "--sim-scans must be > 0");
     if cache.exists() {
         return Ok(());
@@ -268,6 +336,7 @@ fn build_simulated_cache(global: &GlobalArgs, cache: &Path, scans: usize) -> any
     let bar = super::progress_bar(global, scans as u64);
     let set = PretrainingSet {
         scans,
+        profile,
         ..Default::default()
     };
     let data = set.build(|n| bar.inc(n as u64));
@@ -286,7 +355,13 @@ mod tests {
     fn run_args(dir: &Path) -> RunArgs {
         RunArgs {
             run_dir: dir.join("run"),
-            data: dir.join("no-such-scans"),
+            data: vec![dir.join("no-such-scans")],
+            layout: LayoutArgs {
+                topic: None,
+                sensor: "auto".into(),
+                columns: None,
+                projection: Strategy::Auto,
+            },
             cache: Some(dir.join("dataset.bin")),
             max_minutes: None,
             seed: None,
@@ -299,9 +374,10 @@ mod tests {
     fn an_existing_cache_needs_no_scan_folder() {
         let dir = tempfile::tempdir().unwrap();
         let args = run_args(dir.path());
-        let err = args.training_files().unwrap_err().to_string();
+        let source = args.source().unwrap().expect("no cache yet");
+        let err = source.training().unwrap_err().to_string();
         assert!(err.contains("no-such-scans"), "{err}");
         std::fs::write(dir.path().join("dataset.bin"), b"cache").unwrap();
-        assert!(args.training_files().unwrap().is_empty());
+        assert!(args.source().unwrap().is_none());
     }
 }

@@ -6,8 +6,6 @@
 
 use burn::tensor::Tensor;
 
-use crate::model::data::MIN_DEPTH_M;
-
 /// Inverse depth below this is treated as this (depth 145 m) inside the depth-relative term,
 /// so a generator pixel heading to "infinitely far" gives a large but finite loss.
 const MIN_X_D: f32 = 0.01;
@@ -217,18 +215,6 @@ pub fn relative_depth_error(depth_gen_m: &[f32], depth_obs_m: &[f32]) -> Option<
     (n > 0).then(|| (sum / n as f64) as f32)
 }
 
-/// Generator network units -> completed depth in meters, clamped to [1.45, 80] m.
-pub fn network_to_depth(x_net: &[f32]) -> Vec<f32> {
-    use crate::model::data::MAX_DEPTH_M;
-    x_net
-        .iter()
-        .map(|v| {
-            let x_d = ((v + 1.0) * 0.5).max(MIN_DEPTH_M / MAX_DEPTH_M);
-            (MIN_DEPTH_M / x_d).clamp(MIN_DEPTH_M, MAX_DEPTH_M)
-        })
-        .collect()
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -297,8 +283,5 @@ mod tests {
         let e = relative_depth_error(&[11.0, 5.0, 3.0], &[10.0, 0.0, 3.0]).unwrap();
         assert!((e - 0.05).abs() < 1e-6);
         assert!(relative_depth_error(&[1.0], &[0.0]).is_none());
-        let d = network_to_depth(&[1.0, -1.0, 0.0]);
-        assert!((d[0] - 1.45).abs() < 1e-5 && (d[1] - 80.0).abs() < 1e-3);
-        assert!((d[2] - 2.9).abs() < 1e-5);
     }
 }

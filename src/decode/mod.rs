@@ -38,7 +38,7 @@ use crate::lidar::edges::edge_strength;
 use crate::lidar::{AngleGrid, Interpolation, RangeImage, SensorProfile, resample_image};
 use crate::model::AnyGenerator;
 use crate::model::calibration::RaydropCalibration;
-use crate::model::data::range_to_network;
+use crate::model::data::DepthRange;
 use crate::model::generator::{Generator, GridCache};
 use crate::model::weights::Model;
 use crate::util::rng::Rng;
@@ -46,7 +46,7 @@ use crate::util::tensor::{tensor_from, tensor_to_vec};
 use amortised::TrainedEncoder;
 pub use fill::Fill;
 pub use invert::Schedule;
-use loss::{network_to_depth, relative_depth_error};
+use loss::relative_depth_error;
 
 /// How hard to work per scan.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
@@ -239,12 +239,17 @@ pub struct Decoder {
     calibration: Option<Arc<RaydropCalibration>>,
     /// Where the generator came from.
     model_source: String,
+    /// The sensor the model was trained for (its grid is `model.grid`).
+    sensor: SensorProfile,
+    /// The model's network units.
+    units: DepthRange,
 }
 
 /// The result of decoding one scan.
 #[derive(Debug, Clone)]
 pub struct Decoded {
     generator: Generator,
+    units: DepthRange,
     /// The shared generator before pivotal tuning. x_n comes from it: tuning fits depth
     /// alone and moves the drop head with it (held-out x_n NLL 0.248 tuned, 0.235 here).
     pivot: Generator,
@@ -282,14 +287,16 @@ pub fn scan_seed(topic: &str, log_time_nanos: u64) -> u64 {
     r.next_u64()
 }
 
-/// The grid the shipped model was trained on: KITTI HDL-64E at 512 columns.
+/// The grid the shipped model was trained on: KITTI HDL-64E at 512 columns. A decoder's own
+/// is [`Decoder::model_grid`].
 pub fn model_grid() -> AngleGrid {
-    SensorProfile::kitti_hdl64e().with_columns(512).angle_grid()
+    crate::model::config::default_sensor().angle_grid()
 }
 
 impl Decoder {
     /// A decoder for `model` (must be the implicit DUSty v2 generator). It starts each inversion
-    /// from the shipped encoder's prediction unless [`Decoder::with_encoder`] gives another or
+    /// from the shipped encoder's prediction (where it reads the model's grid) unless
+    /// [`Decoder::with_encoder`] gives another or
     /// [`Decoder::without_encoder`] starts from w_avg.
     pub fn new(model: Model, opts: DecodeOptions) -> Result<Decoder> {
         let AnyGenerator::Implicit(generator) = model.generator else {
@@ -311,7 +318,7 @@ impl Decoder {
         let device = Device::flex();
         let ad = device.clone().autodiff();
         let generator = generator.to_device(&device);
-        let grid = model_grid();
+        let grid = model.config.grid();
         let cache_ad = generator.prepare(&grid, &ad);
         let model_grid = PreparedGrid {
             render_grid: grid.clone(),
@@ -335,8 +342,18 @@ impl Decoder {
             ad,
             model: model_grid,
             cache_ad,
+            units: model.config.depth_range(),
+            sensor: model.config.sensor,
         };
-        d.with_encoder(encoder)
+        // The shipped encoder reads the shipped model's grid; a model of another sensor
+        // starts from w_avg unless given its own encoder (`train-encoder`).
+        if encoder.config.height == d.model.grid.height
+            && encoder.config.width == d.model.grid.width
+        {
+            d.with_encoder(encoder)
+        } else {
+            Ok(d)
+        }
     }
 
     /// Start every inversion from w_avg, as the paper does ([`Schedule::reference`]).
@@ -387,7 +404,13 @@ impl Decoder {
         self.calibration.as_deref().map(|c| c.fitted_on.as_str())
     }
 
-    /// The model grid (64 x 512 KITTI HDL-64E).
+    /// The sensor the model was trained for: its beams and columns are the model grid, its
+    /// valid range the depths the model knows.
+    pub fn model_sensor(&self) -> &SensorProfile {
+        &self.sensor
+    }
+
+    /// The model grid (the model's sensor at its training columns).
     pub fn model_grid(&self) -> &AngleGrid {
         &self.model.grid
     }
@@ -430,7 +453,7 @@ impl Decoder {
         } else {
             reproject(observed, grid)
         };
-        let net = range_to_network(&range);
+        let net = self.units.to_network(&range);
         let mask = net
             .iter()
             .map(|v| if *v > -1.0 { 1.0 } else { 0.0 })
@@ -509,7 +532,11 @@ impl Decoder {
         }
         let measured = mask.iter().filter(|m| **m > 0.0).count();
         if measured == 0 {
-            bail!("no return of the scan falls on the model grid (1.45-80 m); nothing to decode");
+            bail!(
+                "no return of the scan falls on the model grid ({}-{} m); nothing to decode",
+                self.units.min_m,
+                self.units.max_m
+            );
         }
         let target = tensor_from(net.clone(), [1, 1, h, w], &self.device);
         let mask_t = tensor_from(mask.clone(), [1, 1, h, w], &self.device);
@@ -568,7 +595,13 @@ impl Decoder {
         let depth_obs = |keep: &dyn Fn(usize) -> bool| -> Vec<f32> {
             net.iter()
                 .enumerate()
-                .map(|(k, _)| if keep(k) { observed_depth(net[k]) } else { 0.0 })
+                .map(|(k, _)| {
+                    if keep(k) && net[k] > -1.0 {
+                        self.units.depth_of(net[k])
+                    } else {
+                        0.0
+                    }
+                })
                 .collect()
         };
         let observed_m = depth_obs(&|k| mask[k] > 0.0);
@@ -578,6 +611,7 @@ impl Decoder {
             pivot: self.generator.clone(),
             w: w_t,
             calibration: self.calibration.clone(),
+            units: self.units,
             model: Rendered {
                 grid: self.model.grid.clone(),
                 depth_m: Vec::new(),
@@ -675,14 +709,6 @@ fn reproject(observed: &RangeImage, grid: &AngleGrid) -> Vec<f32> {
     out
 }
 
-fn observed_depth(net: f32) -> f32 {
-    if net > -1.0 {
-        crate::model::data::MIN_DEPTH_M / ((net + 1.0) * 0.5)
-    } else {
-        0.0
-    }
-}
-
 impl Decoded {
     /// The generator as tuned for this scan (a start for the next scan's tuning:
     /// [`Decoder::decode_from`]).
@@ -735,7 +761,7 @@ impl Decoded {
         let out = self.generator.render(self.w.clone(), &grid.cache, None);
         let pivot = self.pivot.render(self.w.clone(), &grid.cache, None);
         (
-            network_to_depth(&tensor_to_vec(out.x_d)),
+            self.units.clamped_depths(&tensor_to_vec(out.x_d)),
             tensor_to_vec(pivot.keep_logit),
         )
     }

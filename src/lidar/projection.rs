@@ -7,11 +7,21 @@ use super::{RangeImage, Scan, SensorProfile};
 
 /// How a point's row (beam) is found (also `convert --projection`).
 #[derive(
-    Debug, Clone, Copy, PartialEq, Eq, Hash, serde::Serialize, serde::Deserialize, clap::ValueEnum,
+    Debug,
+    Clone,
+    Copy,
+    Default,
+    PartialEq,
+    Eq,
+    Hash,
+    serde::Serialize,
+    serde::Deserialize,
+    clap::ValueEnum,
 )]
 #[serde(rename_all = "kebab-case")]
 pub enum Strategy {
     /// Pick one of the others from the data (`choose_strategy`).
+    #[default]
     Auto,
     /// A `ring` / `channel` / `laser_id` field; rings ordered by their median elevation.
     RingField,

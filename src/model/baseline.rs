@@ -94,6 +94,12 @@ impl ConvGeneratorConfig {
             .with_out_channels(out_channels)
     }
 
+    /// The size of the images it renders (`ConvGenerator::resolution`).
+    pub fn output_size(&self) -> (usize, usize) {
+        let k = 1 << self.channels.len().saturating_sub(1);
+        (self.base_height * k, self.base_width * k)
+    }
+
     pub fn init(&self, device: &Device) -> ConvGenerator {
         let mut rng = Rng::new(self.seed);
         let c = &self.channels;

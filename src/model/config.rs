@@ -1,5 +1,5 @@
 //! What a trained generator is, as its folder's `config.json` records it: the family, the
-//! shape of its generator and the ray-drop measurement. A training run's config carries the
+//! shape of its generator, the ray-drop measurement and the sensor it was trained for. A training run's config carries the
 //! same fields beside its training settings, so a run directory loads as a model too.
 
 use std::path::Path;
@@ -9,9 +9,11 @@ use burn::tensor::Device;
 use serde::{Deserialize, Serialize};
 
 use super::baseline::ConvGeneratorConfig;
+use super::data::DepthRange;
 use super::generator::GeneratorConfig;
 use super::measurement::MeasurementConfig;
 use super::{AnyGenerator, Arch};
+use crate::lidar::{AngleGrid, SensorProfile};
 
 #[derive(Debug, Clone, Serialize, Deserialize)]
 pub struct ModelConfig {
@@ -21,6 +23,15 @@ pub struct ModelConfig {
     /// The transposed-conv generator: `dusty1` (2 output channels) and `vanilla` (1).
     pub conv_generator: ConvGeneratorConfig,
     pub measurement: MeasurementConfig,
+    /// The sensor the model was trained for, at its training columns: its beams and columns
+    /// are the model grid, its valid range the network units ([`DepthRange::of`]). Models
+    /// written before it was recorded were all trained on KITTI's HDL-64E at 512 columns.
+    pub sensor: SensorProfile,
+}
+
+/// The sensor of a model whose config does not name one.
+pub fn default_sensor() -> SensorProfile {
+    SensorProfile::kitti_hdl64e().with_columns(512)
 }
 
 impl Default for ModelConfig {
@@ -30,6 +41,7 @@ impl Default for ModelConfig {
             generator: GeneratorConfig::cpu(),
             conv_generator: ConvGeneratorConfig::cpu(2),
             measurement: MeasurementConfig::new(),
+            sensor: default_sensor(),
         }
     }
 }
@@ -56,8 +68,25 @@ impl ModelConfig {
         Ok(config)
     }
 
+    /// The grid the model was trained on (and inverts on).
+    pub fn grid(&self) -> AngleGrid {
+        self.sensor.angle_grid()
+    }
+
+    /// The model's network units.
+    pub fn depth_range(&self) -> DepthRange {
+        DepthRange::of(&self.sensor)
+    }
+
     /// Refuses generator sizes that cannot be built.
     pub fn check(&self) -> Result<()> {
+        self.sensor
+            .validate()
+            .map_err(|e| anyhow::anyhow!("sensor: {e}"))?;
+        anyhow::ensure!(
+            self.sensor.min_range_m > 0.0,
+            "sensor: a model's nearest valid depth must be above 0 m (it scales x_d = min / depth)"
+        );
         match self.arch {
             Arch::Dusty2 => self.generator.check(),
             _ => self.conv_generator.check(),
@@ -99,6 +128,11 @@ mod tests {
             c.generator.channels,
             GeneratorConfig::cpu().channels,
             "missing fields take their defaults"
+        );
+        assert_eq!(
+            c.sensor,
+            default_sensor(),
+            "a config without a sensor is KITTI's"
         );
         assert!(ModelConfig::parse("[1, 2]").is_err());
     }

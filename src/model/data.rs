@@ -1,50 +1,108 @@
-//! Training data for the GAN: KITTI scans projected once to 64 x 512 inverse-depth images
-//! (network units, no return = -1) and cached in one binary file, so training never
-//! re-projects. Owns the train/held-out split of `real_lidar/` and the cache format.
+//! Training data for the GAN: scans projected once onto one sensor's grid as inverse-depth
+//! images (network units, no return = -1) and cached in one binary file with that sensor's
+//! profile, so training never re-projects. Owns the network units ([`DepthRange`]), the
+//! train/held-out split of KITTI's `real_lidar/` folders and the cache format.
 
 use std::fs::File;
 use std::io::{BufReader, BufWriter, Read, Write};
 use std::path::{Path, PathBuf};
 
-use anyhow::{Context, Result, bail};
+use anyhow::{Context, Result, bail, ensure};
 
 use crate::lidar::{self, AngleGrid, SensorProfile, Strategy};
 
-/// Smallest valid depth; also the scale of the inverse depth x_d = MIN_DEPTH_M / depth.
+/// Smallest valid depth of KITTI's HDL-64E (the shipped model's range): the scale of its
+/// inverse depth x_d = MIN_DEPTH_M / depth.
 pub const MIN_DEPTH_M: f32 = 1.45;
-/// Largest valid depth.
+/// Largest valid depth of KITTI's HDL-64E.
 pub const MAX_DEPTH_M: f32 = 80.0;
 
 /// In network units, a pixel at or below this is a dropped ray (-1), anything above a return.
 pub const DROPPED: f32 = -1.0 + 1e-4;
 
-/// Range image (meters, 0 = no return) -> network units: 2 * 1.45 / depth - 1 for depths in
-/// [1.45, 80] m, -1 elsewhere.
-pub fn range_to_network(range_m: &[f32]) -> Vec<f32> {
-    range_m
-        .iter()
-        .map(|&d| {
-            if (MIN_DEPTH_M..=MAX_DEPTH_M).contains(&d) {
-                2.0 * MIN_DEPTH_M / d - 1.0
-            } else {
-                -1.0
-            }
-        })
-        .collect()
+/// The depths a model's network units span: x_d = min / depth, in network units
+/// 2 x_d - 1, so the nearest valid return is 1 and a dropped ray -1. A model trained on a
+/// sensor uses that sensor's valid range ([`DepthRange::of`]).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct DepthRange {
+    pub min_m: f32,
+    pub max_m: f32,
 }
 
-/// Network units -> depth in meters (0 = no return).
+impl DepthRange {
+    /// KITTI's HDL-64E, 1.45-80 m as in the reference preprocessing (the shipped model).
+    pub const KITTI: DepthRange = DepthRange {
+        min_m: MIN_DEPTH_M,
+        max_m: MAX_DEPTH_M,
+    };
+
+    /// The valid range of a sensor profile.
+    pub fn of(profile: &SensorProfile) -> Self {
+        Self {
+            min_m: profile.min_range_m,
+            max_m: profile.max_range_m,
+        }
+    }
+
+    pub fn contains(&self, depth_m: f32) -> bool {
+        (self.min_m..=self.max_m).contains(&depth_m)
+    }
+
+    /// The smallest x_d of a valid return (at the farthest valid depth).
+    pub fn x_d_floor(&self) -> f32 {
+        self.min_m / self.max_m
+    }
+
+    /// Range image (meters, 0 = no return) -> network units: 2 min / depth - 1 for valid
+    /// depths, -1 elsewhere.
+    pub fn to_network(&self, range_m: &[f32]) -> Vec<f32> {
+        range_m
+            .iter()
+            .map(|&d| {
+                if self.contains(d) {
+                    2.0 * self.min_m / d - 1.0
+                } else {
+                    -1.0
+                }
+            })
+            .collect()
+    }
+
+    /// Network units -> depth in meters (0 = no return).
+    pub fn to_range(&self, x: &[f32]) -> Vec<f32> {
+        x.iter().map(|&v| self.depth_of(v)).collect()
+    }
+
+    /// Generator output in network units -> depth in meters, clamped to the valid range
+    /// (the generator renders every ray, dropped or not).
+    pub fn clamped_depths(&self, x: &[f32]) -> Vec<f32> {
+        x.iter()
+            .map(|v| {
+                let x_d = ((v + 1.0) * 0.5).max(self.x_d_floor());
+                (self.min_m / x_d).clamp(self.min_m, self.max_m)
+            })
+            .collect()
+    }
+
+    /// One pixel of [`Self::to_range`].
+    pub fn depth_of(&self, v: f32) -> f32 {
+        let x_d = (v + 1.0) * 0.5;
+        if x_d > self.x_d_floor() * 0.5 {
+            self.min_m / x_d
+        } else {
+            0.0
+        }
+    }
+}
+
+/// [`DepthRange::to_network`] in KITTI's range (the shipped model's units).
+pub fn range_to_network(range_m: &[f32]) -> Vec<f32> {
+    DepthRange::KITTI.to_network(range_m)
+}
+
+/// [`DepthRange::to_range`] in KITTI's range (the shipped model's units).
 pub fn network_to_range(x: &[f32]) -> Vec<f32> {
-    x.iter()
-        .map(|&v| {
-            let x_d = (v + 1.0) * 0.5;
-            if x_d > MIN_DEPTH_M / MAX_DEPTH_M * 0.5 {
-                MIN_DEPTH_M / x_d
-            } else {
-                0.0
-            }
-        })
-        .collect()
+    DepthRange::KITTI.to_range(x)
 }
 
 /// The training scans of `real_lidar/`: every KITTI raw drive (`kitti_raw_*/*.bin`), the
@@ -64,7 +122,12 @@ pub fn kitti_training_files(real_lidar: &Path) -> Result<Vec<PathBuf>> {
             files.extend(bins_in(&drive.join("velodyne"))?);
         }
     }
-    for seq in subdirs(&real_lidar.join("semantickitti_mini"))? {
+    let mini = real_lidar.join("semantickitti_mini");
+    for seq in if mini.is_dir() {
+        subdirs(&mini)?
+    } else {
+        Vec::new()
+    } {
         if !HELD_OUT_SEQUENCES.contains(&dir_name(&seq)) {
             files.extend(bins_in(&seq.join("velodyne"))?);
         }
@@ -163,13 +226,16 @@ fn bins_in(dir: &Path) -> Result<Vec<PathBuf>> {
     Ok(v)
 }
 
-/// Images in network units, `[n, H, W]` row-major, on one shared angle grid.
+/// Images in network units, `[n, H, W]` row-major, on one shared angle grid: the grid of
+/// `profile` (the sensor they were recorded or simulated with, at the training columns),
+/// whose valid range sets the units ([`DepthRange::of`]).
 #[derive(Debug, Clone, PartialEq)]
 pub struct RangeDataset {
     pub height: usize,
     pub width: usize,
     pub images: Vec<f32>,
     pub angles: AngleGrid,
+    pub profile: SensorProfile,
 }
 
 impl RangeDataset {
@@ -186,6 +252,11 @@ impl RangeDataset {
         &self.images[i * n..(i + 1) * n]
     }
 
+    /// The network units of these images.
+    pub fn depth_range(&self) -> DepthRange {
+        DepthRange::of(&self.profile)
+    }
+
     /// Project KITTI `.bin` scans with the HDL-64E profile at `width` columns (in parallel,
     /// in file order). A scan that cannot be read or projected fails the whole build, naming
     /// the file.
@@ -193,6 +264,7 @@ impl RangeDataset {
         use rayon::prelude::*;
         let profile = SensorProfile::kitti_hdl64e().with_columns(width);
         let angles = profile.angle_grid();
+        let units = DepthRange::of(&profile);
         let (height, width) = (angles.height, angles.width);
         let per_file: Vec<Vec<f32>> = files
             .par_iter()
@@ -209,26 +281,31 @@ impl RangeDataset {
                         image.width
                     );
                 }
-                Ok(range_to_network(&image.range_m))
+                Ok(units.to_network(&image.range_m))
             })
             .collect::<Result<_>>()?;
-        Ok(Self::from_images(angles, per_file.concat()))
+        Ok(Self::from_images(profile, angles, per_file.concat()))
     }
 
-    /// A dataset from images in network units on `angles`' grid, `[n, H, W]` row-major.
-    pub fn from_images(angles: AngleGrid, images: Vec<f32>) -> Self {
+    /// A dataset from images in network units of `profile`'s range on `angles`' grid,
+    /// `[n, H, W]` row-major.
+    pub fn from_images(profile: SensorProfile, angles: AngleGrid, images: Vec<f32>) -> Self {
         debug_assert_eq!(images.len() % angles.len().max(1), 0);
         Self {
             height: angles.height,
             width: angles.width,
             images,
             angles,
+            profile,
         }
     }
 
-    const MAGIC: &'static [u8; 8] = b"RGDSv001";
+    const MAGIC: &'static [u8; 8] = b"RGDSv002";
+    /// Caches written before the profile was recorded: KITTI's HDL-64E at their width.
+    const MAGIC_V1: &'static [u8; 8] = b"RGDSv001";
 
-    /// Write the cache: magic, n, H, W (u64 LE), elevation, azimuth, images (f32 LE).
+    /// Write the cache: magic, the profile as JSON (u64 LE length first), n, H, W (u64 LE),
+    /// elevation, azimuth, images (f32 LE).
     pub fn save(&self, path: &Path) -> Result<()> {
         let tmp = path.with_extension("tmp");
         {
@@ -236,6 +313,9 @@ impl RangeDataset {
                 .with_context(|| format!("failed to create '{}'", tmp.display()))?;
             let mut w = BufWriter::new(f);
             w.write_all(Self::MAGIC)?;
+            let profile = serde_json::to_vec(&self.profile)?;
+            w.write_all(&(profile.len() as u64).to_le_bytes())?;
+            w.write_all(&profile)?;
             for v in [self.len(), self.height, self.width] {
                 w.write_all(&(v as u64).to_le_bytes())?;
             }
@@ -260,15 +340,46 @@ impl RangeDataset {
         let mut r = BufReader::new(f);
         let mut magic = [0u8; 8];
         r.read_exact(&mut magic)?;
-        if &magic != Self::MAGIC {
-            bail!("'{}' is not a dataset cache (bad magic)", path.display());
-        }
         let mut u = [0u8; 8];
         let mut next_u64 = |r: &mut BufReader<File>| -> Result<usize> {
-            r.read_exact(&mut u)?;
+            r.read_exact(&mut u)
+                .with_context(|| format!("'{}' is truncated", path.display()))?;
             Ok(u64::from_le_bytes(u) as usize)
         };
+        let profile = if &magic == Self::MAGIC {
+            let len = next_u64(&mut r)?;
+            ensure!(
+                len <= 1 << 20,
+                "'{}' is not a dataset cache (profile of {len} bytes)",
+                path.display()
+            );
+            let mut json = vec![0u8; len];
+            r.read_exact(&mut json)
+                .with_context(|| format!("'{}' is truncated", path.display()))?;
+            Some(
+                serde_json::from_slice::<SensorProfile>(&json)
+                    .with_context(|| format!("'{}': bad sensor profile", path.display()))?,
+            )
+        } else if &magic == Self::MAGIC_V1 {
+            None
+        } else {
+            bail!("'{}' is not a dataset cache (bad magic)", path.display());
+        };
         let (n, height, width) = (next_u64(&mut r)?, next_u64(&mut r)?, next_u64(&mut r)?);
+        ensure!(
+            height.saturating_mul(width).saturating_mul(n.max(1)) <= 1 << 34,
+            "'{}' is not a dataset cache ({n} images of {height} x {width})",
+            path.display()
+        );
+        let profile = profile.unwrap_or_else(|| SensorProfile::kitti_hdl64e().with_columns(width));
+        ensure!(
+            profile.beams() == height && profile.columns == width,
+            "'{}': its profile {} ({} x {}) is not its images' grid {height} x {width}",
+            path.display(),
+            profile.name,
+            profile.beams(),
+            profile.columns
+        );
         let read_f32 = |r: &mut BufReader<File>, count: usize| -> Result<Vec<f32>> {
             let mut bytes = vec![0u8; count * 4];
             r.read_exact(&mut bytes)
@@ -291,21 +402,8 @@ impl RangeDataset {
                 elevation_rad,
                 azimuth_rad,
             },
+            profile,
         })
-    }
-
-    /// Load the cache at `cache`, or build it from `files` and write it.
-    pub fn load_or_build(cache: &Path, files: &[PathBuf], width: usize) -> Result<Self> {
-        if cache.exists() {
-            return Self::load(cache);
-        }
-        let ds = Self::from_kitti_files(files, width)?;
-        if let Some(dir) = cache.parent() {
-            std::fs::create_dir_all(dir)
-                .with_context(|| format!("failed to create '{}'", dir.display()))?;
-        }
-        ds.save(cache)?;
-        Ok(ds)
     }
 }
 
@@ -321,6 +419,9 @@ mod tests {
         assert_eq!(x[1], -1.0);
         assert!((x[2] - 1.0).abs() < 1e-6);
         assert_eq!(x[5], -1.0);
+        let d = DepthRange::KITTI.clamped_depths(&[1.0, -1.0, 0.0]);
+        assert!((d[0] - 1.45).abs() < 1e-5 && (d[1] - 80.0).abs() < 1e-3);
+        assert!((d[2] - 2.9).abs() < 1e-5);
         let back = network_to_range(&x);
         assert!((back[3] - 10.0).abs() < 1e-3);
         assert!((back[4] - 80.0).abs() < 1e-2);
@@ -329,15 +430,14 @@ mod tests {
 
     #[test]
     fn cache_round_trip() {
-        let grid = SensorProfile::kitti_hdl64e().with_columns(8).angle_grid();
-        let ds = RangeDataset {
-            height: grid.height,
-            width: grid.width,
-            images: (0..2 * grid.len())
-                .map(|i| (i % 7) as f32 * 0.1 - 0.5)
-                .collect(),
-            angles: grid,
-        };
+        let profile = SensorProfile::builtin("os1-32")
+            .expect("os1-32")
+            .with_columns(8);
+        let grid = profile.angle_grid();
+        let images = (0..2 * grid.len())
+            .map(|i| (i % 7) as f32 * 0.1 - 0.5)
+            .collect();
+        let ds = RangeDataset::from_images(profile, grid, images);
         let dir = tempfile::tempdir().expect("tempdir");
         let path = dir.path().join("ds.bin");
         ds.save(&path).expect("save");

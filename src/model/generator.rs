@@ -240,6 +240,11 @@ pub struct GeneratorOutput {
 }
 
 impl GeneratorConfig {
+    /// Grid sizes must divide by this (`Generator::resolution_step`).
+    pub fn resolution_step(&self) -> usize {
+        1 << self.channels.len().saturating_sub(1)
+    }
+
     /// Refuses sizes that cannot be built or would not fit in memory.
     pub fn check(&self) -> anyhow::Result<()> {
         use crate::util::bounds;

@@ -7,9 +7,9 @@ use burn::tensor::Device;
 use burn::tensor::activation::sigmoid;
 
 use super::AnyGenerator;
-use super::data::{MAX_DEPTH_M, MIN_DEPTH_M, RangeDataset};
+use super::data::RangeDataset;
 use super::weights::Model;
-use crate::lidar::{AngleGrid, SensorProfile};
+use crate::lidar::AngleGrid;
 use crate::util::rng::Rng;
 use crate::util::tensor::tensor_to_vec;
 
@@ -17,8 +17,11 @@ use crate::util::tensor::tensor_to_vec;
 #[derive(Debug, Clone)]
 pub struct SampledScan {
     pub angles: AngleGrid,
-    /// Inverse depth x_d = 1.45 m / depth in (0, 1], before ray drop.
+    /// Inverse depth x_d = min / depth in (0, 1] (min: the nearest depth of the model's
+    /// sensor, 1.45 m for KITTI's), before ray drop.
     pub x_d: Vec<f32>,
+    /// The depth x_d stands for, meters.
+    pub depth_m: Vec<f32>,
     /// x_n: probability that the ray is dropped (all 0 for vanilla).
     pub drop_prob: Vec<f32>,
     /// Sampled returns (true = the ray came back).
@@ -48,17 +51,15 @@ pub struct SampleOptions {
     pub seed: u64,
     /// Truncation psi towards w_avg (1 = none; implicit generator only).
     pub truncation: f32,
-    /// Grid to render on (implicit generator); default: KITTI HDL-64E at 512 columns.
+    /// Grid to render on (implicit generator); default: the model grid.
     pub grid: Option<AngleGrid>,
 }
 
 /// Draw `opts.n` scans from a trained generator.
 pub fn sample(model: &Model, opts: &SampleOptions, device: &Device) -> Result<Vec<SampledScan>> {
     let (g, config) = (&model.generator, &model.config);
-    let grid = opts
-        .grid
-        .clone()
-        .unwrap_or_else(|| SensorProfile::kitti_hdl64e().with_columns(512).angle_grid());
+    let grid = opts.grid.clone().unwrap_or_else(|| config.grid());
+    let units = config.depth_range();
     let mut rng = Rng::new(opts.seed);
     let mut out = Vec::with_capacity(opts.n);
     let batch = 4;
@@ -91,10 +92,10 @@ pub fn sample(model: &Model, opts: &SampleOptions, device: &Device) -> Result<Ve
                 let c = y.dims()[1];
                 let x_d = y.clone().narrow(1, 0, 1);
                 let logit = (c > 1).then(|| y.narrow(1, 1, 1));
-                let angles = SensorProfile::kitti_hdl64e().with_columns(w).angle_grid();
+                let angles = config.sensor.clone().with_columns(w).angle_grid();
                 if angles.height != h {
                     bail!(
-                        "conv generator renders {h} rows, the KITTI grid has {}",
+                        "conv generator renders {h} rows, its sensor has {}",
                         angles.height
                     );
                 }
@@ -125,17 +126,19 @@ pub fn sample(model: &Model, opts: &SampleOptions, device: &Device) -> Result<Ve
             let xs = &x_d_net[i * n..(i + 1) * n];
             let x_d: Vec<f32> = xs
                 .iter()
-                .map(|v| ((v + 1.0) * 0.5).clamp(MIN_DEPTH_M / MAX_DEPTH_M, 1.0))
+                .map(|v| ((v + 1.0) * 0.5).clamp(units.x_d_floor(), 1.0))
                 .collect();
+            let depth_m: Vec<f32> = x_d.iter().map(|x| units.min_m / x).collect();
             let mask_i = mask[i * n..(i + 1) * n].to_vec();
-            let range_m = x_d
+            let range_m = depth_m
                 .iter()
                 .zip(&mask_i)
-                .map(|(x, &keep)| if keep { MIN_DEPTH_M / x } else { 0.0 })
+                .map(|(d, &keep)| if keep { *d } else { 0.0 })
                 .collect();
             out.push(SampledScan {
                 angles: angles.clone(),
                 x_d,
+                depth_m,
                 drop_prob: drop_prob[i * n..(i + 1) * n].to_vec(),
                 mask: mask_i,
                 range_m,
@@ -149,18 +152,17 @@ pub fn sample(model: &Model, opts: &SampleOptions, device: &Device) -> Result<Ve
 /// Real scans of a dataset cache in the same form (for side-by-side pictures and metrics).
 pub fn dataset_scan(ds: &RangeDataset, i: usize) -> SampledScan {
     let img = ds.image(i);
+    let units = ds.depth_range();
     let x_d: Vec<f32> = img.iter().map(|v| ((v + 1.0) * 0.5).max(0.0)).collect();
     let mask: Vec<bool> = img.iter().map(|v| *v > -1.0 + 1e-6).collect();
-    let range_m = x_d
-        .iter()
-        .zip(&mask)
-        .map(|(x, &m)| if m { MIN_DEPTH_M / x } else { 0.0 })
-        .collect();
+    // A real scan has no depth where its ray was dropped.
+    let depth_m: Vec<f32> = units.to_range(img);
     SampledScan {
         angles: ds.angles.clone(),
+        range_m: depth_m.clone(),
+        depth_m,
         drop_prob: mask.iter().map(|&m| if m { 0.0 } else { 1.0 }).collect(),
         x_d,
         mask,
-        range_m,
     }
 }

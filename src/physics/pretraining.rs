@@ -1,6 +1,7 @@
 //! Simulated range images for pretraining the GAN. The ~470 real KITTI scans are too few
 //! for a discriminator not to memorise them; the simulator makes as many distinct scenes as
-//! asked. Each scene is a procedural street drive ray-cast with the KITTI HDL-64E profile,
+//! asked. Each scene is a procedural street drive ray-cast with the sensor's profile (KITTI's
+//! HDL-64E unless another is given),
 //! with the `realistic` physics whose strengths are drawn per scene (so the ray-drop output
 //! x_n sees varied drop patterns, not one fixed simulator), and a randomised ego speed and
 //! sensor height. Everything is keyed by (seed, scene, scan): the same arguments give the
@@ -10,19 +11,19 @@ use rayon::prelude::*;
 
 use super::{PhysicsConfig, Preset};
 use crate::lidar::SensorProfile;
-use crate::model::data::{RangeDataset, range_to_network};
+use crate::model::data::{DepthRange, RangeDataset};
 use crate::sim::{SceneConfig, Simulator};
 use crate::util::rng::{key_hash, uniform};
 
 /// What to simulate.
-#[derive(Debug, Clone, Copy, PartialEq)]
+#[derive(Debug, Clone, PartialEq)]
 pub struct PretrainingSet {
     /// Images in total.
     pub scans: usize,
     /// Images per scene, taken half a second apart along the drive.
     pub scans_per_scene: usize,
-    /// Azimuth columns of the images (rows: the HDL-64E's 64 beams).
-    pub columns: usize,
+    /// The sensor ray-cast, at the images' columns; its valid range sets the units.
+    pub profile: SensorProfile,
     pub seed: u64,
 }
 
@@ -31,7 +32,7 @@ impl Default for PretrainingSet {
         Self {
             scans: 10_000,
             scans_per_scene: 10,
-            columns: 512,
+            profile: SensorProfile::kitti_hdl64e().with_columns(512),
             seed: 0x5157,
         }
     }
@@ -43,19 +44,19 @@ const SCAN_SPACING: u32 = 5;
 impl PretrainingSet {
     /// Simulates the set (in parallel over scenes) as network-unit images.
     pub fn build(&self, progress: impl Fn(usize) + Sync) -> RangeDataset {
-        let profile = SensorProfile::kitti_hdl64e().with_columns(self.columns);
+        let profile = &self.profile;
         let per_scene = self.scans_per_scene.max(1);
         let scenes = self.scans.div_ceil(per_scene);
         let images: Vec<Vec<f32>> = (0..scenes)
             .into_par_iter()
             .map(|scene| {
                 let n = per_scene.min(self.scans - scene * per_scene);
-                let images = self.scene_images(scene as u64, n, &profile);
+                let images = self.scene_images(scene as u64, n, profile);
                 progress(n);
                 images
             })
             .collect();
-        RangeDataset::from_images(profile.angle_grid(), images.concat())
+        RangeDataset::from_images(profile.clone(), profile.angle_grid(), images.concat())
     }
 
     fn scene_images(&self, scene: u64, n: usize, profile: &SensorProfile) -> Vec<f32> {
@@ -70,11 +71,12 @@ impl PretrainingSet {
         };
         let sim = Simulator::new(config, profile.clone());
         let physics = randomised_realistic(profile.beams(), scene_seed).effects();
+        let units = DepthRange::of(profile);
         let mut out = Vec::with_capacity(n * profile.angle_grid().len());
         for i in 0..n as u32 {
             let mut scan = sim.scan(i * SCAN_SPACING);
             physics.apply(&mut scan, scene_seed);
-            out.extend(range_to_network(&scan.image.range_m));
+            out.extend(units.to_network(&scan.image.range_m));
         }
         out
     }
@@ -129,12 +131,13 @@ mod tests {
         let set = PretrainingSet {
             scans: 5,
             scans_per_scene: 2,
-            columns: 64,
+            profile: SensorProfile::kitti_hdl64e().with_columns(64),
             seed: 9,
         };
         let a = set.build(|_| {});
         assert_eq!((a.len(), a.height, a.width), (5, 64, 64));
         assert_eq!(a, set.build(|_| {}));
+        assert_eq!(a.profile, set.profile);
         assert!(a.images.iter().all(|v| (-1.0..=1.0).contains(v)));
         // Images differ (other scenes, other times) and have returns and drops.
         assert_ne!(a.image(0), a.image(1));
@@ -143,6 +146,31 @@ mod tests {
             let returns = a.image(i).iter().filter(|&&v| v > -1.0).count();
             assert!(returns > a.image(i).len() / 2 && returns < a.image(i).len());
         }
+    }
+
+    /// Another sensor's set is ray-cast on its beams and in its range: an Ouster's 0.3 m
+    /// returns are returns, not drops.
+    #[test]
+    fn a_set_renders_the_sensor_it_is_given() {
+        let profile = SensorProfile::builtin("os1-32")
+            .expect("os1-32")
+            .with_columns(128);
+        let set = PretrainingSet {
+            scans: 2,
+            scans_per_scene: 2,
+            profile: profile.clone(),
+            seed: 3,
+        };
+        let a = set.build(|_| {});
+        assert_eq!((a.height, a.width), (32, 128));
+        assert_eq!(a.angles, profile.angle_grid());
+        assert_eq!(a.depth_range(), DepthRange::of(&profile));
+        let returns = a.images.iter().filter(|&&v| v > -1.0).count();
+        assert!(
+            returns > a.images.len() / 3,
+            "{returns} of {}",
+            a.images.len()
+        );
     }
 
     #[test]

@@ -63,6 +63,9 @@ pub struct ConvertOptions {
     /// no coverage is checked). When decoding, a first pass over the file counts every
     /// converted topic's drops ([`survey`]): the recording's own rates.
     pub prior: Option<PriorUse>,
+    /// The sensor the decoding model was trained for: a topic's coverage is judged against
+    /// it.
+    pub model_sensor: SensorProfile,
     /// Scans of a topic in chains: scan k continues from scan k - stride (0: each scan alone).
     pub chain_stride: usize,
 }
@@ -106,6 +109,7 @@ impl Default for ConvertOptions {
             strict: false,
             scans_processed: None,
             prior: None,
+            model_sensor: crate::model::config::default_sensor(),
             chain_stride: DEFAULT_CHAIN_STRIDE,
         }
     }
@@ -356,7 +360,8 @@ impl<'s> ScanProcessor<'_, 's> {
         if coverage.contains_key(topic) {
             return;
         }
-        let Some(fit) = crate::decode::fit::model_fit(scan, profile) else {
+        let Some(fit) = crate::decode::fit::model_fit(scan, profile, &self.opts.model_sensor)
+        else {
             return;
         };
         coverage.insert(topic.to_string(), fit.covers());

@@ -10,7 +10,9 @@ use burn::config::Config;
 use burn::tensor::Device;
 use serde::{Deserialize, Serialize};
 
+use crate::lidar::SensorProfile;
 use crate::model::baseline::ConvGeneratorConfig;
+use crate::model::data::RangeDataset;
 use crate::model::discriminator::DiscriminatorConfig;
 use crate::model::generator::GeneratorConfig;
 use crate::model::measurement::MeasurementConfig;
@@ -20,6 +22,7 @@ use crate::util::rng::Rng;
 use super::growth::Stage;
 use super::reconstruct::ReconstructionConfig;
 use super::run_dir::Backend;
+use super::scans::ScanSource;
 
 /// Everything that defines a training run; saved as `config.json` before training starts.
 #[derive(Config, Debug)]
@@ -35,6 +38,10 @@ pub struct TrainConfig {
     pub discriminator: DiscriminatorConfig,
     #[config(default = "MeasurementConfig::new()")]
     pub measurement: MeasurementConfig,
+    /// The sensor of the training scans at their columns (set from the dataset when the run
+    /// starts): the model grid and network units of the trained model.
+    #[config(default = "crate::model::config::default_sensor()")]
+    pub sensor: SensorProfile,
     #[config(default = 8)]
     pub batch_size: usize,
     /// Adam, paper values: lr 0.002, betas (0, 0.99).
@@ -130,10 +137,10 @@ pub struct TrainConfig {
 #[derive(Debug, Clone)]
 pub struct TrainOptions {
     pub run_dir: PathBuf,
-    /// Dataset cache file (built from `scans` if missing).
+    /// Dataset cache file (built from `source` if missing).
     pub dataset_cache: PathBuf,
-    /// KITTI `.bin` scans to build the cache from.
-    pub scans: Vec<PathBuf>,
+    /// The scans to build the cache from; `None`: the cache must exist.
+    pub source: Option<ScanSource>,
     /// Used when the run directory has no config.json yet; otherwise the saved one wins.
     pub config: TrainConfig,
     pub backend: Backend,
@@ -241,7 +248,44 @@ impl TrainConfig {
             generator: self.generator.clone(),
             conv_generator: self.conv_generator.clone(),
             measurement: self.measurement.clone(),
+            sensor: self.sensor.clone(),
         }
+    }
+
+    /// Refuses a dataset this run cannot train on: another grid than the run's sensor's, or
+    /// one that its networks cannot halve down to their coarsest level.
+    pub fn check_grid(&self, data: &RangeDataset) -> Result<()> {
+        let (h, w) = (data.height, data.width);
+        anyhow::ensure!(
+            self.sensor.beams() == h && self.sensor.columns == w,
+            "the dataset's grid ({} beams x {w} columns, {}) is not this run's sensor's ({} x {}, {}): a run trains on one sensor's grid",
+            h,
+            data.profile.name,
+            self.sensor.beams(),
+            self.sensor.columns,
+            self.sensor.name
+        );
+        let step = match self.arch {
+            Arch::Dusty2 => self.generator.resolution_step(),
+            _ => {
+                let c = &self.conv_generator;
+                let (gh, gw) = c.output_size();
+                anyhow::ensure!(
+                    (gh, gw) == (h, w),
+                    "a {:?} generator renders {gh} x {gw} images; the dataset is {h} x {w} (use dusty2 for other grids)",
+                    self.arch
+                );
+                1
+            }
+        };
+        let d = &self.discriminator;
+        let fold = step.max(d.stem.max(1) << d.channels.len().saturating_sub(1));
+        anyhow::ensure!(
+            h.is_multiple_of(fold) && w.is_multiple_of(fold),
+            "the dataset's grid ({h} beams x {w} columns, {}) must divide by {fold} for these networks: choose --columns as a multiple of {fold}, and a sensor whose beams are",
+            data.profile.name
+        );
+        Ok(())
     }
 
     /// The discriminator configuration of coarse-to-fine stage `stage`.

@@ -23,6 +23,7 @@ use burn::tensor::Device;
 use serde::{Deserialize, Serialize};
 
 use super::Backend;
+use super::scans::ScanSource;
 use crate::decode::Sparsify;
 use crate::decode::amortised::{Encoder, EncoderConfig};
 use crate::decode::loss::reconstruction_loss;
@@ -73,7 +74,9 @@ pub struct EncoderTrainConfig {
 pub struct EncoderTrainOptions {
     pub run_dir: PathBuf,
     pub dataset_cache: PathBuf,
-    pub scans: Vec<PathBuf>,
+    /// The scans to build the cache from (on the generator's grid); `None`: the cache must
+    /// exist.
+    pub source: Option<ScanSource>,
     /// Generator directory; `None` = the shipped weights.
     pub model: Option<PathBuf>,
     pub config: EncoderTrainConfig,
@@ -100,11 +103,19 @@ pub fn load_config(path: &Path) -> Result<EncoderTrainConfig> {
 pub fn run(opts: &EncoderTrainOptions) -> Result<()> {
     std::fs::create_dir_all(&opts.run_dir)
         .with_context(|| format!("failed to create '{}'", opts.run_dir.display()))?;
+    let inner = opts.backend.device()?;
+    let model = Model::load(opts.model.as_deref(), &inner)?;
     let config_path = opts.run_dir.join("config.json");
     let mut config = if config_path.exists() {
         load_config(&config_path)?
     } else {
-        opts.config.clone()
+        // A new encoder reads its generator's grid.
+        let mut c = opts.config.clone();
+        c.encoder = c
+            .encoder
+            .with_height(model.config.sensor.beams())
+            .with_width(model.config.sensor.columns);
+        c
     };
     if let Some(n) = opts.total_steps {
         config.total_steps = n;
@@ -112,20 +123,29 @@ pub fn run(opts: &EncoderTrainOptions) -> Result<()> {
     config
         .save(&config_path)
         .with_context(|| format!("failed to write '{}'", config_path.display()))?;
-    let data = RangeDataset::load_or_build(&opts.dataset_cache, &opts.scans, config.encoder.width)?;
-    if data.height != config.encoder.height || data.is_empty() {
+    let data = super::scans::load_dataset(&opts.dataset_cache, opts.source.as_ref())?;
+    if data.height != config.encoder.height
+        || data.width != config.encoder.width
+        || data.depth_range() != model.config.depth_range()
+        || data.is_empty()
+    {
         bail!(
-            "dataset '{}' has {} images of {}x{}; the encoder expects {}x{}",
+            "dataset '{}' has {} images of {}x{} ({}, {}-{} m); the encoder expects {}x{} (generator '{}': {}, {}-{} m)",
             opts.dataset_cache.display(),
             data.len(),
             data.height,
             data.width,
+            data.profile.name,
+            data.profile.min_range_m,
+            data.profile.max_range_m,
             config.encoder.height,
-            config.encoder.width
+            config.encoder.width,
+            model.source,
+            model.config.sensor.name,
+            model.config.sensor.min_range_m,
+            model.config.sensor.max_range_m,
         );
     }
-    let inner = opts.backend.device()?;
-    let model = Model::load(opts.model.as_deref(), &inner)?;
     let measurement = model.config.measurement.clone();
     let AnyGenerator::Implicit(generator) = model.generator else {
         bail!("the encoder serves the implicit dusty2 generator only");
@@ -256,6 +276,8 @@ impl Trainer {
         let mut target = Vec::with_capacity((bg + br) * n);
         let mut mask = Vec::with_capacity((bg + br) * n);
         let mut w_true = Vec::new();
+        // Generated depths beyond the valid range are not measurable either.
+        let farthest = 2.0 * data.depth_range().x_d_floor() - 1.0;
         if bg > 0 {
             let z = self.state.rng.normal_tensor([bg, d_z], &self.inner);
             let w_gen = self.generator.mapping.forward(z); // [bg, d_w]
@@ -266,8 +288,7 @@ impl Trainer {
             let keep = tensor_to_vec(m.mask);
             let x_d = tensor_to_vec(out.x_d);
             for (x, k) in x_d.iter().zip(&keep) {
-                // Generated depths beyond the valid range are not measurable either.
-                let valid = *k > 0.5 && *x > 2.0 * crate::model::data::MIN_DEPTH_M / 80.0 - 1.0;
+                let valid = *k > 0.5 && *x > farthest;
                 target.push(if valid { *x } else { -1.0 });
                 mask.push(if valid { 1.0 } else { 0.0 });
             }

@@ -13,6 +13,8 @@
 //! - [`widen`]: function-preserving widening of a trained generator, to go on training
 //!   a run at a larger width.
 //! - [`row_fill`]: the learned correction of restored rows ([`crate::decode::row_fill`]).
+//! - [`scans`]: where the training scans come from (KITTI folders or MCAP recordings of
+//!   any sensor) and the validation split.
 
 pub mod config;
 pub mod encoder;
@@ -21,6 +23,7 @@ pub mod growth;
 pub mod reconstruct;
 pub mod row_fill;
 pub mod run_dir;
+pub mod scans;
 pub mod update;
 pub mod widen;
 

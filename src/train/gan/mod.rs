@@ -42,13 +42,17 @@ pub fn run(opts: &TrainOptions) -> Result<()> {
     std::fs::create_dir_all(opts.run_dir.join("snapshots"))
         .with_context(|| format!("failed to create '{}'", opts.run_dir.display()))?;
     let config_path = opts.run_dir.join("config.json");
+    let data = super::scans::load_dataset(&opts.dataset_cache, opts.source.as_ref())?;
     let config = if config_path.exists() {
         load_config(&config_path)?
     } else {
-        opts.config
+        // A new run (fine-tuning included) learns the sensor of its scans.
+        let config = opts.config.clone().with_sensor(data.profile.clone());
+        config.check_grid(&data)?;
+        config
             .save(&config_path)
             .with_context(|| format!("failed to write '{}'", config_path.display()))?;
-        opts.config.clone()
+        config
     };
     let config = match opts.total_images {
         Some(n) if n != config.total_images => {
@@ -59,7 +63,9 @@ pub fn run(opts: &TrainOptions) -> Result<()> {
         }
         _ => config,
     };
-    let data = RangeDataset::load_or_build(&opts.dataset_cache, &opts.scans, 512)?;
+    config
+        .check_grid(&data)
+        .with_context(|| format!("dataset '{}'", opts.dataset_cache.display()))?;
     if data.len() < config.batch_size {
         bail!("dataset has {} images, fewer than a batch", data.len());
     }

@@ -132,7 +132,8 @@ fn synthetic_cache(
     seed: u64,
     value: impl Fn(usize, &mut Rng) -> f32,
 ) -> PathBuf {
-    let grid = SensorProfile::kitti_hdl64e().with_columns(64).angle_grid();
+    let profile = SensorProfile::kitti_hdl64e().with_columns(64);
+    let grid = profile.angle_grid();
     let (h, w) = (grid.height, grid.width);
     let mut rng = Rng::new(seed);
     let images: Vec<f32> = (0..n * h * w)
@@ -144,12 +145,7 @@ fn synthetic_cache(
             }
         })
         .collect();
-    let data = RangeDataset {
-        height: h,
-        width: w,
-        images,
-        angles: grid,
-    };
+    let data = RangeDataset::from_images(profile, grid, images);
     let cache = dir.join("ds.bin");
     data.save(&cache).expect("cache");
     cache
@@ -193,7 +189,7 @@ fn options(run_dir: PathBuf, cache: PathBuf, config: TrainConfig) -> TrainOption
     TrainOptions {
         run_dir,
         dataset_cache: cache,
-        scans: vec![],
+        source: None,
         config,
         backend: Backend::Flex,
         total_images: None,
