@@ -150,3 +150,118 @@ fn the_hesai_and_vls128_built_ins_match_real_calibrations() {
     assert_eq!(pandar64.beams(), 64);
     pandar64.validate().unwrap();
 }
+
+/// The rotations of real Ouster PCAP captures (an OS-1-128 in the low-bandwidth eUDP
+/// profile, three moving frames, and a legacy-format OS-1-32) import as organized clouds
+/// whose beams are the unit's own (its metadata JSON, also a `--sensor` profile), every
+/// return on a pixel of that profile. A capture cut off mid-packet keeps the rotations
+/// before the cut, with a warning that names the byte offset.
+#[test]
+fn ouster_pcap_captures_import_as_the_units_own_beams() {
+    let Some(root) = real_data("ouster_pcap_captures_import_as_the_units_own_beams") else {
+        return;
+    };
+    let dir = tempfile::tempdir().unwrap();
+    let captures = [
+        (
+            "other_sensors/ouster_os1_128_lb_3frames/OS-1-128_v2.3.0_1024x10_lb_n3.pcap",
+            "other_sensors/ouster_os1_128_lb_3frames/OS-1-128_v2.3.0_1024x10.json",
+            3,
+            128,
+        ),
+        (
+            "ouster/OS-1-32-G_v2.1.1_1024x10.pcap",
+            "ouster/OS-1-32-G_v2.1.1_1024x10.json",
+            1,
+            32,
+        ),
+    ];
+    for (pcap, json, frames, beams) in captures {
+        let out = dir.path().join("ouster.mcap");
+        let o = common::run(&[
+            "--json",
+            "import",
+            root.join(pcap).to_str().unwrap(),
+            out.to_str().unwrap(),
+            "--force",
+        ]);
+        assert!(o.status.success(), "{pcap}: {}", common::stderr(&o));
+        let summary: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+        assert_eq!(summary["scans"], frames, "{pcap}: {summary}");
+        let bytes = std::fs::read(&out).unwrap();
+        let scans: Vec<Scan> = mcap::MessageStream::new(&bytes)
+            .unwrap()
+            .map(|m| m.unwrap())
+            .filter(|m| m.channel.topic == "/velodyne_points")
+            .map(|m| decode_cloud(CloudFormat::Ros2Cdr, &m.data).unwrap().scan)
+            .collect();
+        let unit = SensorProfile::load(&root.join(json)).unwrap();
+        assert_eq!(unit.beams(), beams);
+        for scan in &scans {
+            assert_eq!(
+                (scan.height, scan.width),
+                (beams, 1024),
+                "{pcap}: organized"
+            );
+            assert!(
+                scan.returns() > scan.len() / 2,
+                "{pcap}: {} returns",
+                scan.returns()
+            );
+            let image = project(scan, &unit, Strategy::Auto).unwrap();
+            let pixels = image.range_m.iter().filter(|&&r| r > 0.0).count();
+            assert!(
+                pixels as f64 >= 0.99 * scan.returns() as f64,
+                "{pcap}: {pixels} pixels for {} returns",
+                scan.returns()
+            );
+        }
+        let est = estimate_profile(&scans).unwrap();
+        assert_eq!(est.beams.len(), beams, "{pcap}: {est}");
+        let worst = est
+            .beams
+            .iter()
+            .zip(&unit.elevation_deg)
+            .map(|(b, e)| (b.elevation_deg - e).abs())
+            .fold(0.0f32, f32::max);
+        // Beams sit 15-27 mm off the lidar's axis: near returns tilt their elevation a little.
+        assert!(
+            worst < 0.5,
+            "{pcap}: a beam {worst:.2} deg off the unit's table"
+        );
+    }
+    let (pcap, json, _, _) = captures[0];
+    let cut = dir.path().join("cut.pcap");
+    let whole = std::fs::read(root.join(pcap)).unwrap();
+    std::fs::write(&cut, &whole[..1_000_000]).unwrap();
+    let out = dir.path().join("cut.mcap");
+    let o = common::run(&[
+        "--json",
+        "import",
+        cut.to_str().unwrap(),
+        out.to_str().unwrap(),
+        "--metadata",
+        root.join(json).to_str().unwrap(),
+    ]);
+    assert!(o.status.success(), "{}", common::stderr(&o));
+    let summary: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    assert_eq!(summary["scans"], 1, "{summary}");
+    let err = common::stderr(&o);
+    assert!(
+        err.contains("truncated") && err.contains("byte offset"),
+        "{err}"
+    );
+    // Without --metadata, a folder without the capture's JSON is asked for one.
+    let o = common::run(&[
+        "import",
+        cut.to_str().unwrap(),
+        out.to_str().unwrap(),
+        "--force",
+    ]);
+    assert_eq!(o.status.code(), Some(1));
+    assert!(
+        common::stderr(&o).contains("give --metadata"),
+        "{}",
+        common::stderr(&o)
+    );
+}

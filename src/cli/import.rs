@@ -4,6 +4,8 @@
 //! `.pcd.bin` scans (with their ring field) and `.pcd` files (ASCII or binary, any sensor,
 //! with the fields they hold). Labels come from SemanticKITTI `labels/*.label` files, or from
 //! KITTI object boxes (`label_2/` with `calib/`) as the partial labels of [`kitti_boxes`].
+//! An Ouster PCAP capture with its metadata JSON becomes one organized cloud per rotation
+//! ([`ouster_pcap`]).
 
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
@@ -13,7 +15,9 @@ use anyhow::{Context, bail};
 use super::{GlobalArgs, Outcome};
 use crate::io::Family;
 use crate::io::encoders::{Kind, encode_cloud};
-use crate::lidar::{kitti, kitti_boxes, nuscenes, pcd, projection::ring_order_ids};
+use crate::lidar::{
+    Scan, kitti, kitti_boxes, nuscenes, ouster_pcap, pcd, projection::ring_order_ids,
+};
 
 #[derive(Debug, clap::Args)]
 pub struct ImportArgs {
@@ -21,8 +25,13 @@ pub struct ImportArgs {
     /// and optionally `labels/*.label`, or KITTI object boxes in `label_2/*.txt` with
     /// `calib/*.txt` (cars and pedestrians labelled, the rest of the camera's view marked as
     /// neither); or nuScenes `*.pcd.bin` scans; or `*.pcd` files of any sensor. Scans are
-    /// written in file-name order.
+    /// written in file-name order. Or an Ouster PCAP capture (`.pcap`, legacy or eUDP
+    /// packets): one organized cloud per rotation, in capture order.
     pub dir: PathBuf,
+    /// The Ouster capture's metadata JSON (default: the `.json` beside the `.pcap` with its
+    /// name's start, or the only `.json` in its folder).
+    #[arg(long)]
+    pub metadata: Option<PathBuf>,
     #[command(flatten)]
     pub out: super::CloudOutputArgs,
     /// Leave no OUT and exit 3 if any scan could not be read (otherwise each is a warning
@@ -269,11 +278,29 @@ fn dataset_files(dir: &Path) -> anyhow::Result<Dataset> {
     })
 }
 
+/// One scan to write, or why it cannot be.
+struct Item {
+    /// The file (and frame) it came from, for warnings.
+    source: String,
+    scan: anyhow::Result<Scan>,
+    labelled: bool,
+    /// What a user should know about a scan that is written anyway.
+    warning: Option<String>,
+}
+
 pub fn run(global: &GlobalArgs, args: ImportArgs) -> anyhow::Result<Outcome> {
+    if args.dir.extension().is_some_and(|e| e == "pcap") {
+        return run_pcap(global, &args);
+    }
+    anyhow::ensure!(
+        args.metadata.is_none(),
+        "--metadata is for Ouster PCAP captures; '{}' is a folder",
+        args.dir.display()
+    );
     let Dataset {
         format,
         scans: files,
-        mut warnings,
+        warnings,
     } = dataset_files(&args.dir)?;
     let inputs: Vec<&Path> = files
         .iter()
@@ -282,7 +309,134 @@ pub fn run(global: &GlobalArgs, args: ImportArgs) -> anyhow::Result<Outcome> {
         })
         .collect();
     crate::io::writer::refuse_overwriting_inputs(&args.out.output, &inputs)?;
-    let start_nanos = args.out.start_nanos(files.len() as u64)?;
+    let items = files.iter().map(|(bin, label)| Item {
+        source: bin.display().to_string(),
+        scan: format.read(bin, label.as_ref()),
+        labelled: label.is_some(),
+        warning: None,
+    });
+    write(global, &args, files.len(), items, warnings)
+}
+
+/// The metadata JSON of an Ouster capture: `--metadata`, else the `.json` beside it whose
+/// name starts its name (`OS-1-128_v2.3.0_1024x10.json` for `..._1024x10_lb_n3.pcap`), else
+/// the only `.json` in its folder.
+fn ouster_metadata_path(pcap: &Path, given: Option<&Path>) -> anyhow::Result<PathBuf> {
+    if let Some(p) = given {
+        return Ok(p.to_path_buf());
+    }
+    let dir = pcap
+        .parent()
+        .filter(|d| !d.as_os_str().is_empty())
+        .unwrap_or(Path::new("."));
+    let jsons = files_with_extension(dir, "json")?;
+    let stem = pcap.file_stem().and_then(|s| s.to_str()).unwrap_or("");
+    let prefixed: Vec<&PathBuf> = jsons
+        .iter()
+        .filter(|j| {
+            j.file_stem()
+                .and_then(|s| s.to_str())
+                .is_some_and(|s| stem.starts_with(s))
+        })
+        .collect();
+    match (prefixed.as_slice(), jsons.as_slice()) {
+        ([one], _) => Ok((*one).clone()),
+        ([], [one]) => Ok(one.clone()),
+        _ => bail!(
+            "{}: which metadata JSON is the capture's? {} in '{}'; give --metadata",
+            pcap.display(),
+            if jsons.is_empty() {
+                "none".to_string()
+            } else {
+                format!("{} candidates", jsons.len())
+            },
+            dir.display()
+        ),
+    }
+}
+
+/// `import CAPTURE.pcap`: every rotation of an Ouster capture, partial ones with a warning.
+fn run_pcap(global: &GlobalArgs, args: &ImportArgs) -> anyhow::Result<Outcome> {
+    let meta_path = ouster_metadata_path(&args.dir, args.metadata.as_deref())?;
+    crate::io::writer::refuse_overwriting_inputs(&args.out.output, &[&args.dir, &meta_path])?;
+    let text = std::fs::read_to_string(&meta_path)
+        .with_context(|| format!("failed to read '{}'", meta_path.display()))?;
+    let meta = ouster_pcap::OusterMetadata::from_json(&text)
+        .with_context(|| format!("'{}'", meta_path.display()))?;
+    let size = std::fs::metadata(&args.dir)
+        .with_context(|| format!("cannot open '{}'", args.dir.display()))?
+        .len();
+    anyhow::ensure!(
+        size <= MAX_CAPTURE_BYTES,
+        "'{}' is {size} bytes; captures of at most {MAX_CAPTURE_BYTES} are read whole (split it, e.g. `editcap -c 100000`)",
+        args.dir.display()
+    );
+    let bytes = std::fs::read(&args.dir)
+        .with_context(|| format!("failed to read '{}'", args.dir.display()))?;
+    let in_capture = |e: ouster_pcap::OusterError| anyhow::anyhow!("'{}': {e}", args.dir.display());
+    // A first pass counts the rotations up to any damage (a capture cut off mid-packet, say:
+    // what comes before it is kept, and the damage is a warning); the second decodes them
+    // one at a time, so one frame is in memory at once.
+    let mut total = 0usize;
+    let mut warnings = Vec::new();
+    for frame in ouster_pcap::frames(&bytes, &meta).map_err(in_capture)? {
+        match frame {
+            Ok(_) => total += 1,
+            Err(e) => {
+                warnings.push(format!(
+                    "{}; the rotation in progress there and anything after it are not read",
+                    in_capture(e)
+                ));
+                break;
+            }
+        }
+    }
+    let items = ouster_pcap::frames(&bytes, &meta)
+        .map_err(in_capture)?
+        .take(total)
+        .map(|frame| {
+            let frame = match frame {
+                Ok(frame) => frame,
+                // Not reached: the first pass decoded the same bytes.
+                Err(e) => {
+                    return Item {
+                        source: args.dir.display().to_string(),
+                        scan: Err(in_capture(e)),
+                        labelled: false,
+                        warning: None,
+                    };
+                }
+            };
+            let source = format!("{} frame {}", args.dir.display(), frame.frame_id);
+            let warning = (!frame.is_complete()).then(|| {
+                format!(
+                    "{source}: {} of its {} columns were captured (a partial rotation); written as it is",
+                    frame.columns_seen, frame.columns
+                )
+            });
+            Item {
+                source,
+                scan: Ok(frame.scan),
+                labelled: false,
+                warning,
+            }
+        });
+    write(global, args, total, items, warnings)
+}
+
+/// The largest Ouster capture `import` reads (it is read whole).
+const MAX_CAPTURE_BYTES: u64 = 4 << 30;
+
+/// Writes `items` (of `total`) as PointCloud2 messages at 10 Hz; unreadable and empty scans
+/// are warnings (with `--strict`, no output and exit 3).
+fn write(
+    global: &GlobalArgs,
+    args: &ImportArgs,
+    total: usize,
+    items: impl Iterator<Item = Item>,
+    mut warnings: Vec<String>,
+) -> anyhow::Result<Outcome> {
+    let start_nanos = args.out.start_nanos(total as u64)?;
     let mut out = args.out.create()?;
     out.write_metadata(
         "rangegan",
@@ -293,35 +447,34 @@ pub fn run(global: &GlobalArgs, args: ImportArgs) -> anyhow::Result<Outcome> {
         ]),
     )?;
     let channel = out.own_channel(&args.out.topic, Family::Ros2, Kind::Cloud)?;
-    let bar = super::progress_bar(global, files.len() as u64);
+    let bar = super::progress_bar(global, total as u64);
     let mut written = 0u64;
     let mut labelled = 0u64;
     let mut unreadable = 0usize;
-    for (bin, label) in &files {
-        let scan = match format.read(bin, label.as_ref()) {
+    for item in items {
+        bar.inc(1);
+        warnings.extend(item.warning);
+        let scan = match item.scan {
             Ok(scan) => scan,
             Err(e) => {
                 // One bad file does not cost the others (errors name the file).
                 warnings.push(format!("{e:#}; scan not written"));
                 unreadable += 1;
-                bar.inc(1);
                 continue;
             }
         };
         if scan.returns() == 0 {
             warnings.push(format!(
                 "{}: no point with a return; scan not written",
-                bin.display()
+                item.source
             ));
-            bar.inc(1);
             continue;
         }
         let stamp = start_nanos + written * 100_000_000;
         written += 1;
-        labelled += u64::from(label.is_some());
+        labelled += u64::from(item.labelled);
         let msg = encode_cloud(Family::Ros2, stamp, &args.out.frame_id, &scan, &[]);
         out.write_own(channel, stamp, stamp, &msg)?;
-        bar.inc(1);
     }
     bar.finish_and_clear();
     for w in &warnings {
@@ -330,9 +483,8 @@ pub fn run(global: &GlobalArgs, args: ImportArgs) -> anyhow::Result<Outcome> {
     if written == 0 {
         out.discard();
         bail!(
-            "{}: none of its {} scans could be written (see the warnings above); no output",
+            "{}: none of its {total} scans could be written (see the warnings above); no output",
             args.dir.display(),
-            files.len()
         );
     }
     if args.strict && unreadable > 0 {

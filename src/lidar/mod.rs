@@ -2,8 +2,8 @@
 //! ([`SensorProfile`]: beam elevations, columns, valid range) and their estimation
 //! from data ([`estimate`]), the projection of a scan onto a profile's angle grid
 //! ([`project`]), the way back to points, and resampling of angle grids and range
-//! images ([`resample`]). Readers for dataset files on disk (KITTI, nuScenes, PCD)
-//! live here too, and a recording's own ray-drop rates ([`drop_census`]); MCAP is left to
+//! images ([`resample`]). Readers for dataset files on disk (KITTI, nuScenes, PCD, Ouster
+//! PCAP captures) live here too, and a recording's own ray-drop rates ([`drop_census`]); MCAP is left to
 //! `io`, models to later modules.
 
 pub mod drop_census;
@@ -13,6 +13,7 @@ pub mod holes;
 pub mod kitti;
 pub mod kitti_boxes;
 pub mod nuscenes;
+pub mod ouster_pcap;
 pub mod pcd;
 pub mod profile;
 pub mod projection;
