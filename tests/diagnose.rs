@@ -425,4 +425,34 @@ fn a_street_against_a_real_room_is_said_to_be_another_scene() {
     let html = std::fs::read_to_string(report.join("report.html")).unwrap();
     let first_screen = &html[..html.find("Missing physics").expect("a summary")];
     assert!(first_screen.contains("Different scenes"), "{first_screen}");
+    // The room's scans have sectors with no return on any beam: gaps in the data, on the
+    // first screen and stderr, none on the simulated side, and no fitted sector of
+    // self-occlusion lies inside one.
+    assert!(
+        first_screen.contains("Gaps in the recording"),
+        "{first_screen}"
+    );
+    assert!(stderr(&o).contains("gaps in the data"), "{}", stderr(&o));
+    let gaps = json["inputs"]["gaps"].as_array().unwrap();
+    assert!(!gaps.is_empty());
+    assert!(gaps.iter().all(|g| g["recording"] == "real"), "{gaps:?}");
+    let inside = |az: f64| {
+        gaps.iter().any(|g| {
+            let (a, b) = (
+                g["azimuth_deg"][0].as_f64().unwrap(),
+                g["azimuth_deg"][1].as_f64().unwrap(),
+            );
+            // Azimuth falls from a gap's first column to its last.
+            b + 1.0 < az && az < a - 1.0
+        })
+    };
+    let sectors = json["fitted_physics"]["self_occlusion"]["sectors"].as_array();
+    for s in sectors.into_iter().flatten() {
+        let mid =
+            (s["azimuth_min_deg"].as_f64().unwrap() + s["azimuth_max_deg"].as_f64().unwrap()) / 2.0;
+        assert!(
+            !inside(mid),
+            "a fitted sector at {mid} deg lies in a gap: {s}"
+        );
+    }
 }

@@ -276,6 +276,11 @@ pub fn run(global: &GlobalArgs, args: DiagnoseArgs) -> anyhow::Result<Outcome> {
     if r.inputs.scene.differs && !global.quiet {
         eprintln!("warning: {}", r.inputs.scene.sentence());
     }
+    if let Some(gaps) = crate::diagnose::gaps::summary(&r.inputs.gaps)
+        && !global.quiet
+    {
+        eprintln!("warning: {gaps}");
+    }
     if global.json {
         println!(
             "{}",

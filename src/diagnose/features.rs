@@ -70,6 +70,9 @@ pub struct ScanFeatures {
     pub class: Vec<u32>,
     /// Whether the pixel holds a return.
     pub kept: Vec<bool>,
+    /// Whether the pixel lies in a gap of the recording ([`super::gaps`]): left out of
+    /// every rate and fit. Empty: no gap.
+    pub gap: Vec<bool>,
 }
 
 impl ScanFeatures {
@@ -88,6 +91,7 @@ impl ScanFeatures {
             row_edge_px: Vec::new(),
             class: Vec::new(),
             kept: Vec::new(),
+            gap: Vec::new(),
         }
     }
 
@@ -99,12 +103,18 @@ impl ScanFeatures {
         self.kept.is_empty()
     }
 
-    /// Fraction of pixels without a return.
+    /// Whether pixel `k` lies in a gap of the recording.
+    pub fn in_gap(&self, k: usize) -> bool {
+        self.gap.get(k).copied().unwrap_or(false)
+    }
+
+    /// Fraction of pixels without a return, outside the recording's gaps.
     pub fn drop_rate(&self) -> f64 {
-        if self.is_empty() {
-            return 0.0;
-        }
-        self.kept.iter().filter(|k| !**k).count() as f64 / self.len() as f64
+        let counted = (0..self.len()).filter(|&k| !self.in_gap(k));
+        let (n, dropped) = counted.fold((0usize, 0usize), |(n, d), k| {
+            (n + 1, d + usize::from(!self.kept[k]))
+        });
+        dropped as f64 / n.max(1) as f64
     }
 
     /// Computes the features of a projected scan (neighbour-fill completion).
@@ -192,6 +202,7 @@ impl ScanFeatures {
             row_edge_px,
             class,
             kept,
+            gap: Vec::new(),
         }
     }
 }

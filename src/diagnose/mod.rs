@@ -24,6 +24,7 @@
 //!
 //! - [`completion`]: the neighbour fill or the GAN's completed depth x_d.
 //! - [`features`]: per-pixel features of one scan ([`features::ScanFeatures`]).
+//! - [`gaps`]: sectors of a scan without any return, gaps in the recording left out.
 //! - [`stats`]: conditional drop rates and their significance (*where*).
 //! - [`fit`]: the joint drop model and the forward selection (*which*).
 //! - [`drop`]: the drop candidates, one [`fit::DropFamily`] each.
@@ -36,6 +37,7 @@ pub mod completion;
 pub mod drop;
 pub mod features;
 pub mod fit;
+pub mod gaps;
 pub mod real_scan;
 pub mod report;
 pub mod residual;

@@ -157,7 +157,7 @@ impl DropCounts {
     /// Adds every pixel of one scan.
     pub fn add(&mut self, f: &ScanFeatures, options: &BinOptions) {
         for k in 0..f.len() {
-            if f.range_m[k] > options.reach_m {
+            if f.range_m[k] > options.reach_m || f.in_gap(k) {
                 continue;
             }
             let dropped = u64::from(!f.kept[k]);

@@ -405,6 +405,13 @@ fn summary(r: &Report) -> String {
             escape(&i.scene.sentence())
         );
     }
+    if let Some(gaps) = crate::diagnose::gaps::summary(&i.gaps) {
+        let _ = write!(
+            s,
+            "<p class='warn'><b>Gaps in the recording:</b> {}.</p>",
+            escape(&gaps)
+        );
+    }
     s.push_str("<p><b>Missing physics:</b></p>");
     if r.effects.is_empty() {
         s.push_str("<p>none found: no candidate beats the null on held-out scans.</p>");

@@ -146,7 +146,7 @@ impl Pixels {
                     r = plane_r;
                     cos = f.elevation_rad[k].sin().abs();
                 }
-                if r > reach_m || (r.is_nan() && f.elevation_rad[k] > open_above) {
+                if r > reach_m || (r.is_nan() && f.elevation_rad[k] > open_above) || f.in_gap(k) {
                     continue;
                 }
                 let row = f.row[k] as usize;

@@ -120,6 +120,9 @@ pub struct InputsReport {
     /// How far apart the two scenes are; where they differ, the effects' confidence is
     /// halved (a scene difference can look like a missing effect).
     pub scene: SceneContrast,
+    /// Sectors of scans without any return in any row: gaps in the recording (lost
+    /// packets, a partial revolution), left out of every rate and fit.
+    pub gaps: Vec<super::gaps::Gap>,
 }
 
 /// The report (`report.json`): `effects` and `fit` are the contract other
@@ -183,6 +186,11 @@ pub fn diagnose(
     options: &DiagnoseOptions,
 ) -> Result<Diagnosis, DiagnoseError> {
     let r0 = check_inputs(sim, real)?;
+    // Sectors without a return in any row are gaps in the recording, not physics.
+    let (mut sim_marked, mut real_marked) = (sim.to_vec(), real.to_vec());
+    let mut gaps = super::gaps::mark(&mut sim_marked, "sim");
+    gaps.extend(super::gaps::mark(&mut real_marked, "real"));
+    let (sim, real) = (sim_marked.as_slice(), real_marked.as_slice());
     let train: Vec<ScanFeatures> = real.iter().step_by(2).cloned().collect();
     let test: Vec<ScanFeatures> = real.iter().skip(1).step_by(2).cloned().collect();
     let reach_m = fit::reach_m(sim);
@@ -320,6 +328,7 @@ pub fn diagnose(
         completion_fallback_scans: 0,
         left_out,
         scene,
+        gaps,
     };
 
     let keep_after = fit::keep_under(&families, &selection, &baseline, &px_test);

@@ -1,0 +1,166 @@
+//! Gaps in a recording: sectors of a scan in which no row holds a return. Lost packets, a
+//! recording that began or ended mid-revolution, or a driver that publishes a partial
+//! frame leave whole columns empty; the catalogue's physics does not do that to every beam
+//! of a column at once (a vehicle body blocks the bottom rows, the sky the top ones). Such
+//! sectors are reported as gaps in the data and left out of every drop rate and fit, so
+//! they are never read as self-occlusion. (An obstacle nearer than the minimum range in
+//! front of every beam looks the same; the report says so.)
+
+use serde::Serialize;
+
+use super::features::ScanFeatures;
+
+/// The narrowest sector counted as a gap: a column or two without any return can be a
+/// real scene (a doorway into the dark), five degrees of them is missing data.
+pub const MIN_GAP_DEG: f32 = 5.0;
+
+/// One gap of one scan.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct Gap {
+    /// `sim` or `real`.
+    pub recording: &'static str,
+    /// The scan's index in its recording.
+    pub scan: usize,
+    /// The sector's first and last column's azimuth, degrees.
+    pub azimuth_deg: (f32, f32),
+    pub columns: usize,
+}
+
+impl Gap {
+    pub fn sentence(&self) -> String {
+        format!(
+            "{} scan {}: azimuth {:.0} to {:.0} deg ({} columns) has no return in any row",
+            self.recording, self.scan, self.azimuth_deg.0, self.azimuth_deg.1, self.columns
+        )
+    }
+}
+
+/// One sentence on all of `gaps` (the first few named), or `None` where there are none.
+pub fn summary(gaps: &[Gap]) -> Option<String> {
+    const NAMED: usize = 4;
+    if gaps.is_empty() {
+        return None;
+    }
+    let named: Vec<String> = gaps.iter().take(NAMED).map(Gap::sentence).collect();
+    let more = gaps.len().saturating_sub(NAMED);
+    Some(format!(
+        "{} sectors without a return in any row are gaps in the data (lost packets, a revolution recorded in part, or something nearer than the sensor's minimum range in front of every beam), left out of every rate and fit rather than named as an effect: {}{}",
+        gaps.len(),
+        named.join("; "),
+        if more > 0 {
+            format!("; and {more} more")
+        } else {
+            String::new()
+        }
+    ))
+}
+
+/// Runs of columns of `f` without a return in any row, at least `min_columns` long, as
+/// `(first column, length)`; a run may wrap around the seam.
+fn empty_runs(f: &ScanFeatures, min_columns: usize) -> Vec<(usize, usize)> {
+    let (h, w) = (f.height, f.width);
+    if w == 0 || f.len() != h * w {
+        return Vec::new();
+    }
+    let empty: Vec<bool> = (0..w).map(|c| (0..h).all(|r| !f.kept[r * w + c])).collect();
+    if empty.iter().all(|&e| e) {
+        // A scan without any return is not a sector of one.
+        return Vec::new();
+    }
+    // Start at a column with a return, so no run is split at the seam.
+    let start = (0..w).find(|&c| !empty[c]).unwrap_or(0);
+    let mut runs = Vec::new();
+    let mut run: Option<(usize, usize)> = None;
+    for i in 1..=w {
+        let c = (start + i) % w;
+        match (&mut run, empty[c]) {
+            (Some((_, len)), true) => *len += 1,
+            (None, true) => run = Some((c, 1)),
+            (Some(r), false) => {
+                if r.1 >= min_columns {
+                    runs.push(*r);
+                }
+                run = None;
+            }
+            (None, false) => {}
+        }
+    }
+    runs
+}
+
+/// The columns of `MIN_GAP_DEG` on a `width`-column grid (at least 2).
+fn min_columns(width: usize) -> usize {
+    ((width as f32 * MIN_GAP_DEG / 360.0).ceil() as usize).max(2)
+}
+
+/// Marks the gaps of `scans` (each pixel of a gap sector gets `gap` set) and lists them.
+pub fn mark(scans: &mut [ScanFeatures], recording: &'static str) -> Vec<Gap> {
+    let mut gaps = Vec::new();
+    for (i, f) in scans.iter_mut().enumerate() {
+        let runs = empty_runs(f, min_columns(f.width));
+        if runs.is_empty() {
+            continue;
+        }
+        let (h, w) = (f.height, f.width);
+        let mut gap = vec![false; h * w];
+        for &(first, len) in &runs {
+            for j in 0..len {
+                let c = (first + j) % w;
+                (0..h).for_each(|r| gap[r * w + c] = true);
+            }
+            let azimuth = |c: usize| f.azimuth_rad[c].to_degrees();
+            gaps.push(Gap {
+                recording,
+                scan: i,
+                azimuth_deg: (azimuth(first), azimuth((first + len - 1) % w)),
+                columns: len,
+            });
+        }
+        f.gap = gap;
+    }
+    gaps
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A `h x w` scan, every pixel kept unless `dropped(row, column)`.
+    fn scan(h: usize, w: usize, dropped: impl Fn(usize, usize) -> bool) -> ScanFeatures {
+        let mut f = ScanFeatures::empty(h, w);
+        for k in 0..h * w {
+            f.kept.push(!dropped(k / w, k % w));
+            f.azimuth_rad
+                .push(std::f32::consts::PI - (k % w) as f32 * std::f32::consts::TAU / w as f32);
+        }
+        f
+    }
+
+    #[test]
+    fn whole_empty_sectors_are_gaps_and_blocked_bottom_rows_are_not() {
+        // 360 columns: a missing sector of 20 columns, a lone empty column, and the bottom
+        // rows blocked (self-occlusion) over 60 columns.
+        let f = scan(8, 360, |r, c| {
+            (100..120).contains(&c) || c == 200 || (r >= 5 && c < 60)
+        });
+        let mut scans = vec![f];
+        let gaps = mark(&mut scans, "real");
+        assert_eq!(gaps.len(), 1, "{gaps:?}");
+        assert_eq!(gaps[0].columns, 20);
+        assert!((gaps[0].azimuth_deg.0 - 80.0).abs() < 0.5, "{gaps:?}");
+        let f = &scans[0];
+        assert!(f.in_gap(3 * 360 + 110) && !f.in_gap(3 * 360 + 200) && !f.in_gap(6 * 360 + 10));
+    }
+
+    #[test]
+    fn a_gap_across_the_seam_is_one_gap_and_an_empty_scan_has_none() {
+        let mut scans = vec![
+            scan(4, 72, |_, c| !(6..66).contains(&c)),
+            scan(4, 72, |_, _| true),
+        ];
+        let gaps = mark(&mut scans, "real");
+        assert_eq!(gaps.len(), 1, "{gaps:?}");
+        assert_eq!((gaps[0].scan, gaps[0].columns), (0, 12));
+        assert!(scans[1].gap.is_empty());
+    }
+}
