@@ -456,3 +456,81 @@ fn a_street_against_a_real_room_is_said_to_be_another_scene() {
         );
     }
 }
+
+/// A real recording of one scan gets a report: the fit is made on half its pixels and
+/// checked on the other half, and the first screen and stderr say so. On a simulated
+/// `realistic` scan against the ideal simulator the held-out fit improves; the real
+/// one-scan Ouster OS-1-32 capture is diagnosed too.
+#[test]
+fn a_recording_of_one_scan_is_checked_on_held_out_pixels() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let (sim, real) = (d.join("sim.mcap"), d.join("real.mcap"));
+    simulate(&sim, 41, "ideal", false);
+    let o = run(&[
+        "--quiet",
+        "simulate",
+        "--scene",
+        "42",
+        "--columns",
+        "512",
+        "--scans",
+        "1",
+        "--physics",
+        "realistic",
+        real.to_str().unwrap(),
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let report = d.join("one");
+    let o = diagnose(&sim, &real, &report, &[]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert!(stderr(&o).contains("has one scan"), "{}", stderr(&o));
+    let json: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(report.join("report.json")).unwrap())
+            .unwrap();
+    assert_eq!(json["inputs"]["held_out"], "pixels");
+    assert!(
+        !json["effects"].as_array().unwrap().is_empty(),
+        "{}",
+        json["effects"]
+    );
+    let fit = &json["fit"];
+    assert!(fit["after"].as_f64() < fit["before"].as_f64(), "{fit}");
+    let html = std::fs::read_to_string(report.join("report.html")).unwrap();
+    let first_screen = &html[..html.find("Missing physics").expect("a summary")];
+    assert!(first_screen.contains("One real scan"), "{first_screen}");
+
+    let Some(data) = common::real_data("a_recording_of_one_scan_is_checked_on_held_out_pixels")
+    else {
+        return;
+    };
+    let capture = data.join("ouster/OS-1-32-G_v2.1.1_1024x10.pcap");
+    let meta = data.join("ouster/OS-1-32-G_v2.1.1_1024x10.json");
+    let (os32, sim32) = (d.join("os32.mcap"), d.join("sim32.mcap"));
+    let o = run(&[
+        "--quiet",
+        "import",
+        capture.to_str().unwrap(),
+        os32.to_str().unwrap(),
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let o = run(&[
+        "--quiet",
+        "simulate",
+        "--scene",
+        "2",
+        "--sensor",
+        meta.to_str().unwrap(),
+        "--columns",
+        "1024",
+        "--scans",
+        "4",
+        "--physics",
+        "ideal",
+        sim32.to_str().unwrap(),
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let o = diagnose(&sim32, &os32, &d.join("os32"), &[]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert!(stderr(&o).contains("has one scan"), "{}", stderr(&o));
+}

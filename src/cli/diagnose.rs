@@ -202,13 +202,6 @@ pub fn run(global: &GlobalArgs, args: DiagnoseArgs) -> anyhow::Result<Outcome> {
         args.projection,
     )
     .with_context(|| format!("reading --real {}", args.real.display()))?;
-    anyhow::ensure!(
-        real.images.len() >= 2,
-        "{}: topic {} has {} readable scan(s); the diagnosis needs at least 2 (fit and held-out)",
-        args.real.display(),
-        real.topic,
-        real.images.len()
-    );
     let completion = match args.completion {
         CompletionArg::Neighbour => {
             anyhow::ensure!(
@@ -275,6 +268,9 @@ pub fn run(global: &GlobalArgs, args: DiagnoseArgs) -> anyhow::Result<Outcome> {
     let r = &diagnosis.report;
     if r.inputs.scene.differs && !global.quiet {
         eprintln!("warning: {}", r.inputs.scene.sentence());
+    }
+    if r.inputs.held_out == "pixels" && !global.quiet {
+        eprintln!("warning: {}", crate::diagnose::gaps::ONE_SCAN_CAVEAT);
     }
     if let Some(gaps) = crate::diagnose::gaps::summary(&r.inputs.gaps)
         && !global.quiet

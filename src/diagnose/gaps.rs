@@ -55,6 +55,29 @@ pub fn summary(gaps: &[Gap]) -> Option<String> {
     ))
 }
 
+/// What a user is told of the check on a recording of one scan.
+pub const ONE_SCAN_CAVEAT: &str = "the real recording has one scan: the effects were fitted on half of its pixels (alternate cells of 2 beams by 1/64 of a revolution) and checked on the other half, which share its scene; a second scan gives a stronger check";
+
+/// Cells of the checkerboard that splits one scan into a fit half and a held-out half: 2
+/// beams by 1/64 of a revolution, so every beam and every sector has pixels in both.
+const SPLIT_ROWS: usize = 2;
+const SPLIT_SECTORS: usize = 64;
+
+/// One scan as two: the pixels of alternate checkerboard cells left out of each (as gaps),
+/// for a recording with a single scan, whose fit can only be checked on held-out pixels.
+pub fn split_pixels(f: &ScanFeatures) -> (ScanFeatures, ScanFeatures) {
+    let (h, w) = (f.height, f.width);
+    let cell_w = (w / SPLIT_SECTORS).max(1);
+    let half = |parity: usize| {
+        let mut g = f.clone();
+        g.gap = (0..h * w)
+            .map(|k| f.in_gap(k) || ((k / w) / SPLIT_ROWS + (k % w) / cell_w) % 2 != parity)
+            .collect();
+        g
+    };
+    (half(0), half(1))
+}
+
 /// Runs of columns of `f` without a return in any row, at least `min_columns` long, as
 /// `(first column, length)`; a run may wrap around the seam.
 fn empty_runs(f: &ScanFeatures, min_columns: usize) -> Vec<(usize, usize)> {
@@ -150,6 +173,25 @@ mod tests {
         assert!((gaps[0].azimuth_deg.0 - 80.0).abs() < 0.5, "{gaps:?}");
         let f = &scans[0];
         assert!(f.in_gap(3 * 360 + 110) && !f.in_gap(3 * 360 + 200) && !f.in_gap(6 * 360 + 10));
+    }
+
+    #[test]
+    fn one_scan_splits_into_halves_that_share_every_beam_and_sector() {
+        let mut f = scan(8, 128, |_, c| (10..20).contains(&c));
+        mark(std::slice::from_mut(&mut f), "real");
+        let (a, b) = split_pixels(&f);
+        for k in 0..f.len() {
+            // A gap stays out of both; every other pixel is in exactly one half.
+            assert_eq!(a.in_gap(k) && b.in_gap(k), f.in_gap(k), "pixel {k}");
+        }
+        for half in [&a, &b] {
+            for r in 0..8 {
+                assert!((0..128).any(|c| !half.in_gap(r * 128 + c)), "beam {r}");
+            }
+            for c in (30..128).step_by(2) {
+                assert!((0..8).any(|r| !half.in_gap(r * 128 + c)), "column {c}");
+            }
+        }
     }
 
     #[test]

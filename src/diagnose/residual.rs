@@ -252,7 +252,7 @@ fn for_each_row_triplet(scans: &[ScanFeatures], mut visit: impl FnMut(&ScanFeatu
         let w = f.width;
         for k in 0..f.len() {
             let j = k % w;
-            if j > 0 && j + 1 < w && f.kept[k] && f.kept[k - 1] && f.kept[k + 1] {
+            if j > 0 && j + 1 < w && f.kept[k] && f.kept[k - 1] && f.kept[k + 1] && !f.in_gap(k) {
                 visit(f, k);
             }
         }
@@ -375,7 +375,7 @@ impl ResidualFamily for MixedPixelsFamily {
     fn observations(&self, scans: &[ScanFeatures]) -> Obs {
         let mut obs = Vec::new();
         for f in scans {
-            for k in 0..f.len() {
+            for k in (0..f.len()).filter(|&k| !f.in_gap(k)) {
                 if let Some((between, gap)) = Self::step_edge(f, k) {
                     obs.push((f32::from(u8::from(between)), gap));
                 }
@@ -559,7 +559,7 @@ impl MotionFamily {
         }
         for row in 0..f.height {
             let (a, b) = (row * w + j - 1, row * w + j);
-            if f.kept[a] && f.kept[b] {
+            if f.kept[a] && f.kept[b] && !f.in_gap(b) {
                 out.push((f.range_m[b] - f.range_m[a], f.range_m[a]));
             }
         }

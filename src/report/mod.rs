@@ -405,6 +405,13 @@ fn summary(r: &Report) -> String {
             escape(&i.scene.sentence())
         );
     }
+    if i.held_out == "pixels" {
+        let _ = write!(
+            s,
+            "<p class='warn'><b>One real scan:</b> {}.</p>",
+            escape(crate::diagnose::gaps::ONE_SCAN_CAVEAT)
+        );
+    }
     if let Some(gaps) = crate::diagnose::gaps::summary(&i.gaps) {
         let _ = write!(
             s,

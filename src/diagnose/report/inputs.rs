@@ -22,12 +22,9 @@ pub(super) fn check_inputs<'a>(
         return Err(if sim.is_empty() {
             DiagnoseError::NoSimScans
         } else {
-            DiagnoseError::TooFewRealScans(0)
+            DiagnoseError::NoRealScans
         });
     };
-    if real.len() < 2 {
-        return Err(DiagnoseError::TooFewRealScans(real.len()));
-    }
     if (s0.height, s0.width) != (r0.height, r0.width) {
         return Err(DiagnoseError::GridMismatch {
             sim_h: s0.height,

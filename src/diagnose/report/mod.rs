@@ -123,6 +123,9 @@ pub struct InputsReport {
     /// Sectors of scans without any return in any row: gaps in the recording (lost
     /// packets, a partial revolution), left out of every rate and fit.
     pub gaps: Vec<super::gaps::Gap>,
+    /// What the held-out check holds out: `scans` (the odd real scans), or `pixels` for a
+    /// recording of one scan (alternate cells of 2 beams by 1/64 of a revolution).
+    pub held_out: &'static str,
 }
 
 /// The report (`report.json`): `effects` and `fit` are the contract other
@@ -154,10 +157,8 @@ pub struct Diagnosis {
 /// Errors of a diagnosis.
 #[derive(Debug, thiserror::Error, PartialEq)]
 pub enum DiagnoseError {
-    #[error(
-        "the real recording needs at least 2 scans (one to fit on, one to test on); it has {0}"
-    )]
-    TooFewRealScans(usize),
+    #[error("the real recording has no scans")]
+    NoRealScans,
     #[error("the simulated recording has no scans")]
     NoSimScans,
     #[error(
@@ -191,8 +192,17 @@ pub fn diagnose(
     let mut gaps = super::gaps::mark(&mut sim_marked, "sim");
     gaps.extend(super::gaps::mark(&mut real_marked, "real"));
     let (sim, real) = (sim_marked.as_slice(), real_marked.as_slice());
-    let train: Vec<ScanFeatures> = real.iter().step_by(2).cloned().collect();
-    let test: Vec<ScanFeatures> = real.iter().skip(1).step_by(2).cloned().collect();
+    // Even scans fit, odd scans check; a single scan fits on half its pixels and is checked
+    // on the others (a weaker check: they share the scan's scene).
+    let (train, test): (Vec<ScanFeatures>, Vec<ScanFeatures>) = if real.len() >= 2 {
+        (
+            real.iter().step_by(2).cloned().collect(),
+            real.iter().skip(1).step_by(2).cloned().collect(),
+        )
+    } else {
+        let (a, b) = super::gaps::split_pixels(&real[0]);
+        (vec![a], vec![b])
+    };
     let reach_m = fit::reach_m(sim);
 
     // Where: conditional drop rates, BH-corrected.
@@ -329,6 +339,7 @@ pub fn diagnose(
         left_out,
         scene,
         gaps,
+        held_out: if real.len() >= 2 { "scans" } else { "pixels" },
     };
 
     let keep_after = fit::keep_under(&families, &selection, &baseline, &px_test);
