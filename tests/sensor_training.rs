@@ -82,6 +82,11 @@ fn a_prior_trained_on_a_sensors_recordings_covers_that_sensor() {
     let (name, beams, columns, _) = sensor(&run_dir.join("config.json"));
     assert_eq!((beams, columns), (32, 256), "{name}");
     assert!(run_dir.join("checkpoint/g_ema.bpk").is_file());
+    // Rerun with a larger budget: it resumes from the checkpoint, on the cached dataset.
+    let images = |run: &Path| json(&run.join("checkpoint/state.json"))["images"].clone();
+    assert_eq!(images(&run_dir), 2);
+    ok(&["--quiet", "train", run_s, "--total-images", "4"]);
+    assert_eq!(images(&run_dir), 4);
 
     // The trained model covers its sensor: no warning, every channel on the sensor's grid.
     let output = dir.path().join("out.mcap");
@@ -223,6 +228,68 @@ fn a_prior_trained_on_a_sensors_recordings_covers_that_sensor() {
         min_range < 1.0,
         "an Ouster measures from 0.3 m: {min_range}"
     );
+}
+
+/// The real OS-1-128 PCAP capture goes end to end: imported, trained on (at 256 columns),
+/// and its model decodes the capture's rotations on the unit's 128 beams.
+#[test]
+fn an_ouster_capture_trains_a_prior_of_its_128_beams() {
+    let Some(root) = real_root("an_ouster_capture_trains_a_prior_of_its_128_beams") else {
+        return;
+    };
+    let dir = tempfile::tempdir().unwrap();
+    let capture =
+        root.join("other_sensors/ouster_os1_128_lb_3frames/OS-1-128_v2.3.0_1024x10_lb_n3.pcap");
+    let mcap = dir.path().join("os128.mcap");
+    ok(&[
+        "--quiet",
+        "import",
+        capture.to_str().unwrap(),
+        mcap.to_str().unwrap(),
+    ]);
+    let run_dir = dir.path().join("run");
+    let (run_s, mcap_s) = (run_dir.to_str().unwrap(), mcap.to_str().unwrap());
+    ok(&[
+        "--quiet",
+        "train",
+        run_s,
+        "--data",
+        mcap_s,
+        "--columns",
+        "256",
+        "--batch",
+        "1",
+        "--total-images",
+        "2",
+    ]);
+    let (_, beams, columns, min_range) = sensor(&run_dir.join("config.json"));
+    assert_eq!((beams, columns), (128, 256));
+    assert!(
+        min_range < 1.5,
+        "the capture's nearest returns set the units: {min_range}"
+    );
+    let output = dir.path().join("out.mcap");
+    let o = ok(&[
+        "convert",
+        mcap_s,
+        output.to_str().unwrap(),
+        "--model",
+        run_s,
+        "--w-steps",
+        "1",
+        "--tune-steps",
+        "1",
+    ]);
+    assert!(
+        !stderr(&o).contains("far from the decoding model"),
+        "{}",
+        stderr(&o)
+    );
+    let bytes = std::fs::read(&output).unwrap();
+    let x_d = rangegan_mcap::io::roundtrip::float_images(&bytes, "/velodyne_points/rangegan/x_d")
+        .unwrap();
+    assert_eq!(x_d.len(), 3);
+    assert!(x_d.iter().all(|i| (i.height, i.width) == (128, 1024)));
 }
 
 /// A sensor whose beams the networks cannot halve to their coarsest level is refused before
