@@ -444,6 +444,34 @@ mod tests {
         assert_eq!(RangeDataset::load(&path).expect("load"), ds);
     }
 
+    /// A cache written before the profile was recorded reads as KITTI's HDL-64E at its width.
+    #[test]
+    fn a_version_1_cache_reads_as_the_hdl64e() {
+        let profile = SensorProfile::kitti_hdl64e().with_columns(16);
+        let grid = profile.angle_grid();
+        let images: Vec<f32> = (0..grid.len())
+            .map(|i| (i % 5) as f32 * 0.2 - 0.5)
+            .collect();
+        let mut bytes = b"RGDSv001".to_vec();
+        for v in [1u64, 64, 16] {
+            bytes.extend(v.to_le_bytes());
+        }
+        for v in grid
+            .elevation_rad
+            .iter()
+            .chain(&grid.azimuth_rad)
+            .chain(&images)
+        {
+            bytes.extend(v.to_le_bytes());
+        }
+        let dir = tempfile::tempdir().expect("tempdir");
+        let path = dir.path().join("v1.bin");
+        std::fs::write(&path, bytes).expect("write");
+        let ds = RangeDataset::load(&path).expect("load");
+        assert_eq!(ds, RangeDataset::from_images(profile, grid, images));
+        assert_eq!(ds.depth_range(), DepthRange::KITTI);
+    }
+
     #[test]
     fn split_trains_on_every_drive_and_keeps_evaluation_data_out() {
         let root = Path::new("../shared/real_lidar");
