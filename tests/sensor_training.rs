@@ -24,6 +24,22 @@ fn ok(args: &[&str]) -> std::process::Output {
     o
 }
 
+/// `convert INPUT OUTPUT --force --model MODEL` with a one-step decode.
+fn convert_with(model: &str, input: &Path, output: &Path) -> std::process::Output {
+    ok(&[
+        "convert",
+        input.to_str().unwrap(),
+        output.to_str().unwrap(),
+        "--force",
+        "--model",
+        model,
+        "--w-steps",
+        "1",
+        "--tune-steps",
+        "1",
+    ])
+}
+
 fn json(path: &Path) -> serde_json::Value {
     serde_json::from_slice(&std::fs::read(path).unwrap()).unwrap()
 }
@@ -91,17 +107,7 @@ fn a_prior_trained_on_a_sensors_recordings_covers_that_sensor() {
     // The trained model covers its sensor: no warning, every channel on the sensor's grid.
     let output = dir.path().join("out.mcap");
     let input = recordings.join("drive_a.mcap");
-    let o = ok(&[
-        "convert",
-        input.to_str().unwrap(),
-        output.to_str().unwrap(),
-        "--model",
-        run_s,
-        "--w-steps",
-        "1",
-        "--tune-steps",
-        "1",
-    ]);
+    let o = convert_with(run_s, &input, &output);
     let err = stderr(&o);
     assert!(
         !err.contains("far from the decoding model") && !err.contains("no decoding model covers"),
@@ -155,18 +161,7 @@ fn a_prior_trained_on_a_sensors_recordings_covers_that_sensor() {
     );
     // Beside the weights, the calibration is used, and nothing is said about its absence.
     std::fs::copy(&calibration, run_dir.join("calibration.json")).unwrap();
-    let o = ok(&[
-        "convert",
-        input.to_str().unwrap(),
-        output.to_str().unwrap(),
-        "--force",
-        "--model",
-        run_s,
-        "--w-steps",
-        "1",
-        "--tune-steps",
-        "1",
-    ]);
+    let o = convert_with(run_s, &input, &output);
     assert!(
         !stderr(&o).contains("no ray-drop calibration"),
         "{}",
@@ -269,17 +264,7 @@ fn an_ouster_capture_trains_a_prior_of_its_128_beams() {
         "the capture's nearest returns set the units: {min_range}"
     );
     let output = dir.path().join("out.mcap");
-    let o = ok(&[
-        "convert",
-        mcap_s,
-        output.to_str().unwrap(),
-        "--model",
-        run_s,
-        "--w-steps",
-        "1",
-        "--tune-steps",
-        "1",
-    ]);
+    let o = convert_with(run_s, &mcap, &output);
     assert!(
         !stderr(&o).contains("far from the decoding model"),
         "{}",

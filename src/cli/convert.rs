@@ -36,10 +36,7 @@ pub struct ConvertArgs {
     /// Point-cloud topics to process (repeatable); default: every point-cloud topic.
     #[arg(long)]
     pub topic: Vec<String>,
-    /// Sensor profile: `auto`, a built-in name (hdl64e, hdl32e, vlp16, vlp32c, vls128,
-    /// pandar64, pandarxt32; Ouster os0-N, os1-N (gen 2), os1-N-gen1, os2-N with N beams), or
-    /// a profile / Ouster metadata JSON file (a unit's own beam angles).
-    #[arg(long, default_value = "auto")]
+    #[arg(long, default_value = "auto", help = SENSOR_HELP)]
     pub sensor: String,
     /// Range-image columns (default: the sensor profile's).
     #[arg(long)]
@@ -296,6 +293,9 @@ fn x_n_weight(args: &ConvertArgs, decoder: &Decoder) -> Option<f32> {
         (false, None) => Some(0.0),
     }
 }
+
+/// The help of the `--sensor` flag of the commands that project recordings.
+pub(crate) const SENSOR_HELP: &str = "Sensor profile: `auto` (estimated from the first scan), a built-in name (hdl64e, hdl32e, vlp16, vlp32c, vls128, pandar64, pandarxt32; Ouster os0-N, os1-N (gen 2), os1-N-gen1, os2-N with N beams), or a profile / Ouster metadata JSON file (a unit's own beam angles)";
 
 /// Resolves the sensor argument shared by several subcommands.
 pub(crate) fn sensor_choice(sensor: &str) -> anyhow::Result<SensorChoice> {

@@ -13,6 +13,7 @@ use crate::model::Arch;
 use crate::model::discriminator::DiscriminatorConfig;
 use crate::model::generator::GeneratorConfig;
 use crate::physics::pretraining::PretrainingSet;
+use crate::pipeline::SensorChoice;
 use crate::train::growth::{Stage, parse_stage};
 use crate::train::reconstruct::ReconstructionConfig;
 use crate::train::scans::{Layout, ScanSource};
@@ -58,11 +59,7 @@ pub struct LayoutArgs {
     /// The point-cloud topic of the recordings (default: each one's only or first).
     #[arg(long)]
     pub topic: Option<String>,
-    /// Sensor profile: `auto` (estimated from the first recording's first scan), a built-in
-    /// name (hdl64e, hdl32e, vlp16, vlp32c, vls128, pandar64, pandarxt32; Ouster os0-N,
-    /// os1-N (gen 2), os1-N-gen1, os2-N with N beams), or a profile / Ouster metadata JSON
-    /// file.
-    #[arg(long, default_value = "auto")]
+    #[arg(long, default_value = "auto", help = super::convert::SENSOR_HELP)]
     pub sensor: String,
     /// Range-image columns (default: the profile's; KITTI folders: 512).
     #[arg(long)]
@@ -74,9 +71,9 @@ pub struct LayoutArgs {
 
 impl LayoutArgs {
     pub(crate) fn layout(&self) -> anyhow::Result<Layout> {
-        let sensor = match self.sensor.as_str() {
-            "auto" => None,
-            name => Some(SensorProfile::resolve(name)?),
+        let sensor = match super::convert::sensor_choice(&self.sensor)? {
+            SensorChoice::Auto => None,
+            SensorChoice::Fixed(p) => Some(p),
         };
         if let Some(c) = self.columns {
             crate::lidar::profile::check_columns(c)

@@ -226,17 +226,14 @@ impl ScanSource {
                 })
                 .collect(),
             Scans::Recordings(files) => {
-                let mut all = self.recording_images(files, profile)?;
+                let all = self.recording_images(files, profile)?;
                 let keep: Vec<usize> = spaced(all.len()).collect();
-                let mut k = 0;
-                let mut i = 0;
-                all.retain(|_| {
-                    let kept = keep.get(k) == Some(&i);
-                    k += usize::from(kept);
-                    i += 1;
-                    kept
-                });
-                Ok(all)
+                Ok(all
+                    .into_iter()
+                    .enumerate()
+                    .filter(|(i, _)| keep.binary_search(i).is_ok())
+                    .map(|(_, image)| image)
+                    .collect())
             }
         }
     }
