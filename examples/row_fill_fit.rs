@@ -12,7 +12,8 @@ use std::path::{Path, PathBuf};
 use anyhow::Result;
 use rangegan_mcap::decode::row_fill::{RowFill, Window};
 use rangegan_mcap::model::data::kitti_validation_split;
-use rangegan_mcap::train::row_fill::{Samples, TrainOptions, collect, mae, train};
+use rangegan_mcap::train::ray_move::{Samples, TrainOptions, mae, train};
+use rangegan_mcap::train::row_fill::collect;
 use rangegan_mcap::util::mlp::Mlp;
 
 const VALIDATION_LINES: [usize; 4] = [4, 8, 16, 32];

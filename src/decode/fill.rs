@@ -4,6 +4,7 @@
 //! observed return reaches. Chosen by measurement on held-out KITTI (BENCHMARKS.md,
 //! "Guided upsampling and restoration", "A learned correction of restored rows").
 
+use super::hole_fill::HoleFill;
 use super::row_fill::{RowFill, rows_image};
 use super::{Decoded, PreparedGrid, Rendered, Sparsify};
 use crate::lidar::holes;
@@ -24,10 +25,11 @@ pub enum Fill {
     /// scattered returns: an inverse-depth plane where one explains the returns around the
     /// pixel, else the side of a depth edge the pixel lies in.
     EdgeAware,
-    /// The same, then each row restored between two kept beams (`--restore-lines`) moved
+    /// As edge-aware (as guided in the completed scan), then each row restored between two kept beams (`--restore-lines`) moved
     /// along its ray by a small network that reads the kept returns around it
     /// ([`super::row_fill`], trained on KITTI): whether a pixel between beams at different
-    /// depths lies on the near surface or the far one.
+    /// depths lies on the near surface or the far one. In the completed scan, each dropped
+    /// ray is moved by another ([`super::hole_fill`]), which also reads the decoded scene.
     Learned,
     /// The same as edge-aware, but the decoded scene may pick the surface where its depth
     /// clearly agrees with one surface rather than with the blend.
@@ -115,22 +117,51 @@ fn scatter_fill<'a>(fill: Fill, guide: &'a [f32], rule: &SurfaceRule) -> Scatter
 /// The completed scan on its own grid, `rendered` being the decoded scene there: each
 /// measured return of `observed` as measured (at any range the sensor gives), each dropped
 /// ray within [`COMPLETION_REACH`] steps of a return filled from the returns around it by
-/// `fill` (guided by the rendering, as on the model grid), and the rendering x_d farther in.
-/// [`Fill::Gan`] gives the rendering everywhere.
+/// `fill` (guided by the rendering, as on the model grid), and the rendering x_d farther in;
+/// [`Fill::Learned`] then moves each dropped ray's depth by the learned hole fill
+/// ([`HoleFill`]). [`Fill::Gan`] gives the rendering everywhere.
 pub fn complete_observed(observed: &RangeImage, rendered: Rendered, fill: Fill) -> Rendered {
-    let fill = match fill {
-        Fill::Gan => return rendered,
-        Fill::Learned => Fill::Guided,
-        other => other,
+    let size = (observed.height, observed.width);
+    let values = match completion_fill(fill) {
+        None => return rendered,
+        Some(how) => {
+            let distance = holes::distance_to_returns(&observed.range_m, size.0, size.1);
+            let how = scatter_fill(how, &rendered.depth_m, &SurfaceRule::default());
+            fill_scattered_where(&observed.range_m, &observed.angles, how, |k| {
+                distance[k] <= COMPLETION_REACH
+            })
+        }
     };
-    let (h, w) = (observed.height, observed.width);
-    let rule = SurfaceRule::default();
-    let distance = holes::distance_to_returns(&observed.range_m, h, w);
-    let how = scatter_fill(fill, &rendered.depth_m, &rule);
-    let values = fill_scattered_where(&observed.range_m, &observed.angles, how, |k| {
-        distance[k] <= COMPLETION_REACH
-    });
-    complete(rendered, &values)
+    refine_holes(&observed.range_m, rendered, &values, fill, size)
+}
+
+/// The fill that completes dropped rays near returns for `fill` (`learned` fills as
+/// `guided`, then corrects); `None` for [`Fill::Gan`], which fills nothing.
+fn completion_fill(fill: Fill) -> Option<Fill> {
+    match fill {
+        Fill::Gan => None,
+        Fill::Learned => Some(Fill::Guided),
+        other => Some(other),
+    }
+}
+
+/// `rendered` completed with `values` where they are set; for [`Fill::Learned`] each
+/// dropped ray of `observed` then moved by the learned hole fill, which reads the returns
+/// around it and the rendering x_d.
+fn refine_holes(
+    observed: &[f32],
+    rendered: Rendered,
+    values: &[f32],
+    fill: Fill,
+    size: (usize, usize),
+) -> Rendered {
+    if fill != Fill::Learned {
+        return complete(rendered, values);
+    }
+    let x_d = rendered.depth_m.clone();
+    let mut out = complete(rendered, values);
+    out.depth_m = HoleFill::shipped().refine(observed, &out.depth_m, &x_d, size);
+    out
 }
 
 /// `rendered`'s grid (denser than `source`'s, or another sensor's) filled from the scan
@@ -207,10 +238,8 @@ impl Decoded {
     /// [`Fill::Gan`] fills nothing. Chosen on the validation drive (BENCHMARKS.md,
     /// "Completion of dropped rays").
     pub fn completed_observation(&self, fill: Fill) -> Vec<f32> {
-        let fill = match fill {
-            Fill::Gan => return self.observed_m.clone(),
-            Fill::Learned => Fill::Guided,
-            other => other,
+        let Some(fill) = completion_fill(fill) else {
+            return self.observed_m.clone();
         };
         let grid = &self.model.grid;
         let how = self.scatter_fill(fill, &SurfaceRule::default());
@@ -250,7 +279,8 @@ impl Decoded {
     }
 
     /// What `convert` writes on the model grid as `depth`: the completed scan (measured
-    /// returns kept, dropped rays filled from the returns around them by `fill`), or after
+    /// returns kept, dropped rays filled from the returns around them by `fill`, then for
+    /// [`Fill::Learned`] moved by the learned hole fill), or after
     /// `--restore-*` the restoration by `fill`; completed by the rendering x_d where no
     /// observed return reaches. [`Fill::Gan`] gives x_d everywhere.
     pub fn model_output(&self, fill: Fill) -> Rendered {
@@ -260,7 +290,11 @@ impl Decoded {
                 self.model.clone(),
                 &self.interpolate_restored(fill, &SurfaceRule::default()),
             ),
-            (None, _) => complete(self.model.clone(), &self.completed_observation(fill)),
+            (None, _) => {
+                let size = (self.model.grid.height, self.model.grid.width);
+                let values = self.completed_observation(fill);
+                refine_holes(&self.observed_m, self.model.clone(), &values, fill, size)
+            }
         }
     }
 

@@ -12,8 +12,9 @@
 //!   the reconstruction error, Bernoulli ray-drop masks, and [`Decoded::render`] for other grids.
 //! - [`fill`] decides what the upsampled, other-sensor and restored grids hold ([`Fill`]: the
 //!   rendering, or the observation interpolated with the decoded scene as a guide).
-//! - [`row_fill`] is the learned correction of rows restored between kept beams (the
-//!   default fill's last step).
+//! - [`row_fill`] is the learned correction of rows restored between kept beams, and
+//!   [`hole_fill`] that of dropped rays in the completed scan (the default fill's last
+//!   steps).
 //!
 //! Every random draw comes from the caller's seed (derive it with [`scan_seed`] from topic and
 //! log time) and each decode runs its tensor work on one thread, so results are bit-identical
@@ -23,6 +24,7 @@ pub mod amortised;
 pub mod calibrate;
 pub mod fill;
 pub mod fit;
+pub mod hole_fill;
 pub mod invert;
 pub mod loss;
 pub mod pivotal;

@@ -217,7 +217,8 @@ fn fills_keep_measured_returns_and_complete_with_the_rendering() {
 }
 
 /// Without restoration, `depth` is the completed scan: every measured return exactly, a
-/// dropped ray near returns filled from them, and x_d deep inside a large hole.
+/// dropped ray near returns filled from them, and x_d deep inside a large hole (`guided`);
+/// the default then moves dropped rays along their rays, and only them.
 #[test]
 fn depth_keeps_every_return_and_fills_dropped_rays_by_reach() {
     let model = Model::shipped(&Device::flex()).expect("shipped model");
@@ -229,8 +230,23 @@ fn depth_keeps_every_return_and_fills_dropped_rays_by_reach() {
         }
     }
     let r = decoder(0, 1, None).decode(&scan, 4).expect("decode");
-    let out = r.model_output(Fill::DEFAULT);
+    let out = r.model_output(Fill::Guided);
     assert_eq!(r.model_output(Fill::Gan), r.model, "gan: x_d everywhere");
+    let learned = r.model_output(Fill::DEFAULT);
+    let mut moved = 0;
+    for k in 0..out.depth_m.len() {
+        let (a, b) = (learned.depth_m[k], out.depth_m[k]);
+        if r.observed_m[k] > 0.0 || b == 0.0 {
+            assert_eq!(a.to_bits(), b.to_bits(), "{k}: measured or empty");
+        } else {
+            assert!(
+                (a / b).ln().abs() <= super::row_fill::MAX_MOVE + 1e-4,
+                "{k}: {a} {b}"
+            );
+            moved += usize::from(a != b);
+        }
+    }
+    assert!(moved >= 20 * 40 / 2, "{moved} dropped rays moved");
     let distance = crate::lidar::holes::distance_to_returns(&r.observed_m, 64, 512);
     let (mut filled, mut rendered) = (0, 0);
     for (k, &steps) in distance.iter().enumerate() {

@@ -13,6 +13,8 @@
 //! - [`widen`]: function-preserving widening of a trained generator, to go on training
 //!   a run at a larger width.
 //! - [`row_fill`]: the learned correction of restored rows ([`crate::decode::row_fill`]).
+//! - [`hole_fill`]: the learned correction of dropped rays ([`crate::decode::hole_fill`]).
+//! - [`ray_move`]: fitting either correction.
 //! - [`scans`]: where the training scans come from (KITTI folders or MCAP recordings of
 //!   any sensor) and the validation split.
 
@@ -20,6 +22,8 @@ pub mod config;
 pub mod encoder;
 pub mod gan;
 pub mod growth;
+pub mod hole_fill;
+pub mod ray_move;
 pub mod reconstruct;
 pub mod row_fill;
 pub mod run_dir;

@@ -1,0 +1,92 @@
+//! What the completion examples share: scans with holes cut into them, written as an MCAP
+//! recording, converted by the built binary, and the channels read back.
+
+use std::path::{Path, PathBuf};
+
+use anyhow::{Context, Result, bail};
+use rangegan_mcap::io::roundtrip;
+use rangegan_mcap::lidar::{self, RangeImage, Scan, SensorProfile, Strategy};
+
+pub const TOPIC: &str = "/velodyne_points";
+
+/// KITTI scans projected onto the HDL-64E grid at `columns` (every range kept).
+pub fn project_all(files: &[PathBuf], columns: usize) -> Result<Vec<RangeImage>> {
+    let profile = SensorProfile::kitti_hdl64e().with_columns(columns);
+    files
+        .iter()
+        .map(|f| {
+            let scan = lidar::kitti::read_bin(f)?;
+            Ok(lidar::project(&scan, &profile, Strategy::Auto)?)
+        })
+        .collect()
+}
+
+/// The returns of `image` outside `mask`, as a scan whose ring field is the row.
+pub fn degraded_scan(image: &RangeImage, mask: &[bool]) -> Scan {
+    let kept: Vec<usize> = (0..image.range_m.len())
+        .filter(|&k| image.range_m[k] > 0.0 && !mask[k])
+        .collect();
+    let mut scan = Scan::from_xyz(kept.iter().map(|&k| image.xyz[k]).collect());
+    scan.ring = Some(kept.iter().map(|&k| (k / image.width) as u16).collect());
+    scan.intensity = Some(kept.iter().map(|&k| image.intensity[k]).collect());
+    scan
+}
+
+/// `image`'s ranges with the pixels of `mask` dropped.
+pub fn observed(image: &RangeImage, mask: &[bool]) -> Vec<f32> {
+    (0..image.range_m.len())
+        .map(|k| if mask[k] { 0.0 } else { image.range_m[k] })
+        .collect()
+}
+
+/// The release binary beside this example, or `bin`.
+pub fn binary(bin: Option<PathBuf>) -> Result<PathBuf> {
+    if let Some(b) = bin {
+        return Ok(b);
+    }
+    let exe = std::env::current_exe()?;
+    exe.parent()
+        .and_then(Path::parent)
+        .map(|d| d.join("rangegan-mcap"))
+        .filter(|p| p.exists())
+        .context("build the binary first: cargo build --release")
+}
+
+/// The images of each channel of `suffixes` that `bin convert FLAGS` writes for `scans`
+/// (one recording, in order, on the HDL-64E grid at `columns`).
+pub fn convert(
+    columns: usize,
+    bin: &Path,
+    dir: &Path,
+    scans: &[Scan],
+    flags: &[String],
+    suffixes: &[&str],
+) -> Result<Vec<Vec<Vec<f32>>>> {
+    let (input, output) = (dir.join("in.mcap"), dir.join("out.mcap"));
+    roundtrip::write_scans(&input, TOPIC, "velodyne", scans)?;
+    let status = std::process::Command::new(bin)
+        .args(["--quiet", "convert"])
+        .arg(&input)
+        .arg(&output)
+        .args([
+            "--sensor",
+            "hdl64e",
+            "--force",
+            "--columns",
+            &columns.to_string(),
+        ])
+        .args(flags)
+        .status()?;
+    if !status.success() {
+        bail!("convert {} failed", flags.join(" "));
+    }
+    let bytes = std::fs::read(&output)?;
+    suffixes
+        .iter()
+        .map(|suffix| {
+            let topic = format!("{TOPIC}/rangegan/{suffix}");
+            let images = roundtrip::float_images(&bytes, &topic)?;
+            Ok(images.into_iter().map(|i| i.values).collect())
+        })
+        .collect()
+}

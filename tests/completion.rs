@@ -1,0 +1,119 @@
+//! Completion of dropped rays as `convert` writes it in `depth`, on real KITTI scans that no
+//! model trained on: holes of several kinds cut into them, the recording converted with the
+//! default fill (the learned hole fill) and with `--upsample-method guided` (the completion
+//! it corrects), and every cut pixel with a true return scored against the scan itself.
+//! Skips with a message when `../shared/real_lidar` is absent.
+
+mod common;
+
+use std::path::{Path, PathBuf};
+
+use common::{bin, real_data, write_scans};
+
+use rangegan_mcap::io::roundtrip;
+use rangegan_mcap::lidar::holes::HoleKind;
+use rangegan_mcap::lidar::{RangeImage, Scan, SensorProfile, Strategy, kitti, project};
+use rangegan_mcap::util::rng::{Rng, key_hash};
+
+const KINDS: [HoleKind; 3] = [HoleKind::Pixels, HoleKind::Large, HoleKind::Objects];
+
+/// The six full-resolution held-out KITTI scans on the 64 x 512 grid.
+fn held_out(root: &Path) -> Vec<RangeImage> {
+    let profile = SensorProfile::kitti_hdl64e().with_columns(512);
+    let mut bins: Vec<PathBuf> = ["semantickitti_ssv3", "patchworkpp"]
+        .iter()
+        .flat_map(|sub| std::fs::read_dir(root.join(sub)).unwrap())
+        .map(|e| e.unwrap().path())
+        .filter(|p| p.extension().is_some_and(|x| x == "bin"))
+        .collect();
+    bins.sort();
+    assert_eq!(bins.len(), 6, "expected 3 + 3 KITTI scans");
+    bins.iter()
+        .map(|b| project(&kitti::read_bin(b).unwrap(), &profile, Strategy::Auto).unwrap())
+        .collect()
+}
+
+/// The returns of `image` outside `mask`, with their beams.
+fn degraded(image: &RangeImage, mask: &[bool]) -> Scan {
+    let kept: Vec<usize> = (0..mask.len())
+        .filter(|&k| image.range_m[k] > 0.0 && !mask[k])
+        .collect();
+    let mut scan = Scan::from_xyz(kept.iter().map(|&k| image.xyz[k]).collect());
+    scan.ring = Some(kept.iter().map(|&k| (k / image.width) as u16).collect());
+    scan
+}
+
+/// `depth` of each scan of `input` converted with `flags`.
+fn depth(input: &Path, output: &Path, flags: &[&str]) -> Vec<Vec<f32>> {
+    let out = bin()
+        .args(["--quiet", "convert"])
+        .arg(input)
+        .arg(output)
+        .args(["--sensor", "hdl64e", "--columns", "512", "--force"])
+        .args(flags)
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let bytes = std::fs::read(output).unwrap();
+    let images = roundtrip::float_images(&bytes, "/points/rangegan/depth").unwrap();
+    images.into_iter().map(|i| i.values).collect()
+}
+
+#[test]
+fn the_learned_hole_fill_beats_the_completion_it_corrects_on_every_kind_of_hole() {
+    let Some(root) = real_data("the_learned_hole_fill_beats_the_completion_it_corrects") else {
+        return;
+    };
+    let scans = held_out(&root);
+    let masks: Vec<(HoleKind, Vec<bool>)> = (scans.iter().enumerate())
+        .map(|(i, s)| {
+            let kind = KINDS[i % KINDS.len()];
+            let mut rng = Rng::new(key_hash(&[91, i as u64]));
+            (kind, kind.cut(&s.range_m, s.height, s.width, &mut rng))
+        })
+        .collect();
+    let dir = tempfile::tempdir().unwrap();
+    let input = dir.path().join("holes.mcap");
+    let recording: Vec<Scan> = (scans.iter().zip(&masks))
+        .map(|(s, (_, m))| degraded(s, m))
+        .collect();
+    write_scans(&input, &recording);
+    let output = dir.path().join("out.mcap");
+    let learned = depth(&input, &output, &[]);
+    let guided = depth(&input, &output, &["--upsample-method", "guided"]);
+    assert_eq!(learned.len(), 6);
+    for kind in KINDS {
+        let (mut n, mut sums) = (0usize, [0.0f64; 2]);
+        for (s, (k_, mask)) in masks.iter().enumerate() {
+            if *k_ != kind {
+                continue;
+            }
+            let truth = &scans[s].range_m;
+            for k in (0..mask.len()).filter(|&k| mask[k] && truth[k] > 0.0) {
+                n += 1;
+                sums[0] += f64::from((learned[s][k] - truth[k]).abs());
+                sums[1] += f64::from((guided[s][k] - truth[k]).abs());
+            }
+            // Measured returns are kept as measured.
+            for k in (0..mask.len()).filter(|&k| !mask[k] && truth[k] > 0.0) {
+                assert_eq!(
+                    learned[s][k],
+                    guided[s][k],
+                    "{} scan {s} pixel {k}",
+                    kind.name()
+                );
+            }
+        }
+        let [l, g] = sums.map(|v| v / n as f64);
+        eprintln!(
+            "{}: {n} pixels, MAE learned {l:.3} m, guided {g:.3} m",
+            kind.name()
+        );
+        assert!(n > 1000, "{}: {n} pixels", kind.name());
+        assert!(l < 0.97 * g, "{}: learned {l} m against {g} m", kind.name());
+    }
+}
