@@ -7,6 +7,7 @@
 //!
 //!     cargo run --release --example capacity_fit -- [--data ../shared/real_lidar]
 //!         [--scans 3] [--steps 500,1500] [--wide 128,64,32,32,32:64,64,32,64,64]
+//!         [--wide-only]
 use std::path::PathBuf;
 
 use anyhow::{Context, Result, bail};
@@ -69,6 +70,7 @@ fn main() -> Result<()> {
     let mut data = PathBuf::from("../shared/real_lidar");
     let (mut scans, mut steps) = (3usize, vec![500usize, 1500]);
     let mut wide = Some((vec![128, 64, 32, 32, 32], vec![64, 64, 32, 64, 64]));
+    let mut wide_only = false;
     let mut args = std::env::args().skip(1);
     while let Some(a) = args.next() {
         let mut value = || args.next().with_context(|| format!("{a} needs a value"));
@@ -76,6 +78,7 @@ fn main() -> Result<()> {
             "--data" => data = PathBuf::from(value()?),
             "--scans" => scans = value()?.parse()?,
             "--steps" => steps = list(&value()?)?,
+            "--wide-only" => wide_only = true,
             "--wide" => {
                 let v = value()?;
                 let (c, f) = v.split_once(':').context("--wide CHANNELS:FOURIER")?;
@@ -97,7 +100,8 @@ fn main() -> Result<()> {
     let device = Device::flex();
     println!("| generator | MACs / image | tuning steps | relative L1 | beside depth edges | s / scan |");
     println!("|---|---|---|---|---|---|");
-    for wide in [None, wide.as_ref()] {
+    let generators = if wide_only { vec![wide.as_ref()] } else { vec![None, wide.as_ref()] };
+    for wide in generators {
         let m = model(wide, &device)?;
         let name = format!("{:?} / {:?}", m.config.generator.channels, m.config.generator.n_freq);
         let macs = m.config.generator.macs_per_image(64, 512);
