@@ -56,8 +56,8 @@ fn errors(observed: &RangeImage, depth: &[f32]) -> (f64, f64) {
         let e = f64::from((depth[k] - r[k]).abs() / r[k]);
         all += e;
         n += 1;
-        let beside_edge = lidar::holes::neighbours(k, h, w)
-            .any(|q| r[q] > 0.0 && (r[q] / r[k]).ln().abs() > 0.3);
+        let beside_edge =
+            lidar::holes::neighbours(k, h, w).any(|q| r[q] > 0.0 && (r[q] / r[k]).ln().abs() > 0.3);
         if beside_edge {
             edge += e;
             m += 1;
@@ -95,15 +95,30 @@ fn main() -> Result<()> {
     let stride = (files.len() / scans.max(1)).max(1);
     let profile = SensorProfile::kitti_hdl64e().with_columns(512);
     let images: Vec<RangeImage> = (files.iter().step_by(stride).take(scans))
-        .map(|f| Ok(lidar::project(&lidar::kitti::read_bin(f)?, &profile, Strategy::Auto)?))
+        .map(|f| {
+            Ok(lidar::project(
+                &lidar::kitti::read_bin(f)?,
+                &profile,
+                Strategy::Auto,
+            )?)
+        })
         .collect::<Result<_>>()?;
     let device = Device::flex();
-    println!("| generator | MACs / image | tuning steps | relative L1 | beside depth edges | s / scan |");
+    println!(
+        "| generator | MACs / image | tuning steps | relative L1 | beside depth edges | s / scan |"
+    );
     println!("|---|---|---|---|---|---|");
-    let generators = if wide_only { vec![wide.as_ref()] } else { vec![None, wide.as_ref()] };
+    let generators = if wide_only {
+        vec![wide.as_ref()]
+    } else {
+        vec![None, wide.as_ref()]
+    };
     for wide in generators {
         let m = model(wide, &device)?;
-        let name = format!("{:?} / {:?}", m.config.generator.channels, m.config.generator.n_freq);
+        let name = format!(
+            "{:?} / {:?}",
+            m.config.generator.channels, m.config.generator.n_freq
+        );
         let macs = m.config.generator.macs_per_image(64, 512);
         for &n in &steps {
             let mut opts = DecodeOptions::new(Quality::Paper);
@@ -121,7 +136,8 @@ fn main() -> Result<()> {
                 .collect::<Result<_>>()?;
             let secs = t.elapsed().as_secs_f64() * rayon::current_num_threads() as f64
                 / images.len() as f64;
-            let mean = |f: fn(&(f64, f64)) -> f64| fits.iter().map(f).sum::<f64>() / fits.len() as f64;
+            let mean =
+                |f: fn(&(f64, f64)) -> f64| fits.iter().map(f).sum::<f64>() / fits.len() as f64;
             println!(
                 "| {name} | {:.2} G | {n} | {:.4} | {:.4} | {secs:.0} |",
                 macs as f64 / 1e9,
