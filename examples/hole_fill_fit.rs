@@ -169,7 +169,7 @@ fn main() -> Result<()> {
     }
     let data = PathBuf::from(args.next().unwrap_or("../shared/real_lidar".into()));
     let per_scan: usize = args.next().map_or(2000, |s| s.parse().unwrap());
-    let epochs: usize = args.next().map_or(4, |s| s.parse().unwrap());
+    let epochs: usize = args.next().map_or(20, |s| s.parse().unwrap());
     let hidden = args.next().map_or(vec![64, 64], |s| list(&s));
     let window = Window {
         half_rows: args.next().map_or(2, |s| s.parse().unwrap()),
