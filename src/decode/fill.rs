@@ -9,7 +9,7 @@ use super::row_fill::{RowFill, rows_image};
 use super::{Decoded, PreparedGrid, Rendered, Sparsify};
 use crate::lidar::holes;
 use crate::lidar::{
-    Guide, Interpolation, RangeImage, ScatterFill, SurfaceRule, fill_scattered,
+    AngleGrid, Guide, Interpolation, RangeImage, ScatterFill, SurfaceRule, fill_scattered,
     fill_scattered_where, resample_by_surface, resample_image,
 };
 
@@ -121,18 +121,7 @@ fn scatter_fill<'a>(fill: Fill, guide: &'a [f32], rule: &SurfaceRule) -> Scatter
 /// [`Fill::Learned`] then moves each dropped ray's depth by the learned hole fill
 /// ([`HoleFill`]). [`Fill::Gan`] gives the rendering everywhere.
 pub fn complete_observed(observed: &RangeImage, rendered: Rendered, fill: Fill) -> Rendered {
-    let size = (observed.height, observed.width);
-    let values = match completion_fill(fill) {
-        None => return rendered,
-        Some(how) => {
-            let distance = holes::distance_to_returns(&observed.range_m, size.0, size.1);
-            let how = scatter_fill(how, &rendered.depth_m, &SurfaceRule::default());
-            fill_scattered_where(&observed.range_m, &observed.angles, how, |k| {
-                distance[k] <= COMPLETION_REACH
-            })
-        }
-    };
-    refine_holes(&observed.range_m, rendered, &values, fill, size)
+    completed(&observed.range_m, &observed.angles, rendered, fill)
 }
 
 /// The fill that completes dropped rays near returns for `fill` (`learned` fills as
@@ -145,22 +134,35 @@ fn completion_fill(fill: Fill) -> Option<Fill> {
     }
 }
 
-/// `rendered` completed with `values` where they are set; for [`Fill::Learned`] each
-/// dropped ray of `observed` then moved by the learned hole fill, which reads the returns
-/// around it and the rendering x_d.
-fn refine_holes(
+/// Each dropped ray of `observed` (on `angles`) within [`COMPLETION_REACH`] steps of a
+/// return (`distance`, [`holes::distance_to_returns`]) filled by `how`, guided by the
+/// rendering `guide`; 0 farther in.
+fn fill_near_returns(
     observed: &[f32],
-    rendered: Rendered,
-    values: &[f32],
-    fill: Fill,
-    size: (usize, usize),
-) -> Rendered {
+    angles: &AngleGrid,
+    guide: &[f32],
+    how: Fill,
+    distance: &[u32],
+) -> Vec<f32> {
+    let how = scatter_fill(how, guide, &SurfaceRule::default());
+    fill_scattered_where(observed, angles, how, |k| distance[k] <= COMPLETION_REACH)
+}
+
+/// [`complete_observed`] of the depths `observed` on `angles`.
+fn completed(observed: &[f32], angles: &AngleGrid, rendered: Rendered, fill: Fill) -> Rendered {
+    let Some(how) = completion_fill(fill) else {
+        return rendered;
+    };
+    let size = (angles.height, angles.width);
+    let distance = holes::distance_to_returns(observed, size.0, size.1);
+    let values = fill_near_returns(observed, angles, &rendered.depth_m, how, &distance);
     if fill != Fill::Learned {
-        return complete(rendered, values);
+        return complete(rendered, &values);
     }
     let x_d = rendered.depth_m.clone();
-    let mut out = complete(rendered, values);
-    out.depth_m = HoleFill::shipped().refine(observed, &out.depth_m, &x_d, size);
+    let mut out = complete(rendered, &values);
+    let images = (observed, &out.depth_m[..], &x_d[..]);
+    out.depth_m = HoleFill::shipped().refine(images, &distance, size);
     out
 }
 
@@ -238,15 +240,12 @@ impl Decoded {
     /// [`Fill::Gan`] fills nothing. Chosen on the validation drive (BENCHMARKS.md,
     /// "Completion of dropped rays").
     pub fn completed_observation(&self, fill: Fill) -> Vec<f32> {
-        let Some(fill) = completion_fill(fill) else {
+        let Some(how) = completion_fill(fill) else {
             return self.observed_m.clone();
         };
         let grid = &self.model.grid;
-        let how = self.scatter_fill(fill, &SurfaceRule::default());
         let distance = holes::distance_to_returns(&self.observed_m, grid.height, grid.width);
-        fill_scattered_where(&self.observed_m, grid, how, |k| {
-            distance[k] <= COMPLETION_REACH
-        })
+        fill_near_returns(&self.observed_m, grid, &self.model.depth_m, how, &distance)
     }
 
     /// The observation (restored first by [`Decoded::interpolate_restored`] when decoding
@@ -290,11 +289,7 @@ impl Decoded {
                 self.model.clone(),
                 &self.interpolate_restored(fill, &SurfaceRule::default()),
             ),
-            (None, _) => {
-                let size = (self.model.grid.height, self.model.grid.width);
-                let values = self.completed_observation(fill);
-                refine_holes(&self.observed_m, self.model.clone(), &values, fill, size)
-            }
+            (None, _) => completed(&self.observed_m, &self.model.grid, self.model.clone(), fill),
         }
     }
 

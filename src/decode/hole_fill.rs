@@ -16,7 +16,6 @@ use anyhow::{Context, Result, bail};
 use serde::{Deserialize, Serialize};
 
 use super::row_fill::moved;
-use crate::lidar::holes;
 use crate::util::mlp::Mlp;
 
 /// What the network reads around a dropped pixel.
@@ -105,7 +104,7 @@ impl HoleFill {
             bail!("its window ({w:?}) is out of range");
         }
         let features = w.features();
-        if fill.net.inputs() != features || fill.net.outputs() != 1 || !fill.net.is_consistent() {
+        if !fill.net.takes(features, 1) {
             bail!(
                 "its network takes {} inputs where its window gives {features}",
                 fill.net.inputs()
@@ -116,15 +115,16 @@ impl HoleFill {
 
     /// `completed` (the completion of `observed` on its grid, `height x width`, x_d far from
     /// returns) with every dropped pixel that has a return in two or more directions moved
-    /// by the network. Measured returns and pixels the completion left at 0 stay as they are.
+    /// by the network; `distance` is each pixel's steps to the nearest return
+    /// ([`crate::lidar::holes::distance_to_returns`] of `observed`). Measured returns and pixels the
+    /// completion left at 0 stay as they are.
     pub fn refine(
         &self,
-        observed: &[f32],
-        completed: &[f32],
-        x_d: &[f32],
-        (height, width): (usize, usize),
+        (observed, completed, x_d): (&[f32], &[f32], &[f32]),
+        distance: &[u32],
+        size: (usize, usize),
     ) -> Vec<f32> {
-        let dropped = dropped_features(self.window, observed, completed, x_d, (height, width));
+        let dropped = dropped_features(self.window, (observed, completed, x_d), distance, size);
         let moves = self.net.forward(&dropped.x);
         let mut out = completed.to_vec();
         for (&k, m) in dropped.pixels.iter().zip(moves) {
@@ -145,7 +145,7 @@ struct Images<'a> {
     observed: &'a [f32],
     completed: &'a [f32],
     x_d: &'a [f32],
-    distance: Vec<u32>,
+    distance: &'a [u32],
     h: usize,
     w: usize,
 }
@@ -161,18 +161,19 @@ impl Images<'_> {
     }
 }
 
+/// The features of every dropped pixel of `observed` the network moves: `completed` set
+/// there and a return in two or more directions.
 pub(crate) fn dropped_features(
     window: Window,
-    observed: &[f32],
-    completed: &[f32],
-    x_d: &[f32],
+    (observed, completed, x_d): (&[f32], &[f32], &[f32]),
+    distance: &[u32],
     (h, w): (usize, usize),
 ) -> Dropped {
     let images = Images {
         observed,
         completed,
         x_d,
-        distance: holes::distance_to_returns(observed, h, w),
+        distance,
         h,
         w,
     };
@@ -259,6 +260,7 @@ fn push_features(
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::lidar::holes;
 
     #[test]
     fn the_shipped_hole_fill_loads_and_reads_its_window() {
@@ -280,7 +282,9 @@ mod tests {
         completed[3 * w + 5] = 10.0;
         let x_d = vec![12.0; h * w];
         let window = Window::default();
-        let d = dropped_features(window, &observed, &completed, &x_d, (h, w));
+        let distance = holes::distance_to_returns(&observed, h, w);
+        let images = (&observed[..], &completed[..], &x_d[..]);
+        let d = dropped_features(window, images, &distance, (h, w));
         assert_eq!(d.pixels, vec![3 * w + 5], "the top row was left at 0");
         assert_eq!(d.x.len(), window.features());
         // Every neighbour there, at the start's depth; x_d 12 m against 10 m.
@@ -291,7 +295,7 @@ mod tests {
         );
         let own = &d.x[d.x.len() - OWN..];
         assert!((own[0] - (1.2f32).ln()).abs() < 1e-6);
-        let out = HoleFill::shipped().refine(&observed, &completed, &x_d, (h, w));
+        let out = HoleFill::shipped().refine(images, &distance, (h, w));
         assert_eq!(out[..3 * w + 5], completed[..3 * w + 5]);
         assert_eq!(out[3 * w + 6..], completed[3 * w + 6..]);
         assert!(

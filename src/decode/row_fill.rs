@@ -93,7 +93,7 @@ impl RowFill {
             );
         }
         let features = fill.window.features();
-        if fill.net.inputs() != features || fill.net.outputs() != 1 || !fill.net.is_consistent() {
+        if !fill.net.takes(features, 1) {
             bail!(
                 "its network takes {} inputs where its window gives {features}",
                 fill.net.inputs()

@@ -6,8 +6,9 @@
 //! KITTI training drives through the built binary, so that x_d is exactly what `convert`
 //! renders (a drive's scans decoded in chains).
 
-use super::ray_move::{Samples, shuffle};
+use super::ray_move::{Samples, pick};
 use crate::decode::hole_fill::{Window, dropped_features};
+use crate::lidar::holes;
 use crate::util::rng::Rng;
 
 /// One scan with holes cut into it, as `convert` completed it. Images are row-major
@@ -33,19 +34,17 @@ impl Holed {
     pub fn samples(&self, window: Window, per_scan: usize, rng: &mut Rng) -> Samples {
         let size = (self.height, self.width);
         let (completed, truth) = (&self.completed, &self.truth);
-        let dropped = dropped_features(window, &self.observed, completed, &self.x_d, size);
+        let distance = holes::distance_to_returns(&self.observed, size.0, size.1);
+        let images = (&self.observed[..], &completed[..], &self.x_d[..]);
+        let dropped = dropped_features(window, images, &distance, size);
         let nf = window.features();
-        let mut order: Vec<usize> = (0..dropped.pixels.len())
+        let cut_with_truth = (0..dropped.pixels.len())
             .filter(|&i| {
                 let k = dropped.pixels[i];
                 self.mask[k] && truth[k] > 0.0
             })
             .collect();
-        if per_scan < order.len() {
-            shuffle(&mut order, rng);
-            order.truncate(per_scan);
-            order.sort_unstable();
-        }
+        let order = pick(cut_with_truth, per_scan, rng);
         let mut out = Samples {
             features: nf,
             ..Samples::default()

@@ -74,6 +74,17 @@ impl Samples {
     }
 }
 
+/// At most `n` of `order`, drawn with `rng` and kept in their order (all of them when there
+/// are no more than `n`).
+pub fn pick(mut order: Vec<usize>, n: usize, rng: &mut Rng) -> Vec<usize> {
+    if n < order.len() {
+        shuffle(&mut order, rng);
+        order.truncate(n);
+        order.sort_unstable();
+    }
+    order
+}
+
 pub fn shuffle(v: &mut [usize], rng: &mut Rng) {
     for i in (1..v.len()).rev() {
         v.swap(i, rng.below(i + 1));

@@ -7,7 +7,7 @@ use std::path::PathBuf;
 use anyhow::Result;
 use rayon::prelude::*;
 
-use super::ray_move::{Samples, shuffle};
+use super::ray_move::{Samples, pick};
 use crate::decode::Sparsify;
 use crate::decode::row_fill::{Window, edge_aware_rows, restored_features};
 use crate::lidar::{self, AngleGrid, SensorProfile, Strategy};
@@ -76,14 +76,10 @@ fn scan_samples(
     let reference = edge_aware_rows(grid, depth, &kept);
     let restored = restored_features(window, depth, &reference, grid, &kept);
     let nf = window.features();
-    let mut order: Vec<usize> = (0..restored.pixels.len())
+    let with_truth = (0..restored.pixels.len())
         .filter(|&i| depth[restored.pixels[i]] > 0.0)
         .collect();
-    if per_scan < order.len() {
-        shuffle(&mut order, rng);
-        order.truncate(per_scan);
-        order.sort_unstable();
-    }
+    let order = pick(with_truth, per_scan, rng);
     let mut out = Samples {
         features: nf,
         ..Samples::default()

@@ -107,6 +107,11 @@ impl Mlp {
 
     /// Layers chain (each one's inputs are the previous one's outputs) and every weight
     /// vector has its stated size: checked after loading a file.
+    /// Whether it is consistent and maps `inputs` values to `outputs`.
+    pub fn takes(&self, inputs: usize, outputs: usize) -> bool {
+        self.is_consistent() && self.inputs() == inputs && self.outputs() == outputs
+    }
+
     pub fn is_consistent(&self) -> bool {
         !self.layers.is_empty()
             && self.layers.iter().all(Dense::is_consistent)
