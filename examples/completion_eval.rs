@@ -7,13 +7,16 @@
 //!
 //!     cargo build --release
 //!     cargo run --release --example completion_eval -- [--data ../shared/real_lidar]
-//!         [--set heldout|validation|full-resolution] [--columns 512] [--kinds pixels,...]
+//!         [--set heldout|validation|full-resolution|sensors] [--columns 512]
+//!         [--kinds pixels,...]
 //!         [--bin BINARY]
 //!         [--against 'FLAGS'|none] [-- CONVERT FLAGS...]
 //!
 //! `validation` (every third scan of the validation drive) is where settings are chosen;
 //! `heldout` (the 26 held-out scans) is where they are reported; `full-resolution` is its six
-//! full-resolution scans, for `--columns 2048` (hole sizes scale with the columns). Flags after `--` go to
+//! full-resolution scans, for `--columns 2048` (hole sizes scale with the columns); `sensors` is
+//! each real recording of another sensor (Ouster, Velodyne, Hesai, nuScenes) on its own grid,
+//! one table each. Flags after `--` go to
 //! `convert` (e.g. `--upsample-method gan` for the decoded scene alone in the holes);
 //! `--against` scores a second convert beside it, side by side (by default
 //! `--upsample-method guided`, the completion without the learned hole fill).
@@ -25,14 +28,45 @@ use anyhow::{Context, Result, bail};
 use rangegan_mcap::lidar::RangeImage;
 use rangegan_mcap::lidar::holes::HoleKind;
 use rangegan_mcap::model::data::{kitti_heldout_files, kitti_validation_split};
+use rangegan_mcap::recording::{self, Grid};
 use rangegan_mcap::util::rng::{Rng, key_hash};
 
 #[path = "common/holed.rs"]
 mod holed;
 
-/// The scans of `set`, projected onto the HDL-64E grid at `columns`.
-fn load(data: &Path, set: &str, columns: usize) -> Result<Vec<RangeImage>> {
+/// Scans of one sensor and the `convert` flags that put them on its grid.
+struct Recorded {
+    name: String,
+    scans: Vec<RangeImage>,
+    grid: Vec<String>,
+}
+
+/// The real recordings of sensors other than KITTI's HDL-64E: a name, and a recording or
+/// what `import` reads (relative to `--data`).
+const SENSORS: [(&str, &str); 8] = [
+    ("Ouster OS1-32", "ouster/OS-1-32-G_v2.1.1_1024x10.pcap"),
+    ("Ouster OS1-64", "mcap/pointcloudset_test.mcap"),
+    (
+        "Ouster OS1-128",
+        "other_sensors/ouster_os1_128_lb_3frames/OS-1-128_v2.3.0_1024x10_lb_n3.pcap",
+    ),
+    ("Velodyne VLP-16", "nebula"),
+    ("HDL-32E (fast_gicp)", "other_sensors/fast_gicp_hdl32e"),
+    ("nuScenes 32-beam", "nuscenes"),
+    ("Hesai PandarXT32", "other_sensors/nebula_hesai_xt32"),
+    ("Velodyne VLS-128", "other_sensors/nebula_velodyne_vls128"),
+];
+
+/// The scans of `set`: KITTI's on the HDL-64E grid at `columns`, or (`sensors`) each real
+/// recording of another sensor on its own grid, as `convert` finds it.
+fn load(data: &Path, set: &str, columns: usize, bin: &Path, dir: &Path) -> Result<Vec<Recorded>> {
     let files: Vec<PathBuf> = match set {
+        "sensors" => {
+            return SENSORS
+                .iter()
+                .map(|(n, f)| sensor(data, n, f, bin, dir))
+                .collect();
+        }
         "validation" => {
             let (_, files) = kitti_validation_split(data, &["kitti_raw_drive_d".to_string()])?;
             files.into_iter().step_by(3).collect()
@@ -53,9 +87,51 @@ fn load(data: &Path, set: &str, columns: usize) -> Result<Vec<RangeImage>> {
             }
             files
         }
-        other => bail!("--set {other}: give heldout or validation"),
+        other => bail!("--set {other}: give heldout, validation, full-resolution or sensors"),
     };
-    holed::project_all(&files, columns)
+    Ok(vec![Recorded {
+        name: format!("KITTI HDL-64E, {set}, {columns} columns"),
+        scans: holed::project_all(&files, columns)?,
+        grid: holed::kitti_grid(columns),
+    }])
+}
+
+/// The real recording `source` of sensor `name`, imported by `bin` where it is not an MCAP,
+/// read on the grid `convert` estimates for it; that grid is written as a profile file, so
+/// the scans with holes cut into them are converted on the same grid.
+fn sensor(data: &Path, name: &str, source: &str, bin: &Path, dir: &Path) -> Result<Recorded> {
+    let source = data.join(source);
+    let slug: String = (name.chars())
+        .map(|c| if c.is_ascii_alphanumeric() { c } else { '_' })
+        .collect();
+    let mcap = if source.extension().is_some_and(|e| e == "mcap") {
+        source
+    } else {
+        let out = dir.join(format!("{slug}.mcap"));
+        let status = std::process::Command::new(bin)
+            .args(["--quiet", "import"])
+            .arg(&source)
+            .arg(&out)
+            .arg("--force")
+            .status()?;
+        if !status.success() {
+            bail!("import {} failed", source.display());
+        }
+        out
+    };
+    let recording = recording::read(&mcap, None, &Grid::FromRecording { columns: None })?;
+    let profile = dir.join(format!("{slug}.profile.json"));
+    std::fs::write(&profile, serde_json::to_string(&recording.profile)?)?;
+    Ok(Recorded {
+        name: format!(
+            "{name}, {} scan(s) of {} x {}",
+            recording.images.len(),
+            recording.profile.beams(),
+            recording.profile.columns
+        ),
+        scans: recording.images,
+        grid: vec!["--sensor".into(), profile.display().to_string()],
+    })
 }
 
 /// Each missing pixel of `observed` (0 = none) on a line between the nearest returns before
@@ -154,19 +230,37 @@ fn main() -> Result<()> {
         return Ok(());
     }
     let bin = holed::binary(bin)?;
-    let scans = load(&data, &set, columns)?;
     let dir = tempfile::tempdir()?;
-    println!(
-        "{} {set} scans; convert {}",
-        scans.len(),
-        convert_flags.join(" ")
-    );
+    for recorded in load(&data, &set, columns, &bin, dir.path())? {
+        println!("\n{}; convert {}", recorded.name, convert_flags.join(" "));
+        score_recording(
+            &recorded,
+            &kinds,
+            &bin,
+            dir.path(),
+            &convert_flags,
+            &against,
+        )?;
+    }
+    Ok(())
+}
+
+/// The table of `recorded` with holes of each of `kinds` cut into its scans.
+fn score_recording(
+    recorded: &Recorded,
+    kinds: &[HoleKind],
+    bin: &Path,
+    dir: &Path,
+    convert_flags: &[String],
+    against: &Option<Vec<String>>,
+) -> Result<()> {
+    let scans = &recorded.scans;
     let against_name = against.as_ref().map_or("-".into(), |a| a.join(" "));
     println!(
         "| holes | pixels | `depth` | {against_name} | `x_d` | rows | columns | best interpolation | depth / best |"
     );
     println!("|---|---|---|---|---|---|---|---|---|");
-    for kind in kinds {
+    for &kind in kinds {
         let masks: Vec<Vec<bool>> = scans
             .iter()
             .enumerate()
@@ -178,11 +272,11 @@ fn main() -> Result<()> {
         let degraded: Vec<_> = (scans.iter().zip(&masks))
             .map(|(image, mask)| holed::degraded_scan(image, mask))
             .collect();
-        let against = match &against {
+        let against = match against {
             Some(flags) => Some(holed::convert(
-                columns,
-                &bin,
-                dir.path(),
+                &recorded.grid,
+                bin,
+                dir,
                 &degraded,
                 flags,
                 &["depth"],
@@ -191,11 +285,11 @@ fn main() -> Result<()> {
         }
         .map(|mut a| a.remove(0));
         let [depth, x_d]: [Vec<Vec<f32>>; 2] = holed::convert(
-            columns,
-            &bin,
-            dir.path(),
+            &recorded.grid,
+            bin,
+            dir,
             &degraded,
-            &convert_flags,
+            convert_flags,
             &["depth", "x_d"],
         )?
         .try_into()
@@ -206,11 +300,13 @@ fn main() -> Result<()> {
             let observed = holed::observed(truth, &masks[s]);
             let rows = interpolate(&observed, h, w, true);
             let cols = interpolate(&observed, h, w, false);
+
             for k in (0..h * w).filter(|&k| masks[s][k] && truth.range_m[k] > 0.0) {
                 let t = truth.range_m[k];
                 score.pixels += 1;
                 score.add("rows", (rows[k] - t).abs());
                 score.add("columns", (cols[k] - t).abs());
+
                 if let Some(d) = depth.get(s) {
                     score.add("depth", (d[k] - t).abs());
                 }

@@ -48,7 +48,7 @@ fn collect(
     let dir = tempfile::tempdir()?;
     let flags = ["--upsample-method".to_string(), "guided".to_string()];
     let [completed, x_d]: [Vec<Vec<f32>>; 2] = holed::convert(
-        512,
+        &holed::kitti_grid(512),
         &holed::binary(None)?,
         dir.path(),
         &degraded,

@@ -12,6 +12,7 @@ use mcap::records::Record;
 use crate::error::Location;
 use crate::io::{ChannelTable, CloudFormat, DecodedCloud, OnError, decode_cloud, read_records};
 use crate::lidar::projection::choose_strategy;
+use crate::lidar::sweep::Seam;
 use crate::lidar::{RangeImage, SensorProfile, Strategy, estimate_profile, project};
 
 /// How to pick the projection grid.
@@ -33,6 +34,8 @@ pub struct Recording {
     pub images: Vec<RangeImage>,
     /// Log time of each scan, nanoseconds.
     pub log_times: Vec<u64>,
+    /// Where each scan's sweep starts, where its cloud's firing order says.
+    pub seams: Vec<Option<Seam>>,
     /// Whether the clouds were organized (beams x columns).
     pub organized: bool,
     /// Metadata records by name.
@@ -202,9 +205,11 @@ pub fn read_with(
     let organized = raws[0].cloud.scan.is_organized();
     let mut images = Vec::new();
     let mut log_times = Vec::new();
+    let mut seams = Vec::new();
     for raw in &raws {
         match project(&raw.cloud.scan, &profile, strategy) {
             Ok(img) => {
+                seams.push(Seam::find(&raw.cloud.scan, &img));
                 images.push(img);
                 log_times.push(raw.log_time);
             }
@@ -227,6 +232,7 @@ pub fn read_with(
         profile,
         images,
         log_times,
+        seams,
         organized,
         metadata,
         skipped,

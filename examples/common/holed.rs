@@ -52,10 +52,18 @@ pub fn binary(bin: Option<PathBuf>) -> Result<PathBuf> {
         .context("build the binary first: cargo build --release")
 }
 
+/// The `convert` flags that put KITTI scans on the HDL-64E grid at `columns`.
+pub fn kitti_grid(columns: usize) -> Vec<String> {
+    ["--sensor", "hdl64e", "--columns", &columns.to_string()]
+        .map(String::from)
+        .to_vec()
+}
+
 /// The images of each channel of `suffixes` that `bin convert FLAGS` writes for `scans`
-/// (one recording, in order, on the HDL-64E grid at `columns`).
+/// (one recording, in order, on the grid that the flags `grid` name). A channel that
+/// `convert` does not write (x_d where no model covers the sensor) comes back empty.
 pub fn convert(
-    columns: usize,
+    grid: &[String],
     bin: &Path,
     dir: &Path,
     scans: &[Scan],
@@ -68,13 +76,8 @@ pub fn convert(
         .args(["--quiet", "convert"])
         .arg(&input)
         .arg(&output)
-        .args([
-            "--sensor",
-            "hdl64e",
-            "--force",
-            "--columns",
-            &columns.to_string(),
-        ])
+        .arg("--force")
+        .args(grid)
         .args(flags)
         .status()?;
     if !status.success() {

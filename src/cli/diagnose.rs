@@ -126,7 +126,7 @@ fn features(
     decoder: Option<&Decoder>,
 ) -> (Vec<ScanFeatures>, usize) {
     let options = FeatureOptions::default();
-    match decoder {
+    let (mut features, fallbacks) = match decoder {
         None => (neighbour_features(&rec.images, &options), 0),
         Some(decoder) => {
             let seeds: Vec<u64> = rec
@@ -145,7 +145,11 @@ fn features(
             }
             (done.features, done.fallbacks.len())
         }
+    };
+    for (f, seam) in features.iter_mut().zip(&rec.seams) {
+        f.seam = seam.clone();
     }
+    (features, fallbacks)
 }
 
 /// Refuses a report folder where the report would replace one of the files the diagnosis
@@ -225,6 +229,7 @@ pub fn run(global: &GlobalArgs, args: DiagnoseArgs) -> anyhow::Result<Outcome> {
         residual: crate::diagnose::residual::ResidualContext {
             speed_mps: args.real_speed_mps.or(real.speed_mps()),
             period_s: 0.1,
+            sweep: None,
         },
         ..DiagnoseOptions::default()
     };

@@ -12,6 +12,7 @@
 
 use crate::lidar::RangeImage;
 use crate::lidar::edges::{EDGE_RELATIVE_JUMP, EdgeAxes, MAX_EDGE_PX, edge_proximity};
+use crate::lidar::sweep::Seam;
 
 /// Settings for [`ScanFeatures::from_image`].
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -73,6 +74,9 @@ pub struct ScanFeatures {
     /// Whether the pixel lies in a gap of the recording ([`super::gaps`]): left out of
     /// every rate and fit. Empty: no gap.
     pub gap: Vec<bool>,
+    /// Where the sweep starts, found from the cloud ([`Seam::find`]); `None`: KITTI's
+    /// convention, straight ahead and counter-clockwise.
+    pub seam: Option<Seam>,
 }
 
 impl ScanFeatures {
@@ -92,6 +96,7 @@ impl ScanFeatures {
             class: Vec::new(),
             kept: Vec::new(),
             gap: Vec::new(),
+            seam: None,
         }
     }
 
@@ -203,6 +208,7 @@ impl ScanFeatures {
             class,
             kept,
             gap: Vec::new(),
+            seam: None,
         }
     }
 }

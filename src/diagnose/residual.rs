@@ -15,6 +15,7 @@ use serde_json::{Map, json};
 
 use super::features::ScanFeatures;
 use super::stats::erfc;
+use crate::lidar::sweep::Seam;
 
 /// Observations of one statistic: (value, covariate), pooled over scans.
 pub type Obs = Vec<(f32, f32)>;
@@ -26,6 +27,11 @@ pub struct ResidualContext {
     pub speed_mps: Option<f64>,
     /// Sweep period, seconds.
     pub period_s: f64,
+    /// Where the real recording's sweeps start, as its clouds' firing order says
+    /// ([`crate::lidar::sweep::Seam`]): the seam's azimuth (radians) and whether the sweep
+    /// turns counter-clockwise. `None`: KITTI's convention, straight ahead and
+    /// counter-clockwise.
+    pub sweep: Option<(f32, bool)>,
 }
 
 /// One fitted residual effect with its held-out numbers (NLL per observation).
@@ -492,12 +498,22 @@ impl EdgeReference {
 /// Columns either side of the seam whose steps form the motion reference.
 const SEAM_CONTROL_COLUMNS: usize = 6;
 
-/// Number of seam shifts tried: -0.5 to 3.0 m in 5 cm steps.
-const SEAM_SHIFTS: usize = 71;
+/// Number of seam shifts tried: -3.0 to 3.0 m in 5 cm steps. Either sign: behind a sensor
+/// moving forward the last-measured returns are farther than the first, ahead nearer.
+const SEAM_SHIFTS: usize = 121;
 
 /// The `i`-th seam shift tried, meters (last-measured returns nearer than the first).
 fn seam_shift(i: usize) -> f64 {
-    0.05 * (i as f64 - 10.0)
+    0.05 * (i as f64 - 60.0)
+}
+
+/// The sensor's motion during a sweep that a seam shift `shift` means at a seam at
+/// `azimuth` (radians): the shift is the motion's component along the seam's rays, taken
+/// as moving forward (+x). `None` at a seam across the heading, where motion moves
+/// returns along their surfaces and hardly changes their range.
+pub(crate) fn motion_per_sweep_m(shift: f64, azimuth: f32) -> Option<f64> {
+    let along = f64::from(azimuth.cos());
+    (along.abs() >= 0.3).then(|| shift / along)
 }
 
 /// Seam steps as a mixture: a share of the seam's returns moved by a shift, the rest
@@ -532,10 +548,10 @@ impl SeamModel {
         self.reference.nll_of_mixture(h, &parts) / h.total().max(1.0)
     }
     /// Maximum-likelihood (share, shift index) among `shares`.
-    fn fit(&self, h: &Hist, shares: &[f64]) -> (f64, usize) {
+    fn fit(&self, h: &Hist, shares: &[f64], allowed: impl Fn(f64) -> bool) -> (f64, usize) {
         let mut best = (1.0, 0, f64::INFINITY);
         for &share in shares {
-            for i in 0..SEAM_SHIFTS {
+            for i in (0..SEAM_SHIFTS).filter(|&i| allowed(seam_shift(i))) {
                 let v = self.nll(h, share, i);
                 if v < best.2 {
                     best = (share, i, v);
@@ -546,20 +562,44 @@ impl SeamModel {
     }
 }
 
+/// The smallest seam shift beyond the sim's that is claimed, meters.
+const MIN_SEAM_SHIFT_M: f64 = 0.1;
+
+/// Seam steps a held-out scan needs for its own check of a seam shift.
+const MIN_SCAN_SEAM_STEPS: usize = 5;
+
+/// The seam steps of `obs` (covariate 1 + scan index) by scan.
+fn scan_groups(obs: &Obs) -> Vec<Obs> {
+    let mut groups: std::collections::BTreeMap<u32, Obs> = Default::default();
+    for &(v, c) in obs.iter().filter(|x| x.1 > 0.5) {
+        groups.entry(c as u32).or_default().push((v, 0.0));
+    }
+    groups.into_values().collect()
+}
+
 /// `motion_distortion`: no de-skew, a range step at the scan seam.
 pub struct MotionFamily;
 
 impl MotionFamily {
-    /// Range step from column `j - 1` to `j` on every row where both are kept
-    /// and the surface is within 60 deg of straight ahead.
-    fn steps(f: &ScanFeatures, j: usize, out: &mut Obs) {
+    /// Range step from the return fired first to the one fired last where they meet at
+    /// the seam (offset 0), or (the controls) between two columns as far apart as they are,
+    /// `offset` columns beyond the meeting on either side: a meeting across a hole or across
+    /// the gap that moved returns leave is compared with steps across as many columns, just
+    /// outside it. On every row where both are kept.
+    fn steps(f: &ScanFeatures, seam: &Seam, offset: isize, out: &mut Obs) {
         let w = f.width;
-        if j == 0 || j >= w {
+        if w < 2 {
             return;
         }
         for row in 0..f.height {
-            let (a, b) = (row * w + j - 1, row * w + j);
-            if f.kept[a] && f.kept[b] && !f.in_gap(b) {
+            let (first, last) = seam.meeting(row, w);
+            let apart = (first + w - last) % w;
+            let span = apart.min(w - apart) as isize;
+            let shift = offset + offset.signum() * (span - 1);
+            let at = |c: usize| (c as isize + shift).rem_euclid(w as isize) as usize;
+            let (first, last) = (at(first), at(last));
+            let (a, b) = (row * w + first, row * w + last);
+            if f.kept[a] && f.kept[b] && !f.in_gap(a) && !f.in_gap(b) {
                 out.push((f.range_m[b] - f.range_m[a], f.range_m[a]));
             }
         }
@@ -570,18 +610,19 @@ impl ResidualFamily for MotionFamily {
     fn id(&self) -> &'static str {
         "motion_distortion"
     }
-    /// Seam steps have covariate 1, control steps covariate 0.
+    /// Seam steps have covariate 1 + their scan's index, control steps covariate 0. Each
+    /// scan's seam is where its own firing order starts over, else straight ahead.
     fn observations(&self, scans: &[ScanFeatures]) -> Obs {
         let mut obs = Vec::new();
-        for f in scans {
-            let seam = f.width / 2;
+        for (s, f) in scans.iter().enumerate() {
+            let seam = (f.seam.clone()).unwrap_or_else(|| Seam::straight_ahead(f.width));
             let mut seam_steps = Vec::new();
-            Self::steps(f, seam, &mut seam_steps);
-            obs.extend(seam_steps.into_iter().map(|(v, _)| (v, 1.0)));
-            for d in 1..=SEAM_CONTROL_COLUMNS {
+            Self::steps(f, &seam, 0, &mut seam_steps);
+            obs.extend(seam_steps.into_iter().map(|(v, _)| (v, 1.0 + s as f32)));
+            for d in 1..=SEAM_CONTROL_COLUMNS as isize {
                 let mut control = Vec::new();
-                Self::steps(f, seam + d, &mut control);
-                Self::steps(f, seam - d, &mut control);
+                Self::steps(f, &seam, d, &mut control);
+                Self::steps(f, &seam, -d, &mut control);
                 obs.extend(control.into_iter().map(|(v, _)| (v, 0.0)));
             }
         }
@@ -604,6 +645,7 @@ impl ResidualFamily for MotionFamily {
                 .map(|x| (x.0, 0.0))
                 .collect()
         };
+        let by_scan = scan_groups(test);
         let (sim_ref, real_ref) = (pick(sim, false), pick(train, false));
         let (sim_seam, train, test) = (pick(sim, true), pick(train, true), pick(test, true));
         let enough_steps = sim_ref.len().min(real_ref.len()) >= 100
@@ -612,40 +654,90 @@ impl ResidualFamily for MotionFamily {
             return None;
         }
         let (sim_model, real_model) = (SeamModel::new(&sim_ref), SeamModel::new(&real_ref));
-        let (_, i_sim) = sim_model.fit(&SeamModel::hist(&sim_seam), &[1.0]);
-        let shares: Vec<f64> = (1..=10).map(|i| 0.1 * f64::from(i)).collect();
+        let (_, i_sim) = sim_model.fit(&SeamModel::hist(&sim_seam), &[1.0], |_| true);
+        let (azimuth, found) = match ctx.sweep {
+            Some((azimuth, _)) => (azimuth, true),
+            None => (0.0, false),
+        };
+        // The sensor drives forward (+x), so the shift's sign is the seam's: nearer ahead,
+        // farther behind (a little backward slack, as at a standstill). Motion shows on the
+        // surfaces that face the sensor across the seam, a good share of them; a few steps
+        // shifted alone are the scene's edges.
+        let forward = |shift: f64| motion_per_sweep_m(shift, azimuth).is_none_or(|m| m >= -0.5);
+        let shares: Vec<f64> = (3..=10).map(|i| 0.1 * f64::from(i)).collect();
         let (h_train, h_test) = (SeamModel::hist(&train), SeamModel::hist(&test));
-        let (share, i) = real_model.fit(&h_train, &shares);
+        let (share, i) = real_model.fit(&h_train, &shares, forward);
         let (m_sim, m) = (seam_shift(i_sim), seam_shift(i));
         let nll = |share: f64, i: usize| real_model.nll(&h_test, share, i);
+        // Motion moves the seam of every scan; an edge of the scene that happens to lie at
+        // the seam of a few scans (its rows all step at once) does not. Most held-out scans
+        // must fit better for the gain to count.
+        let scans_agree = {
+            let gains: Vec<f64> = (by_scan.iter())
+                .filter(|steps| steps.len() >= MIN_SCAN_SEAM_STEPS)
+                .map(|steps| {
+                    let h = SeamModel::hist(steps);
+                    real_model.nll(&h, 1.0, i_sim) - real_model.nll(&h, share, i)
+                })
+                .collect();
+            gains.is_empty() || 3 * gains.iter().filter(|&&g| g > 0.0).count() >= 2 * gains.len()
+        };
+        // A seam step within a few centimetres of the sim's is within a scene's own steps.
+        let claimable = scans_agree && (m - m_sim).abs() >= MIN_SEAM_SHIFT_M;
         let speed = ctx.speed_mps.unwrap_or(10.0).max(0.1);
         let period = if ctx.period_s > 0.0 {
             ctx.period_s
         } else {
             0.1
         };
-        let scale = m / (speed * period);
+        let moved = motion_per_sweep_m(m, azimuth);
         let mut params = Map::new();
         params.insert("seam_shift_m".into(), json!(round4(m)));
         params.insert("sim_seam_shift_m".into(), json!(round4(m_sim)));
         params.insert("moved_share".into(), json!(round4(share)));
-        params.insert("scale".into(), json!(round4(scale)));
+        params.insert(
+            "seam_azimuth_deg".into(),
+            json!(round4(f64::from(azimuth.to_degrees()))),
+        );
+        if let Some((_, ccw)) = ctx.sweep {
+            params.insert("counter_clockwise".into(), json!(ccw));
+        }
         let mut physics = Map::new();
-        physics.insert("motion_distortion".into(), json!({ "scale": scale }));
+        if let Some(moved) = moved {
+            params.insert("motion_per_sweep_m".into(), json!(round4(moved)));
+            let scale = moved / (speed * period);
+            params.insert("scale".into(), json!(round4(scale)));
+            physics.insert("motion_distortion".into(), json!({ "scale": scale }));
+        }
         Some(ResidualFit {
             id: self.id(),
             before_nll: nll(1.0, i_sim),
-            after_nll: nll(share, i),
+            after_nll: if claimable {
+                nll(share, i)
+            } else {
+                nll(1.0, i_sim)
+            },
             penalty: penalty(2, train.len()),
             test_obs: test.len(),
             params,
             physics,
             location: format!(
-                "the scan seam straight ahead (azimuth 0): last-measured returns {m:.2} m nearer than the first on {:.0} % of the surfaces there (sim {m_sim:.2} m; {})",
+                "the scan seam at azimuth {:.0} deg ({}): last-measured returns {:.2} m {} than the first on {:.0} % of the surfaces there (sim {m_sim:.2} m; {})",
+                azimuth.to_degrees(),
+                if found {
+                    "where the clouds' firing order starts over"
+                } else {
+                    "straight ahead: the clouds' order does not say where the sweep starts"
+                },
+                m.abs(),
+                if m >= 0.0 { "nearer" } else { "farther" },
                 100.0 * share,
-                match ctx.speed_mps {
-                    Some(v) => format!("scale from the recording's speed {v:.1} m/s"),
-                    None => "scale assumes 10 m/s: the real speed is unknown".into(),
+                match (moved, ctx.speed_mps) {
+                    (None, _) =>
+                        "the seam lies across the heading, so the motion per sweep is not measured"
+                            .into(),
+                    (Some(_), Some(v)) => format!("scale from the recording's speed {v:.1} m/s"),
+                    (Some(_), None) => "scale assumes 10 m/s: the real speed is unknown".into(),
                 }
             ),
         })
@@ -681,10 +773,10 @@ mod tests {
     fn seam_steps(scans: usize, seed: u64, sigma: f32, moved: usize, shift: f32) -> Obs {
         let mut rng = crate::util::rng::Rng::new(seed);
         let mut obs = Vec::new();
-        for _ in 0..scans {
+        for s in 0..scans {
             for k in 0..40 {
                 let v = if k < moved { -shift } else { 0.0 };
-                obs.push((v + sigma * rng.normal(), 1.0));
+                obs.push((v + sigma * rng.normal(), 1.0 + s as f32));
             }
             obs.extend((0..480).map(|_| (sigma * rng.normal(), 0.0)));
         }

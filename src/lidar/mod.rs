@@ -12,6 +12,7 @@ pub mod estimate;
 pub mod holes;
 pub mod kitti;
 pub mod kitti_boxes;
+pub mod line_fill;
 pub mod nuscenes;
 pub mod ouster_pcap;
 pub mod pcd;
@@ -22,6 +23,7 @@ pub mod resample;
 pub mod scan;
 pub mod scatter;
 pub mod surface;
+pub mod sweep;
 
 pub use estimate::{EstimateMethod, SensorEstimate, estimate_profile};
 pub use profile::SensorProfile;

@@ -11,6 +11,7 @@ use crate::decode::{Decoded, Decoder, Fill, PreparedGrid, Rendered, sample_masks
 use crate::io::Family;
 use crate::io::encoders::{Kind, encode_f32_image, encode_mask, encode_points};
 use crate::lidar::drop_census::{DropCensus, combine_with_rates, row_rates};
+use crate::lidar::line_fill::fill_along_lines;
 use crate::lidar::{
     AngleGrid, Interpolation, RangeImage, ScatterFill, SensorProfile, SurfaceRule, fill_scattered,
     resample_by_surface, resample_image,
@@ -279,8 +280,7 @@ impl<'d> DecodeStage<'d> {
     }
 
     /// The channels of a scan no model covers, without a prior: `depth` the edge-aware
-    /// completion of its returns on its own grid (measured returns kept, each dropped ray
-    /// filled from the returns on its surface, 0 where none is near), `raydrop_prob` the
+    /// completion of its returns on its own grid ([`prior_free_depth`]), `raydrop_prob` the
     /// recording's own drop rates fitted on its other scans, the masks drawn from them, and
     /// no `x_d`. Extra grids are the returns interpolated edge-aware onto them.
     fn prior_free(
@@ -300,7 +300,7 @@ impl<'d> DecodeStage<'d> {
             .unwrap_or_else(|| row_rates(image));
         let main = Rendered {
             grid: image.angles.clone(),
-            depth_m: fill_scattered(&image.range_m, &image.angles, how),
+            depth_m: prior_free_depth(image, how),
             drop_prob,
         };
         let mut channels = vec![out.image("depth", &main.grid, &main.depth_m)];
@@ -317,6 +317,17 @@ impl<'d> DecodeStage<'d> {
         }
         channels
     }
+}
+
+/// The completed depth of a scan without a prior: measured returns kept, each dropped ray
+/// filled from the returns on its surface around it (`how`), and where none is near (wide
+/// holes, sectors, missing beams) along its row or column ([`fill_along_lines`]).
+fn prior_free_depth(image: &RangeImage, how: ScatterFill) -> Vec<f32> {
+    let local = fill_scattered(&image.range_m, &image.angles, how);
+    let lines = fill_along_lines(&image.range_m, &image.angles, |k| local[k] <= 0.0);
+    (local.iter().zip(&lines))
+        .map(|(&l, &f)| if l > 0.0 { l } else { f })
+        .collect()
 }
 
 /// How far (radians) a pixel of a sensor's grid may look from the model grid's pixel for the

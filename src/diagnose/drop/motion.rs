@@ -24,11 +24,14 @@ use crate::diagnose::fit::{DropFamily, DropFit, Pixels, QTable};
 /// sweep is chosen by fit at the scale of the seam's step. A pixel's feature is its
 /// distance to the nearest landed return along its column and along its row, and a
 /// two-parameter curve in each (either may be off) fits how much is lost: how many
-/// returns a sensor fires per column is not in the data. The sweep starts straight
-/// ahead; its direction and where rows come from are chosen by fit too.
+/// returns a sensor fires per column is not in the data. The sweep starts at the seam
+/// the clouds' firing order shows (else straight ahead); its direction, where the order
+/// does not say, and where rows come from are chosen by fit too.
 pub struct MotionCoverageFamily {
     /// How far the sensor moves during one sweep.
     pub motion_per_sweep_m: f32,
+    /// Azimuth where the sweep starts, radians.
+    pub sweep_start_rad: f32,
     /// Whether the sweep turns towards positive azimuth.
     pub counter_clockwise: bool,
     /// Whether rows come from elevation (and so move with it), not beam numbers.
@@ -45,11 +48,13 @@ const GAP_BINS: usize = 16;
 impl MotionCoverageFamily {
     pub fn new(
         motion_per_sweep_m: f32,
+        sweep_start_rad: f32,
         counter_clockwise: bool,
         rows_from_elevation: bool,
     ) -> Self {
         Self {
             motion_per_sweep_m,
+            sweep_start_rad,
             counter_clockwise,
             rows_from_elevation,
             bins_by_set: Mutex::default(),
@@ -86,7 +91,11 @@ impl MotionCoverageFamily {
         let columns: Vec<(f32, f32, f32)> = azimuth
             .iter()
             .map(|&phi| {
-                let turned = if self.counter_clockwise { phi } else { -phi };
+                let turned = if self.counter_clockwise {
+                    phi - self.sweep_start_rad
+                } else {
+                    self.sweep_start_rad - phi
+                };
                 let moved = self.motion_per_sweep_m * turned.rem_euclid(std::f32::consts::TAU)
                     / std::f32::consts::TAU;
                 (moved, phi.cos(), phi.sin())
@@ -319,8 +328,9 @@ impl DropFamily for MotionCoverageFamily {
             // Two per curve in use, and the motion per sweep, chosen by fit too.
             n_params: 1 + 2 * words.len(),
             location: format!(
-                "pixels empty where the sweep ({}, {:.2} m per sweep) moves every return away from them: {}",
+                "pixels empty where the sweep ({} from {:.0} deg, {:.2} m per sweep) moves every return away from them: {}",
                 self.sweep(),
+                self.sweep_start_rad.to_degrees(),
                 self.motion_per_sweep_m,
                 if words.is_empty() {
                     "nowhere".to_string()
@@ -391,7 +401,7 @@ mod tests {
 
     #[test]
     fn motion_empties_the_rows_no_beam_lands_in_and_the_fit_finds_where() {
-        let motion = MotionCoverageFamily::new(0.8, true, true);
+        let motion = MotionCoverageFamily::new(0.8, 0.0, true, true);
         let px = ground(8, |[rows, _]| rows > 1.0, &motion);
         // Straight behind, half a sweep in: returns 0.4 m farther, lifted by
         // sin(17 deg) * 0.4 m / r; the bottom row's nearest returns are its own.
@@ -413,7 +423,7 @@ mod tests {
         let i = px.len() - 1;
         assert_eq!(motion.bin(&px, i), motion.bins_of(&px)[i]);
         let other = ground(6, |_| false, &motion);
-        let fresh = MotionCoverageFamily::new(0.8, true, true);
+        let fresh = MotionCoverageFamily::new(0.8, 0.0, true, true);
         assert_eq!(motion.bins_of(&other), fresh.bins_of(&other));
         assert_eq!(motion.bins_of(&px), fresh.bins_of(&px));
         let at = fitted(&motion, &px, "rows_shift_50_half_pixels").unwrap();
@@ -424,14 +434,14 @@ mod tests {
 
     #[test]
     fn without_motion_every_pixel_is_covered() {
-        let still = MotionCoverageFamily::new(0.0, false, true);
+        let still = MotionCoverageFamily::new(0.0, 0.0, false, true);
         let px = ground(8, |_| false, &still);
         assert!(still.bins_of(&px).iter().all(|b| *b == Some(0)));
     }
 
     #[test]
     fn with_beam_numbers_only_the_columns_spread() {
-        let motion = MotionCoverageFamily::new(1.5, true, false);
+        let motion = MotionCoverageFamily::new(1.5, 0.0, true, false);
         let px = ground(8, |[_, columns]| columns > 1.0, &motion);
         let gaps = motion.scan_gaps(&px, 0);
         let row = |k: usize| -> Vec<f32> {

@@ -9,7 +9,7 @@ use super::{DiagnoseError, MOTION};
 use crate::diagnose::drop;
 use crate::diagnose::features::ScanFeatures;
 use crate::diagnose::fit::{self, Baseline, DropFamily, Pixels};
-use crate::diagnose::residual::ResidualFit;
+use crate::diagnose::residual::{ResidualContext, ResidualFit, motion_per_sweep_m};
 use crate::diagnose::stats::{BinTest, Comparison, Feature};
 
 /// The first real scan, once both sides are usable: scans on both, two real ones at least
@@ -88,6 +88,7 @@ pub(super) fn grazing_contrast(comparison: &Comparison, step_deg: f32) -> Option
 /// off against their share.
 pub(super) fn motion_coverage(
     residual_fits: &[ResidualFit],
+    context: &ResidualContext,
     baseline: &Baseline,
     train: &Pixels,
 ) -> Option<drop::MotionCoverageFamily> {
@@ -95,17 +96,27 @@ pub(super) fn motion_coverage(
         .iter()
         .find(|r| r.id == MOTION && r.significant())?;
     let shift = |key: &str| motion.params.get(key).and_then(Value::as_f64);
+    let (start, direction) = match context.sweep {
+        Some((azimuth, ccw)) => (azimuth, Some(ccw)),
+        None => (0.0, None),
+    };
     let extra = shift("seam_shift_m")? - shift("sim_seam_shift_m").unwrap_or(0.0);
+    let extra = motion_per_sweep_m(extra, start)?;
     if extra <= 0.05 {
         return None;
     }
     let base = baseline.keep_of(train);
     let mut candidates = Vec::new();
-    for counter_clockwise in [false, true] {
+    let directions = match direction {
+        Some(ccw) => vec![ccw],
+        None => vec![false, true],
+    };
+    for counter_clockwise in directions {
         for rows_from_elevation in [false, true] {
             for scale in MOTION_SCALES {
                 candidates.push(drop::MotionCoverageFamily::new(
                     (extra * scale) as f32,
+                    start,
                     counter_clockwise,
                     rows_from_elevation,
                 ));

@@ -49,6 +49,7 @@ impl Default for DiagnoseOptions {
             residual: ResidualContext {
                 speed_mps: None,
                 period_s: 0.1,
+                sweep: None,
             },
         }
     }
@@ -176,6 +177,24 @@ pub enum DiagnoseError {
 
 const MOTION: &str = "motion_distortion";
 
+/// The sweep most of `scans` share, where their clouds' firing order says (the seam's
+/// azimuth, radians, and whether it turns counter-clockwise).
+fn common_sweep(scans: &[ScanFeatures]) -> Option<(f32, bool)> {
+    let sweeps: Vec<(f32, bool)> = (scans.iter())
+        .filter_map(|f| {
+            let seam = f.seam.as_ref()?;
+            Some((seam.azimuth_rad(f.width), seam.counter_clockwise()))
+        })
+        .collect();
+    let near = |a: &(f32, bool), b: &(f32, bool)| {
+        a.1 == b.1 && crate::lidar::profile::wrap_pi(a.0 - b.0).abs() < 0.05
+    };
+    let (best, count) = (sweeps.iter())
+        .map(|a| (*a, sweeps.iter().filter(|b| near(a, b)).count()))
+        .max_by_key(|x| x.1)?;
+    (2 * count > scans.len()).then_some(best)
+}
+
 /// Diagnoses `real` against `sim`: real scans alternate between fitting (even)
 /// and held-out testing (odd). `sim_physics` is the sim's own physics (JSON
 /// object of catalogue entries), the base the fitted effects are added to.
@@ -245,6 +264,10 @@ pub fn diagnose(
     }
 
     // What moves returns: range-residual candidates.
+    let context = ResidualContext {
+        sweep: options.residual.sweep.or_else(|| common_sweep(real)),
+        ..options.residual.clone()
+    };
     let residual_fits: Vec<ResidualFit> = residual::families()
         .iter()
         .filter_map(|family| {
@@ -252,7 +275,7 @@ pub fn diagnose(
                 &family.observations(sim),
                 &family.observations(&train),
                 &family.observations(&test),
-                &options.residual,
+                &context,
             )
         })
         .collect();
@@ -263,7 +286,7 @@ pub fn diagnose(
     let px_test = Pixels::collect(&test, reach_m);
     let baseline = Baseline::from_sim(&px_sim, reach_m);
     let boxed = drop::families();
-    let motion_coverage = motion_coverage(&residual_fits, &baseline, &px_train);
+    let motion_coverage = motion_coverage(&residual_fits, &context, &baseline, &px_train);
     let families: Vec<&dyn DropFamily> = boxed
         .iter()
         .map(|b| b.as_ref())

@@ -6,11 +6,13 @@ use rangegan_mcap::diagnose::features::{FeatureOptions, ScanFeatures};
 use rangegan_mcap::diagnose::{DiagnoseOptions, Diagnosis, diagnose};
 use rangegan_mcap::lidar::project;
 use rangegan_mcap::lidar::projection::choose_strategy;
+use rangegan_mcap::lidar::sweep::Seam;
 use rangegan_mcap::physics::dropout::UniformDropout;
 use rangegan_mcap::physics::{Effect, Physics};
 use rangegan_mcap::sim::SimScan;
 
 use super::sensor::STRIDE_S;
+use super::sensor::cloud;
 use super::{EFFECTS, Kind, Rng, SCANS, Scene, Sensor, cast_scan, draw_effect};
 
 /// One concealed pair and what it hides.
@@ -58,16 +60,16 @@ fn drop_rate(scans: &[SimScan]) -> f64 {
         / scans.len() as f64
 }
 
-/// A scan as the diagnosis sees it: the cloud (organized or not, ring field or
-/// not) projected onto the sensor's grid with the automatic strategy.
+/// A scan as the diagnosis sees it: the cloud as the sensor's driver writes it (organized
+/// or not, ring and time fields or not) projected onto the sensor's grid with the
+/// automatic strategy, and its seam found as `diagnose` finds it.
 fn features(scan: &SimScan, sensor: &Sensor) -> ScanFeatures {
-    let mut cloud = scan.to_scan(sensor.organized);
-    if !sensor.ring_field {
-        cloud.ring = None;
-    }
+    let cloud = cloud(scan, sensor);
     let strategy = choose_strategy(&cloud, &sensor.profile);
     let image = project(&cloud, &sensor.profile, strategy).expect("projection");
-    ScanFeatures::from_image(&image, &FeatureOptions::default())
+    let mut f = ScanFeatures::from_image(&image, &FeatureOptions::default());
+    f.seam = Seam::find(&cloud, &image);
+    f
 }
 
 /// The pair `seed` with `effects` left out of the sim side (none: a null pair),

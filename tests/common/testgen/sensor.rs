@@ -1,19 +1,28 @@
 //! Randomised sensors (beams, spacing, columns, mounting height, cloud layout) and the
 //! ideal scan one casts in a scene.
 
-use rangegan_mcap::lidar::{RangeImage, SensorProfile};
+use rangegan_mcap::lidar::{RangeImage, Scan, SensorProfile};
 use rangegan_mcap::sim::raycast::intensity;
 use rangegan_mcap::sim::{Material, SensorPose, SimScan};
 
 use super::{Rng, Scene};
 
-/// A randomised sensor: beams, spacing, columns, mounting height, cloud layout.
+/// A randomised sensor: beams, spacing, columns, mounting height, cloud layout, and where
+/// and which way its sweep turns.
 #[derive(Debug, Clone)]
 pub struct Sensor {
     pub profile: SensorProfile,
     pub height_m: f32,
     pub organized: bool,
     pub ring_field: bool,
+    /// Whether each point carries its firing time.
+    pub time_field: bool,
+    /// Azimuth where each sweep starts (and the previous one ends), radians: straight
+    /// ahead as KITTI's, behind as an Ouster's, or anywhere a driver cuts the scan.
+    pub sweep_start_rad: f32,
+    /// Whether the sweep turns clockwise seen from above (towards negative azimuth), as a
+    /// Velodyne's does.
+    pub clockwise: bool,
 }
 
 impl Sensor {
@@ -58,12 +67,27 @@ impl Sensor {
             height_m: rng.range(1.2, 2.2),
             organized: rng.chance(0.5),
             ring_field: rng.chance(0.5),
+            time_field: rng.chance(0.5),
+            // Drivers cut the sweep ahead (KITTI) or behind (Ouster), give or take 40 deg; a
+            // seam across the heading hides motion (docs/diagnose.md).
+            sweep_start_rad: rng.pick(&[0.0, std::f32::consts::PI]) + rng.range(-0.7, 0.7),
+            clockwise: rng.chance(0.5),
         }
+    }
+
+    /// When, within a sweep of `period_s`, the beams fire at azimuth `a` (radians).
+    pub fn firing_time_s(&self, a: f32, period_s: f32) -> f32 {
+        let turned = if self.clockwise {
+            self.sweep_start_rad - a
+        } else {
+            a - self.sweep_start_rad
+        };
+        turned.rem_euclid(std::f32::consts::TAU) / std::f32::consts::TAU * period_s
     }
 
     pub fn describe(&self) -> String {
         format!(
-            "{} beams x {} ({:.1}..{:.1} deg, {:.2} m up, {}, {})",
+            "{} beams x {} ({:.1}..{:.1} deg, {:.2} m up, {}, {}, {}, sweep from {:.0} deg {})",
             self.profile.beams(),
             self.profile.columns,
             self.profile.elevation_deg[0],
@@ -79,6 +103,17 @@ impl Sensor {
             } else {
                 "no ring field"
             },
+            if self.time_field {
+                "time field"
+            } else {
+                "no time field"
+            },
+            self.sweep_start_rad.to_degrees(),
+            if self.clockwise {
+                "clockwise"
+            } else {
+                "counter-clockwise"
+            },
         )
     }
 }
@@ -88,8 +123,8 @@ pub const SCANS: u32 = 16;
 pub(super) const STRIDE_S: f32 = 0.3;
 
 /// Ideal scan `index` of `scene` with `sensor`: one ray per pixel from the pose
-/// at the scan start, each column timed within the 10 Hz sweep (starting straight
-/// ahead, counter-clockwise).
+/// at the scan start, each column timed within the 10 Hz sweep as the sensor turns
+/// (its motion during the sweep is the `motion_distortion` effect's).
 pub fn cast_scan(scene: &Scene, sensor: &Sensor, index: u32) -> SimScan {
     let profile = &sensor.profile;
     let angles = profile.angle_grid();
@@ -133,10 +168,7 @@ pub fn cast_scan(scene: &Scene, sensor: &Sensor, index: u32) -> SimScan {
     let mut true_label = vec![0u32; n];
     let period = 0.1f32;
     let time_s: Vec<f32> = (0..n)
-        .map(|k| {
-            let a = image.angles.azimuth_rad[k];
-            a.rem_euclid(std::f32::consts::TAU) / std::f32::consts::TAU * period
-        })
+        .map(|k| sensor.firing_time_s(image.angles.azimuth_rad[k], period))
         .collect();
     for k in 0..n {
         let d = image.angles.direction(k);
@@ -183,5 +215,31 @@ pub fn cast_scan(scene: &Scene, sensor: &Sensor, index: u32) -> SimScan {
         },
         min_range_m: profile.min_range_m,
         max_range_m: profile.max_range_m,
+    }
+}
+
+/// `scan` as the sensor's driver writes it: organized, its columns in firing order
+/// (the first fired first), or unorganized, ring by ring, each ring in firing order; a
+/// ring field and a time field where the sensor has them.
+pub fn cloud(scan: &SimScan, sensor: &Sensor) -> Scan {
+    let full = scan.to_scan(true);
+    let (h, w) = (scan.image.height, scan.image.width);
+    let mut columns: Vec<usize> = (0..w).collect();
+    columns.sort_by(|&a, &b| scan.time_s[a].total_cmp(&scan.time_s[b]));
+    let order: Vec<usize> = (0..h)
+        .flat_map(|i| columns.iter().map(move |&j| i * w + j))
+        .filter(|&k| sensor.organized || scan.is_return(k))
+        .collect();
+    let pick = |v: &Option<Vec<f32>>| v.as_ref().map(|v| order.iter().map(|&k| v[k]).collect());
+    Scan {
+        xyz: order.iter().map(|&k| full.xyz[k]).collect(),
+        intensity: pick(&full.intensity),
+        ring: (full.ring.as_ref())
+            .filter(|_| sensor.ring_field)
+            .map(|r| order.iter().map(|&k| r[k]).collect()),
+        time_s: pick(&full.time_s).filter(|_| sensor.time_field),
+        label: (full.label.as_ref()).map(|l| order.iter().map(|&k| l[k]).collect()),
+        height: if sensor.organized { h } else { 1 },
+        width: if sensor.organized { w } else { order.len() },
     }
 }
