@@ -363,6 +363,46 @@ fn independent_generator_pairs_are_named() {
     }
 }
 
+/// Motion during the sweep is found where each sensor's sweep starts, whatever the cloud
+/// says it with: pairs of the independent generator whose sweeps start behind or ahead,
+/// turn either way, on 16 to 128 beams, organized or not, with a ring and a time field or
+/// without (the seam then comes from the order the points were written in). The same
+/// sensors without motion name nothing.
+#[test]
+fn motion_is_found_at_the_seam_each_cloud_shows() {
+    let cases: [(u64, usize, bool); 5] = [
+        (92_001, 16, false),
+        (92_003, 64, true),
+        (92_004, 128, false),
+        (92_005, 32, false),
+        (92_006, 16, true),
+    ];
+    for (seed, beams, organized) in cases {
+        let p = testgen::pair_with(seed, &["motion_distortion"], beams, Some(organized));
+        let d = testgen::diagnose_pair(&p);
+        let named: Vec<&str> = d.report.effects.iter().map(|e| e.id.as_str()).collect();
+        let context = format!("pair {seed} ({}): named {named:?}", p.sensor.describe());
+        assert_eq!(named.first(), Some(&"motion_distortion"), "{context}");
+        let motion = &d.report.effects[0];
+        assert!(
+            motion.params["motion_per_sweep_m"].as_f64().unwrap() > 0.0,
+            "{context}"
+        );
+        let seam = motion.params["seam_azimuth_deg"].as_f64().unwrap() as f32;
+        let off = (seam - p.sensor.sweep_start_rad.to_degrees() + 540.0).rem_euclid(360.0) - 180.0;
+        assert!(off.abs() < 3.0, "{context}: seam at {seam} deg");
+    }
+    for (seed, beams, organized) in [(92_002, 32, true), (92_004, 128, false)] {
+        let p = testgen::pair_with(seed, &[], beams, Some(organized));
+        let d = testgen::diagnose_pair(&p);
+        assert!(
+            d.report.effects.is_empty(),
+            "pair {seed}: {:?}",
+            d.report.effects
+        );
+    }
+}
+
 /// Two simulated streets are alike; a simulated street against a real Ouster OS1-64
 /// recording of a small indoor space is said to differ, on the report's first screen and
 /// on stderr, and the effects named there get half the confidence.

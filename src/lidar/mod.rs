@@ -31,5 +31,5 @@ pub use projection::{ProjectionError, Strategy, project};
 pub use range_image::{AngleGrid, RangeImage};
 pub use resample::{Interpolation, resample_by_surface, resample_image, resample_to_profile};
 pub use scan::Scan;
-pub use scatter::{ScatterFill, fill_scattered, fill_scattered_where};
+pub use scatter::{ScatterFill, fill_scattered, fill_scattered_in_angle, fill_scattered_where};
 pub use surface::{Guide, SurfaceRule};

@@ -13,8 +13,8 @@ use crate::io::encoders::{Kind, encode_f32_image, encode_mask, encode_points};
 use crate::lidar::drop_census::{DropCensus, combine_with_rates, row_rates};
 use crate::lidar::line_fill::fill_along_lines;
 use crate::lidar::{
-    AngleGrid, Interpolation, RangeImage, ScatterFill, SensorProfile, SurfaceRule, fill_scattered,
-    resample_by_surface, resample_image,
+    AngleGrid, Interpolation, RangeImage, ScatterFill, SensorProfile, SurfaceRule,
+    fill_scattered_in_angle, resample_by_surface, resample_image,
 };
 
 /// The range image channel every converted topic gets: range in meters, 32FC1.
@@ -323,7 +323,7 @@ impl<'d> DecodeStage<'d> {
 /// filled from the returns on its surface around it (`how`), and where none is near (wide
 /// holes, sectors, missing beams) along its row or column ([`fill_along_lines`]).
 fn prior_free_depth(image: &RangeImage, how: ScatterFill) -> Vec<f32> {
-    let local = fill_scattered(&image.range_m, &image.angles, how);
+    let local = fill_scattered_in_angle(&image.range_m, &image.angles, how, |_| true);
     let lines = fill_along_lines(&image.range_m, &image.angles, |k| local[k] <= 0.0);
     (local.iter().zip(&lines))
         .map(|(&l, &f)| if l > 0.0 { l } else { f })

@@ -266,7 +266,7 @@ pub fn diagnose(
     // What moves returns: range-residual candidates.
     let context = ResidualContext {
         sweep: options.residual.sweep.or_else(|| common_sweep(real)),
-        ..options.residual.clone()
+        ..options.residual
     };
     let residual_fits: Vec<ResidualFit> = residual::families()
         .iter()
