@@ -103,7 +103,7 @@ impl Seam {
             .map(|v| (v.first, v.towards_higher))
             .collect();
         let mut seam = agree(&votes, w)?;
-        let reach = ((w as f64 * ROW_REACH).ceil() as usize).max(2);
+        let reach = row_reach(w);
         seam.rows = (per_row.iter())
             .map(|v| {
                 let v = v
@@ -162,20 +162,22 @@ fn row_vote(keys: &[(usize, f64)], width: usize) -> Option<RowVote> {
 }
 
 /// The seam most rows vote for: the direction of the majority, and the column with the
-/// most votes within two columns of it, which must hold half the rows that voted.
+/// most votes within [`ROW_REACH`] of it (a moving sensor's rows meet some columns apart),
+/// which must hold half the rows that voted.
 fn agree(votes: &[(usize, bool)], width: usize) -> Option<Seam> {
     if votes.is_empty() {
         return None;
     }
     let higher = votes.iter().filter(|v| v.1).count();
     let towards_higher = 2 * higher >= votes.len();
+    let reach = row_reach(width);
     let near = |c: usize| {
         votes
             .iter()
             .filter(|v| v.1 == towards_higher)
             .filter(|v| {
                 let d = (v.0 + width - c) % width;
-                d.min(width - d) <= 2
+                d.min(width - d) <= reach
             })
             .count()
     };
@@ -189,6 +191,11 @@ fn agree(votes: &[(usize, bool)], width: usize) -> Option<Seam> {
         towards_higher_columns: towards_higher,
         rows: Vec::new(),
     })
+}
+
+/// [`ROW_REACH`] in columns of a `width`-column grid.
+fn row_reach(width: usize) -> usize {
+    ((width as f64 * ROW_REACH).ceil() as usize).max(2)
 }
 
 #[cfg(test)]
