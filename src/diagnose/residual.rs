@@ -548,6 +548,26 @@ impl SeamModel {
         self.reference.nll_of_mixture(h, &parts) / h.total().max(1.0)
     }
     /// Maximum-likelihood (share, shift index) among `shares`.
+    /// Whether at least two thirds of the scans of `by_scan` (their seam steps, each with
+    /// [`MIN_SCAN_SEAM_STEPS`] or more) fit `after` (share, shift index) better than
+    /// `before`. Motion moves the seam of every scan; an edge of the scene that happens to
+    /// lie at the seam of a few scans (its rows all step at once) does not.
+    fn most_scans_fit_better(
+        &self,
+        by_scan: &[Obs],
+        before: (f64, usize),
+        after: (f64, usize),
+    ) -> bool {
+        let gains: Vec<f64> = (by_scan.iter())
+            .filter(|steps| steps.len() >= MIN_SCAN_SEAM_STEPS)
+            .map(|steps| {
+                let h = Self::hist(steps);
+                self.nll(&h, before.0, before.1) - self.nll(&h, after.0, after.1)
+            })
+            .collect();
+        gains.is_empty() || 3 * gains.iter().filter(|&&g| g > 0.0).count() >= 2 * gains.len()
+    }
+
     fn fit(&self, h: &Hist, shares: &[f64], allowed: impl Fn(f64) -> bool) -> (f64, usize) {
         let mut best = (1.0, 0, f64::INFINITY);
         for &share in shares {
@@ -669,21 +689,9 @@ impl ResidualFamily for MotionFamily {
         let (share, i) = real_model.fit(&h_train, &shares, forward);
         let (m_sim, m) = (seam_shift(i_sim), seam_shift(i));
         let nll = |share: f64, i: usize| real_model.nll(&h_test, share, i);
-        // Motion moves the seam of every scan; an edge of the scene that happens to lie at
-        // the seam of a few scans (its rows all step at once) does not. Most held-out scans
-        // must fit better for the gain to count.
-        let scans_agree = {
-            let gains: Vec<f64> = (by_scan.iter())
-                .filter(|steps| steps.len() >= MIN_SCAN_SEAM_STEPS)
-                .map(|steps| {
-                    let h = SeamModel::hist(steps);
-                    real_model.nll(&h, 1.0, i_sim) - real_model.nll(&h, share, i)
-                })
-                .collect();
-            gains.is_empty() || 3 * gains.iter().filter(|&&g| g > 0.0).count() >= 2 * gains.len()
-        };
         // A seam step within a few centimetres of the sim's is within a scene's own steps.
-        let claimable = scans_agree && (m - m_sim).abs() >= MIN_SEAM_SHIFT_M;
+        let claimable = real_model.most_scans_fit_better(&by_scan, (1.0, i_sim), (share, i))
+            && (m - m_sim).abs() >= MIN_SEAM_SHIFT_M;
         let speed = ctx.speed_mps.unwrap_or(10.0).max(0.1);
         let period = if ctx.period_s > 0.0 {
             ctx.period_s
