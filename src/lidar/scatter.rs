@@ -562,4 +562,23 @@ mod tests {
         assert!(share < EDGE_BACK, "front share {share}");
         assert_eq!(local_surface(&around, 0.0, 0.3), 40.0);
     }
+
+    #[test]
+    fn in_angle_a_beam_far_apart_counts_as_far() {
+        // Beams 2 deg apart, columns 0.2 deg (1800): a wall at 10 m on row 1, its neighbours
+        // rows at 30 m; one pixel of the wall missing. In pixels the rows a beam away are as
+        // near as the row's own neighbours; in angle they are ten times farther.
+        let (h, w) = (3, 1800);
+        let grid = AngleGrid::regular_columns(h, w, |i| -(2.0 * i as f32).to_radians());
+        let mut observed: Vec<f32> = (0..h * w)
+            .map(|k| if k / w == 1 { 10.0 } else { 30.0 })
+            .collect();
+        let hole = w + 900;
+        observed[hole] = 0.0;
+        let how = ScatterFill::Idw;
+        let in_pixels = fill_scattered_where(&observed, &grid, how, |_| true)[hole];
+        let in_angle = fill_scattered_in_angle(&observed, &grid, how, |_| true)[hole];
+        assert!((in_angle - 10.0).abs() < 1e-3, "{in_angle}");
+        assert!(in_pixels > 12.0, "{in_pixels}");
+    }
 }
