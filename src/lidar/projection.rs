@@ -317,11 +317,46 @@ pub fn choose_strategy(scan: &Scan, profile: &SensorProfile) -> Strategy {
             Strategy::RowMajor
         };
     }
-    let rings = ring_order_ids(scan).last().map_or(0, |r| *r as usize + 1);
-    if rings == beams {
+    let ids = ring_order_ids(scan);
+    let rings = ids.last().map_or(0, |r| *r as usize + 1);
+    if rings == beams && segments_are_rings(scan, &ids, rings) {
         return Strategy::RingOrder;
     }
     Strategy::Spherical
+}
+
+/// Whether the segments that KITTI ring order cuts (`ids`, `rings` of them) are each one
+/// beam. A sensor whose sweeps start elsewhere than straight ahead, written ring by ring,
+/// also crosses straight ahead once per ring, so the cut yields as many segments, but each
+/// holds the end of one beam and the start of the next: its two ends lie a beam apart in
+/// elevation, where a ring's ends share one.
+fn segments_are_rings(scan: &Scan, ids: &[u32], rings: usize) -> bool {
+    let mut per_ring = vec![Vec::new(); rings];
+    for i in (0..scan.len()).filter(|&i| scan.is_return(i)) {
+        per_ring[ids[i] as usize].push(elevation(scan.xyz[i]));
+    }
+    let median = |v: &mut Vec<f32>| {
+        v.sort_by(f32::total_cmp);
+        v[v.len() / 2]
+    };
+    // Each segment's median elevation, and the step between the medians of its first
+    // and last fiftieth of returns: both look just beside straight ahead, so a beam's
+    // own offsets from the sensor's centre (KITTI's) hardly part them.
+    let mut levels = Vec::new();
+    let mut end_steps = Vec::new();
+    for e in per_ring.iter().filter(|e| e.len() >= 2 * MIN_RING_RETURNS) {
+        let end = (e.len() / 50).max(MIN_RING_RETURNS);
+        let head = median(&mut e[..end].to_vec());
+        let tail = median(&mut e[e.len() - end..].to_vec());
+        end_steps.push((head - tail).abs());
+        levels.push(median(&mut e.clone()));
+    }
+    if levels.len() < 2 {
+        return true;
+    }
+    levels.sort_by(|a, b| b.total_cmp(a));
+    let mut spacing: Vec<f32> = levels.windows(2).map(|w| w[0] - w[1]).collect();
+    2.0 * median(&mut end_steps) < median(&mut spacing)
 }
 
 /// Row of the beam in `table` (radians) nearest to elevation `e`: a binary search
@@ -461,13 +496,18 @@ mod tests {
     /// A synthetic 4-beam sensor: each ring a full sweep starting straight ahead,
     /// counter-clockwise, as KITTI stores it.
     fn ring_order_scan(beams: usize, per_ring: usize, range: f32) -> (Scan, SensorProfile) {
+        sweep_from(0.01, beams, per_ring, range)
+    }
+
+    /// The same sensor with every ring's sweep starting at azimuth `start` (radians).
+    fn sweep_from(start: f32, beams: usize, per_ring: usize, range: f32) -> (Scan, SensorProfile) {
         let elev = [2.0f32, 0.0, -2.0, -4.0];
         let mut xyz = Vec::new();
         for e in elev.iter().take(beams) {
             for k in 0..per_ring {
                 // Start just left of ahead (azimuth >= 0, as real KITTI rings do) and
                 // sweep counter-clockwise, ending just right of ahead.
-                let az = 0.01 + k as f32 * 2.0 * std::f32::consts::PI / per_ring as f32;
+                let az = start + k as f32 * 2.0 * std::f32::consts::PI / per_ring as f32;
                 let (e, az) = (e.to_radians(), az);
                 xyz.push([
                     range * e.cos() * az.cos(),
@@ -497,6 +537,31 @@ mod tests {
         let ids = ring_order_ids(&scan);
         assert_eq!(ids.iter().max(), Some(&3), "4 rings, not 5");
         assert_eq!(ids.last(), Some(&3));
+    }
+
+    /// Rings written one by one from a sweep start behind (an Ouster's, say): cutting them
+    /// straight ahead gives as many segments as beams, each half one beam and half the
+    /// next, so the rows come from elevation instead.
+    #[test]
+    fn rings_that_start_behind_are_not_cut_straight_ahead() {
+        let (mut scan, profile) = sweep_from(3.3, 4, 64, 10.0);
+        // The top beam sees nothing until it passes straight ahead (open sky behind).
+        scan.xyz.drain(..30);
+        scan.width = scan.xyz.len();
+        let ids = ring_order_ids(&scan);
+        assert_eq!(
+            ids.last().map(|r| r + 1),
+            Some(4),
+            "the cut finds as many segments"
+        );
+        assert_eq!(choose_strategy(&scan, &profile), Strategy::Spherical);
+        let img = project(&scan, &profile, Strategy::Auto).unwrap();
+        assert_eq!(img.valid_count(), scan.len());
+        for (row, e) in profile.elevation_deg.iter().enumerate() {
+            for k in (row * 64..(row + 1) * 64).filter(|&k| img.range_m[k] > 0.0) {
+                assert!((img.xyz[k][2] / img.range_m[k] - e.to_radians().sin()).abs() < 1e-4);
+            }
+        }
     }
 
     #[test]

@@ -127,9 +127,12 @@ impl Effect for MixedPixels {
 }
 
 /// `motion_distortion`: no de-skew. A point measured `t` after the sweep start is
-/// reported in the sensor frame of that instant: `p' = Rz(-w t) (p - v t)` with the
-/// ego velocity `v` and yaw rate `w`, times `scale` (1 = full, 0 = de-skewed). The
-/// scan's first and last columns disagree by `v * period`: a seam.
+/// reported in the sensor frame of that instant, along the direction the sensor fired it:
+/// its range becomes the distance `|Rz(-w t) (p - v t)| = |p - v t|` from where the sensor
+/// then was, with the ego velocity `v` and yaw rate `w`, times `scale` (1 = full,
+/// 0 = de-skewed). A sensor fires at its own encoder angle whatever it does, so every
+/// return keeps its beam and column: only ranges move. The scan's first and last columns
+/// disagree by `v * period`: a seam.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct MotionDistortion {
@@ -148,8 +151,8 @@ impl Effect for MotionDistortion {
         "motion_distortion"
     }
     fn perturb(&self, scan: &mut SimScan, _ctx: &EffectContext) {
+        // A yaw turns the frame, not the distance, so only the velocity moves a range.
         let v = scan.pose.velocity_mps;
-        let w = scan.pose.yaw_rate_rps;
         for k in 0..scan.len() {
             if !scan.is_return(k) {
                 continue;
@@ -157,10 +160,10 @@ impl Effect for MotionDistortion {
             let t = scan.time_s[k] * self.scale;
             let p = scan.image.xyz[k];
             let q = [p[0] - v[0] * t, p[1] - v[1] * t, p[2] - v[2] * t];
-            let (s, c) = (-w * t).sin_cos();
-            let r = [c * q[0] - s * q[1], s * q[0] + c * q[1], q[2]];
-            scan.image.xyz[k] = r;
-            scan.image.range_m[k] = (r[0] * r[0] + r[1] * r[1] + r[2] * r[2]).sqrt().max(1e-3);
+            let was = (p[0] * p[0] + p[1] * p[1] + p[2] * p[2]).sqrt().max(1e-3);
+            let range = (q[0] * q[0] + q[1] * q[1] + q[2] * q[2]).sqrt().max(1e-3);
+            scan.image.xyz[k] = p.map(|x| x * range / was);
+            scan.image.range_m[k] = range;
         }
     }
 }
@@ -379,6 +382,14 @@ mod tests {
         );
         // The rear (column 0, half a sweep) moved half as far.
         assert!((shift(0) + v * 0.05).abs() < 0.1, "{}", shift(0));
+        // Every return keeps the direction it was fired in: its pixel.
+        for k in (0..ideal.len()).filter(|&k| ideal.is_return(k)) {
+            let (a, b) = (ideal.image.xyz[k], real.image.xyz[k]);
+            let (ra, rb) = (ideal.image.range_m[k], real.image.range_m[k]);
+            for i in 0..3 {
+                assert!((a[i] / ra - b[i] / rb).abs() < 1e-4, "pixel {k} turned");
+            }
+        }
     }
 
     #[test]
