@@ -9,7 +9,7 @@
 //! |---|---|---|
 //! | `range_noise` | second difference along a row, `r_k − (r_{k−1} + r_{k+1}) / 2`, off depth edges, by range | reference ⊛ N(0, 1.5 σ(d)²), `σ(d) = sigma0_m + k d` |
 //! | `mixed_pixels` | at a step edge along a row (two flat sides > 1.5 m apart): is the pixel strictly between them? | Bernoulli per gap class, `b_sim + (1 − b_sim) a`, `a` ≈ 0.8 × prob |
-//! | `motion_distortion` | range step across the scan seam (first vs last measured column, straight ahead) | the recording's own column steps near the seam, a share of them shifted by `−m`, `m = scale · v · 0.1 s` |
+//! | `motion_distortion` | range step across the scan seam, from the first fired return to the last where they are neighbours (the seam each cloud's firing order shows, else straight ahead) | the recording's own column steps near the seam, a share of them shifted by `−m`, `m = scale · v · 0.1 s` |
 
 use serde_json::{Map, json};
 
@@ -602,10 +602,11 @@ pub struct MotionFamily;
 
 impl MotionFamily {
     /// Range step from the return fired first to the one fired last where they meet at
-    /// the seam (offset 0), or (the controls) between two columns as far apart as they are,
-    /// `offset` columns beyond the meeting on either side: a meeting across a hole or across
-    /// the gap that moved returns leave is compared with steps across as many columns, just
-    /// outside it. On every row where both are kept.
+    /// the seam (offset 0), or (the controls) between two neighbouring columns `offset`
+    /// columns beyond the meeting on either side. On every row where both are kept and the
+    /// meeting's returns are neighbours: a sensor fires each beam at its own encoder angle
+    /// whatever it does, so a row whose first and last returns lie columns apart meets
+    /// across dropped rays, and a step across a hole is not one across the seam.
     fn steps(f: &ScanFeatures, seam: &Seam, offset: isize, out: &mut Obs) {
         let w = f.width;
         if w < 2 {
@@ -614,9 +615,10 @@ impl MotionFamily {
         for row in 0..f.height {
             let (first, last) = seam.meeting(row, w);
             let apart = (first + w - last) % w;
-            let span = apart.min(w - apart) as isize;
-            let shift = offset + offset.signum() * (span - 1);
-            let at = |c: usize| (c as isize + shift).rem_euclid(w as isize) as usize;
+            if apart.min(w - apart) != 1 {
+                continue;
+            }
+            let at = |c: usize| (c as isize + offset).rem_euclid(w as isize) as usize;
             let (first, last) = (at(first), at(last));
             let (a, b) = (row * w + first, row * w + last);
             if f.kept[a] && f.kept[b] && !f.in_gap(a) && !f.in_gap(b) {

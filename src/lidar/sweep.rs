@@ -17,9 +17,9 @@ pub struct Seam {
     /// image columns run from azimuth +180 deg down to -180 deg).
     pub towards_higher_columns: bool,
     /// Per row, the columns of its returns fired first and last where they meet, where
-    /// the row's own order shows them near the scan's seam: a moving sensor's last returns
-    /// land some columns off their beams' azimuth (ahead or behind, not to the side), so
-    /// the meeting point moves from row to row. Empty: every row meets at the seam.
+    /// the row's own order shows them near the scan's seam: beams fire at azimuths of
+    /// their own (an HDL-64E's or an Ouster's offsets reach a few degrees), and dropped
+    /// rays at the seam part a row's meeting returns. Empty: every row meets at the seam.
     pub rows: Vec<Option<(usize, usize)>>,
 }
 
@@ -162,7 +162,7 @@ fn row_vote(keys: &[(usize, f64)], width: usize) -> Option<RowVote> {
 }
 
 /// The seam most rows vote for: the direction of the majority, and the column with the
-/// most votes within [`ROW_REACH`] of it (a moving sensor's rows meet some columns apart),
+/// most votes within [`ROW_REACH`] of it (beams with azimuth offsets meet some columns apart),
 /// which must hold half the rows that voted.
 fn agree(votes: &[(usize, bool)], width: usize) -> Option<Seam> {
     if votes.is_empty() {

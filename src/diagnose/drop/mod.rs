@@ -10,19 +10,17 @@
 //! | `material_dropout` | semantic class (labels, else neighbours' labels) | one free rate per class |
 //! | `edge_dropout` | pixels along the row to the nearest depth edge of the completed range, 0-8 | a free rate for 0-3 px above the rate far from edges |
 //! | `self_occlusion` | (row, azimuth sector) in the lower half | per sector a "skyline" of blocked bottom rows and a probability |
-//! | `motion_distortion` (coverage) | distance to the nearest moved return along the pixel's column and along its row, in half pixels | a logistic curve per axis; only where the seam step found motion |
 //!
 //! One file per kind: `curve` (range and incidence curves), `rates` (free rates
-//! per laser, edge distance and class), `self_occlusion` and `motion` (coverage
-//! under motion distortion).
+//! per laser, edge distance and class) and `self_occlusion`. Motion distortion drops
+//! nothing: a sensor fires each beam at its own encoder angle however it moves, so its
+//! returns keep their pixels and only their ranges move (`residual`).
 
 mod curve;
-mod motion;
 mod rates;
 mod self_occlusion;
 
 pub use curve::{IncidenceFamily, RangeFamily};
-pub use motion::MotionCoverageFamily;
 pub use rates::{BeamFamily, ClassFamily, EdgeFamily};
 pub use self_occlusion::SelfOcclusionFamily;
 

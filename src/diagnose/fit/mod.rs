@@ -86,11 +86,4 @@ pub trait DropFamily: Sync {
     fn azimuth_invariant(&self) -> bool {
         true
     }
-    /// Whether other evidence already established the effect (motion from the
-    /// seam's range step): then it is taken before the others wherever it beats
-    /// its penalty, the others must explain what it leaves, and it is not removed
-    /// as redundant with them.
-    fn established(&self) -> bool {
-        false
-    }
 }

@@ -124,7 +124,6 @@ fn redundant_effect(
     selection
         .selected
         .iter()
-        .filter(|drop| family(drop.id).is_some_and(|f| !f.established()))
         .filter_map(|drop| {
             let mut c = selection.keep_scale;
             let mut fits: Vec<(&dyn DropFamily, DropFit)> = Vec::new();
@@ -258,7 +257,7 @@ fn forward(
                 });
             }
         }
-        let Some(best) = strongest(&viable, families) else {
+        let Some(best) = strongest(&viable) else {
             break;
         };
         let explains = |rival: &Candidate| {
@@ -278,7 +277,7 @@ fn forward(
             let both = mask_nll(test, &model_keep(test, &base_test, c_both, &given));
             rival.nll - both < best.penalty
         };
-        let best = simpler_rival(best, &viable, families, explains)
+        let best = simpler_rival(best, &viable, explains)
             .unwrap_or(best)
             .clone();
         chosen.push((
@@ -324,16 +323,11 @@ pub(super) struct Candidate {
     margin: f64,
 }
 
-/// The round's strongest candidate: established families first, then by margin.
-fn strongest<'a>(viable: &'a [Candidate], families: &[&dyn DropFamily]) -> Option<&'a Candidate> {
-    viable.iter().reduce(|best, c| {
-        let (e, eb) = (
-            families[c.family].established(),
-            families[best.family].established(),
-        );
-        let better = if e != eb { e } else { c.margin > best.margin };
-        if better { c } else { best }
-    })
+/// The round's strongest candidate: the largest margin.
+fn strongest(viable: &[Candidate]) -> Option<&Candidate> {
+    viable
+        .iter()
+        .reduce(|best, c| if c.margin > best.margin { c } else { best })
 }
 
 /// A candidate with fewer parameters than `best` that fits nearly as well (margins within
@@ -344,15 +338,12 @@ fn strongest<'a>(viable: &'a [Candidate], families: &[&dyn DropFamily]) -> Optio
 pub(super) fn simpler_rival<'a>(
     best: &'a Candidate,
     viable: &'a [Candidate],
-    families: &[&dyn DropFamily],
     explains: impl Fn(&Candidate) -> bool,
 ) -> Option<&'a Candidate> {
-    let established = families[best.family].established();
     let mut rivals: Vec<&Candidate> = viable
         .iter()
         .filter(|c| {
             c.family != best.family
-                && families[c.family].established() == established
                 && c.fit.n_params < best.fit.n_params
                 && best.margin - c.margin < MIN_GAIN_NATS
         })
@@ -367,8 +358,7 @@ mod tests {
 
     #[test]
     fn of_two_readings_of_the_same_drops_the_simpler_is_named() {
-        use crate::diagnose::drop::{EdgeFamily, RangeFamily};
-        let families: [&dyn DropFamily; 2] = [&EdgeFamily, &RangeFamily];
+        // Family 0: free edge rates per range band (16 parameters); 1: the range curve.
         let candidate = |family: usize, n_params: usize, margin: f64| Candidate {
             family,
             fit: DropFit {
@@ -386,16 +376,16 @@ mod tests {
         };
         // Free edge rates per range band fit a little better than the range curve.
         let viable = [candidate(0, 16, 0.0046), candidate(1, 2, 0.0033)];
-        let best = strongest(&viable, &families).unwrap();
+        let best = strongest(&viable).unwrap();
         assert_eq!(best.family, 0);
-        let rival = simpler_rival(best, &viable, &families, |_| true);
+        let rival = simpler_rival(best, &viable, |_| true);
         assert_eq!(
             rival.map(|c| c.family),
             Some(1),
             "the range curve explains the edges away"
         );
         assert!(
-            simpler_rival(best, &viable, &families, |_| false).is_none(),
+            simpler_rival(best, &viable, |_| false).is_none(),
             "edges add to it"
         );
         // Far apart, the better fit is the answer.
@@ -403,7 +393,7 @@ mod tests {
             candidate(0, 16, 0.0046 + MIN_GAIN_NATS),
             candidate(1, 2, 0.0033),
         ];
-        assert!(simpler_rival(&apart[0], &apart, &families, |_| true).is_none());
+        assert!(simpler_rival(&apart[0], &apart, |_| true).is_none());
     }
 
     #[test]

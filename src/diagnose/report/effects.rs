@@ -34,14 +34,9 @@ pub(super) fn drop_effects(
     selection: &DropSelection,
     comparison: &Comparison,
     physics: &mut Map<String, Value>,
-) -> (Vec<EffectReport>, Option<(f64, String)>) {
+) -> Vec<EffectReport> {
     let mut effects = Vec::new();
-    let mut motion_part = None;
     for s in &selection.selected {
-        if s.id == MOTION {
-            motion_part = Some((s.gain(), s.fit.location.clone()));
-            continue;
-        }
         let mut location = s.fit.location.clone();
         if let Some(t) = stats_feature(s.id).and_then(|f| comparison.strongest_of(f)) {
             location.push_str(&format!(
@@ -65,7 +60,7 @@ pub(super) fn drop_effects(
         });
         physics.extend(s.fit.physics.clone());
     }
-    (effects, motion_part)
+    effects
 }
 
 /// The range-residual effects that were significant, and the held-out NLL in nats summed
@@ -77,10 +72,9 @@ pub(super) struct ResidualEffects {
 }
 
 /// The reports of the significant range-residual effects, their physics added to
-/// `physics`; `motion_part` (the drop side of motion) joins the motion effect.
+/// `physics`.
 pub(super) fn residual_effects(
     fits: &[ResidualFit],
-    mut motion_part: Option<(f64, String)>,
     test_pixels: f64,
     physics: &mut Map<String, Value>,
 ) -> ResidualEffects {
@@ -97,14 +91,8 @@ pub(super) fn residual_effects(
             continue;
         }
         out.after_nats += r.after_nll * n;
-        let mut location = r.location.clone();
-        let mut gain = r.gain() * n / test_pixels;
-        if let Some((coverage_gain, coverage_location)) =
-            motion_part.take().filter(|_| r.id == MOTION)
-        {
-            location.push_str(&format!("; {coverage_location}"));
-            gain += coverage_gain;
-        }
+        let location = r.location.clone();
+        let gain = r.gain() * n / test_pixels;
         out.effects.push(EffectReport {
             id: r.id.to_string(),
             confidence: confidence(r.gain(), r.penalty),
@@ -164,9 +152,8 @@ pub(super) fn adjust_uniform(physics: &mut Map<String, Value>, c: f64) {
     }
 }
 
-/// Orders the named effects: those that evidence of their own `established` (motion: the
-/// seam's range step) first, since the drops they cause that their coverage model misses
-/// show up as other effects, sometimes with a larger gain; then by held-out gain.
+/// Orders the named effects: those `established` by a statistic of their own (motion: the
+/// seam's range step, measured per seam step, not per pixel) first; then by held-out gain.
 pub(super) fn rank(effects: &mut [EffectReport], established: &[&str]) {
     let first = |e: &EffectReport| established.contains(&e.id.as_str());
     effects.sort_by(|a, b| {

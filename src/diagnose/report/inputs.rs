@@ -1,15 +1,8 @@
 //! What the inputs allow: their check (scans on both sides, one grid), and which
-//! candidates they can test (semantic labels, a grazing contrast, the motion the
-//! seam's range step found).
+//! candidates they can test (semantic labels, a grazing contrast).
 
-use rayon::prelude::*;
-use serde_json::Value;
-
-use super::{DiagnoseError, MOTION};
-use crate::diagnose::drop;
+use super::DiagnoseError;
 use crate::diagnose::features::ScanFeatures;
-use crate::diagnose::fit::{self, Baseline, DropFamily, Pixels};
-use crate::diagnose::residual::{ResidualContext, ResidualFit, motion_per_sweep_m};
 use crate::diagnose::stats::{BinTest, Comparison, Feature};
 
 /// The first real scan, once both sides are usable: scans on both, two real ones at least
@@ -80,62 +73,6 @@ pub(super) fn grazing_contrast(comparison: &Comparison, step_deg: f32) -> Option
     rest.sort_by(f64::total_cmp);
     Some(grazing - rest[rest.len() / 2])
 }
-
-/// The drop side of motion distortion, where the seam step found motion beyond the
-/// sim's: the sweep direction, where rows come from and the motion per sweep that
-/// fit the training scans best. The seam's step sets the scale; the mask decides
-/// within it, because the step mixes moved and unmoved surfaces and its size trades
-/// off against their share.
-pub(super) fn motion_coverage(
-    residual_fits: &[ResidualFit],
-    context: &ResidualContext,
-    baseline: &Baseline,
-    train: &Pixels,
-) -> Option<drop::MotionCoverageFamily> {
-    let motion = residual_fits
-        .iter()
-        .find(|r| r.id == MOTION && r.significant())?;
-    let shift = |key: &str| motion.params.get(key).and_then(Value::as_f64);
-    let (start, direction) = match context.sweep {
-        Some((azimuth, ccw)) => (azimuth, Some(ccw)),
-        None => (0.0, None),
-    };
-    let extra = shift("seam_shift_m")? - shift("sim_seam_shift_m").unwrap_or(0.0);
-    let extra = motion_per_sweep_m(extra, start)?;
-    if extra <= 0.05 {
-        return None;
-    }
-    let base = baseline.keep_of(train);
-    let mut candidates = Vec::new();
-    let directions = match direction {
-        Some(ccw) => vec![ccw],
-        None => vec![false, true],
-    };
-    for counter_clockwise in directions {
-        for rows_from_elevation in [false, true] {
-            for scale in MOTION_SCALES {
-                candidates.push(drop::MotionCoverageFamily::new(
-                    (extra * scale) as f32,
-                    start,
-                    counter_clockwise,
-                    rows_from_elevation,
-                ));
-            }
-        }
-    }
-    candidates
-        .into_par_iter()
-        .filter_map(|family| {
-            let table = fit::QTable::build(&family, train, &base);
-            let nll = table.nll(&family.fit(&table, train)?.drop_prob);
-            Some((nll, family))
-        })
-        .min_by(|a, b| a.0.total_cmp(&b.0))
-        .map(|(_, family)| family)
-}
-
-/// Motion per sweep the drop mask may pick, as multiples of the seam's step.
-const MOTION_SCALES: [f64; 9] = [0.25, 0.35, 0.5, 0.7, 1.0, 1.4, 2.0, 2.8, 4.0];
 
 #[cfg(test)]
 mod tests {

@@ -29,7 +29,7 @@ pub use plots::{Curve, Maps};
 pub use scene::SceneContrast;
 
 use effects::{adjust_uniform, candidates, drop_effects, rank, residual_effects};
-use inputs::{MIN_GRAZING_CONTRAST, check_inputs, grazing_contrast, labelled, motion_coverage};
+use inputs::{MIN_GRAZING_CONTRAST, check_inputs, grazing_contrast, labelled};
 use plots::{curves, maps};
 
 /// Settings of a diagnosis.
@@ -286,13 +286,11 @@ pub fn diagnose(
     let px_test = Pixels::collect(&test, reach_m);
     let baseline = Baseline::from_sim(&px_sim, reach_m);
     let boxed = drop::families();
-    let motion_coverage = motion_coverage(&residual_fits, &context, &baseline, &px_train);
     let families: Vec<&dyn DropFamily> = boxed
         .iter()
         .map(|b| b.as_ref())
         .filter(|f| unlabelled.is_empty() || f.id() != "material_dropout")
         .filter(|f| incidence_testable || f.id() != "incidence_dropout")
-        .chain(motion_coverage.as_ref().map(|f| f as &dyn DropFamily))
         .collect();
     let selection = fit::select(
         &families,
@@ -304,22 +302,11 @@ pub fn diagnose(
 
     let test_pixels = px_test.len().max(1) as f64;
     let mut fitted_physics = sim_physics.clone();
-    let (mut effects, motion_coverage_part) =
-        drop_effects(&selection, &comparison, &mut fitted_physics);
+    let mut effects = drop_effects(&selection, &comparison, &mut fitted_physics);
     adjust_uniform(&mut fitted_physics, selection.keep_scale);
-    let residual = residual_effects(
-        &residual_fits,
-        motion_coverage_part,
-        test_pixels,
-        &mut fitted_physics,
-    );
+    let residual = residual_effects(&residual_fits, test_pixels, &mut fitted_physics);
     effects.extend(residual.effects);
-    let established: Vec<&str> = families
-        .iter()
-        .filter(|f| f.established())
-        .map(|f| f.id())
-        .collect();
-    rank(&mut effects, &established);
+    rank(&mut effects, &[MOTION]);
     let scene = SceneContrast::measure(sim, real);
     if scene.differs {
         for e in &mut effects {
