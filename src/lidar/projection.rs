@@ -335,21 +335,25 @@ fn segments_are_rings(scan: &Scan, ids: &[u32], rings: usize) -> bool {
     for i in (0..scan.len()).filter(|&i| scan.is_return(i)) {
         per_ring[ids[i] as usize].push(elevation(scan.xyz[i]));
     }
-    let median = |v: &mut Vec<f32>| {
-        v.sort_by(f32::total_cmp);
-        v[v.len() / 2]
+    let median = |v: &mut [f32]| {
+        let mid = v.len() / 2;
+        *v.select_nth_unstable_by(mid, f32::total_cmp).1
     };
     // Each segment's median elevation, and the step between the medians of its first
     // and last fiftieth of returns: both look just beside straight ahead, so a beam's
     // own offsets from the sensor's centre (KITTI's) hardly part them.
     let mut levels = Vec::new();
     let mut end_steps = Vec::new();
-    for e in per_ring.iter().filter(|e| e.len() >= 2 * MIN_RING_RETURNS) {
+    for e in per_ring
+        .iter_mut()
+        .filter(|e| e.len() >= 2 * MIN_RING_RETURNS)
+    {
         let end = (e.len() / 50).max(MIN_RING_RETURNS);
         let head = median(&mut e[..end].to_vec());
-        let tail = median(&mut e[e.len() - end..].to_vec());
+        let n = e.len();
+        let tail = median(&mut e[n - end..].to_vec());
         end_steps.push((head - tail).abs());
-        levels.push(median(&mut e.clone()));
+        levels.push(median(e));
     }
     if levels.len() < 2 {
         return true;
