@@ -160,10 +160,10 @@ impl Effect for MotionDistortion {
             let t = scan.time_s[k] * self.scale;
             let p = scan.image.xyz[k];
             let q = [p[0] - v[0] * t, p[1] - v[1] * t, p[2] - v[2] * t];
-            let was = (p[0] * p[0] + p[1] * p[1] + p[2] * p[2]).sqrt().max(1e-3);
-            let range = (q[0] * q[0] + q[1] * q[1] + q[2] * q[2]).sqrt().max(1e-3);
-            scan.image.xyz[k] = p.map(|x| x * range / was);
-            scan.image.range_m[k] = range;
+            scan.set_range(
+                k,
+                (q[0] * q[0] + q[1] * q[1] + q[2] * q[2]).sqrt().max(1e-3),
+            );
         }
     }
 }
