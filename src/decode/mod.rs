@@ -760,12 +760,17 @@ impl Decoded {
     /// Depth in meters (the tuned generator) and the uncalibrated keep logit (the generator
     /// before tuning) on `grid.render_grid`.
     fn render_raw(&self, grid: &PreparedGrid) -> (Vec<f32>, Vec<f32>) {
-        let out = self.generator.render(self.w.clone(), &grid.cache, None);
-        let pivot = self.pivot.render(self.w.clone(), &grid.cache, None);
-        (
-            self.units.clamped_depths(&tensor_to_vec(out.x_d)),
-            tensor_to_vec(pivot.keep_logit),
-        )
+        let w = tensor_to_vec(self.w.clone());
+        let hand = |g: &Generator| pivotal::render(g, &grid.cache, &w);
+        let (x_d, keep_logit) = match (hand(&self.generator), hand(&self.pivot)) {
+            (Some((x_d, _)), Some((_, keep_logit))) => (x_d, keep_logit),
+            _ => {
+                let out = self.generator.render(self.w.clone(), &grid.cache, None);
+                let pivot = self.pivot.render(self.w.clone(), &grid.cache, None);
+                (tensor_to_vec(out.x_d), tensor_to_vec(pivot.keep_logit))
+            }
+        };
+        (self.units.clamped_depths(&x_d), keep_logit)
     }
 
     /// Depth in meters and the generator's uncalibrated keep logits on the model grid (for

@@ -13,6 +13,7 @@
 
 use std::f32::consts::SQRT_2;
 use std::ops::Range;
+use std::sync::Arc;
 
 use burn::module::Param;
 use burn::tensor::{Device, Tensor};
@@ -35,7 +36,30 @@ pub fn supports(generator: &Generator, schedule: &Schedule) -> bool {
     schedule.w_steps == 0
         && schedule.coarse_steps.is_empty()
         && schedule.tune_w_lr == 0.0
-        && generator.blocks.iter().all(|b| b.local.is_none())
+        && covers(generator)
+}
+
+/// Whether the hand-written passes cover `generator`'s layers (no local 3x3 paths).
+fn covers(generator: &Generator) -> bool {
+    generator.blocks.iter().all(|b| b.local.is_none())
+}
+
+/// `generator`'s two heads at latent `w` on `cache`'s grid, by the forward pass the tuning
+/// runs: x_d (network units, after the output gain and tanh) and the keep logit (after the
+/// output gain), `H*W` each, row-major; `None` where the passes do not cover the generator.
+/// The same rendering as [`Generator::render`] without a subgrid shift, at batch 1 and
+/// without burn's per-op tensors, which at a sensor's full resolution cost more than the
+/// products themselves.
+pub fn render(generator: &Generator, cache: &GridCache, w: &[f32]) -> Option<(Vec<f32>, Vec<f32>)> {
+    if !covers(generator) {
+        return None;
+    }
+    let mut net = Net::read(generator, cache, false);
+    let heads = net.forward(w, 2);
+    let gain = net.output_gain;
+    let x_d = heads.iter().step_by(2).map(|h| (h * gain).tanh()).collect();
+    let keep_logit = heads.iter().skip(1).step_by(2).map(|h| h * gain).collect();
+    Some((x_d, keep_logit))
 }
 
 /// Pivotal tuning of a copy of a generator at a frozen latent w against one observation. It
@@ -64,7 +88,7 @@ impl Tuning {
         w: Vec<f32>,
         schedule: &Schedule,
     ) -> Tuning {
-        let net = Net::read(generator, cache);
+        let net = Net::read(generator, cache, true);
         let moved = net.moved(schedule.keep_heads_and_biases);
         Tuning {
             adam: Adam::new(moved.iter().map(Range::len).sum()),
@@ -319,8 +343,8 @@ struct Block {
     conv0: Layer,
     conv1: Layer,
     head: Layer,
-    /// `[h*w, 2F]`
-    basis: Vec<f32>,
+    /// `[h*w, 2F]`, shared with the grid's cache
+    basis: Arc<[f32]>,
     size: (usize, usize),
 }
 
@@ -342,6 +366,7 @@ impl Block {
 /// A block's buffers, kept from step to step: what the forward pass keeps for the backward one
 /// (this step's modulations, conv0's and conv1's products before demodulation and their outputs)
 /// and the gradients of the two outputs. `[pixels, ch]` each.
+#[derive(Default)]
 struct Pass {
     m0: Modulated,
     m1: Modulated,
@@ -355,6 +380,7 @@ struct Pass {
 }
 
 impl Pass {
+    /// A block's buffers for a tuning: the forward pass's and the backward pass's.
     fn new(block: &Block) -> Pass {
         let len = block.pixels() * block.channels();
         Pass {
@@ -380,20 +406,26 @@ struct Net {
 }
 
 impl Net {
-    fn read(generator: &Generator, cache: &GridCache) -> Net {
+    /// The weights of `generator` and the bases of `cache`; with `backward` each block's
+    /// buffers for a tuning, kept from step to step, else none (a rendering makes each
+    /// block's buffers as it goes and frees them when the next block has read them).
+    fn read(generator: &Generator, cache: &GridCache, backward: bool) -> Net {
         let mut params = Vec::new();
-        let blocks: Vec<Block> = (generator.blocks.iter().zip(&cache.levels))
-            .map(|(block, level)| Block {
+        let levels = cache.levels.iter().zip(cache.host_bases());
+        let blocks: Vec<Block> = (generator.blocks.iter().zip(levels))
+            .map(|(block, (level, basis))| Block {
                 conv0: Layer::read(&block.conv0, &mut params),
                 conv1: Layer::read(&block.conv1, &mut params),
                 head: Layer::read(&block.head, &mut params),
-                basis: tensor_to_vec(level.basis.clone()),
+                basis: basis.clone(),
                 size: (level.height, level.width),
             })
             .collect();
         Net {
             params,
-            work: blocks.iter().map(Pass::new).collect(),
+            work: (blocks.iter())
+                .map(|b| if backward { Pass::new(b) } else { Pass::default() })
+                .collect(),
             blocks,
             output_gain: generator.output_gain,
         }
@@ -433,9 +465,10 @@ impl Net {
         out
     }
 
-    /// The forward pass into the blocks' buffers; returns the summed heads' inverse-depth
-    /// channel at the finest level (before the output gain and tanh).
-    fn forward(&mut self, w: &[f32]) -> Vec<f32> {
+    /// The forward pass into the blocks' buffers; returns the summed heads' first `outputs`
+    /// channels at the finest level (`[pixels, outputs]`, before the output gain): 1 is the
+    /// inverse-depth channel alone (before tanh), 2 adds the keep logit.
+    fn forward(&mut self, w: &[f32], outputs: usize) -> Vec<f32> {
         let Net {
             params: p,
             blocks,
@@ -448,6 +481,16 @@ impl Net {
             let pass = &mut rest[0];
             let (n, c, c_x) = (block.pixels(), block.channels(), block.previous_channels());
             let (d_in, two_f) = (block.conv0.d_in, block.conv0.d_in - c_x);
+            // A rendering's buffers are made for this block alone ([`Net::read`]).
+            let rendering = pass.y0.is_empty();
+            if rendering {
+                for b in [&mut pass.y0, &mut pass.a0, &mut pass.y1, &mut pass.a1] {
+                    *b = vec![0.0; n * c];
+                }
+                // g_a0 is the previous level's product before upsampling, a quarter the size.
+                let previous = i.checked_sub(1).map_or(0, |k| blocks[k].pixels());
+                pass.g_a0 = vec![0.0; previous * c];
+            }
             pass.m0 = block.conv0.modulate(p, w);
             let wm_pe = View::columns(&pass.m0.wm, c, d_in, c_x, two_f).t();
             matmul(
@@ -465,7 +508,7 @@ impl Net {
                 matmul(View::new(&prev.a1, hp * wp, c_x), wm_x, y_x, false);
                 let up = upsample2x(y_x, (hp, wp), c);
                 pass.y0.iter_mut().zip(&up).for_each(|(y, u)| *y += u);
-                heads = upsample2x(&heads, (hp, wp), 1);
+                heads = upsample2x(&heads, (hp, wp), outputs);
             }
             block.conv0.output(&pass.m0, p, &pass.y0, &mut pass.a0);
             pass.m1 = block.conv1.modulate(p, w);
@@ -473,15 +516,24 @@ impl Net {
             matmul(View::new(&pass.a0, n, c), wm1, &mut pass.y1, false);
             block.conv1.output(&pass.m1, p, &pass.y1, &mut pass.a1);
             pass.mh = block.head.modulate(p, w);
-            let mut head = vec![0.0f32; n];
-            let wm_h = View::new(&pass.mh.wm[..c], 1, c).t();
+            let mut head = vec![0.0f32; n * outputs];
+            let wm_h = View::new(&pass.mh.wm[..c * outputs], outputs, c).t();
             matmul(View::new(&pass.a1, n, c), wm_h, &mut head, false);
-            let bias = p[block.head.bias.start];
+            let bias = p[block.head.bias.start..][..outputs].iter().cycle();
             heads = if heads.is_empty() {
-                head.iter().map(|h| h + bias).collect()
+                head.iter().zip(bias).map(|(h, b)| h + b).collect()
             } else {
-                heads.iter().zip(&head).map(|(u, h)| u + h + bias).collect()
+                let sums = heads.iter().zip(&head).zip(bias);
+                sums.map(|((u, h), b)| u + h + b).collect()
             };
+            if rendering {
+                for b in [&mut pass.y0, &mut pass.a0, &mut pass.y1, &mut pass.g_a0] {
+                    *b = Vec::new();
+                }
+                if let Some(prev) = done.last_mut() {
+                    prev.a1 = Vec::new();
+                }
+            }
         }
         heads
     }
@@ -494,7 +546,7 @@ impl Net {
         mask: &[f32],
         levels: usize,
     ) -> (f32, Vec<f32>) {
-        let heads = self.forward(w);
+        let heads = self.forward(w, 1);
         let x_net: Vec<f32> = heads
             .iter()
             .map(|h| (h * self.output_gain).tanh())
@@ -726,6 +778,35 @@ mod tests {
         let back = upsample2x_adjoint(&g, (h, w), c);
         let rhs: f32 = x.iter().zip(&back).map(|(a, b)| a * b).sum();
         assert!((lhs - rhs).abs() < 1e-4, "{lhs} vs {rhs}");
+    }
+
+    /// The hand-written rendering is the generator's own, both heads, on a grid wider than
+    /// any the tests tune on.
+    #[test]
+    fn hand_written_rendering_matches_the_generator() {
+        let dev = Device::flex();
+        let g = GeneratorConfig::new()
+            .with_mapping(MappingConfig::new().with_d_z(8).with_d_w(8))
+            .with_channels(vec![12, 8, 6])
+            .with_n_freq(vec![5, 4, 3])
+            .with_lh(vec![3, 4, 5])
+            .with_lw(vec![2, 3, 4])
+            .with_seed(7)
+            .init(&dev);
+        let cache = g.prepare(&kitti_like_grid(8, 128), &dev);
+        let w = g.mapping.forward(Rng::new(4).normal_tensor([1, 8], &dev));
+        let want = g.render(w.clone(), &cache, None);
+        let (x_d, keep_logit) = render(&g, &cache, &tensor_to_vec(w)).unwrap();
+        for (got, want) in [(x_d, want.x_d), (keep_logit, want.keep_logit)] {
+            let want = tensor_to_vec(want);
+            assert_eq!(got.len(), 8 * 128);
+            assert_eq!(got.len(), want.len());
+            let scale = want.iter().fold(0.0f32, |m, v| m.max(v.abs()));
+            let worst = (got.iter().zip(&want))
+                .map(|(a, b)| (a - b).abs())
+                .fold(0.0f32, f32::max);
+            assert!(scale > 1e-3 && worst < 1e-5 * scale.max(1.0), "{worst} of {scale}");
+        }
     }
 
     /// Both paths from the same start: the losses of every step and the tuned rendering agree.

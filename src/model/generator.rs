@@ -9,6 +9,7 @@
 //! neighbouring pixels, so it is tied to the pixel spacing it was trained at.
 
 use std::f32::consts::TAU;
+use std::sync::{Arc, OnceLock};
 
 use burn::config::Config;
 use burn::module::{Module, Param};
@@ -21,7 +22,7 @@ use super::layers::{
 };
 use crate::lidar::AngleGrid;
 use crate::util::rng::Rng;
-use crate::util::tensor::tensor_from;
+use crate::util::tensor::{tensor_from, tensor_to_vec};
 
 // ---------------------------------------------------------------------------------------------
 // Mapping network
@@ -172,19 +173,37 @@ pub struct GridCache {
     pub height: usize,
     pub width: usize,
     pub levels: Vec<LevelBasis>,
+    /// The levels' bases as host floats, copied out once for the passes written by hand
+    /// ([`GridCache::host_bases`]).
+    host: Arc<OnceLock<Vec<Arc<[f32]>>>>,
 }
 
 impl GridCache {
+    fn new(height: usize, width: usize, levels: Vec<LevelBasis>) -> GridCache {
+        GridCache {
+            height,
+            width,
+            levels,
+            host: Arc::default(),
+        }
+    }
+
+    /// Each level's basis (`[H*W, 2F]`, row-major) on the host, copied on first use and
+    /// shared by every clone of this cache.
+    pub fn host_bases(&self) -> &[Arc<[f32]>] {
+        self.host.get_or_init(|| {
+            (self.levels.iter())
+                .map(|level| tensor_to_vec(level.basis.clone()).into())
+                .collect()
+        })
+    }
+
     /// The cache cut to its first `blocks` levels: the generator renders with those blocks
     /// alone, at the finest kept level's resolution (the low-pass part of the full image).
     pub fn first_blocks(&self, blocks: usize) -> GridCache {
         let levels = self.levels[..blocks.clamp(1, self.levels.len())].to_vec();
         let finest = levels.last().expect("a grid has at least one level");
-        GridCache {
-            height: finest.height,
-            width: finest.width,
-            levels,
-        }
+        GridCache::new(finest.height, finest.width, levels)
     }
 }
 
@@ -376,11 +395,7 @@ impl Generator {
                 basis: block.fourier.basis(grid, device),
             })
             .collect();
-        GridCache {
-            height: angles.height,
-            width: angles.width,
-            levels,
-        }
+        GridCache::new(angles.height, angles.width, levels)
     }
 
     /// Synthesis from w. `azimuth_shift` (fractions of a turn, one per sample) adds a phase

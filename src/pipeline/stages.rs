@@ -192,7 +192,14 @@ impl<'d> DecodeStage<'d> {
         let Some(hand_off) = self.hand_off else {
             let decoded = (self.decoder).decode_from(input.image, seed, state.as_ref())?;
             *state = Some(decoded.tuned_generator().clone());
-            return Ok(Staged::Done(finish(&decoded)));
+            drop(state);
+            // The outputs (renderings on the sensor's grids, the completion) wait for nothing
+            // of the chain's next scan: they run beside its tuning, so a chain that finishes
+            // its batch first lends its core to the other's outputs.
+            let image = input.image.clone();
+            return Ok(Staged::Later(Box::new(move || {
+                Ok(self.outputs(&decoded, &image, rates.as_ref(), &out))
+            })));
         };
         let (handed, partial) =
             (self.decoder).begin(input.image, seed, state.as_ref(), hand_off)?;

@@ -5,6 +5,7 @@
 
 use serde::{Deserialize, Serialize};
 
+use super::matmul::{View, matmul};
 use super::rng::Rng;
 
 /// One layer: `outputs x inputs` weights (row-major) and a bias per output.
@@ -17,39 +18,19 @@ pub struct Dense {
 }
 
 impl Dense {
-    /// `y = W x + b` for `n` samples stored one after another in `x`.
+    /// `y = W x + b` for `n` samples stored one after another in `x`: one matrix product
+    /// for all of them.
     fn forward(&self, x: &[f32], n: usize) -> Vec<f32> {
         let (i, o) = (self.inputs, self.outputs);
-        let mut y = Vec::with_capacity(n * o);
-        for xs in x.chunks_exact(i).take(n) {
-            for (row, b) in self.weight.chunks_exact(i).zip(&self.bias) {
-                y.push(b + dot(row, xs));
-            }
-        }
+        let mut y: Vec<f32> = self.bias.iter().copied().cycle().take(n * o).collect();
+        let weight_t = View::new(&self.weight, o, i).t();
+        matmul(View::new(&x[..n * i], n, i), weight_t, &mut y, true);
         y
     }
 
     fn is_consistent(&self) -> bool {
         self.weight.len() == self.inputs * self.outputs && self.bias.len() == self.outputs
     }
-}
-
-/// In eight lanes, so that the compiler vectorises it (a plain sum is ordered).
-fn dot(a: &[f32], b: &[f32]) -> f32 {
-    let mut lanes = [0.0f32; 8];
-    let (ca, cb) = (a.chunks_exact(8), b.chunks_exact(8));
-    let tail: f32 = ca
-        .remainder()
-        .iter()
-        .zip(cb.remainder())
-        .map(|(x, y)| x * y)
-        .sum();
-    for (xa, xb) in ca.zip(cb) {
-        for k in 0..8 {
-            lanes[k] += xa[k] * xb[k];
-        }
-    }
-    lanes.iter().sum::<f32>() + tail
 }
 
 /// Layers applied in turn, ReLU between them.
