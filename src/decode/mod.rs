@@ -259,6 +259,9 @@ pub struct Decoded {
     calibration: Option<Arc<RaydropCalibration>>,
     /// On the model grid.
     pub model: Rendered,
+    /// The shared generator's uncalibrated keep logit on the model grid, which x_n on other
+    /// grids is resampled from ([`Decoded::render_prepared`]).
+    model_keep_logit: Vec<f32>,
     /// The observation used (model grid, meters, 0 = not observed), after [`Sparsify`].
     pub observed_m: Vec<f32>,
     /// The observed scan itself where it was on the model grid: its measured points (xyz,
@@ -619,6 +622,7 @@ impl Decoder {
                 depth_m: Vec::new(),
                 drop_prob: Vec::new(),
             },
+            model_keep_logit: Vec::new(),
             observed_m,
             observed_points,
             held_out_m,
@@ -628,7 +632,9 @@ impl Decoder {
             losses: inv.losses,
             seed,
         };
-        decoded.model = decoded.render_prepared(&self.model);
+        let (depth_m, keep_logit) = decoded.render_raw(&self.model);
+        decoded.model = decoded.calibrated(&self.model, depth_m, &keep_logit);
+        decoded.model_keep_logit = keep_logit;
         decoded.error = relative_depth_error(&decoded.model.depth_m, &decoded.observed_m);
         decoded.held_out_error = self
             .opts
@@ -719,8 +725,23 @@ impl Decoded {
     }
 
     /// Render the tuned scene on a prepared grid (from [`Decoder::prepare`]).
+    ///
+    /// Depth is rendered on the grid itself. x_n comes from the keep logit on the model grid,
+    /// resampled: the generator learnt the drops at the model grid's resolution, and
+    /// rendering the shared generator once more on a sensor's full-resolution grid would
+    /// cost as much as the depth's rendering.
     pub fn render_prepared(&self, grid: &PreparedGrid) -> Rendered {
-        let (depth_m, keep_logit) = self.render_raw(grid);
+        let depth_m = self.units.clamped_depths(&self.x_d_on(grid));
+        let keep_logit = match self.model_keep_logit.is_empty() {
+            true => self.keep_logit_on(grid),
+            false => self.model_keep_logit_on(&grid.render_grid),
+        };
+        self.calibrated(grid, depth_m, &keep_logit)
+    }
+
+    /// The rendering on `grid.render_grid` (depth in meters, the uncalibrated keep logit)
+    /// calibrated into x_n and resampled onto `grid.grid`.
+    fn calibrated(&self, grid: &PreparedGrid, depth_m: Vec<f32>, keep_logit: &[f32]) -> Rendered {
         let elevation = &grid.render_grid.elevation_rad;
         // The calibration's edge term needs the rendered depth's edges.
         let calibration = (self.calibration.as_ref())
@@ -760,17 +781,38 @@ impl Decoded {
     /// Depth in meters (the tuned generator) and the uncalibrated keep logit (the generator
     /// before tuning) on `grid.render_grid`.
     fn render_raw(&self, grid: &PreparedGrid) -> (Vec<f32>, Vec<f32>) {
+        let depth_m = self.units.clamped_depths(&self.x_d_on(grid));
+        (depth_m, self.keep_logit_on(grid))
+    }
+
+    /// The tuned generator's x_d (network units) on `grid.render_grid`.
+    fn x_d_on(&self, grid: &PreparedGrid) -> Vec<f32> {
         let w = tensor_to_vec(self.w.clone());
-        let hand = |g: &Generator| pivotal::render(g, &grid.cache, &w);
-        let (x_d, keep_logit) = match (hand(&self.generator), hand(&self.pivot)) {
-            (Some((x_d, _)), Some((_, keep_logit))) => (x_d, keep_logit),
-            _ => {
-                let out = self.generator.render(self.w.clone(), &grid.cache, None);
-                let pivot = self.pivot.render(self.w.clone(), &grid.cache, None);
-                (tensor_to_vec(out.x_d), tensor_to_vec(pivot.keep_logit))
-            }
-        };
-        (self.units.clamped_depths(&x_d), keep_logit)
+        match pivotal::render(&self.generator, &grid.cache, &w) {
+            Some((x_d, _)) => x_d,
+            None => tensor_to_vec(self.generator.render(self.w.clone(), &grid.cache, None).x_d),
+        }
+    }
+
+    /// The shared generator's uncalibrated keep logit on `grid.render_grid`.
+    fn keep_logit_on(&self, grid: &PreparedGrid) -> Vec<f32> {
+        let w = tensor_to_vec(self.w.clone());
+        match pivotal::render(&self.pivot, &grid.cache, &w) {
+            Some((_, keep_logit)) => keep_logit,
+            None => tensor_to_vec(self.pivot.render(self.w.clone(), &grid.cache, None).keep_logit),
+        }
+    }
+
+    /// The model grid's keep logit resampled bilinearly onto `target` (0 where no model row
+    /// reaches; [`Decoded::calibrated`] drops those rows).
+    fn model_keep_logit_on(&self, target: &AngleGrid) -> Vec<f32> {
+        if *target == self.model.grid {
+            return self.model_keep_logit.clone();
+        }
+        let mut src = RangeImage::empty(self.model.grid.clone());
+        src.range_m = self.model.depth_m.clone();
+        src.intensity = self.model_keep_logit.clone();
+        resample_image(&src, target, Interpolation::Bilinear).intensity
     }
 
     /// Depth in meters and the generator's uncalibrated keep logits on the model grid (for
