@@ -799,7 +799,11 @@ impl Decoded {
         let w = tensor_to_vec(self.w.clone());
         match pivotal::render(&self.pivot, &grid.cache, &w) {
             Some((_, keep_logit)) => keep_logit,
-            None => tensor_to_vec(self.pivot.render(self.w.clone(), &grid.cache, None).keep_logit),
+            None => tensor_to_vec(
+                self.pivot
+                    .render(self.w.clone(), &grid.cache, None)
+                    .keep_logit,
+            ),
         }
     }
 

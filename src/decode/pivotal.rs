@@ -424,7 +424,13 @@ impl Net {
         Net {
             params,
             work: (blocks.iter())
-                .map(|b| if backward { Pass::new(b) } else { Pass::default() })
+                .map(|b| {
+                    if backward {
+                        Pass::new(b)
+                    } else {
+                        Pass::default()
+                    }
+                })
                 .collect(),
             blocks,
             output_gain: generator.output_gain,
@@ -805,7 +811,10 @@ mod tests {
             let worst = (got.iter().zip(&want))
                 .map(|(a, b)| (a - b).abs())
                 .fold(0.0f32, f32::max);
-            assert!(scale > 1e-3 && worst < 1e-5 * scale.max(1.0), "{worst} of {scale}");
+            assert!(
+                scale > 1e-3 && worst < 1e-5 * scale.max(1.0),
+                "{worst} of {scale}"
+            );
         }
     }
 

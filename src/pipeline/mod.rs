@@ -14,7 +14,7 @@
 use std::collections::{BTreeMap, HashMap};
 use std::io::{Read, Seek};
 use std::sync::atomic::{AtomicU64, Ordering};
-use std::sync::{Arc, Mutex};
+use std::sync::{Arc, Mutex, mpsc};
 
 use mcap::records::Record;
 
@@ -458,21 +458,27 @@ impl<'s> ScanProcessor<'_, 's> {
     }
 }
 
-struct Converter<'a, 's> {
+/// A batch of scans and what processing them gave, in the batch's order.
+type BatchResults = (Vec<Pending>, Vec<Result<Processed, String>>);
+
+struct Converter<'a> {
     out: McapOutput,
     opts: &'a ConvertOptions,
-    processor: ScanProcessor<'a, 's>,
     file: std::path::PathBuf,
     table: ChannelTable,
     batch: Vec<Pending>,
     /// Scans seen per converted topic (they number the chains).
     topic_scans: HashMap<String, usize>,
-    chains: HashMap<ChainKey, ChainState>,
+    /// Full batches to the thread that processes them ([`process_batches`]), and back.
+    to_process: mpsc::Sender<Vec<Pending>>,
+    processed: mpsc::Receiver<BatchResults>,
+    /// Batches handed over whose outputs are not written yet.
+    in_flight: usize,
     scans_done: u64,
     report: ConvertReport,
 }
 
-impl Converter<'_, '_> {
+impl Converter<'_> {
     /// The point-cloud format of a channel whose scans are converted (`--topic` selects).
     fn converted(opts: &ConvertOptions, channel: &ChannelEntry) -> Option<CloudFormat> {
         let selected = opts
@@ -517,16 +523,43 @@ impl Converter<'_, '_> {
                 data: data.to_vec(),
             });
             if self.batch.len() >= self.opts.batch_scans.max(1) {
-                self.flush()?;
+                self.hand_over()?;
             }
         }
         Ok(())
     }
 
-    fn flush(&mut self) -> anyhow::Result<()> {
+    /// Hands the batch read so far to the processing thread and writes the outputs of the
+    /// batch before it, which that thread has processed meanwhile or is finishing: reading,
+    /// copying and writing run beside the scans' processing. The outputs of a batch follow
+    /// the input records of the next one, so the file's layout depends on the input alone.
+    fn hand_over(&mut self) -> anyhow::Result<()> {
         let batch = std::mem::take(&mut self.batch);
-        self.processor.fix_profiles(&batch);
-        let results = self.process_batch(&batch);
+        if !batch.is_empty() {
+            (self.to_process.send(batch))
+                .map_err(|_| anyhow::anyhow!("scan processing stopped"))?;
+            self.in_flight += 1;
+        }
+        while self.in_flight > 1 {
+            self.write_processed()?;
+        }
+        Ok(())
+    }
+
+    /// Hands over the last batch and writes every batch's outputs.
+    fn flush(&mut self) -> anyhow::Result<()> {
+        self.hand_over()?;
+        while self.in_flight > 0 {
+            self.write_processed()?;
+        }
+        Ok(())
+    }
+
+    /// Writes the outputs of the oldest batch handed over, once it is processed.
+    fn write_processed(&mut self) -> anyhow::Result<()> {
+        let (batch, results) =
+            (self.processed.recv()).map_err(|_| anyhow::anyhow!("scan processing stopped"))?;
+        self.in_flight -= 1;
         for (p, result) in batch.iter().zip(results) {
             let topic_report = self.report.topics.entry(p.topic.clone()).or_default();
             match result {
@@ -579,66 +612,86 @@ impl Converter<'_, '_> {
         }
         Ok(())
     }
+}
 
-    /// Every scan of `batch` processed, in its order: chains in parallel, each in input order;
-    /// unchained scans each on their own.
-    fn process_batch(&mut self, batch: &[Pending]) -> Vec<Result<Processed, String>> {
-        let mut groups: Vec<(Option<ChainKey>, Vec<usize>)> = Vec::new();
-        for (i, p) in batch.iter().enumerate() {
-            let key = p.chain.map(|c| (p.topic.clone(), c));
-            match groups.iter_mut().find(|(k, _)| key.is_some() && *k == key) {
-                Some((_, members)) => members.push(i),
-                None => groups.push((key, vec![i])),
-            }
+/// Processes the batches that arrive on `batches`, one after the other (a chain's scans in
+/// the next batch continue from this one's), and sends each back with its results.
+fn process_batches(
+    processor: &ScanProcessor<'_, '_>,
+    batches: mpsc::Receiver<Vec<Pending>>,
+    processed: mpsc::Sender<BatchResults>,
+) {
+    let mut chains = HashMap::new();
+    for batch in batches {
+        processor.fix_profiles(&batch);
+        let results = process_batch(processor, &mut chains, &batch);
+        if processed.send((batch, results)).is_err() {
+            return; // the reading side stopped (an error it reports)
         }
-        for key in groups.iter().filter_map(|(k, _)| k.clone()) {
-            self.chains.entry(key).or_default();
+    }
+}
+
+/// Every scan of `batch` processed, in its order: chains in parallel, each in input order;
+/// unchained scans each on their own.
+fn process_batch(
+    processor: &ScanProcessor<'_, '_>,
+    chains: &mut HashMap<ChainKey, ChainState>,
+    batch: &[Pending],
+) -> Vec<Result<Processed, String>> {
+    let mut groups: Vec<(Option<ChainKey>, Vec<usize>)> = Vec::new();
+    for (i, p) in batch.iter().enumerate() {
+        let key = p.chain.map(|c| (p.topic.clone(), c));
+        match groups.iter_mut().find(|(k, _)| key.is_some() && *k == key) {
+            Some((_, members)) => members.push(i),
+            None => groups.push((key, vec![i])),
         }
-        let (processor, chains) = (&self.processor, &self.chains);
-        let done = Mutex::new(Vec::with_capacity(batch.len()));
-        let finish = |i: usize, begun: Result<Begun<'_>, String>| {
-            let processed = begun.map(Begun::complete);
-            done.lock()
-                .unwrap_or_else(|e| e.into_inner())
-                .push((i, processed));
-        };
-        // A chain's scans start one after the other on a thread of the chain's own; each one's
-        // rest goes to the rayon pool, beside the starts that follow. The decoder runs a scan
-        // on a pool of its own and a rayon worker waiting for it takes up other queued work, so
-        // a chain queued there would be taken up inside another chain's start, and run to its
-        // end before that chain went on: both chains on one core.
-        rayon::in_place_scope(|rests| {
-            std::thread::scope(|chain_threads| {
-                for (key, members) in &groups {
-                    let finish = &finish;
-                    match key.as_ref().and_then(|k| chains.get(k)) {
-                        Some(chain) => {
-                            chain_threads.spawn(move || {
-                                for &i in members {
-                                    let begun = processor.begin(&batch[i], Some(chain));
-                                    rests.spawn(move |_| finish(i, begun));
-                                }
-                            });
-                        }
-                        None => {
+    }
+    for key in groups.iter().filter_map(|(k, _)| k.clone()) {
+        chains.entry(key).or_default();
+    }
+    let chains = &*chains;
+    let done = Mutex::new(Vec::with_capacity(batch.len()));
+    let finish = |i: usize, begun: Result<Begun<'_>, String>| {
+        let processed = begun.map(Begun::complete);
+        done.lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .push((i, processed));
+    };
+    // A chain's scans start one after the other on a thread of the chain's own; each one's
+    // rest goes to the rayon pool, beside the starts that follow. The decoder runs a scan
+    // on a pool of its own and a rayon worker waiting for it takes up other queued work, so
+    // a chain queued there would be taken up inside another chain's start, and run to its
+    // end before that chain went on: both chains on one core.
+    rayon::in_place_scope(|rests| {
+        std::thread::scope(|chain_threads| {
+            for (key, members) in &groups {
+                let finish = &finish;
+                match key.as_ref().and_then(|k| chains.get(k)) {
+                    Some(chain) => {
+                        chain_threads.spawn(move || {
                             for &i in members {
-                                rests.spawn(move |_| finish(i, processor.begin(&batch[i], None)));
+                                let begun = processor.begin(&batch[i], Some(chain));
+                                rests.spawn(move |_| finish(i, begun));
                             }
+                        });
+                    }
+                    None => {
+                        for &i in members {
+                            rests.spawn(move |_| finish(i, processor.begin(&batch[i], None)));
                         }
                     }
                 }
-            });
+            }
         });
-        let mut results: Vec<Option<Result<Processed, String>>> =
-            batch.iter().map(|_| None).collect();
-        for (i, r) in done.into_inner().unwrap_or_else(|e| e.into_inner()) {
-            results[i] = Some(r);
-        }
-        results
-            .into_iter()
-            .map(|r| r.expect("every scan of the batch was processed"))
-            .collect()
+    });
+    let mut results: Vec<Option<Result<Processed, String>>> = batch.iter().map(|_| None).collect();
+    for (i, r) in done.into_inner().unwrap_or_else(|e| e.into_inner()) {
+        results[i] = Some(r);
     }
+    results
+        .into_iter()
+        .map(|r| r.expect("every scan of the batch was processed"))
+        .collect()
 }
 
 /// How far a conversion has come, for progress bars.
@@ -667,50 +720,62 @@ pub fn convert(
     {
         out.reserve_input_topics(summary.channels.values().map(|c| c.topic.as_str()));
     }
+    let mut processor = ScanProcessor {
+        opts,
+        stages,
+        profiles: Mutex::new(HashMap::new()),
+        file: input.to_path_buf(),
+        fit_warnings: Mutex::new(Vec::new()),
+        coverage: Mutex::new(HashMap::new()),
+        census: HashMap::new(),
+    };
+    survey::survey(&mut processor, &mut src, file_len);
+    let processor = &processor;
+    let (to_process, batches) = mpsc::channel();
+    let (results, processed) = mpsc::channel();
     let mut conv = Converter {
         out,
         opts,
-        processor: ScanProcessor {
-            opts,
-            stages,
-            profiles: Mutex::new(HashMap::new()),
-            file: input.to_path_buf(),
-            fit_warnings: Mutex::new(Vec::new()),
-            coverage: Mutex::new(HashMap::new()),
-            census: HashMap::new(),
-        },
         file: input.to_path_buf(),
         table: ChannelTable::default(),
         batch: Vec::new(),
         topic_scans: HashMap::new(),
-        chains: HashMap::new(),
+        to_process,
+        processed,
+        in_flight: 0,
         scans_done: 0,
         report: ConvertReport::default(),
     };
-    survey::survey(&mut conv.processor, &mut src, file_len);
-    let scans = std::cell::Cell::new(0u64);
-    let read = read_records(
-        src,
-        file_len,
-        opts.on_error,
-        |rec| {
-            conv.visit(rec)?;
-            scans.set(conv.scans_done);
-            Ok(())
-        },
-        |bytes_read| {
-            progress(Progress {
-                bytes_read,
-                scans: scans.get(),
-            })
-        },
-    )
-    .map_err(|e| match e {
-        // Write errors already name the output.
-        crate::io::reader::ReadError::Visitor(e) => e,
-        e => anyhow::anyhow!("{}: {e}", input.display()),
+    let read = std::thread::scope(|scope| {
+        scope.spawn(move || process_batches(processor, batches, results));
+        let scans = std::cell::Cell::new(0u64);
+        let read = read_records(
+            src,
+            file_len,
+            opts.on_error,
+            |rec| {
+                conv.visit(rec)?;
+                scans.set(conv.scans_done);
+                Ok(())
+            },
+            |bytes_read| {
+                progress(Progress {
+                    bytes_read,
+                    scans: scans.get(),
+                })
+            },
+        )
+        .map_err(|e| match e {
+            // Write errors already name the output.
+            crate::io::reader::ReadError::Visitor(e) => e,
+            e => anyhow::anyhow!("{}: {e}", input.display()),
+        });
+        let read = read.and_then(|read| conv.flush().map(|()| read));
+        // The processing thread ends when it has no batch to wait for.
+        let (closed, _) = mpsc::channel();
+        drop(std::mem::replace(&mut conv.to_process, closed));
+        read
     })?;
-    conv.flush()?;
     let mut report = conv.report;
     report.read = read;
     report.copied = conv.out.copied;
@@ -722,8 +787,7 @@ pub fn convert(
             message: format!("{}: {message}", input.display()),
         }));
     report.model_fit = std::mem::take(
-        &mut conv
-            .processor
+        &mut processor
             .fit_warnings
             .lock()
             .unwrap_or_else(|e| e.into_inner()),

@@ -10,17 +10,17 @@ use mcap::records::Record;
 use rayon::prelude::*;
 
 use super::{Converter, ScanProcessor};
-use crate::io::{ChannelTable, DecodedCloud, OnError, decode_cloud, read_records};
+use crate::io::{ChannelTable, CloudFormat, DecodedCloud, OnError, decode_cloud, read_records};
 use crate::lidar::drop_census::DropCensus;
-use crate::lidar::{SensorProfile, Strategy, project};
+use crate::lidar::{RangeImage, SensorProfile, Strategy, project};
 
-/// Scans decoded before they are projected together: the projections run in parallel, and
-/// the pass holds at most this many decoded clouds.
-const PROJECT_TOGETHER: usize = 16;
+/// Scans read before they are decoded and projected together: decoding and projecting run
+/// in parallel, and the pass holds at most this many scans.
+const SURVEY_TOGETHER: usize = 16;
 
-/// A scan of the first pass waiting for its projection: its topic, profile and strategy
-/// (fixed in file order) and the decoded cloud.
-type Waiting = (String, SensorProfile, Strategy, DecodedCloud);
+/// A point-cloud message of the first pass waiting to be counted: its topic, log time,
+/// encoding and bytes.
+type Waiting = (String, u64, CloudFormat, Vec<u8>);
 
 /// Runs the first pass over `src` and leaves its counts in `processor`.
 pub(super) fn survey(
@@ -47,30 +47,45 @@ pub(super) fn survey(
         let Some(format) = Converter::converted(opts, channel) else {
             return Ok(());
         };
-        let Ok(cloud) = decode_cloud(format, data) else {
-            return Ok(());
-        };
-        let topic = &channel.topic;
-        let Ok((profile, strategy)) = proc_ref.profile_for(topic, header.log_time, &cloud) else {
-            return Ok(());
-        };
-        waiting.push((topic.clone(), profile, strategy, cloud));
-        if waiting.len() >= PROJECT_TOGETHER {
-            count_drops(&mut waiting, &mut census);
+        waiting.push((
+            channel.topic.clone(),
+            header.log_time,
+            format,
+            data.to_vec(),
+        ));
+        if waiting.len() >= SURVEY_TOGETHER {
+            count_drops(proc_ref, &mut waiting, &mut census);
         }
         Ok(())
     };
     // A file the main pass cannot read either: it says why.
     let _ = read_records(&mut *src, file_len, OnError::Skip, visit, |_| {});
-    count_drops(&mut waiting, &mut census);
+    count_drops(proc_ref, &mut waiting, &mut census);
     processor.census = census;
 }
 
-/// Projects the `waiting` scans in parallel and adds them to their topics' counts in file
-/// order (a topic's first scan sets its grid).
-fn count_drops(waiting: &mut Vec<Waiting>, census: &mut HashMap<String, DropCensus>) {
-    let images: Vec<_> = (waiting.par_iter())
-        .map(|(_, profile, strategy, cloud)| project(&cloud.scan, profile, *strategy).ok())
+/// Counts the drops of the `waiting` scans: decoded in parallel, each topic's profile fixed
+/// in file order, projected in parallel, and added to their topics' counts in file order (a
+/// topic's first scan sets its grid).
+fn count_drops(
+    processor: &ScanProcessor<'_, '_>,
+    waiting: &mut Vec<Waiting>,
+    census: &mut HashMap<String, DropCensus>,
+) {
+    let clouds: Vec<Option<DecodedCloud>> = (waiting.par_iter())
+        .map(|(_, _, format, data)| decode_cloud(*format, data).ok())
+        .collect();
+    let projections: Vec<Option<(SensorProfile, Strategy)>> = (waiting.iter().zip(&clouds))
+        .map(|((topic, log_time, ..), cloud)| {
+            let cloud = cloud.as_ref()?;
+            processor.profile_for(topic, *log_time, cloud).ok()
+        })
+        .collect();
+    let images: Vec<Option<RangeImage>> = (clouds.par_iter().zip(&projections))
+        .map(|(cloud, projection)| {
+            let (cloud, (profile, strategy)) = (cloud.as_ref()?, projection.as_ref()?);
+            project(&cloud.scan, profile, *strategy).ok()
+        })
         .collect();
     for ((topic, ..), image) in waiting.drain(..).zip(images) {
         if let Some(image) = image {
