@@ -2,7 +2,9 @@
 //! point-cloud message is decoded and projected, and per-scan stages add new
 //! channels under `<topic>/rangegan/`. Scans are processed in parallel (rayon) in
 //! bounded batches and written back in input order, so the output is the same
-//! whatever the thread count and memory does not grow with the file.
+//! whatever the thread count and memory does not grow with the file. A thread of its own
+//! processes the batches while the reading side copies the next batch's records and writes
+//! the previous batch's outputs after them.
 //!
 //! A topic's scans may form chains ([`ConvertOptions::chain_stride`]): scan k continues
 //! from what scan k - stride left in its chain's [`ChainState`] (the decoder's tuned weights),
