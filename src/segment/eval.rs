@@ -33,6 +33,10 @@ pub struct ClassScore {
     pub class: String,
     /// Labelled returns of this class.
     pub points: u64,
+    /// Returns predicted as this class, and those of them labelled so: with `points` the
+    /// counts that pool scores over recordings exactly.
+    pub predicted: u64,
+    pub correct: u64,
     pub precision: Option<f64>,
     pub recall: Option<f64>,
     pub iou: Option<f64>,
@@ -69,6 +73,8 @@ impl Confusion {
                 ClassScore {
                     class: CLASSES[c].to_string(),
                     points: truth,
+                    predicted,
+                    correct: tp,
                     precision: ratio(tp, predicted),
                     recall: ratio(tp, truth),
                     iou: ratio(tp, truth + predicted - tp),
@@ -112,6 +118,9 @@ pub struct Scores {
     pub miou: Option<f64>,
     /// Mean IoU over car and person (the paper's Table 4).
     pub miou_car_person: Option<f64>,
+    /// The confusion matrix: `confusion[t][p]` returns labelled `t` predicted as `p`, in the
+    /// order of `classes` (what is taken for what).
+    pub confusion: Vec<Vec<u64>>,
 }
 
 impl Scores {
@@ -122,6 +131,7 @@ impl Scores {
             miou: mean_iou(&classes, SCORED),
             miou_car_person: mean_iou(&classes, CAR_PERSON),
             classes,
+            confusion: confusion.counts.iter().map(|row| row.to_vec()).collect(),
         }
     }
 }
@@ -327,6 +337,9 @@ mod tests {
         m.add(2, 0);
         let s = m.scores();
         assert_eq!(s[0].points, 4);
+        assert_eq!((s[0].predicted, s[0].correct), (4, 3));
+        assert_eq!((s[2].points, s[2].predicted, s[2].correct), (6, 6, 5));
+        assert_eq!(Scores::new(&m).confusion[0][2], 1);
         assert_eq!(s[0].precision, Some(0.75));
         assert_eq!(s[0].recall, Some(0.75));
         assert_eq!(s[0].iou, Some(3.0 / 5.0));

@@ -1,0 +1,143 @@
+#!/usr/bin/env bash
+# The Sim2Real table on every labelled place: each SemanticKITTI sequence in
+# semantickitti_mini (00-07, 09, 10; ten consecutive scans of one place each) is scored on
+# its own, and pooled with a bootstrap interval over places and seeds (places.py).
+#
+#   experiments/sim2real_segmentation/places.sh [OUT]      (default OUT: target/sim2real)
+#
+# Nothing scored on a place learnt anything from that place:
+# - A, E and G train on simulated scans alone: their networks are the shipped ones
+#   (models/segment/<config>/s<seed>, or OUT/runs/<config>-s<seed> from run.sh). E's and G's
+#   ray drop comes from the generator, which was trained on unlabelled KITTI scans that
+#   include sequences 01-06, 09 and 10 (not 00 and 07; places.py says which places each
+#   config saw that way).
+# - B, C and F take drop statistics from real scans, and the oracle trains on real scans:
+#   they are trained once per fold of places, on the other fold's sequences, and score only
+#   the places of their own fold.
+#
+# Settings (environment) as run.sh (STEPS, PATIENCE, VAL_EVERY, SEEDS, JOBS, RANGEGAN_BIN,
+# REAL_LIDAR), and FOLD_A / FOLD_B, the two folds of sequences. Every step is skipped when
+# its output exists, so a killed run resumes (a training from its checkpoint).
+set -euo pipefail
+
+OUT=${1:-target/sim2real}
+BIN=${RANGEGAN_BIN:-target/release/rangegan-mcap}
+REAL=${REAL_LIDAR:-../shared/real_lidar}
+SCENES=${SCENES:-15}
+SCANS=${SCANS_PER_SCENE:-40}
+VAL_SCENES=${VAL_SCENES:-2}
+STEPS=${STEPS:-2000}
+PATIENCE=${PATIENCE:-6}
+VAL_EVERY=${VAL_EVERY:-200}
+SEEDS=${SEEDS:-"0"}
+JOBS=${JOBS:-2}
+FOLD_A=${FOLD_A:-"00 01 02 03 04"}
+FOLD_B=${FOLD_B:-"05 06 07 09 10"}
+HERE=$(cd "$(dirname "$0")" && pwd)
+MODELS=$(cd "$HERE/../.." && pwd)/models/segment
+
+[ -x "$BIN" ] || { echo "no binary at $BIN: run cargo build --release first" >&2; exit 2; }
+[ -d "$REAL/semantickitti_mini" ] || { echo "no labelled real scans under $REAL/semantickitti_mini" >&2; exit 2; }
+export BIN=$(cd "$(dirname "$BIN")" && pwd)/$(basename "$BIN")
+REAL=$(cd "$REAL" && pwd)
+mkdir -p "$OUT" && cd "$OUT"
+started=$(date +%s)
+log() { echo "[$(( $(date +%s) - started )) s] $*" >&2; }
+rg() { "$BIN" --quiet "$@"; }
+
+# 1. Each place as a recording, and each fold's real training data (the other fold's places).
+mkdir -p places real
+for s in $FOLD_A $FOLD_B; do
+  [ -f places/$s.mcap ] || rg import "$REAL/semantickitti_mini/$s" places/$s.mcap
+done
+import_sequences() { # NAME SEQUENCE...
+  local name=$1; shift
+  [ -f real/$name.mcap ] && return
+  rm -rf real/${name}_bins && mkdir -p real/${name}_bins/velodyne real/${name}_bins/labels
+  for s in "$@"; do
+    for f in "$REAL"/semantickitti_mini/$s/velodyne/*.bin; do
+      b=$(basename "$f" .bin)
+      ln -s "$f" real/${name}_bins/velodyne/${s}_$b.bin
+      ln -s "$REAL/semantickitti_mini/$s/labels/$b.label" real/${name}_bins/labels/${s}_$b.label
+    done
+  done
+  rg import real/${name}_bins real/$name.mcap
+}
+last() { echo "${@: -1}"; }
+all_but_last() { echo "${@:1:$#-1}"; }
+# fold a is scored by networks that learnt from fold b's places, and the other way round.
+import_sequences from_b $FOLD_B
+import_sequences from_b_fit $(all_but_last $FOLD_B)
+import_sequences from_b_val $(last $FOLD_B)
+import_sequences from_a $FOLD_A
+import_sequences from_a_fit $(all_but_last $FOLD_A)
+import_sequences from_a_val $(last $FOLD_A)
+log "places and folds imported"
+
+# 2. The ideal simulated scenes (shared with run.sh), the diagnosis of each fold's real
+#    scans, and B, C and F rendered from each fold's statistics.
+ALL_SCENES=$((SCENES + VAL_SCENES))
+mkdir -p sim/A
+for s in $(seq 1 "$ALL_SCENES"); do
+  [ -f sim/A/scene$s.mcap ] || rg simulate --scene "$s" --scans "$SCANS" --columns 512 --physics ideal sim/A/scene$s.mcap
+done
+render_set() { # SET ARGS...
+  local c=$1; shift; mkdir -p sim/$c
+  for s in $(seq 1 "$ALL_SCENES"); do
+    [ -f sim/$c/scene$s.mcap ] || echo "$s"
+  done | xargs -r -P "$JOBS" -I{} "$BIN" --quiet --threads 1 render "$@" --seed {} sim/A/scene{}.mcap sim/$c/scene{}.mcap
+}
+for f in a b; do
+  real=real/from_$f.mcap
+  [ -f diagnosis_from_$f/fitted_physics.json ] || rg diagnose --sim sim/A/scene1.mcap --real $real --report diagnosis_from_$f --force
+  render_set B_from_$f --raydrop global --real $real
+  render_set C_from_$f --raydrop pixel --real $real
+  render_set F_from_$f --physics diagnosis_from_$f/fitted_physics.json
+done
+log "rendered B, C and F from each fold"
+
+# 3. B, C, F and the oracle per fold and seed.
+for c in B C F; do for f in a b; do
+  mkdir -p split/${c}_from_$f/train split/${c}_from_$f/val
+  for s in $(seq 1 "$ALL_SCENES"); do
+    part=train; [ "$s" -gt "$SCENES" ] && part=val
+    ln -sf "$PWD/sim/${c}_from_$f/scene$s.mcap" split/${c}_from_$f/$part/scene$s.mcap
+  done
+done; done
+mkdir -p runs
+export STEPS PATIENCE VAL_EVERY
+for c in B C F real; do for f in a b; do for seed in $SEEDS; do echo "$c $f $seed"; done; done; done |
+  xargs -r -P "$JOBS" -L1 bash -c '
+  c=$0; f=$1; seed=$2
+  if [ "$c" = real ]; then
+    data=(real/from_${f}_fit.mcap --val real/from_${f}_val.mcap --augment)
+  else
+    data=(split/${c}_from_$f/train --val split/${c}_from_$f/val)
+  fi
+  "$BIN" --quiet --threads 1 segment train runs/${c}_from_$f-s$seed "${data[@]}" \
+    --steps "$STEPS" --patience "$PATIENCE" --val-every "$VAL_EVERY" --seed "$seed"
+' 2>&1 | tee -a places_train_errors.log
+log "trained the fold networks"
+
+# 4. Every network on every place it may score: eval/places/CONFIG-sSEED/PLACE.json.
+score() { # CONFIG SEED MODEL PLACE...
+  local c=$1 seed=$2 model=$3; shift 3
+  mkdir -p eval/places/$c-s$seed
+  for s in "$@"; do
+    local out=eval/places/$c-s$seed/$s.json
+    [ -f "$out" ] || rg --json segment eval --model "$model" places/$s.mcap > "$out"
+  done
+}
+for seed in $SEEDS; do
+  for c in A E G; do
+    model=runs/$c-s$seed/model
+    [ -d "$model" ] || model=$MODELS/$c/s$seed
+    [ -d "$model" ] && score $c $seed "$model" $FOLD_A $FOLD_B
+  done
+  for c in B C F real; do
+    score $c $seed runs/${c}_from_b-s$seed/model $FOLD_A
+    score $c $seed runs/${c}_from_a-s$seed/model $FOLD_B
+  done
+done
+python3 "$HERE/places.py" eval/places > places.md
+log "done: $OUT/places.md"
