@@ -16,8 +16,10 @@
 #   the places of their own fold.
 #
 # Settings (environment) as run.sh (STEPS, PATIENCE, VAL_EVERY, SEEDS, JOBS, RANGEGAN_BIN,
-# REAL_LIDAR), and FOLD_A / FOLD_B, the two folds of sequences. Every step is skipped when
-# its output exists, so a killed run resumes (a training from its checkpoint).
+# REAL_LIDAR), FOLD_A / FOLD_B, the two folds of sequences, and SHIPPED=1 to score the
+# shipped networks (models/segment/places/<config>_from_<fold>/s<seed>) instead of training
+# them. Every step is skipped when its output exists, so a killed run resumes (a training
+# from its checkpoint).
 set -euo pipefail
 
 OUT=${1:-target/sim2real}
@@ -33,6 +35,7 @@ SEEDS=${SEEDS:-"0"}
 JOBS=${JOBS:-2}
 FOLD_A=${FOLD_A:-"00 01 02 03 04"}
 FOLD_B=${FOLD_B:-"05 06 07 09 10"}
+SHIPPED=${SHIPPED:-0}
 HERE=$(cd "$(dirname "$0")" && pwd)
 MODELS=$(cd "$HERE/../.." && pwd)/models/segment
 
@@ -74,6 +77,7 @@ import_sequences from_a_fit $(all_but_last $FOLD_A)
 import_sequences from_a_val $(last $FOLD_A)
 log "places and folds imported"
 
+if [ "$SHIPPED" != 1 ]; then
 # 2. The ideal simulated scenes (shared with run.sh), the diagnosis of each fold's real
 #    scans, and B, C and F rendered from each fold's statistics.
 ALL_SCENES=$((SCENES + VAL_SCENES))
@@ -106,7 +110,7 @@ for c in B C F; do for f in a b; do
 done; done
 mkdir -p runs
 export STEPS PATIENCE VAL_EVERY
-for c in B C F real; do for f in a b; do for seed in $SEEDS; do echo "$c $f $seed"; done; done; done |
+for c in real F C B; do for f in a b; do for seed in $SEEDS; do echo "$c $f $seed"; done; done; done |
   xargs -r -P "$JOBS" -L1 bash -c '
   c=$0; f=$1; seed=$2
   if [ "$c" = real ]; then
@@ -118,6 +122,7 @@ for c in B C F real; do for f in a b; do for seed in $SEEDS; do echo "$c $f $see
     --steps "$STEPS" --patience "$PATIENCE" --val-every "$VAL_EVERY" --seed "$seed"
 ' 2>&1 | tee -a places_train_errors.log
 log "trained the fold networks"
+fi
 
 # 4. Every network on every place it may score: eval/places/CONFIG-sSEED/PLACE.json.
 score() { # CONFIG SEED MODEL PLACE...
@@ -135,8 +140,12 @@ for seed in $SEEDS; do
     [ -d "$model" ] && score $c $seed "$model" $FOLD_A $FOLD_B
   done
   for c in B C F real; do
-    score $c $seed runs/${c}_from_b-s$seed/model $FOLD_A
-    score $c $seed runs/${c}_from_a-s$seed/model $FOLD_B
+    for f in a b; do
+      model=runs/${c}_from_$f-s$seed/model
+      [ "$SHIPPED" = 1 ] && model=$MODELS/places/${c}_from_$f/s$seed
+      [ -d "$model" ] || continue
+      if [ $f = a ]; then score $c $seed "$model" $FOLD_B; else score $c $seed "$model" $FOLD_A; fi
+    done
   done
 done
 python3 "$HERE/places.py" eval/places > places.md
