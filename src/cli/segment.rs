@@ -210,16 +210,23 @@ fn train_config(a: &TrainArgs) -> anyhow::Result<SegTrainConfig> {
         .with_lovasz_weight(a.lovasz))
 }
 
-/// A model's name for tables and pictures: its folder, or the run's for RUN/model.
+/// A model's name for tables and pictures: its folder, the run's for RUN/model, and the
+/// config's with the seed for a shipped CONFIG/sSEED (`E/s0`).
 fn model_name(dir: &std::path::Path) -> String {
     let dir = dir.canonicalize().unwrap_or_else(|_| dir.to_path_buf());
     let own = dir.file_name().map(|n| n.to_string_lossy().into_owned());
-    match own.as_deref() {
-        Some("model") => dir
-            .parent()
-            .and_then(|p| p.file_name())
+    let parent = || {
+        (dir.parent().and_then(|p| p.file_name()))
             .map(|n| n.to_string_lossy().into_owned())
-            .unwrap_or_default(),
+            .unwrap_or_default()
+    };
+    let is_seed = |name: &str| {
+        name.strip_prefix('s')
+            .is_some_and(|n| !n.is_empty() && n.bytes().all(|b| b.is_ascii_digit()))
+    };
+    match own.as_deref() {
+        Some("model") => parent(),
+        Some(name) if is_seed(name) => format!("{}/{name}", parent()),
         Some(name) => name.to_string(),
         None => dir.display().to_string(),
     }
@@ -304,4 +311,22 @@ fn draw(a: PictureArgs) -> anyhow::Result<Outcome> {
     picture(&models, &data, a.scan, &a.output)
         .with_context(|| format!("cannot draw {}", a.output.display()))?;
     Ok(Outcome::Success)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::model_name;
+
+    #[test]
+    fn models_are_named_by_run_config_and_seed() {
+        let dir = tempfile::tempdir().unwrap();
+        for sub in ["E/s0", "runs/A-s1/model", "mine", "F/seed"] {
+            std::fs::create_dir_all(dir.path().join(sub)).unwrap();
+        }
+        let name = |sub: &str| model_name(&dir.path().join(sub));
+        assert_eq!(name("E/s0"), "E/s0");
+        assert_eq!(name("runs/A-s1/model"), "A-s1");
+        assert_eq!(name("mine"), "mine");
+        assert_eq!(name("F/seed"), "seed");
+    }
 }
