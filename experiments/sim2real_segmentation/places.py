@@ -139,6 +139,13 @@ def main():
         print(f"| {c} | {DESCRIPTION[c]} | {len(seeds[c])} | {fmt(point)} | {interval(draws[c])} | "
               f"{diff} | {diff_iv} | {fmt(person)} | {fmt(clean)} |")
 
+    if "E" in runs and "C" in runs:
+        diffs = [x - y for x, y in zip(draws["E"], draws["C"]) if x is not None and y is not None]
+        point = seed_mean(runs, "E", places) - seed_mean(runs, "C", places)
+        print()
+        print(f"E - C (the generator's x_n against the real per-pixel frequency): {point:.1f} "
+              f"(interval {interval(diffs)}).")
+
     if "real" in runs:
         sims = [c for c in configs if c != "real"]
         best = max(sims, key=lambda c: seed_mean(runs, c, places) or -1)
