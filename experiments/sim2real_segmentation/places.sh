@@ -44,28 +44,14 @@ MODELS=$(cd "$HERE/../.." && pwd)/models/segment
 export BIN=$(cd "$(dirname "$BIN")" && pwd)/$(basename "$BIN")
 REAL=$(cd "$REAL" && pwd)
 mkdir -p "$OUT" && cd "$OUT"
-started=$(date +%s)
-log() { echo "[$(( $(date +%s) - started )) s] $*" >&2; }
-rg() { "$BIN" --quiet "$@"; }
+ALL_SCENES=$((SCENES + VAL_SCENES))
+source "$HERE/common.sh"
 
 # 1. Each place as a recording, and each fold's real training data (the other fold's places).
 mkdir -p places real
 for s in $FOLD_A $FOLD_B; do
   [ -f places/$s.mcap ] || rg import "$REAL/semantickitti_mini/$s" places/$s.mcap
 done
-import_sequences() { # NAME SEQUENCE...
-  local name=$1; shift
-  [ -f real/$name.mcap ] && return
-  rm -rf real/${name}_bins && mkdir -p real/${name}_bins/velodyne real/${name}_bins/labels
-  for s in "$@"; do
-    for f in "$REAL"/semantickitti_mini/$s/velodyne/*.bin; do
-      b=$(basename "$f" .bin)
-      ln -s "$f" real/${name}_bins/velodyne/${s}_$b.bin
-      ln -s "$REAL/semantickitti_mini/$s/labels/$b.label" real/${name}_bins/labels/${s}_$b.label
-    done
-  done
-  rg import real/${name}_bins real/$name.mcap
-}
 last() { echo "${@: -1}"; }
 all_but_last() { echo "${@:1:$#-1}"; }
 # fold a is scored by networks that learnt from fold b's places, and the other way round.
@@ -80,17 +66,7 @@ log "places and folds imported"
 if [ "$SHIPPED" != 1 ]; then
 # 2. The ideal simulated scenes (shared with run.sh), the diagnosis of each fold's real
 #    scans, and B, C and F rendered from each fold's statistics.
-ALL_SCENES=$((SCENES + VAL_SCENES))
-mkdir -p sim/A
-for s in $(seq 1 "$ALL_SCENES"); do
-  [ -f sim/A/scene$s.mcap ] || rg simulate --scene "$s" --scans "$SCANS" --columns 512 --physics ideal sim/A/scene$s.mcap
-done
-render_set() { # SET ARGS...
-  local c=$1; shift; mkdir -p sim/$c
-  for s in $(seq 1 "$ALL_SCENES"); do
-    [ -f sim/$c/scene$s.mcap ] || echo "$s"
-  done | xargs -r -P "$JOBS" -I{} "$BIN" --quiet --threads 1 render "$@" --seed {} sim/A/scene{}.mcap sim/$c/scene{}.mcap
-}
+simulate_scenes
 for f in a b; do
   real=real/from_$f.mcap
   [ -f diagnosis_from_$f/fitted_physics.json ] || rg diagnose --sim sim/A/scene1.mcap --real $real --report diagnosis_from_$f --force

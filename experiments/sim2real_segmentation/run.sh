@@ -41,27 +41,13 @@ HERE=$(cd "$(dirname "$0")" && pwd)
 export BIN=$(cd "$(dirname "$BIN")" && pwd)/$(basename "$BIN")
 REAL=$(cd "$REAL" && pwd)
 mkdir -p "$OUT" && cd "$OUT"
-started=$(date +%s)
-log() { echo "[$(( $(date +%s) - started )) s] $*" >&2; }
-rg() { "$BIN" --quiet "$@"; }
+ALL_SCENES=$((SCENES + VAL_SCENES))
+source "$HERE/common.sh"
 
 # 1. Labelled real scans: the training sequences in one recording (the oracle's data and the
 #    real side of B, C and F), the oracle's own split of them (fit and validation), and the
 #    held-out sequences, never trained or tuned on.
 mkdir -p real
-import_sequences() { # NAME SEQUENCE...
-  local name=$1; shift
-  [ -f real/$name.mcap ] && return
-  rm -rf real/${name}_bins && mkdir -p real/${name}_bins/velodyne real/${name}_bins/labels
-  for s in "$@"; do
-    for f in "$REAL"/semantickitti_mini/$s/velodyne/*.bin; do
-      b=$(basename "$f" .bin)
-      ln -s "$f" real/${name}_bins/velodyne/${s}_$b.bin
-      ln -s "$REAL/semantickitti_mini/$s/labels/$b.label" real/${name}_bins/labels/${s}_$b.label
-    done
-  done
-  rg import real/${name}_bins real/$name.mcap
-}
 import_sequences train 01 02 03 04 05 06 09 10
 import_sequences oracle_fit 01 02 03 04 05 09 10
 import_sequences oracle_val 06
@@ -74,11 +60,7 @@ done
 log "real recordings ready"
 
 # 2. Config A: ideal simulated scans (no ray drop), many scenes; the last VAL_SCENES validate.
-ALL_SCENES=$((SCENES + VAL_SCENES))
-mkdir -p sim/A
-for s in $(seq 1 "$ALL_SCENES"); do
-  [ -f sim/A/scene$s.mcap ] || rg simulate --scene "$s" --scans "$SCANS" --columns 512 --physics ideal sim/A/scene$s.mcap
-done
+simulate_scenes
 log "simulated $ALL_SCENES scenes x $SCANS scans"
 
 # 3. What diagnose finds between the simulator and the real training scans (config F).
@@ -87,12 +69,6 @@ log "simulated $ALL_SCENES scenes x $SCANS scans"
 python3 "$HERE/physics_without_drops.py" diagnosis/fitted_physics.json > diagnosis/perturbations_only.json
 
 # 4. The rendered training sets, one recording per scene; draws seeded per scene.
-render_set() { # CONFIG ARGS...
-  local c=$1; shift; mkdir -p sim/$c
-  for s in $(seq 1 "$ALL_SCENES"); do
-    [ -f sim/$c/scene$s.mcap ] || echo "$s"
-  done | xargs -r -P "$JOBS" -I{} "$BIN" --quiet --threads 1 render "$@" --seed {} sim/A/scene{}.mcap sim/$c/scene{}.mcap
-}
 render_set B --raydrop global --real real/train.mcap
 render_set C --raydrop pixel --real real/train.mcap
 render_set F --physics diagnosis/fitted_physics.json

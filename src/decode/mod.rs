@@ -731,11 +731,10 @@ impl Decoded {
     /// rendering the shared generator once more on a sensor's full-resolution grid would
     /// cost as much as the depth's rendering.
     pub fn render_prepared(&self, grid: &PreparedGrid) -> Rendered {
-        let depth_m = self.units.clamped_depths(&self.x_d_on(grid));
-        let keep_logit = match self.model_keep_logit.is_empty() {
-            true => self.keep_logit_on(grid),
-            false => self.model_keep_logit_on(&grid.render_grid),
-        };
+        let depth_m = self
+            .units
+            .clamped_depths(&self.heads_on(&self.generator, grid).0);
+        let keep_logit = self.model_keep_logit_on(&grid.render_grid);
         self.calibrated(grid, depth_m, &keep_logit)
     }
 
@@ -781,30 +780,20 @@ impl Decoded {
     /// Depth in meters (the tuned generator) and the uncalibrated keep logit (the generator
     /// before tuning) on `grid.render_grid`.
     fn render_raw(&self, grid: &PreparedGrid) -> (Vec<f32>, Vec<f32>) {
-        let depth_m = self.units.clamped_depths(&self.x_d_on(grid));
-        (depth_m, self.keep_logit_on(grid))
+        let depth_m = self
+            .units
+            .clamped_depths(&self.heads_on(&self.generator, grid).0);
+        (depth_m, self.heads_on(&self.pivot, grid).1)
     }
 
-    /// The tuned generator's x_d (network units) on `grid.render_grid`.
-    fn x_d_on(&self, grid: &PreparedGrid) -> Vec<f32> {
+    /// `generator`'s two heads at this scan's latent on `grid.render_grid`: x_d (network
+    /// units) and the uncalibrated keep logit.
+    fn heads_on(&self, generator: &Generator, grid: &PreparedGrid) -> (Vec<f32>, Vec<f32>) {
         let w = tensor_to_vec(self.w.clone());
-        match pivotal::render(&self.generator, &grid.cache, &w) {
-            Some((x_d, _)) => x_d,
-            None => tensor_to_vec(self.generator.render(self.w.clone(), &grid.cache, None).x_d),
-        }
-    }
-
-    /// The shared generator's uncalibrated keep logit on `grid.render_grid`.
-    fn keep_logit_on(&self, grid: &PreparedGrid) -> Vec<f32> {
-        let w = tensor_to_vec(self.w.clone());
-        match pivotal::render(&self.pivot, &grid.cache, &w) {
-            Some((_, keep_logit)) => keep_logit,
-            None => tensor_to_vec(
-                self.pivot
-                    .render(self.w.clone(), &grid.cache, None)
-                    .keep_logit,
-            ),
-        }
+        pivotal::render(generator, &grid.cache, &w).unwrap_or_else(|| {
+            let out = generator.render(self.w.clone(), &grid.cache, None);
+            (tensor_to_vec(out.x_d), tensor_to_vec(out.keep_logit))
+        })
     }
 
     /// The model grid's keep logit resampled bilinearly onto `target` (0 where no model row

@@ -786,19 +786,24 @@ mod tests {
         assert!((lhs - rhs).abs() < 1e-4, "{lhs} vs {rhs}");
     }
 
-    /// The hand-written rendering is the generator's own, both heads, on a grid wider than
-    /// any the tests tune on.
-    #[test]
-    fn hand_written_rendering_matches_the_generator() {
-        let dev = Device::flex();
-        let g = GeneratorConfig::new()
+    /// A three-level generator small enough for exact comparisons (d_w 8).
+    fn three_block_generator(seed: u64, dev: &Device) -> Generator {
+        GeneratorConfig::new()
             .with_mapping(MappingConfig::new().with_d_z(8).with_d_w(8))
             .with_channels(vec![12, 8, 6])
             .with_n_freq(vec![5, 4, 3])
             .with_lh(vec![3, 4, 5])
             .with_lw(vec![2, 3, 4])
-            .with_seed(7)
-            .init(&dev);
+            .with_seed(seed)
+            .init(dev)
+    }
+
+    /// The hand-written rendering is the generator's own, both heads, on a grid wider than
+    /// any the tests tune on.
+    #[test]
+    fn hand_written_rendering_matches_the_generator() {
+        let dev = Device::flex();
+        let g = three_block_generator(7, &dev);
         let cache = g.prepare(&kitti_like_grid(8, 128), &dev);
         let w = g.mapping.forward(Rng::new(4).normal_tensor([1, 8], &dev));
         let want = g.render(w.clone(), &cache, None);
@@ -823,14 +828,7 @@ mod tests {
     fn hand_written_tuning_matches_autodiff() {
         let dev = Device::flex();
         let ad = dev.clone().autodiff();
-        let g = GeneratorConfig::new()
-            .with_mapping(MappingConfig::new().with_d_z(8).with_d_w(8))
-            .with_channels(vec![12, 8, 6])
-            .with_n_freq(vec![5, 4, 3])
-            .with_lh(vec![3, 4, 5])
-            .with_lw(vec![2, 3, 4])
-            .with_seed(5)
-            .init(&dev);
+        let g = three_block_generator(5, &dev);
         let grid = kitti_like_grid(8, 32);
         let cache = g.prepare(&grid, &dev);
         let cache_ad = g.prepare(&grid, &ad);

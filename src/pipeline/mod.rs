@@ -471,8 +471,9 @@ struct Converter<'a> {
     batch: Vec<Pending>,
     /// Scans seen per converted topic (they number the chains).
     topic_scans: HashMap<String, usize>,
-    /// Full batches to the thread that processes them ([`process_batches`]), and back.
-    to_process: mpsc::Sender<Vec<Pending>>,
+    /// Full batches to the thread that processes them ([`process_batches`]), and back; the
+    /// sender is dropped when reading ends, which ends that thread.
+    to_process: Option<mpsc::Sender<Vec<Pending>>>,
     processed: mpsc::Receiver<BatchResults>,
     /// Batches handed over whose outputs are not written yet.
     in_flight: usize,
@@ -538,8 +539,9 @@ impl Converter<'_> {
     fn hand_over(&mut self) -> anyhow::Result<()> {
         let batch = std::mem::take(&mut self.batch);
         if !batch.is_empty() {
-            (self.to_process.send(batch))
-                .map_err(|_| anyhow::anyhow!("scan processing stopped"))?;
+            (self.to_process.as_ref())
+                .and_then(|to| to.send(batch).ok())
+                .ok_or_else(|| anyhow::anyhow!("scan processing stopped"))?;
             self.in_flight += 1;
         }
         while self.in_flight > 1 {
@@ -742,7 +744,7 @@ pub fn convert(
         table: ChannelTable::default(),
         batch: Vec::new(),
         topic_scans: HashMap::new(),
-        to_process,
+        to_process: Some(to_process),
         processed,
         in_flight: 0,
         scans_done: 0,
@@ -773,9 +775,7 @@ pub fn convert(
             e => anyhow::anyhow!("{}: {e}", input.display()),
         });
         let read = read.and_then(|read| conv.flush().map(|()| read));
-        // The processing thread ends when it has no batch to wait for.
-        let (closed, _) = mpsc::channel();
-        drop(std::mem::replace(&mut conv.to_process, closed));
+        conv.to_process = None;
         read
     })?;
     let mut report = conv.report;
