@@ -14,6 +14,8 @@ pub struct SelfOcclusionFamily;
 const SECTORS: usize = 64;
 /// A blocked sector must drop at least this share of its rays.
 const MIN_BLOCK_PROB: f64 = 0.4;
+/// The share of the turn's sectors beyond which blocked bottom rows are not a body's.
+const ALL_ROUND: f64 = 0.75;
 
 impl SelfOcclusionFamily {
     fn sectors(px: &Pixels) -> usize {
@@ -74,9 +76,11 @@ impl DropFamily for SelfOcclusionFamily {
             }
         }
         let blocked = skyline.iter().filter(|s| s.0 > 0).count();
-        if blocked == 0 {
+        // A vehicle's body blocks part of the turn. Bottom rows that lose rays nearly all
+        // the way round are the lasers' own (`beam_dropout`'s), whatever their skyline.
+        if blocked == 0 || blocked as f64 >= ALL_ROUND * g_count as f64 {
             return Some(DropFit {
-                drop_prob,
+                drop_prob: vec![0.0; table.bins],
                 params: Map::new(),
                 physics: Map::new(),
                 n_params: 0,
