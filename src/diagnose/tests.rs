@@ -307,27 +307,6 @@ fn concealed_beam_dropout() {
     }
 }
 
-/// Weak lasers with the bottom one lost all the way round: the lasers' drops, not a body
-/// blocking the bottom rows in every sector.
-#[test]
-fn a_laser_lost_all_round_is_not_self_occlusion() {
-    let effect = |case| -> Vec<Box<dyn Effect>> {
-        vec![Box::new(BeamDropout {
-            enabled: true,
-            rates: None,
-            mean_rate: 0.08 + 0.04 * u(case, 7),
-            spread: 0.9,
-            beam_seed: case,
-            dead_beams: vec![63],
-        })]
-    };
-    for (_, d) in diagnose_cases(133, 234, effect) {
-        assert_named_first(&d, "beam_dropout");
-        let named: Vec<&str> = d.report.effects.iter().map(|e| e.id.as_str()).collect();
-        assert!(!named.contains(&"self_occlusion"), "{named:?}");
-    }
-}
-
 /// Edge drops near the sensor only (as behind a near edge), or at every range: the fitted
 /// on-edge rate follows the truth band by band.
 #[test]

@@ -14,8 +14,21 @@ pub struct SelfOcclusionFamily;
 const SECTORS: usize = 64;
 /// A blocked sector must drop at least this share of its rays.
 const MIN_BLOCK_PROB: f64 = 0.4;
-/// The share of the turn's sectors beyond which blocked bottom rows are not a body's.
+/// The share of the turn's sectors from which blocked bottom rows may be the lasers'.
 const ALL_ROUND: f64 = 0.75;
+/// ... when they lose less than this share of their rays on average.
+const BODY_BLOCK_PROB: f64 = 0.9;
+
+/// Whether a skyline (blocked bottom rows and probability per sector) is the lasers' own
+/// drops rather than a body. A body hides part of the turn (KITTI's car: 214 of 360 deg in
+/// its fit), or all round (a roof below the sensor) nearly every ray of the rows it hides;
+/// weak or dead lasers lose a share of their rays in every direction, and `beam_dropout`
+/// reads them.
+fn lasers_all_round(skyline: &[(usize, f64)]) -> bool {
+    let blocked: Vec<f64> = skyline.iter().filter(|s| s.0 > 0).map(|s| s.1).collect();
+    let mean = blocked.iter().sum::<f64>() / blocked.len().max(1) as f64;
+    blocked.len() as f64 >= ALL_ROUND * skyline.len() as f64 && mean < BODY_BLOCK_PROB
+}
 
 impl SelfOcclusionFamily {
     fn sectors(px: &Pixels) -> usize {
@@ -76,9 +89,7 @@ impl DropFamily for SelfOcclusionFamily {
             }
         }
         let blocked = skyline.iter().filter(|s| s.0 > 0).count();
-        // A vehicle's body blocks part of the turn. Bottom rows that lose rays nearly all
-        // the way round are the lasers' own (`beam_dropout`'s), whatever their skyline.
-        if blocked == 0 || blocked as f64 >= ALL_ROUND * g_count as f64 {
+        if blocked == 0 || lasers_all_round(&skyline) {
             return Some(DropFit {
                 drop_prob: vec![0.0; table.bins],
                 params: Map::new(),
@@ -151,5 +162,26 @@ impl DropFamily for SelfOcclusionFamily {
             n_params: 2 * blocked,
             location: format!("fixed region in the bottom rows: {}", words.join("; ")),
         })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn rows_lost_in_part_all_round_are_the_lasers_and_a_body_is_not() {
+        let sectors = |blocked: usize, p: f64| -> Vec<(usize, f64)> {
+            (0..SECTORS)
+                .map(|g| if g < blocked { (3, p) } else { (0, 0.0) })
+                .collect()
+        };
+        // Weak bottom lasers: 40 % of their rays lost in every direction.
+        assert!(lasers_all_round(&sectors(SECTORS, 0.4)));
+        assert!(lasers_all_round(&sectors(SECTORS * 4 / 5, 0.6)));
+        // A car behind and beside the sensor, however partial its blocks.
+        assert!(!lasers_all_round(&sectors(SECTORS * 3 / 5, 0.6)));
+        // A roof all round: every ray of its rows.
+        assert!(!lasers_all_round(&sectors(SECTORS, 0.99)));
     }
 }
