@@ -52,6 +52,12 @@ def grids(path):
             yield grid
 
 
+def nearest(row, c, step):
+    """The label of the first return from column `c` in direction `step` within REACH."""
+    labels = (row[(c + step * d) % COLUMNS] for d in range(1, REACH + 1))
+    return next((label for label in labels if label >= 0), None)
+
+
 def tally(path, counts):
     for grid in grids(path):
         for row in grid:
@@ -60,10 +66,7 @@ def tally(path, counts):
                     if label in CLASSES:
                         counts[label][0] += 1
                     continue
-                left = next((row[(c - d) % COLUMNS] for d in range(1, REACH + 1)
-                             if row[(c - d) % COLUMNS] >= 0), None)
-                right = next((row[(c + d) % COLUMNS] for d in range(1, REACH + 1)
-                              if row[(c + d) % COLUMNS] >= 0), None)
+                left, right = nearest(row, c, -1), nearest(row, c, 1)
                 if left is not None and left == right and left in CLASSES:
                     counts[left][1] += 1
 
