@@ -22,14 +22,21 @@
 //! `--blocks K` judges the first K synthesis blocks on their own grid (a coarse-to-fine
 //! stage), with the real scans point-sampled to it. A MODEL_DIR is a model directory or a
 //! training run; `shipped` is the compiled-in model. Prints one JSON object.
+//!
+//! For a training run whose checkpoint holds the discriminator of that grid, `memorisation`
+//! says how well that discriminator tells the training scans it learned on from real scans
+//! it never saw: the AUC of its logits on the two (0.5: no better than chance, 1: it knows
+//! every training scan), and its mean logit on training, held-out and generated scans.
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 
 use anyhow::{Context, Result, bail};
+use burn::module::Module;
 use burn::tensor::Device;
 use rangegan_mcap::lidar::AngleGrid;
 use rangegan_mcap::model::AnyGenerator;
 use rangegan_mcap::model::data::{RangeDataset, kitti_heldout_files, kitti_validation_split};
+use rangegan_mcap::model::discriminator::Discriminator;
 use rangegan_mcap::model::generator::Generator;
 use rangegan_mcap::model::layers::AngleGridExt;
 use rangegan_mcap::model::metrics::{SwdConfig, swd};
@@ -37,10 +44,12 @@ use rangegan_mcap::model::sample::{SampleOptions, sample};
 use rangegan_mcap::model::two_sample::{
     C2stConfig, C2stReport, blur_returns, c2st, frechet_distance, texture_features,
 };
-use rangegan_mcap::model::weights::{Model, parse_labelled_model};
+use rangegan_mcap::model::weights::{CHECKPOINT, Model, parse_labelled_model};
 use rangegan_mcap::train::growth::{Level, Stage};
+use rangegan_mcap::train::load_config;
 use rangegan_mcap::train::write_png;
 use rangegan_mcap::util::rng::Rng;
+use rangegan_mcap::util::tensor::{tensor_from, tensor_to_vec};
 
 #[derive(clap::Parser)]
 struct Args {
@@ -232,6 +241,73 @@ fn samples(
     })
 }
 
+/// Logits of `d` on `set`, in batches of `batch` (its minibatch-stddev groups see one set).
+fn logits(d: &Discriminator, set: &Images, batch: usize, device: &Device) -> Vec<f32> {
+    set.images
+        .chunks(batch)
+        .filter(|c| c.len() == batch)
+        .flat_map(|chunk| {
+            let v: Vec<f32> = chunk.iter().flatten().copied().collect();
+            tensor_to_vec(d.forward(tensor_from(v, [batch, 1, set.h, set.w], device)))
+        })
+        .collect()
+}
+
+/// Probability that a random `a` scores above a random `b` (ties count half).
+fn auc(a: &[f32], b: &[f32]) -> f64 {
+    let above: f64 = a
+        .iter()
+        .map(|x| {
+            b.iter()
+                .map(|y| match x.partial_cmp(y) {
+                    Some(std::cmp::Ordering::Greater) => 1.0,
+                    Some(std::cmp::Ordering::Equal) => 0.5,
+                    _ => 0.0,
+                })
+                .sum::<f64>()
+        })
+        .sum();
+    above / (a.len() * b.len()).max(1) as f64
+}
+
+/// The run's discriminator on training, held-out and generated scans, where `dir` is a
+/// training run whose checkpoint's discriminator judges `level`'s grid.
+fn memorisation(
+    dir: &Path,
+    level: &Level,
+    sets: [&Images; 3],
+    device: &Device,
+) -> Result<Option<serde_json::Value>> {
+    let ck = dir.join(CHECKPOINT);
+    if !ck.join("d.bpk").exists() {
+        return Ok(None);
+    }
+    let config = load_config(&dir.join("config.json"))?;
+    let state: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(ck.join("state.json"))?)?;
+    let stage = state["stage"].as_u64().unwrap_or(0) as usize;
+    let full = stage >= config.stages.len();
+    if full != (level.factor == 1) {
+        return Ok(None);
+    }
+    let d = config
+        .discriminator_of(stage)
+        .clone()
+        .with_height(level.height)
+        .with_width(level.width)
+        .init(device)
+        .try_load_file(ck.join("d.bpk"))
+        .map_err(|e| anyhow::anyhow!("failed to load '{}': {e}", ck.display()))?;
+    let batch = config.batch_size.clamp(1, 8);
+    let [train, heldout, generated] = sets.map(|s| logits(&d, s, batch, device));
+    let mean = |v: &[f32]| v.iter().sum::<f32>() / v.len().max(1) as f32;
+    Ok(Some(serde_json::json!({
+        "auc_training_vs_heldout": auc(&train, &heldout),
+        "auc_heldout_vs_generated": auc(&heldout, &generated),
+        "mean_logit": {"training": mean(&train), "heldout": mean(&heldout), "generated": mean(&generated)},
+    })))
+}
+
 fn main() -> Result<()> {
     let args = <Args as clap::Parser>::parse();
     let device = Device::flex();
@@ -341,6 +417,11 @@ fn main() -> Result<()> {
         picture.extend(set.images.iter().take(8).cloned());
         let mut row = judge(label, &set);
         row["model"] = source.into();
+        if let Some(dir) = dir
+            && let Some(m) = memorisation(dir, &level, [&train, &heldout, &set], &device)?
+        {
+            row["memorisation"] = m;
+        }
         rows.push(row);
     }
     let n = heldout.images.len();

@@ -16,6 +16,7 @@ use crate::physics::pretraining::PretrainingSet;
 use crate::pipeline::SensorChoice;
 use crate::train::growth::{Stage, parse_stage};
 use crate::train::reconstruct::ReconstructionConfig;
+use crate::train::regularise::DRegularisation;
 use crate::train::scans::{Layout, ScanSource};
 use crate::train::widen::widen_run;
 use crate::train::{Backend, CHECKPOINT, TrainConfig, TrainOptions, load_config, run};
@@ -213,6 +214,20 @@ pub struct TrainArgs {
     /// the reconstruction beside the discriminator.
     #[arg(long, value_name = "WEIGHT")]
     pub reconstruction: Option<f32>,
+    /// The discriminator's LeCam regulariser with this weight (0.1-0.3 for small data):
+    /// D's logits on real and generated scans are kept from drifting apart. Any of
+    /// `--lecam`, `--diff-augment` and `--apa` on a resumed run replaces its saved
+    /// regularisers with exactly those given, so one checkpoint can be branched into runs
+    /// that compare them.
+    #[arg(long, value_name = "WEIGHT")]
+    pub lecam: Option<f32>,
+    /// DiffAugment-style translation and cutout of every scan the discriminator sees.
+    #[arg(long)]
+    pub diff_augment: bool,
+    /// Adaptive pseudo augmentation: the discriminator is shown some generated scans as
+    /// real, as often as it overfits (the same measure as adaptive augmentation).
+    #[arg(long)]
+    pub apa: bool,
 }
 
 pub fn run_train(global: &GlobalArgs, args: TrainArgs) -> anyhow::Result<Outcome> {
@@ -261,6 +276,18 @@ pub fn run_train(global: &GlobalArgs, args: TrainArgs) -> anyhow::Result<Outcome
         );
         config = config.with_reconstruction(Some(ReconstructionConfig::new().with_weight(weight)));
     }
+    let regularisation = (args.lecam.is_some() || args.diff_augment || args.apa).then(|| {
+        DRegularisation::new()
+            .with_lecam(args.lecam.unwrap_or(0.0))
+            .with_diff_augment(args.diff_augment)
+            .with_apa(args.apa)
+    });
+    if let Some(w) = args.lecam {
+        anyhow::ensure!(w.is_finite() && w >= 0.0, "--lecam must be a weight >= 0");
+    }
+    if let Some(r) = &regularisation {
+        config = config.with_regularisation(r.clone());
+    }
     if !args.stages.is_empty() {
         config = config.with_stages(args.stages.clone());
     }
@@ -298,6 +325,7 @@ pub fn run_train(global: &GlobalArgs, args: TrainArgs) -> anyhow::Result<Outcome
         total_images: args.total_images,
         progress: !global.quiet,
         init_from: args.init_from,
+        regularisation,
     };
     run(&opts)?;
     Ok(Outcome::Success)

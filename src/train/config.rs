@@ -21,6 +21,7 @@ use crate::util::rng::Rng;
 
 use super::growth::Stage;
 use super::reconstruct::ReconstructionConfig;
+use super::regularise::{DRegularisation, LecamAnchors};
 use super::run_dir::Backend;
 use super::scans::ScanSource;
 
@@ -131,6 +132,9 @@ pub struct TrainConfig {
     /// 0: off.
     #[config(default = 0.0)]
     pub drop_rate_weight: f32,
+    /// The discriminator's regularisers for small data beside ADA (all off by default).
+    #[config(default = "DRegularisation::new()")]
+    pub regularisation: DRegularisation,
 }
 
 /// How to run training (not part of the saved config).
@@ -152,6 +156,9 @@ pub struct TrainOptions {
     /// Start a new run from these weights (fine-tuning): a training run (its checkpoint's
     /// G, EMA G and D) or a model directory (EMA G only; D starts fresh).
     pub init_from: Option<PathBuf>,
+    /// Replaces the (saved) discriminator regularisers, e.g. to branch a run into a
+    /// comparison of them from one checkpoint.
+    pub regularisation: Option<DRegularisation>,
 }
 
 /// Mutable training state saved with each checkpoint.
@@ -170,6 +177,12 @@ pub struct TrainState {
     /// Images seen when that stage began.
     #[serde(default)]
     pub stage_start_images: u64,
+    /// The LeCam term's moving averages of D's logits (from its first step).
+    #[serde(default)]
+    pub lecam: Option<LecamAnchors>,
+    /// APA's probability of showing a generated image as real.
+    #[serde(default)]
+    pub apa_p: f32,
 }
 
 /// Build the generator of `config.arch`.

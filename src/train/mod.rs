@@ -5,6 +5,8 @@
 //! - [`config`]: a GAN run's saved settings, options and checkpointed state.
 //! - [`gan`]: the range-image GAN's training loop, with checkpoints and resume.
 //! - [`update`]: gradient means and masks, the generator's EMA, adaptive augmentation.
+//! - [`regularise`]: the discriminator's other regularisers for small data: LeCam,
+//!   DiffAugment-style translation and cutout, adaptive pseudo augmentation.
 //! - [`encoder`]: the amortised encoder of `convert --quality fast`, trained against a
 //!   frozen generator (`train-encoder`).
 //! - [`growth`]: coarse-to-fine training: the generator's synthesis pyramid grown a level at
@@ -25,6 +27,7 @@ pub mod growth;
 pub mod hole_fill;
 pub mod ray_move;
 pub mod reconstruct;
+pub mod regularise;
 pub mod row_fill;
 pub mod run_dir;
 pub mod scans;

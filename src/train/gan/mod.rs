@@ -54,14 +54,21 @@ pub fn run(opts: &TrainOptions) -> Result<()> {
             .with_context(|| format!("failed to write '{}'", config_path.display()))?;
         config
     };
-    let config = match opts.total_images {
-        Some(n) if n != config.total_images => {
-            let c = config.with_total_images(n);
-            c.save(&config_path)
-                .with_context(|| format!("failed to write '{}'", config_path.display()))?;
-            c
-        }
-        _ => config,
+    // The image budget and the discriminator's regularisers may change on a resumed run.
+    let mut changed = config.clone();
+    if let Some(n) = opts.total_images {
+        changed = changed.with_total_images(n);
+    }
+    if let Some(r) = &opts.regularisation {
+        changed = changed.with_regularisation(r.clone());
+    }
+    let config = if serde_json::to_value(&changed)? != serde_json::to_value(&config)? {
+        changed
+            .save(&config_path)
+            .with_context(|| format!("failed to write '{}'", config_path.display()))?;
+        changed
+    } else {
+        config
     };
     config
         .check_grid(&data)
@@ -204,6 +211,8 @@ impl Trainer {
                     "d_real": m.d_real,
                     "d_fake": m.d_fake,
                     "ada_p": self.state.ada_p,
+                    "apa_p": self.config.regularisation.apa.then_some(self.state.apa_p),
+                    "lecam": self.state.lecam.map(|a| [a.real, a.fake]),
                     "pixel_drop": m.pixel_drop,
                     "images_per_s": ips,
                     "stage": self.state.stage,

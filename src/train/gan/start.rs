@@ -50,6 +50,8 @@ impl Trainer {
                 ada_count: 0,
                 stage: 0,
                 stage_start_images: 0,
+                lecam: None,
+                apa_p: 0.0,
             }
         };
         let level = Level::of(

@@ -19,6 +19,7 @@ use crate::util::tensor::{tensor_from, tensor_to_vec};
 use super::Trainer;
 use crate::train::config::TrainConfig;
 use crate::train::reconstruct::{self, Losses};
+use crate::train::regularise::{LecamAnchors, pseudo_reals, translate_cutout};
 use crate::train::update::{augment, drop_head_grads, ema_update, mean_grads};
 
 impl Trainer {
@@ -33,10 +34,21 @@ impl Trainer {
         let shift = self.subgrid();
         let real = self.real_batch(data, &device);
         let lazy = cfg.r1_gamma > 0.0 && self.state.step.is_multiple_of(cfg.r1_interval as u64);
+        let regularisation = cfg.regularisation.clone();
         let view = DView {
             pixel_drop: self.pixel_drop(),
             ada_p: self.state.ada_p,
+            diff_augment: regularisation.diff_augment,
         };
+        let apa_p = if regularisation.apa {
+            self.state.apa_p
+        } else {
+            0.0
+        };
+        let lecam = (regularisation.lecam > 0.0)
+            .then_some(self.state.lecam)
+            .flatten()
+            .map(|anchors| (regularisation.lecam, anchors));
         let n = cfg.batch_size / parts;
         let seeds: Vec<u64> = (0..parts).map(|_| self.state.rng.next_u64()).collect();
         let r1_gamma = self.level.r1_gamma(cfg.r1_gamma);
@@ -51,13 +63,13 @@ impl Trainer {
                 let fake = measure(&cfg.measurement, fake, &mut rng).autodiff();
                 let real = real.clone().narrow(0, k * n, n);
                 let seen = [BatchStats::of(&real), BatchStats::of(&fake)];
+                let (real, swapped) = pseudo_reals(real, fake.clone(), apa_p, &mut rng);
                 let fake = view.apply(fake, &mut rng);
                 let real = view.apply(real, &mut rng);
                 let v = lazy.then(|| rng.normal_tensor(real.dims(), &device));
-                (
-                    d_part(&self.d, &device, &cfg, r1_gamma, fake, real, v),
-                    seen,
-                )
+                let mut part = d_part(&self.d, &device, &cfg, r1_gamma, lecam, fake, real, v);
+                part.swapped = swapped;
+                (part, seen)
             })
             .collect();
         let (d_parts, seen): (Vec<DPart>, Vec<[BatchStats; 2]>) = d_parts.into_iter().unzip();
@@ -66,20 +78,39 @@ impl Trainer {
         let (loss_d, d_fake) = (mean(&|p| p.loss_d), mean(&|p| p.d_fake));
         let r1 = lazy.then(|| mean(&|p| p.r1.unwrap_or(0.0)));
         let d_real: Vec<f32> = d_parts.iter().flat_map(|p| p.d_real.clone()).collect();
+        // The overfitting heuristic reads the real scans D saw, not APA's pseudo reals.
+        let truly_real: Vec<f32> = d_parts
+            .iter()
+            .flat_map(|p| {
+                p.d_real
+                    .iter()
+                    .zip(&p.swapped)
+                    .filter(|(_, s)| !**s)
+                    .map(|(v, _)| *v)
+            })
+            .collect();
+        if regularisation.lecam > 0.0 && !truly_real.is_empty() {
+            let real_mean = truly_real.iter().sum::<f32>() / truly_real.len() as f32;
+            self.state.lecam = Some(LecamAnchors::update(self.state.lecam, real_mean, d_fake));
+        }
         if r1.is_some() {
             self.last_r1 = r1;
         }
         let grads = mean_grads(&self.d, d_parts.into_iter().map(|p| p.grads).collect());
         self.d = self.opt_d.step(cfg.lr, self.d.clone(), grads);
 
-        // Adaptive augmentation: move p towards E[sign(D(real))] = target.
-        self.state.ada_acc += d_real.iter().map(|v| v.signum()).sum::<f32>();
-        self.state.ada_count += d_real.len() as u64;
+        // Adaptive augmentation (and APA's probability): move p towards
+        // E[sign(D(real))] = target.
+        self.state.ada_acc += truly_real.iter().map(|v| v.signum()).sum::<f32>();
+        self.state.ada_count += truly_real.len() as u64;
         if self.state.step.is_multiple_of(cfg.ada_interval as u64) && self.state.ada_count > 0 {
             let rt = self.state.ada_acc / self.state.ada_count as f32;
             let delta = (cfg.batch_size * cfg.ada_interval) as f64 / cfg.ada_speed_images;
-            let p = self.state.ada_p + (rt - cfg.ada_target).signum() * delta as f32;
-            self.state.ada_p = p.clamp(0.0, 1.0);
+            let step = (rt - cfg.ada_target).signum() * delta as f32;
+            self.state.ada_p = (self.state.ada_p + step).clamp(0.0, 1.0);
+            if regularisation.apa {
+                self.state.apa_p = (self.state.apa_p + step).clamp(0.0, 1.0);
+            }
             self.state.ada_acc = 0.0;
             self.state.ada_count = 0;
         }
@@ -377,11 +408,13 @@ pub(super) fn drop_rate_anchor(keep_logit: Tensor<4>, target: &[f32]) -> Tensor<
     (rows - target).powi_scalar(2).mean()
 }
 
-/// What D sees: early pixel dropout then augmentation (same for real and fake).
+/// What D sees: early pixel dropout, then augmentation, then DiffAugment's translation and
+/// cutout where the run has them (the same for real and fake).
 #[derive(Debug, Clone, Copy)]
 struct DView {
     pixel_drop: f32,
     ada_p: f32,
+    diff_augment: bool,
 }
 
 impl DView {
@@ -395,8 +428,13 @@ impl DView {
         } else {
             x
         };
-        if self.ada_p > 0.0 {
+        let x = if self.ada_p > 0.0 {
             augment(x, self.ada_p, rng)
+        } else {
+            x
+        };
+        if self.diff_augment {
+            translate_cutout(x, rng)
         } else {
             x
         }
@@ -410,15 +448,20 @@ struct DPart {
     r1: Option<f32>,
     d_real: Vec<f32>,
     d_fake: f32,
+    /// Which of the part's reals were APA's pseudo reals.
+    swapped: Vec<bool>,
 }
 
 /// D's loss on one part of the batch (with the lazy finite-difference R1 of weight
-/// `r1_gamma` where `v` is given) and its gradients, on a fork of `d`.
+/// `r1_gamma` where `v` is given, and the LeCam term of `(weight, anchors)`) and its
+/// gradients, on a fork of `d`.
+#[allow(clippy::too_many_arguments)]
 fn d_part(
     d: &Discriminator,
     device: &Device,
     cfg: &TrainConfig,
     r1_gamma: f32,
+    lecam: Option<(f32, LecamAnchors)>,
     fake: Tensor<4>,
     real: Tensor<4>,
     v: Option<Tensor<4>>,
@@ -428,7 +471,17 @@ fn d_part(
     let logit_real = d.forward(real.clone()); // [part, 1]
     let d_real = tensor_to_vec(logit_real.clone().inner());
     let d_fake = tensor_to_vec(logit_fake.clone().inner());
-    let loss_d = softplus(logit_fake, 1.0).mean() + softplus(logit_real.clone().neg(), 1.0).mean();
+    let loss_d =
+        softplus(logit_fake.clone(), 1.0).mean() + softplus(logit_real.clone().neg(), 1.0).mean();
+    let regularised = match lecam {
+        Some((weight, anchors)) => {
+            loss_d.clone()
+                + anchors
+                    .penalty(logit_real.clone(), logit_fake)
+                    .mul_scalar(weight)
+        }
+        None => loss_d.clone(),
+    };
     let (total, r1) = match v {
         Some(v) => {
             // Finite-difference R1: with v ~ N(0, I), E[(grad D . v)^2] = |grad D|^2, and
@@ -440,9 +493,9 @@ fn d_part(
                 .clone()
                 .mul_scalar(r1_gamma * 0.5 * cfg.r1_interval as f32);
             let r1 = r1.inner().into_scalar::<f32>();
-            (loss_d.clone() + penalty, Some(r1))
+            (regularised + penalty, Some(r1))
         }
-        None => (loss_d.clone(), None),
+        None => (regularised, None),
     };
     DPart {
         grads: GradientsParams::from_grads(total.backward(), &d),
@@ -450,5 +503,6 @@ fn d_part(
         r1,
         d_fake: d_fake.iter().sum::<f32>() / d_fake.len().max(1) as f32,
         d_real,
+        swapped: Vec::new(),
     }
 }

@@ -196,6 +196,7 @@ fn options(run_dir: PathBuf, cache: PathBuf, config: TrainConfig) -> TrainOption
         max_duration: None,
         progress: false,
         init_from: None,
+        regularisation: None,
     }
 }
 
@@ -481,4 +482,44 @@ fn a_widened_run_resumes_where_its_source_stopped() {
     };
     assert_eq!(g.blocks[1].conv1.weight.dims(), [10, 10]);
     assert!(wide_dir.join("checkpoint/opt_g.bpk").exists());
+}
+
+/// A run resumed with the discriminator's regularisers switched on keeps them in its saved
+/// config and state: LeCam's anchors follow D's logits, APA's probability moves with the
+/// overfitting heuristic, and every log line says both.
+#[test]
+fn a_resumed_run_branches_into_the_regularisers() {
+    use crate::train::regularise::DRegularisation;
+    let dir = tempfile::tempdir().expect("tempdir");
+    let cache = synthetic_cache(dir.path(), 8, 5, |i, _| (i % 64) as f32 / 64.0 - 0.5);
+    let config = tiny_run_config()
+        .with_total_images(4)
+        .with_snapshot_every_images(100)
+        .with_log_every_steps(1)
+        .with_ada_interval(1)
+        .with_ada_speed_images(4.0);
+    let mut opts = options(dir.path().join("run"), cache, config);
+    run(&opts).expect("train");
+    let all = DRegularisation::new()
+        .with_lecam(0.3)
+        .with_diff_augment(true)
+        .with_apa(true);
+    opts.total_images = Some(16);
+    opts.regularisation = Some(all.clone());
+    run(&opts).expect("resume with the regularisers");
+    let saved = load_config(&opts.run_dir.join("config.json")).expect("config");
+    assert_eq!(saved.regularisation, all);
+    assert_eq!(saved.total_images, 16);
+    let state: TrainState = serde_json::from_str(
+        &std::fs::read_to_string(opts.run_dir.join("checkpoint/state.json")).expect("state"),
+    )
+    .expect("json");
+    let anchors = state.lecam.expect("LeCam's anchors after its steps");
+    assert!(anchors.real.is_finite() && anchors.fake.is_finite());
+    let log = std::fs::read_to_string(opts.run_dir.join("log.jsonl")).expect("log");
+    let last: serde_json::Value =
+        serde_json::from_str(log.lines().last().expect("a line")).expect("json");
+    assert_eq!(last["apa_p"].as_f64().map(|p| p as f32), Some(state.apa_p));
+    assert!(last["lecam"].is_array());
+    assert!(log.lines().take(2).all(|l| l.contains("\"apa_p\":null")));
 }
