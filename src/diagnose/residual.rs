@@ -585,6 +585,10 @@ impl SeamModel {
 /// The smallest seam shift beyond the sim's that is claimed, meters.
 const MIN_SEAM_SHIFT_M: f64 = 0.1;
 
+/// The smallest share of the seam's steps that motion is claimed to shift: it moves every
+/// surface facing the sensor across the seam, the ground included.
+const MIN_MOVED_SHARE: f64 = 0.3;
+
 /// Seam steps a held-out scan needs for its own check of a seam shift.
 const MIN_SCAN_SEAM_STEPS: usize = 5;
 
@@ -687,13 +691,20 @@ impl ResidualFamily for MotionFamily {
         // shifted alone are the scene's edges.
         let forward = |shift: f64| motion_per_sweep_m(shift, azimuth).is_none_or(|m| m >= -0.5);
         let shares: Vec<f64> = (3..=10).map(|i| 0.1 * f64::from(i)).collect();
+        debug_assert!((shares[0] - MIN_MOVED_SHARE).abs() < 1e-9);
         let (h_train, h_test) = (SeamModel::hist(&train), SeamModel::hist(&test));
         let (share, i) = real_model.fit(&h_train, &shares, forward);
         let (m_sim, m) = (seam_shift(i_sim), seam_shift(i));
         let nll = |share: f64, i: usize| real_model.nll(&h_test, share, i);
+        // Where the seam steps are best explained by a few of them shifted, those few are an
+        // edge of the scene that lies at the seam in every scan (a road's edge seen at the
+        // same azimuth from every point of a straight road), not the sensor's motion.
+        let any_share: Vec<f64> = (1..=20).map(|i| 0.05 * f64::from(i)).collect();
+        let (free_share, _) = real_model.fit(&h_train, &any_share, forward);
         // A seam step within a few centimetres of the sim's is within a scene's own steps.
         let claimable = real_model.most_scans_fit_better(&by_scan, (1.0, i_sim), (share, i))
-            && (m - m_sim).abs() >= MIN_SEAM_SHIFT_M;
+            && (m - m_sim).abs() >= MIN_SEAM_SHIFT_M
+            && free_share >= MIN_MOVED_SHARE;
         let speed = ctx.speed_mps.unwrap_or(10.0).max(0.1);
         let period = if ctx.period_s > 0.0 {
             ctx.period_s
@@ -815,6 +826,19 @@ mod tests {
             "noise named motion: gain {}",
             noisy.gain()
         );
+    }
+
+    #[test]
+    fn an_edge_at_the_seam_of_every_scan_is_not_motion() {
+        // A straight road's edge seen at the seam's azimuth from every point along it: the
+        // same 4 of 40 seam steps 2.6 m apart in every scan, the other 36 flat.
+        let sim = seam_steps(15, 1, 0.05, 0, 0.0);
+        let train = seam_steps(8, 2, 0.05, 4, -2.6);
+        let test = seam_steps(7, 3, 0.05, 4, -2.6);
+        let edge = MotionFamily
+            .fit(&sim, &train, &test, &ResidualContext::default())
+            .expect("enough steps");
+        assert!(!edge.significant(), "an edge named motion: {edge:?}");
     }
 
     #[test]
