@@ -123,6 +123,10 @@ pub fn pseudo_reals(
     rng: &mut Rng,
 ) -> (Tensor<4>, Vec<bool>) {
     let n = real.dims()[0];
+    if p <= 0.0 {
+        // No draws: a run without APA keeps the random stream it always had.
+        return (real, vec![false; n]);
+    }
     let swapped: Vec<bool> = (0..n).map(|_| rng.chance(p)).collect();
     if !swapped.iter().any(|&s| s) {
         return (real, swapped);

@@ -67,7 +67,8 @@ impl Trainer {
                 let fake = view.apply(fake, &mut rng);
                 let real = view.apply(real, &mut rng);
                 let v = lazy.then(|| rng.normal_tensor(real.dims(), &device));
-                let mut part = d_part(&self.d, &device, &cfg, r1_gamma, lecam, fake, real, v);
+                let terms = DTerms { r1_gamma, lecam };
+                let mut part = d_part(&self.d, &device, &cfg, terms, fake, real, v);
                 part.swapped = swapped;
                 (part, seen)
             })
@@ -452,16 +453,22 @@ struct DPart {
     swapped: Vec<bool>,
 }
 
-/// D's loss on one part of the batch (with the lazy finite-difference R1 of weight
-/// `r1_gamma` where `v` is given, and the LeCam term of `(weight, anchors)`) and its
-/// gradients, on a fork of `d`.
-#[allow(clippy::too_many_arguments)]
+/// The terms D's loss adds to its own this step.
+#[derive(Debug, Clone, Copy)]
+struct DTerms {
+    /// Weight of the R1 penalty at this level.
+    r1_gamma: f32,
+    /// The LeCam term's weight and anchors, where the run has it.
+    lecam: Option<(f32, LecamAnchors)>,
+}
+
+/// D's loss on one part of the batch (with the lazy finite-difference R1 where `v` is
+/// given, and the LeCam term, as `terms` say) and its gradients, on a fork of `d`.
 fn d_part(
     d: &Discriminator,
     device: &Device,
     cfg: &TrainConfig,
-    r1_gamma: f32,
-    lecam: Option<(f32, LecamAnchors)>,
+    terms: DTerms,
     fake: Tensor<4>,
     real: Tensor<4>,
     v: Option<Tensor<4>>,
@@ -473,7 +480,7 @@ fn d_part(
     let d_fake = tensor_to_vec(logit_fake.clone().inner());
     let loss_d =
         softplus(logit_fake.clone(), 1.0).mean() + softplus(logit_real.clone().neg(), 1.0).mean();
-    let regularised = match lecam {
+    let regularised = match terms.lecam {
         Some((weight, anchors)) => {
             loss_d.clone()
                 + anchors
@@ -491,7 +498,7 @@ fn d_part(
             let r1 = (moved - logit_real).div_scalar(h).powi_scalar(2).mean();
             let penalty = r1
                 .clone()
-                .mul_scalar(r1_gamma * 0.5 * cfg.r1_interval as f32);
+                .mul_scalar(terms.r1_gamma * 0.5 * cfg.r1_interval as f32);
             let r1 = r1.inner().into_scalar::<f32>();
             (regularised + penalty, Some(r1))
         }
