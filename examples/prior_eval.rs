@@ -46,8 +46,8 @@ use rangegan_mcap::model::two_sample::{
 };
 use rangegan_mcap::model::weights::{CHECKPOINT, Model, parse_labelled_model};
 use rangegan_mcap::train::growth::{Level, Stage};
-use rangegan_mcap::train::load_config;
 use rangegan_mcap::train::write_png;
+use rangegan_mcap::train::{TrainState, load_config};
 use rangegan_mcap::util::rng::Rng;
 use rangegan_mcap::util::tensor::{tensor_from, tensor_to_vec};
 
@@ -283,9 +283,8 @@ fn memorisation(
         return Ok(None);
     }
     let config = load_config(&dir.join("config.json"))?;
-    let state: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(ck.join("state.json"))?)?;
-    let stage = state["stage"].as_u64().unwrap_or(0) as usize;
+    let state: TrainState = serde_json::from_str(&std::fs::read_to_string(ck.join("state.json"))?)?;
+    let stage = state.stage;
     let full = stage >= config.stages.len();
     if full != (level.factor == 1) {
         return Ok(None);
