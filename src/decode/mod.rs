@@ -731,9 +731,7 @@ impl Decoded {
     /// rendering the shared generator once more on a sensor's full-resolution grid would
     /// cost as much as the depth's rendering.
     pub fn render_prepared(&self, grid: &PreparedGrid) -> Rendered {
-        let depth_m = self
-            .units
-            .clamped_depths(&self.heads_on(&self.generator, grid).0);
+        let depth_m = self.units.clamped_depths(&self.x_d_on(grid));
         let keep_logit = self.model_keep_logit_on(&grid.render_grid);
         self.calibrated(grid, depth_m, &keep_logit)
     }
@@ -780,10 +778,15 @@ impl Decoded {
     /// Depth in meters (the tuned generator) and the uncalibrated keep logit (the generator
     /// before tuning) on `grid.render_grid`.
     fn render_raw(&self, grid: &PreparedGrid) -> (Vec<f32>, Vec<f32>) {
-        let depth_m = self
-            .units
-            .clamped_depths(&self.heads_on(&self.generator, grid).0);
+        let depth_m = self.units.clamped_depths(&self.x_d_on(grid));
         (depth_m, self.heads_on(&self.pivot, grid).1)
+    }
+
+    /// The tuned generator's x_d (network units) at this scan's latent on `grid.render_grid`.
+    fn x_d_on(&self, grid: &PreparedGrid) -> Vec<f32> {
+        let w = tensor_to_vec(self.w.clone());
+        pivotal::render_x_d(&self.generator, &grid.cache, &w)
+            .unwrap_or_else(|| self.heads_on(&self.generator, grid).0)
     }
 
     /// `generator`'s two heads at this scan's latent on `grid.render_grid`: x_d (network
