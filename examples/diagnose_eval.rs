@@ -153,7 +153,10 @@ fn main() {
                         .collect::<Vec<_>>()
                 );
                 for e in &d.report.effects {
-                    eprintln!("   {}: {}", e.id, e.location);
+                    eprintln!(
+                        "   {} (gain {:.4}, confidence {:.2}): {}",
+                        e.id, e.gain_nats_per_pixel, e.confidence, e.location
+                    );
                 }
             }
             (*i, o)
