@@ -58,7 +58,7 @@ pub fn render(generator: &Generator, cache: &GridCache, w: &[f32]) -> Option<(Ve
     Some((x_d, keep_logit))
 }
 
-/// x_d alone, as [`render`] gives it, for a third less work at the finest level.
+/// x_d alone, as [`render`] gives it, without the keep head's products.
 pub fn render_x_d(generator: &Generator, cache: &GridCache, w: &[f32]) -> Option<Vec<f32>> {
     let (heads, gain) = heads(generator, cache, w, 1)?;
     Some(heads.iter().map(|h| (h * gain).tanh()).collect())

@@ -1,6 +1,7 @@
 //! Single-threaded f32 matrix products on host slices: a safe face over the `gemm` crate for
 //! code that runs its own passes over small dense tensors (one scan per thread, so each
 //! product stays on the calling thread and its result does not depend on the thread count).
+//! Products with a side of one or two rows or columns are written out by hand.
 
 /// A read-only matrix inside a slice: element (r, c) is `data[r * row_stride + c * col_stride]`.
 #[derive(Debug, Clone, Copy)]
