@@ -7,12 +7,14 @@
 //!
 //!     cargo build --release
 //!     cargo run --release --example completion_eval -- [--data ../shared/real_lidar]
-//!         [--set heldout|validation|full-resolution|sensors] [--columns 512]
+//!         [--set heldout|validation|thinned|full-resolution|sensors] [--columns 512]
 //!         [--kinds pixels,...]
 //!         [--bin BINARY]
 //!         [--against 'FLAGS'|none] [-- CONVERT FLAGS...]
 //!
 //! `validation` (every third scan of the validation drive) is where settings are chosen;
+//! `thinned` is the same scans with every beam, every second and every fourth kept (64, 32
+//! and 16 beams): with `-- --prior-free`, where the completion without a prior is chosen;
 //! `heldout` (the 26 held-out scans) is where they are reported; `full-resolution` is its six
 //! full-resolution scans, for `--columns 2048` (hole sizes scale with the columns); `sensors` is
 //! each real recording of another sensor (Ouster, Velodyne, Hesai, nuScenes) on its own grid,
@@ -25,7 +27,7 @@ use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
 use anyhow::{Context, Result, bail};
-use rangegan_mcap::lidar::RangeImage;
+use rangegan_mcap::lidar::{RangeImage, SensorProfile};
 use rangegan_mcap::lidar::holes::HoleKind;
 use rangegan_mcap::model::data::{kitti_heldout_files, kitti_validation_split};
 use rangegan_mcap::recording::{self, Grid};
@@ -61,6 +63,15 @@ const SENSORS: [(&str, &str); 8] = [
 /// recording of another sensor on its own grid, as `convert` finds it.
 fn load(data: &Path, set: &str, columns: usize, bin: &Path, dir: &Path) -> Result<Vec<Recorded>> {
     let files: Vec<PathBuf> = match set {
+        "thinned" => {
+            let (_, files) = kitti_validation_split(data, &["kitti_raw_drive_d".to_string()])?;
+            let files: Vec<PathBuf> = files.into_iter().step_by(3).collect();
+            let scans = holed::project_all(&files, columns)?;
+            return [1, 2, 4]
+                .iter()
+                .map(|&step| thinned(&scans, step, columns, dir))
+                .collect();
+        }
         "sensors" => {
             return SENSORS
                 .iter()
@@ -87,13 +98,34 @@ fn load(data: &Path, set: &str, columns: usize, bin: &Path, dir: &Path) -> Resul
             }
             files
         }
-        other => bail!("--set {other}: give heldout, validation, full-resolution or sensors"),
+        other => bail!(
+            "--set {other}: give heldout, validation, thinned, full-resolution or sensors"
+        ),
     };
     Ok(vec![Recorded {
         name: format!("KITTI HDL-64E, {set}, {columns} columns"),
         scans: holed::project_all(&files, columns)?,
         grid: holed::kitti_grid(columns),
     }])
+}
+
+/// `scans` (on the HDL-64E grid at `columns`) with every `step`-th beam kept, and the profile
+/// of that sensor, written for `convert`.
+fn thinned(scans: &[RangeImage], step: usize, columns: usize, dir: &Path) -> Result<Recorded> {
+    let mut profile = SensorProfile::kitti_hdl64e().with_columns(columns);
+    profile.elevation_deg = profile.elevation_deg.into_iter().step_by(step).collect();
+    profile.name = format!("HDL-64E, every {step} beams");
+    let path = dir.join(format!("thinned_{step}.profile.json"));
+    std::fs::write(&path, serde_json::to_string(&profile)?)?;
+    Ok(Recorded {
+        name: format!(
+            "KITTI validation drive, {} beams of 64, {} scan(s)",
+            profile.elevation_deg.len(),
+            scans.len()
+        ),
+        scans: scans.iter().map(|s| holed::every_nth_row(s, step)).collect(),
+        grid: vec!["--sensor".into(), path.display().to_string()],
+    })
 }
 
 /// The real recording `source` of sensor `name`, imported by `bin` where it is not an MCAP,

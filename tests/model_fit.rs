@@ -4,7 +4,8 @@
 //! recording's own drop rates), with one line saying so, also when imported from folders of
 //! PCD or nuScenes files; `--model` decodes them through the
 //! KITTI model anyway, with the warning of how far they are from it; a KITTI recording is
-//! decoded through the model on its own grid. Skips when the real data folder is absent.
+//! decoded through the model on its own grid, and skips the model with `--prior-free`.
+//! Skips when the real data folder is absent.
 
 mod common;
 
@@ -150,6 +151,31 @@ fn a_named_model_decodes_every_topic_and_says_how_far_it_is() {
     // The OS1-64 gen 1's top rows (+16.6 deg) lie far above the model's +2.6 deg.
     assert!(x_d[0].2[..w].iter().all(|&d| d == 0.0));
     assert!(x_d[0].2[(h - 1) * w..].iter().any(|&d| d > 0.0));
+}
+
+/// `--prior-free` gives prior-free channels also where the shipped model covers the sensor:
+/// two KITTI scans get the completion of their own returns and the recording's drop rates, no
+/// `x_d`, and no line about coverage.
+#[test]
+fn prior_free_skips_the_model_where_it_covers() {
+    let Some(root) = real_root("prior_free_skips_the_model_where_it_covers") else {
+        return;
+    };
+    let dir = tempfile::tempdir().unwrap();
+    let mut files: Vec<PathBuf> = std::fs::read_dir(root.join("kitti_raw_drive_a"))
+        .unwrap()
+        .map(|e| e.unwrap().path())
+        .filter(|p| p.extension().is_some_and(|e| e == "bin"))
+        .collect();
+    files.sort();
+    let scans: Vec<_> = files[..2].iter().map(|f| kitti::read_bin(f).unwrap()).collect();
+    let input = dir.path().join("kitti.mcap");
+    write_scans(&input, &scans);
+    let (err, output) = convert(&input, dir.path(), &["--prior-free"]);
+    assert!(!err.contains("no decoding model covers"), "{err}");
+    check_prior_free(&output, "/points");
+    let err = run(&["convert", "a.mcap", "b.mcap", "--prior-free", "--model", "m"]);
+    assert!(!err.status.success() && stderr(&err).contains("--model"));
 }
 
 /// A full-resolution KITTI scan (about 2 000 columns) is decoded through the model and

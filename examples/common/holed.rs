@@ -21,6 +21,29 @@ pub fn project_all(files: &[PathBuf], columns: usize) -> Result<Vec<RangeImage>>
         .collect()
 }
 
+/// Every `step`-th row of `image`: the scan of a sensor with fewer beams.
+#[allow(dead_code)]
+pub fn every_nth_row(image: &RangeImage, step: usize) -> RangeImage {
+    fn rows<T: Copy>(v: &[T], w: usize, step: usize) -> Vec<T> {
+        v.chunks(w).step_by(step).flatten().copied().collect()
+    }
+    let w = image.width;
+    let mut angles = image.angles.clone();
+    angles.height = image.height.div_ceil(step);
+    angles.elevation_rad = rows(&image.angles.elevation_rad, w, step);
+    angles.azimuth_rad = rows(&image.angles.azimuth_rad, w, step);
+    RangeImage {
+        height: angles.height,
+        width: w,
+        range_m: rows(&image.range_m, w, step),
+        xyz: rows(&image.xyz, w, step),
+        intensity: rows(&image.intensity, w, step),
+        label: rows(&image.label, w, step),
+        point_index: rows(&image.point_index, w, step),
+        angles,
+    }
+}
+
 /// The returns of `image` outside `mask`, as a scan whose ring field is the row.
 pub fn degraded_scan(image: &RangeImage, mask: &[bool]) -> Scan {
     let kept: Vec<usize> = (0..image.range_m.len())

@@ -142,6 +142,11 @@ pub struct ConvertArgs {
     /// scene's rendering). Where no observed return reaches, the rendering fills in.
     #[arg(long, value_enum, default_value_t = Fill::DEFAULT)]
     pub upsample_method: Fill,
+    /// Prior-free channels on every topic, whatever model covers its sensor: `depth` the
+    /// completion of each scan's own returns, `raydrop_prob` the recording's own drop rates,
+    /// no `x_d`. Several times faster than decoding; what a sensor no model covers gets.
+    #[arg(long, conflicts_with = "model")]
+    pub prior_free: bool,
 }
 
 /// Flags of dataset mode (several inputs, a folder, or an existing output folder).
@@ -260,9 +265,13 @@ pub(crate) fn resolve_decoding(
     )))
 }
 
-/// Where the decoder's model is used: on every topic when a model is named (`--model`) or
-/// the decode restores a sparse model grid, else where it covers the sensor.
+/// Where the decoder's model is used: nowhere with `--prior-free`; on every topic when a
+/// model is named (`--model`) or the decode restores a sparse model grid, else where it
+/// covers the sensor.
 fn prior_use(args: &ConvertArgs, decoder: &Decoder) -> PriorUse {
+    if args.prior_free {
+        return PriorUse::Never;
+    }
     if args.model.is_some() || decoder.options().restore.is_some() {
         return PriorUse::Always;
     }

@@ -80,6 +80,8 @@ pub enum PriorUse {
     WhereCovered,
     /// On every topic (`--model` given): a warning says where the model does not cover.
     Always,
+    /// On no topic (`--prior-free`): every topic gets prior-free channels.
+    Never,
 }
 
 /// Scans per parallel batch. Fixed rather than tied to the thread count: outputs of a batch are
@@ -371,6 +373,7 @@ impl<'s> ScanProcessor<'_, 's> {
         let message = match prior {
             PriorUse::Always => fit.warning(&sensor),
             PriorUse::WhereCovered => (!fit.covers()).then(|| fit.prior_free_note(&sensor)),
+            PriorUse::Never => None,
         };
         if let Some(w) = message {
             let loc = Location::message(&self.file, topic, log_time);
@@ -408,11 +411,14 @@ impl<'s> ScanProcessor<'_, 's> {
         self.opts.prior.is_some() && !coverage.contains_key(topic)
     }
 
-    /// Whether `topic`'s scans go through the model: always with [`PriorUse::Always`], else
+    /// Whether `topic`'s scans go through the model: always with [`PriorUse::Always`], never
+    /// with [`PriorUse::Never`], else
     /// where it covers the sensor (true until a scan with returns says).
     fn covered(&self, topic: &str) -> bool {
-        if self.opts.prior == Some(PriorUse::Always) {
-            return true;
+        match self.opts.prior {
+            Some(PriorUse::Always) => return true,
+            Some(PriorUse::Never) => return false,
+            _ => {}
         }
         let coverage = self.coverage.lock().unwrap_or_else(|e| e.into_inner());
         coverage.get(topic).copied().unwrap_or(true)
