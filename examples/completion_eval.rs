@@ -27,8 +27,8 @@ use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
 use anyhow::{Context, Result, bail};
-use rangegan_mcap::lidar::{RangeImage, SensorProfile};
 use rangegan_mcap::lidar::holes::HoleKind;
+use rangegan_mcap::lidar::{RangeImage, SensorProfile};
 use rangegan_mcap::model::data::{kitti_heldout_files, kitti_validation_split};
 use rangegan_mcap::recording::{self, Grid};
 use rangegan_mcap::util::rng::{Rng, key_hash};
@@ -98,9 +98,9 @@ fn load(data: &Path, set: &str, columns: usize, bin: &Path, dir: &Path) -> Resul
             }
             files
         }
-        other => bail!(
-            "--set {other}: give heldout, validation, thinned, full-resolution or sensors"
-        ),
+        other => {
+            bail!("--set {other}: give heldout, validation, thinned, full-resolution or sensors")
+        }
     };
     Ok(vec![Recorded {
         name: format!("KITTI HDL-64E, {set}, {columns} columns"),
@@ -123,7 +123,10 @@ fn thinned(scans: &[RangeImage], step: usize, columns: usize, dir: &Path) -> Res
             profile.elevation_deg.len(),
             scans.len()
         ),
-        scans: scans.iter().map(|s| holed::every_nth_row(s, step)).collect(),
+        scans: scans
+            .iter()
+            .map(|s| holed::every_nth_row(s, step))
+            .collect(),
         grid: vec!["--sensor".into(), path.display().to_string()],
     })
 }

@@ -168,13 +168,23 @@ fn prior_free_skips_the_model_where_it_covers() {
         .filter(|p| p.extension().is_some_and(|e| e == "bin"))
         .collect();
     files.sort();
-    let scans: Vec<_> = files[..2].iter().map(|f| kitti::read_bin(f).unwrap()).collect();
+    let scans: Vec<_> = files[..2]
+        .iter()
+        .map(|f| kitti::read_bin(f).unwrap())
+        .collect();
     let input = dir.path().join("kitti.mcap");
     write_scans(&input, &scans);
     let (err, output) = convert(&input, dir.path(), &["--prior-free"]);
     assert!(!err.contains("no decoding model covers"), "{err}");
     check_prior_free(&output, "/points");
-    let err = run(&["convert", "a.mcap", "b.mcap", "--prior-free", "--model", "m"]);
+    let err = run(&[
+        "convert",
+        "a.mcap",
+        "b.mcap",
+        "--prior-free",
+        "--model",
+        "m",
+    ]);
     assert!(!err.status.success() && stderr(&err).contains("--model"));
 }
 

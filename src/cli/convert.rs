@@ -145,7 +145,7 @@ pub struct ConvertArgs {
     /// Prior-free channels on every topic, whatever model covers its sensor: `depth` the
     /// completion of each scan's own returns, `raydrop_prob` the recording's own drop rates,
     /// no `x_d`. Several times faster than decoding; what a sensor no model covers gets.
-    #[arg(long, conflicts_with = "model")]
+    #[arg(long, conflicts_with_all = ["model", "restore_lines", "restore_fraction"])]
     pub prior_free: bool,
 }
 

@@ -412,8 +412,8 @@ impl<'s> ScanProcessor<'_, 's> {
     }
 
     /// Whether `topic`'s scans go through the model: always with [`PriorUse::Always`], never
-    /// with [`PriorUse::Never`], else
-    /// where it covers the sensor (true until a scan with returns says).
+    /// with [`PriorUse::Never`], else where it covers the sensor (true until a scan with
+    /// returns says).
     fn covered(&self, topic: &str) -> bool {
         match self.opts.prior {
             Some(PriorUse::Always) => return true,
