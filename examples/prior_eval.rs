@@ -36,7 +36,7 @@ use burn::tensor::Device;
 use rangegan_mcap::lidar::AngleGrid;
 use rangegan_mcap::model::AnyGenerator;
 use rangegan_mcap::model::data::{RangeDataset, kitti_heldout_files, kitti_validation_split};
-use rangegan_mcap::model::discriminator::Discriminator;
+use rangegan_mcap::model::discriminator::{Discriminator, column_azimuths};
 use rangegan_mcap::model::generator::Generator;
 use rangegan_mcap::model::layers::AngleGridExt;
 use rangegan_mcap::model::metrics::{SwdConfig, swd};
@@ -242,13 +242,38 @@ fn samples(
 }
 
 /// Logits of `d` on `set`, in batches of `batch` (its minibatch-stddev groups see one set).
-fn logits(d: &Discriminator, set: &Images, batch: usize, device: &Device) -> Vec<f32> {
+/// A discriminator of windows (`window` columns) scores each scan by its mean over the
+/// windows that tile the turn.
+fn logits(
+    d: &Discriminator,
+    set: &Images,
+    batch: usize,
+    window: Option<usize>,
+    device: &Device,
+) -> Vec<f32> {
+    let width = window.unwrap_or(set.w);
+    let starts: Vec<usize> = (0..set.w / width).map(|k| k * width).collect();
     set.images
         .chunks(batch)
         .filter(|c| c.len() == batch)
         .flat_map(|chunk| {
-            let v: Vec<f32> = chunk.iter().flatten().copied().collect();
-            tensor_to_vec(d.forward(tensor_from(v, [batch, 1, set.h, set.w], device)))
+            let mut sum = vec![0.0f32; batch];
+            for &start in &starts {
+                let v: Vec<f32> = (chunk.iter())
+                    .flat_map(|image| {
+                        image
+                            .chunks_exact(set.w)
+                            .flat_map(move |row| row[start..start + width].iter().copied())
+                    })
+                    .collect();
+                let x = tensor_from(v, [batch, 1, set.h, width], device);
+                let azimuth =
+                    window.map(|_| column_azimuths(&vec![start; batch], width, set.w, device));
+                let logits = tensor_to_vec(d.forward_at(x, azimuth));
+                sum.iter_mut().zip(logits).for_each(|(s, l)| *s += l);
+            }
+            let n = starts.len() as f32;
+            sum.into_iter().map(move |s| s / n)
         })
         .collect()
 }
@@ -293,12 +318,13 @@ fn memorisation(
         .discriminator_of(stage)
         .clone()
         .with_height(level.height)
-        .with_width(level.width)
+        .with_width(config.window.unwrap_or(level.width))
+        .with_azimuth_input(config.window.is_some())
         .init(device)
         .try_load_file(ck.join("d.bpk"))
         .map_err(|e| anyhow::anyhow!("failed to load '{}': {e}", ck.display()))?;
     let batch = config.batch_size.clamp(1, 8);
-    let [train, heldout, generated] = sets.map(|s| logits(&d, s, batch, device));
+    let [train, heldout, generated] = sets.map(|s| logits(&d, s, batch, config.window, device));
     let mean = |v: &[f32]| v.iter().sum::<f32>() / v.len().max(1) as f32;
     Ok(Some(serde_json::json!({
         "auc_training_vs_heldout": auc(&train, &heldout),

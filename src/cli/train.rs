@@ -211,9 +211,15 @@ pub struct TrainArgs {
     pub stages: Vec<Stage>,
     /// Reconstruction-assisted training of a new run (dusty2) with this weight: an encoder
     /// in the generator's loop renders every real batch back, and the generator learns from
-    /// the reconstruction beside the discriminator.
+    /// the reconstruction beside the discriminator. 0 turns off what `--init-from`'s run had.
     #[arg(long, value_name = "WEIGHT")]
     pub reconstruction: Option<f32>,
+    /// Train a new run (dusty2) at full resolution on windows of this many columns of the
+    /// turn, at random azimuths: the generator renders only the window (about W/COLS times
+    /// the images per second), the discriminator sees where each window is. With
+    /// `--init-from`, a trained generator goes on learning detail this way.
+    #[arg(long, value_name = "COLS")]
+    pub window: Option<usize>,
     /// The discriminator's LeCam regulariser with this weight (0.1-0.3 for small data):
     /// D's logits on real and generated scans are kept from drifting apart. Any of
     /// `--lecam`, `--diff-augment` and `--apa` on a resumed run replaces its saved
@@ -236,14 +242,25 @@ pub fn run_train(global: &GlobalArgs, args: TrainArgs) -> anyhow::Result<Outcome
     // A resumed run's settings are checked before any data is read or anything is sized.
     let saved = args.run.run_dir.join("config.json");
     if saved.exists() {
-        load_config(&saved)?;
+        let run = load_config(&saved)?;
+        anyhow::ensure!(
+            args.window.is_none() || args.window == run.window,
+            "'{}' trains on {}: a run keeps its windows (start a branch with --init-from)",
+            args.run.run_dir.display(),
+            run.window.map_or("whole turns".to_string(), |c| format!(
+                "windows of {c} columns"
+            ))
+        );
     }
     let mut config = match &args.init_from {
         // A fine-tuning run keeps the pretrained network's shapes and recipe; it is past the
         // early pixel-dropout phase, and its image budget is its own.
+        // Its source trained every block: it starts at full resolution.
         Some(src) => load_config(&src.join("config.json"))?
             .with_pixel_drop_start(0.0)
-            .with_total_images(TrainConfig::new().total_images),
+            .with_total_images(TrainConfig::new().total_images)
+            .with_stages(Vec::new())
+            .with_stage_discriminators(Vec::new()),
         None => TrainConfig::new().with_arch(match args.arch {
             ArchArg::Dusty2 => Arch::Dusty2,
             ArchArg::Dusty1 => Arch::Dusty1,
@@ -271,10 +288,15 @@ pub fn run_train(global: &GlobalArgs, args: TrainArgs) -> anyhow::Result<Outcome
     }
     if let Some(weight) = args.reconstruction {
         anyhow::ensure!(
-            weight.is_finite() && weight > 0.0,
-            "--reconstruction must be a positive weight"
+            weight.is_finite() && weight >= 0.0,
+            "--reconstruction must be a weight >= 0 (0: off)"
         );
-        config = config.with_reconstruction(Some(ReconstructionConfig::new().with_weight(weight)));
+        config = config.with_reconstruction(
+            (weight > 0.0).then(|| ReconstructionConfig::new().with_weight(weight)),
+        );
+    }
+    if let Some(columns) = args.window {
+        config = config.with_window(Some(columns));
     }
     let regularisation = (args.lecam.is_some() || args.diff_augment || args.apa).then(|| {
         DRegularisation::new()

@@ -8,7 +8,9 @@ use burn::tensor::{Device, Tensor};
 
 use super::conv::{EqualConv, EqualConvConfig, downsample2x};
 use super::layers::{EqualLinear, EqualLinearConfig, roll, shift_replicate};
+use crate::lidar::range_image::column_azimuth;
 use crate::util::rng::Rng;
+use crate::util::tensor::tensor_from;
 
 /// Residual block: conv 3x3 -> blur-downsample -> conv 3x3, plus a downsampled 1x1 skip.
 #[derive(Config, Debug)]
@@ -72,6 +74,10 @@ pub struct DiscriminatorConfig {
     /// image itself, twice (the same weights' shapes).
     #[config(default = true)]
     pub input_blur: bool,
+    /// Each column's azimuth (sine and cosine) as two more input channels: a discriminator
+    /// of windows of the turn learns what belongs where (ahead, behind, to the sides).
+    #[config(default = false)]
+    pub azimuth_input: bool,
     #[config(default = 1)]
     pub seed: u64,
 }
@@ -115,6 +121,11 @@ impl DiscriminatorConfig {
             .with_channels(vec![16, 32, 64, 128])
     }
 
+    /// Image channels: the measured image, and the azimuth's two where it reads them.
+    fn input_channels(&self) -> usize {
+        if self.azimuth_input { 3 } else { 1 }
+    }
+
     pub fn init(&self, device: &Device) -> Discriminator {
         let mut rng = Rng::new(self.seed);
         let c = &self.channels;
@@ -128,7 +139,7 @@ impl DiscriminatorConfig {
         let last = c[c.len() - 1];
         let (h, w) = (self.height / fold, self.width / fold);
         Discriminator {
-            from_input: EqualConvConfig::new(2 * stem * stem, c[0])
+            from_input: EqualConvConfig::new(2 * self.input_channels() * stem * stem, c[0])
                 .with_kernel(1)
                 .init(&mut rng, device),
             blocks: (0..n_down)
@@ -150,7 +161,20 @@ impl Discriminator {
     /// # Shapes
     /// - x: `[batch, 1, H, W]` measured image in network units -> logits `[batch, 1]`
     pub fn forward(&self, x: Tensor<4>) -> Tensor<2> {
-        let b = x.dims()[0];
+        self.forward_at(x, None)
+    }
+
+    /// [`Discriminator::forward`] for a discriminator that reads each column's azimuth
+    /// (`azimuth_input`): `azimuth` holds its sine and cosine ([`column_azimuths`]).
+    ///
+    /// # Shapes
+    /// - x: `[batch, 1, H, W]`, azimuth: `[batch, 2, 1, W]` -> logits `[batch, 1]`
+    pub fn forward_at(&self, x: Tensor<4>, azimuth: Option<Tensor<4>>) -> Tensor<2> {
+        let [b, _, h, _] = x.dims();
+        let x = match azimuth {
+            Some(a) => Tensor::cat(vec![x, a.repeat_dim(2, h)], 1), // [batch, 3, H, W]
+            None => x,
+        };
         let pair = if self.input_blur {
             let horiz =
                 (roll(x.clone(), 1, 3) + roll(x.clone(), -1, 3) + x.clone().mul_scalar(2.0))
@@ -173,6 +197,26 @@ impl Discriminator {
         let y = y.reshape([b as i64, -1]); // [batch, c*h*w]
         self.out.forward(self.fc.forward(y)) // [batch, 1]
     }
+}
+
+/// Sine and cosine of the azimuth of each column of windows of a turn of `full_width`
+/// columns: window `i` holds columns `start[i]..start[i] + width` (circular).
+///
+/// # Shapes
+/// -> `[start.len(), 2, 1, width]`
+pub fn column_azimuths(
+    start: &[usize],
+    width: usize,
+    full_width: usize,
+    device: &Device,
+) -> Tensor<4> {
+    let mut v = Vec::with_capacity(start.len() * 2 * width);
+    for &c in start {
+        let theta = |j: usize| column_azimuth((c + j) % full_width, full_width);
+        v.extend((0..width).map(|j| theta(j).sin()));
+        v.extend((0..width).map(|j| theta(j).cos()));
+    }
+    tensor_from(v, [start.len(), 2, 1, width], device)
 }
 
 /// Folds each `s x s` block of pixels into channels (channel-major, then row and column
@@ -242,6 +286,28 @@ mod tests {
         assert!(x.grad(&grads).is_some());
         assert!(d.fc.weight.val().grad(&grads).is_some());
         assert!(d.blocks[0].conv0.weight.val().grad(&grads).is_some());
+    }
+
+    #[test]
+    fn a_window_discriminator_reads_where_the_window_is() {
+        let dev = Device::flex();
+        let d = DiscriminatorConfig::new()
+            .with_height(8)
+            .with_width(16)
+            .with_channels(vec![4, 8])
+            .with_azimuth_input(true)
+            .init(&dev);
+        let x = Rng::new(2).normal_tensor([2, 1, 8, 16], &dev);
+        let ahead = column_azimuths(&[56, 56], 16, 64, &dev);
+        let behind = column_azimuths(&[24, 24], 16, 64, &dev);
+        let a = tensor_to_vec(d.forward_at(x.clone(), Some(ahead)));
+        let b = tensor_to_vec(d.forward_at(x, Some(behind)));
+        assert_eq!(a.len(), 2);
+        assert!((a[0] - b[0]).abs() > 1e-4, "{a:?} {b:?}");
+        // The columns wrap around the seam: the window at 56 ends on columns 0..8.
+        let az = tensor_to_vec(column_azimuths(&[56], 16, 64, &dev));
+        let expected = column_azimuth(3, 64).sin();
+        assert!((az[8 + 3] - expected).abs() < 1e-6);
     }
 
     #[test]

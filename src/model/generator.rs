@@ -198,6 +198,32 @@ impl GridCache {
         })
     }
 
+    /// The cache cut to its first `columns` columns: a window of the turn whose every level
+    /// keeps its share of the full grid's own angles (a pyramid built on the window alone
+    /// would average its edges with the other end). `columns` must divide by the coarsest
+    /// level's factor.
+    pub fn first_columns(&self, columns: usize) -> GridCache {
+        let levels = (self.levels.iter())
+            .map(|level| {
+                let factor = self.width / level.width;
+                assert!(
+                    columns.is_multiple_of(factor) && columns <= self.width,
+                    "a window of {columns} columns does not fit the pyramid's factor {factor}"
+                );
+                let (h, w, wk) = (level.height, level.width, columns / factor);
+                let f2 = level.basis.dims()[1];
+                LevelBasis {
+                    height: h,
+                    width: wk,
+                    basis: (level.basis.clone().reshape([h, w, f2]))
+                        .narrow(1, 0, wk)
+                        .reshape([h * wk, f2]),
+                }
+            })
+            .collect();
+        GridCache::new(self.height, columns, levels)
+    }
+
     /// The cache cut to its first `blocks` levels: the generator renders with those blocks
     /// alone, at the finest kept level's resolution (the low-pass part of the full image).
     pub fn first_blocks(&self, blocks: usize) -> GridCache {
@@ -480,6 +506,48 @@ impl Generator {
     }
 }
 
+impl Generator {
+    /// Columns rendered beyond each side of a window and cut off: the upsampling between
+    /// levels and the subgrid interpolation wrap around the rendered strip, and what wraps
+    /// reaches about one coarsest column plus one column of each finer level inwards.
+    pub fn window_margin(&self) -> usize {
+        2 * self.resolution_step()
+    }
+
+    /// Windows of the turn, rendered alone: sample `i` shows the full grid's columns
+    /// `start[i]..start[i] + W` (circular) seen at subgrid phase `phase[i]` (fractions of a
+    /// column, as [`Generator::render`] does for the whole turn). `grid` is the full grid's
+    /// cache cut to `W + 2 margin` columns ([`GridCache::first_columns`]) and `full_width`
+    /// the turn's columns.
+    ///
+    /// # Shapes
+    /// - w: `[batch, d_w]` -> x_d, keep_logit: `[batch, 1, H, W]`
+    pub fn render_window(
+        &self,
+        w: Tensor<2>,
+        grid: &GridCache,
+        full_width: usize,
+        start: &[usize],
+        phase: &[f32],
+    ) -> GeneratorOutput {
+        let device = w.device();
+        let b = start.len();
+        assert_eq!(b, phase.len(), "one phase per window");
+        let margin = self.window_margin();
+        let window = grid.width - 2 * margin;
+        // Column j of the strip shows the full grid's column j - s W at azimuth phase 2 pi s
+        // (see `render`); s places strip column 0 at start - margin + phase.
+        let turns: Vec<f32> = (start.iter().zip(phase))
+            .map(|(&c, &f)| -((c as f32 - margin as f32) + f) / full_width as f32)
+            .collect();
+        let raw = self.synthesis(w, grid, Some(tensor_from(turns, [b], &device)));
+        let raw = shift_columns(raw, phase).narrow(3, margin, window); // [batch, 2, H, W]
+        let x_d = raw.clone().narrow(1, 0, 1).tanh();
+        let keep_logit = raw.narrow(1, 1, 1);
+        GeneratorOutput { x_d, keep_logit }
+    }
+}
+
 /// Per-sample circular shift along W with linear interpolation: `out[.., j] = x[.., j - p_b]`
 /// (fractional p). One batched matmul with host-built `[W, W]` interpolation matrices.
 ///
@@ -553,6 +621,34 @@ mod tests {
         assert!(diff < 1e-5, "logit diff {diff}");
         // And the roll is not trivially satisfied by a constant image.
         assert!(max_abs(roll(a.x_d.clone(), 1, 3) - a.x_d) > 1e-4);
+    }
+
+    #[test]
+    fn a_window_shows_the_columns_of_the_whole_turn() {
+        let dev = Device::flex();
+        let g = tiny(3).init(&dev);
+        let w = g.mapping.forward(Rng::new(3).normal_tensor([3, 8], &dev));
+        let grid = kitti_like_grid(8, 64);
+        let full = g.prepare(&grid, &dev);
+        let whole = g.render(w.clone(), &full, None).x_d; // [3, 1, 8, 64]
+        let window = 16;
+        let strip = full.first_columns(window + 2 * g.window_margin());
+        // Starts on a coarsest column (4 here) render the very same pixels, across the seam too.
+        let start = [0, 12, 56];
+        let out = g
+            .render_window(w.clone(), &strip, 64, &start, &[0.0; 3])
+            .x_d;
+        for (i, &c) in start.iter().enumerate() {
+            let expected =
+                roll(whole.clone().narrow(0, i, 1), -(c as isize), 3).narrow(3, 0, window);
+            let diff = max_abs(out.clone().narrow(0, i, 1) - expected);
+            assert!(diff < 1e-4, "window at column {c}: {diff}");
+        }
+        // Between coarsest columns the pyramid samples other angles: close, not the same.
+        let between = g.render_window(w, &strip, 64, &[2, 2, 2], &[0.0; 3]).x_d;
+        let expected = roll(whole.narrow(0, 0, 1), -2, 3).narrow(3, 0, window);
+        let diff = max_abs(between.narrow(0, 0, 1) - expected);
+        assert!(diff > 1e-5 && diff < 0.5, "off-coarse start: {diff}");
     }
 
     #[test]

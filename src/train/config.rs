@@ -135,6 +135,12 @@ pub struct TrainConfig {
     /// The discriminator's regularisers for small data beside ADA (all off by default).
     #[config(default = "DRegularisation::new()")]
     pub regularisation: DRegularisation,
+    /// Train at full resolution on windows of this many columns of the turn (dusty2): the
+    /// generator renders only the window, at a random azimuth, and the discriminator sees
+    /// real windows of the same columns with each column's azimuth. An image counted is
+    /// then a window. None: whole turns.
+    #[config(default = "None")]
+    pub window: Option<usize>,
 }
 
 /// How to run training (not part of the saved config).
@@ -183,6 +189,10 @@ pub struct TrainState {
     /// APA's probability of showing a generated image as real.
     #[serde(default)]
     pub apa_p: f32,
+    /// The discriminator started fresh beside a trained generator (a fine-tuning run whose
+    /// source's discriminator has another shape): it trains alone first, as after a growth.
+    #[serde(default)]
+    pub fresh_discriminator: bool,
 }
 
 /// Build the generator of `config.arch`.
@@ -251,6 +261,16 @@ impl TrainConfig {
         if let Some(g_lr) = self.g_lr {
             positive("g_lr", g_lr)?;
         }
+        if self.window.is_some() {
+            anyhow::ensure!(
+                self.arch == Arch::Dusty2,
+                "windows of the turn need the implicit generator (dusty2)"
+            );
+            anyhow::ensure!(
+                self.reconstruction.is_none(),
+                "windows of the turn train without the in-loop encoder, which reads whole turns: turn reconstruction off (--reconstruction 0)"
+            );
+        }
         Ok(())
     }
 
@@ -298,6 +318,15 @@ impl TrainConfig {
             "the dataset's grid ({h} beams x {w} columns, {}) must divide by {fold} for these networks: choose --columns as a multiple of {fold}, and a sensor whose beams are",
             data.profile.name
         );
+        if let Some(window) = self.window {
+            // The strip rendered around a window (2 coarsest columns a side) fits in the turn.
+            let strip = window + 4 * step;
+            anyhow::ensure!(
+                window > 0 && window.is_multiple_of(fold) && strip <= w,
+                "a window of {window} columns must be a multiple of {fold} and, with {} columns of margin, fit the turn's {w}",
+                4 * step
+            );
+        }
         Ok(())
     }
 

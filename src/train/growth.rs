@@ -34,6 +34,9 @@ pub struct Level {
     pub factor: usize,
     pub height: usize,
     pub width: usize,
+    /// Columns of the windows of the turn this level trains on (full resolution only);
+    /// `width` stays the whole turn's.
+    pub window: Option<usize>,
 }
 
 impl Level {
@@ -55,7 +58,32 @@ impl Level {
             factor,
             height: height / factor,
             width: width / factor,
+            window: None,
         }
+    }
+
+    /// This level trained on windows of `window` columns where it is at full resolution.
+    pub fn with_window(self, window: Option<usize>) -> Level {
+        Level {
+            window: window.filter(|_| self.factor == 1),
+            ..self
+        }
+    }
+
+    /// The width of what the discriminator sees: a window or the whole turn.
+    pub fn trained_width(&self) -> usize {
+        self.window.unwrap_or(self.width)
+    }
+
+    /// Columns `start..start + window` (circular) of `image` (`[H, W]` row-major, full
+    /// resolution).
+    pub fn crop(&self, image: &[f32], start: usize) -> Vec<f32> {
+        let (w, window) = (self.width, self.trained_width());
+        let mut out = Vec::with_capacity(self.height * window);
+        for row in image.chunks_exact(w) {
+            out.extend((0..window).map(|j| row[(start + j) % w]));
+        }
+        out
     }
 
     /// The generator's grid cache cut to this level's blocks.
@@ -216,12 +244,26 @@ mod tests {
             factor: 2,
             height: 2,
             width: 4,
+            window: None,
         };
         assert_eq!(
             level.sample(&image, w, (1, 0)),
             vec![8., 10., 12., 14., 24., 26., 28., 30.]
         );
         assert_eq!(level.sample(&image, w, (0, 1))[..2], [1., 3.]);
+    }
+
+    #[test]
+    fn windows_are_cut_across_the_seam_at_full_resolution_only() {
+        let image: Vec<f32> = (0..2 * 8).map(|i| i as f32).collect();
+        let level = Level::of(&[], 0, 3, 2, 8).with_window(Some(4));
+        assert_eq!(level.trained_width(), 4);
+        assert_eq!(
+            level.crop(&image, 6),
+            vec![6., 7., 0., 1., 14., 15., 8., 9.]
+        );
+        let coarse = Level::of(&[Stage::new(2, 10)], 0, 3, 2, 8).with_window(Some(4));
+        assert_eq!((coarse.window, coarse.trained_width()), (None, 4));
     }
 
     /// The first k blocks render exactly the sum of their heads: the coarse image a stage

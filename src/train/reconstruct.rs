@@ -201,6 +201,7 @@ mod tests {
             factor: 1,
             height: 16,
             width: 64,
+            window: None,
         };
         let config = ReconstructionConfig::new().with_cycle_weight(0.0);
         let mut e = InLoopEncoder::new(&config, &level, g.d_w(), &device);

@@ -60,9 +60,11 @@ impl Trainer {
     /// 2 real scans.
     pub(super) fn snapshot(&mut self, opts: &TrainOptions, data: &RangeDataset) -> Result<()> {
         let (h, w) = (self.level.height, self.level.width);
+        // Whole turns, also where the level trains on windows.
+        let grid = (self.full_grid.as_ref()).map(|(_, inner)| self.level.grid(inner));
         let (out, _) = self
             .g_ema
-            .generate(self.snapshot_z.clone(), self.grid_inner.as_ref(), None);
+            .generate(self.snapshot_z.clone(), grid.as_ref(), None);
         let x_d = tensor_to_vec(out.x_d.clone());
         let (x_n, x_g) = match out.keep_logit.clone() {
             Some(logit) => {

@@ -119,10 +119,19 @@ struct Trainer {
 }
 
 impl Trainer {
-    /// The grid caches of the current level.
+    /// The grid caches of the current level: its blocks, and on windows the strip of
+    /// columns a window is rendered on.
     fn cut_grids(&mut self) {
+        let strip = match (&self.g, self.level.window) {
+            (AnyGenerator::Implicit(g), Some(window)) => Some(window + 2 * g.window_margin()),
+            _ => None,
+        };
+        let cut = |full: &GridCache| {
+            let grid = self.level.grid(full);
+            strip.map_or(grid.clone(), |columns| grid.first_columns(columns))
+        };
         (self.grid, self.grid_inner) = match &self.full_grid {
-            Some((grid, inner)) => (Some(self.level.grid(grid)), Some(self.level.grid(inner))),
+            Some((grid, inner)) => (Some(cut(grid)), Some(cut(inner))),
             None => (None, None),
         };
     }
@@ -137,7 +146,8 @@ impl Trainer {
         let blocks = self.config.generator.channels.len();
         self.state.stage = stage;
         self.state.stage_start_images = self.state.images;
-        self.level = Level::of(&self.config.stages, stage, blocks, data.height, data.width);
+        self.level = Level::of(&self.config.stages, stage, blocks, data.height, data.width)
+            .with_window(self.config.window);
         self.d = stage_discriminator(&self.config, stage, &self.level, &self.device);
         self.encoder = in_loop_encoder(&self.config, &self.level, &self.device);
         self.opt_d = AdamConfig::new()
@@ -151,7 +161,7 @@ impl Trainer {
 
     /// Whether the generator sits out this step: a fresh discriminator learns first.
     fn d_warming_up(&self) -> bool {
-        self.state.stage > 0
+        (self.state.stage > 0 || self.state.fresh_discriminator)
             && self.state.images < self.state.stage_start_images + self.config.d_warmup_images
     }
 
@@ -252,20 +262,40 @@ impl Trainer {
         (self.config.pixel_drop_start as f64 * (1.0 - t).max(0.0)) as f32
     }
 
-    fn real_batch(&mut self, data: &RangeDataset, device: &Device) -> Tensor<4> {
+    /// A batch of real scans at the level's resolution; on windows, those starting at the
+    /// columns of `windows`.
+    fn real_batch(
+        &mut self,
+        data: &RangeDataset,
+        windows: Option<&[usize]>,
+        device: &Device,
+    ) -> Tensor<4> {
         let b = self.config.batch_size;
         let level = self.level;
-        let mut v = Vec::with_capacity(b * level.height * level.width);
-        for _ in 0..b {
+        let width = level.trained_width();
+        let mut v = Vec::with_capacity(b * level.height * width);
+        for k in 0..b {
             let i = self.state.rng.below(data.len());
-            if level.factor == 1 {
-                v.extend_from_slice(data.image(i));
-            } else {
-                let phase = level.random_phase(&mut self.state.rng);
-                v.extend(level.sample(data.image(i), data.width, phase));
+            match windows {
+                Some(start) => v.extend(level.crop(data.image(i), start[k])),
+                None if level.factor == 1 => v.extend_from_slice(data.image(i)),
+                None => {
+                    let phase = level.random_phase(&mut self.state.rng);
+                    v.extend(level.sample(data.image(i), data.width, phase));
+                }
             }
         }
-        tensor_from(v, [b, 1, level.height, level.width], device)
+        tensor_from(v, [b, 1, level.height, width], device)
+    }
+
+    /// The first column of each window of a batch, where the level trains on windows.
+    fn window_starts(&mut self) -> Option<Vec<usize>> {
+        let width = self.level.width;
+        self.level.window.map(|_| {
+            (0..self.config.batch_size)
+                .map(|_| self.state.rng.below(width))
+                .collect()
+        })
     }
 
     fn z(&mut self, device: &Device) -> Tensor<2> {

@@ -52,6 +52,7 @@ impl Trainer {
                 stage_start_images: 0,
                 lecam: None,
                 apa_p: 0.0,
+                fresh_discriminator: false,
             }
         };
         let level = Level::of(
@@ -60,7 +61,9 @@ impl Trainer {
             config.generator.channels.len(),
             data.height,
             data.width,
-        );
+        )
+        .with_window(config.window);
+        let mut state = state;
         let mut d = stage_discriminator(config, state.stage, &level, &device);
         let mut encoder = in_loop_encoder(config, &level, &device);
         if resumed {
@@ -100,12 +103,15 @@ impl Trainer {
                     .map_err(|err| load_err("opt_e", err))?;
             }
         } else if let Some(src) = &opts.init_from {
-            // A discriminator of another shape than the source's starts fresh.
+            // A discriminator of another shape than the source's starts fresh, and learns
+            // alone for a while before the trained generator takes its gradients.
             let same_d = level.factor == 1
                 && load_config(&src.join("config.json")).is_ok_and(|c| {
-                    serde_json::to_value(&c.discriminator).ok()
-                        == serde_json::to_value(&config.discriminator).ok()
+                    c.window == config.window
+                        && serde_json::to_value(&c.discriminator).ok()
+                            == serde_json::to_value(&config.discriminator).ok()
                 });
+            state.fresh_discriminator = !same_d;
             (g, g_ema, d) = init_from(src, g, g_ema, d, same_d, config.drop_head_only)?;
             std::fs::write(
                 opts.run_dir.join("init_from.json"),
@@ -161,7 +167,8 @@ pub(super) fn stage_discriminator(
         .discriminator_of(stage)
         .clone()
         .with_height(level.height)
-        .with_width(level.width)
+        .with_width(level.trained_width())
+        .with_azimuth_input(level.window.is_some())
         .init(device)
 }
 

@@ -9,8 +9,8 @@ use burn::tensor::{Device, Tensor};
 use rayon::prelude::*;
 
 use crate::model::data::{DROPPED, RangeDataset};
-use crate::model::discriminator::Discriminator;
-use crate::model::generator::Generator;
+use crate::model::discriminator::{Discriminator, column_azimuths};
+use crate::model::generator::{Generator, GridCache};
 use crate::model::measurement::MeasurementConfig;
 use crate::model::{AnyGenerator, Generated};
 use crate::util::rng::Rng;
@@ -32,7 +32,9 @@ impl Trainer {
         // ---- D step: fakes come from the generator without autodiff (constants for D).
         let z = self.z(&inner);
         let shift = self.subgrid();
-        let real = self.real_batch(data, &device);
+        let windows = self.window_starts();
+        let real = self.real_batch(data, windows.as_deref(), &device);
+        let azimuth = self.window_azimuths(windows.as_deref(), &device);
         let lazy = cfg.r1_gamma > 0.0 && self.state.step.is_multiple_of(cfg.r1_interval as u64);
         let regularisation = cfg.regularisation.clone();
         let view = DView {
@@ -59,8 +61,10 @@ impl Trainer {
                 let mut rng = Rng::new(seeds[k]);
                 let z = z.clone().narrow(0, k * n, n);
                 let shift = shift.as_ref().map(|s| &s[k * n..(k + 1) * n]);
-                let (fake, _) = g_inner.generate(z, self.grid_inner.as_ref(), shift);
+                let windows = windows.as_ref().map(|s| &s[k * n..(k + 1) * n]);
+                let (fake, _) = self.render(&g_inner, z, self.grid_inner.as_ref(), shift, windows);
                 let fake = measure(&cfg.measurement, fake, &mut rng).autodiff();
+                let azimuth = azimuth.as_ref().map(|a| a.clone().narrow(0, k * n, n));
                 let real = real.clone().narrow(0, k * n, n);
                 let seen = [BatchStats::of(&real), BatchStats::of(&fake)];
                 let (real, swapped) = pseudo_reals(real, fake.clone(), apa_p, &mut rng);
@@ -68,7 +72,13 @@ impl Trainer {
                 let real = view.apply(real, &mut rng);
                 let v = lazy.then(|| rng.normal_tensor(real.dims(), &device));
                 let terms = DTerms { r1_gamma, lecam };
-                let mut part = d_part(&self.d, &device, &cfg, terms, fake, real, v);
+                let inputs = DInputs {
+                    fake,
+                    real,
+                    r1_direction: v,
+                    azimuth,
+                };
+                let mut part = d_part(&self.d, &device, &cfg, terms, inputs);
                 part.swapped = swapped;
                 (part, seen)
             })
@@ -144,6 +154,8 @@ impl Trainer {
         let n = cfg.batch_size / parts;
         let z = self.z(&device);
         let shift = self.subgrid();
+        let windows = self.window_starts();
+        let azimuth = self.window_azimuths(windows.as_deref(), &device);
         let d_frozen = self.d.valid();
         let view = DView {
             ada_p: self.state.ada_p,
@@ -153,7 +165,7 @@ impl Trainer {
         // Reconstruction-assisted runs encode a batch of real scans as well; the ray-drop
         // anchor reads the same batch's drop rate per row.
         let real = (self.encoder.is_some() || cfg.drop_rate_weight > 0.0)
-            .then(|| self.real_batch(data, &device));
+            .then(|| self.real_batch(data, windows.as_deref(), &device));
         let real_row_drop = real
             .as_ref()
             .filter(|_| cfg.drop_rate_weight > 0.0)
@@ -165,7 +177,9 @@ impl Trainer {
                 let g = rendering.clone().fork(&device);
                 let z = z.clone().narrow(0, k * n, n);
                 let shift = shift.as_ref().map(|s| &s[k * n..(k + 1) * n]);
-                let (fake, w) = g.generate(z, self.grid.as_ref(), shift);
+                let windows = windows.as_ref().map(|s| &s[k * n..(k + 1) * n]);
+                let (fake, w) = self.render(&g, z, self.grid.as_ref(), shift, windows);
+                let azimuth = azimuth.as_ref().map(|a| a.clone().narrow(0, k * n, n));
                 let anchor = match (&real_row_drop, &fake.keep_logit) {
                     (Some(rows), Some(keep_logit)) => Some(
                         drop_rate_anchor(keep_logit.clone(), rows).mul_scalar(cfg.drop_rate_weight),
@@ -174,7 +188,7 @@ impl Trainer {
                 };
                 let mut rng = Rng::new(seeds[k]);
                 let fake = measure(&cfg.measurement, fake, &mut rng);
-                let logit = d_frozen.forward(view.apply(fake.clone(), &mut rng));
+                let logit = d_frozen.forward_at(view.apply(fake.clone(), &mut rng), azimuth);
                 let loss_g = softplus(logit.neg(), 1.0).mean();
                 let loss = loss_g.clone().inner().into_scalar::<f32>();
                 let encoder = self
@@ -250,6 +264,36 @@ impl Trainer {
         let beta = 0.5f64.powf(cfg.batch_size as f64 / half_life) as f32;
         self.g_ema = ema_update(self.g_ema.clone(), &self.g, beta);
         (loss_g, assisted)
+    }
+
+    /// A part's generated scans: whole turns at the level's resolution, or the windows
+    /// starting at the columns of `windows` (the subgrid shift then is their phase).
+    fn render(
+        &self,
+        g: &AnyGenerator,
+        z: Tensor<2>,
+        grid: Option<&GridCache>,
+        shift: Option<&[f32]>,
+        windows: Option<&[usize]>,
+    ) -> (Generated, Option<Tensor<2>>) {
+        let (Some(start), AnyGenerator::Implicit(generator)) = (windows, g) else {
+            return g.generate(z, grid, shift);
+        };
+        let grid = grid.expect("the implicit generator has a grid");
+        let w = generator.mapping.forward(z);
+        let phase = shift.map_or_else(|| vec![0.0; start.len()], <[f32]>::to_vec);
+        let out = generator.render_window(w.clone(), grid, self.level.width, start, &phase);
+        let fake = Generated {
+            x_d: out.x_d,
+            keep_logit: Some(out.keep_logit),
+        };
+        (fake, Some(w))
+    }
+
+    /// The azimuth of each column of a batch's windows, as the discriminator reads it.
+    fn window_azimuths(&self, windows: Option<&[usize]>, device: &Device) -> Option<Tensor<4>> {
+        let level = &self.level;
+        windows.map(|start| column_azimuths(start, level.trained_width(), level.width, device))
     }
 
     /// The generator as the current stage renders: the first blocks only. Blocks that take
@@ -453,6 +497,15 @@ struct DPart {
     swapped: Vec<bool>,
 }
 
+/// What D judges in one part: generated and real scans (or windows, with their columns'
+/// azimuths), and the direction of the finite-difference R1 where it is due.
+struct DInputs {
+    fake: Tensor<4>,
+    real: Tensor<4>,
+    r1_direction: Option<Tensor<4>>,
+    azimuth: Option<Tensor<4>>,
+}
+
 /// The terms D's loss adds to its own this step.
 #[derive(Debug, Clone, Copy)]
 struct DTerms {
@@ -462,20 +515,24 @@ struct DTerms {
     lecam: Option<(f32, LecamAnchors)>,
 }
 
-/// D's loss on one part of the batch (with the lazy finite-difference R1 where `v` is
-/// given, and the LeCam term, as `terms` say) and its gradients, on a fork of `d`.
+/// D's loss on one part of the batch (with the lazy finite-difference R1 where a direction
+/// is given, and the LeCam term, as `terms` say) and its gradients, on a fork of `d`.
 fn d_part(
     d: &Discriminator,
     device: &Device,
     cfg: &TrainConfig,
     terms: DTerms,
-    fake: Tensor<4>,
-    real: Tensor<4>,
-    v: Option<Tensor<4>>,
+    seen: DInputs,
 ) -> DPart {
+    let DInputs {
+        fake,
+        real,
+        r1_direction: v,
+        azimuth,
+    } = seen;
     let d = d.clone().fork(device);
-    let logit_fake = d.forward(fake); // [part, 1]
-    let logit_real = d.forward(real.clone()); // [part, 1]
+    let logit_fake = d.forward_at(fake, azimuth.clone()); // [part, 1]
+    let logit_real = d.forward_at(real.clone(), azimuth.clone()); // [part, 1]
     let d_real = tensor_to_vec(logit_real.clone().inner());
     let d_fake = tensor_to_vec(logit_fake.clone().inner());
     let loss_d =
@@ -494,7 +551,7 @@ fn d_part(
             // Finite-difference R1: with v ~ N(0, I), E[(grad D . v)^2] = |grad D|^2, and
             // (D(x + h v) - D(x)) / h estimates grad D . v with first-order autodiff only.
             let h = cfg.r1_fd_step;
-            let moved = d.forward(real.detach() + v.mul_scalar(h)); // [part, 1]
+            let moved = d.forward_at(real.detach() + v.mul_scalar(h), azimuth); // [part, 1]
             let r1 = (moved - logit_real).div_scalar(h).powi_scalar(2).mean();
             let penalty = r1
                 .clone()

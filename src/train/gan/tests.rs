@@ -200,6 +200,69 @@ fn options(run_dir: PathBuf, cache: PathBuf, config: TrainConfig) -> TrainOption
     }
 }
 
+/// A trained generator branched into a run on windows of the turn: a fresh discriminator
+/// of windows (reading their azimuths) learns alone first, then the generator moves; the
+/// checkpoint resumes and the snapshots still show whole turns.
+#[test]
+fn a_trained_generator_goes_on_learning_on_windows() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let cache = synthetic_cache(dir.path(), 8, 3, |i, _| (i % 64) as f32 / 64.0 - 0.5);
+    let data = RangeDataset::load(&cache).expect("cache");
+    let source = options(
+        dir.path().join("whole"),
+        cache.clone(),
+        tiny_run_config().with_total_images(4),
+    );
+    run(&source).expect("train on whole turns");
+    let config = tiny_run_config()
+        .with_window(Some(16))
+        .with_d_warmup_images(4)
+        .with_total_images(10);
+    let mut opts = TrainOptions {
+        init_from: Some(source.run_dir.clone()),
+        ..options(dir.path().join("windows"), cache, config)
+    };
+    std::fs::create_dir_all(&opts.run_dir).expect("mkdir");
+    let mut t = Trainer::new(&opts.config, &opts, &data).expect("branch");
+    assert!(t.state.fresh_discriminator);
+    assert_eq!(t.grid.as_ref().map(|g| g.width), Some(16 + 2 * 4));
+    let start = generator_values(&t.g);
+    t.step(&data).expect("step");
+    t.state.images += 2;
+    assert_eq!(generator_values(&t.g), start, "G waits while D warms up");
+    for _ in 0..2 {
+        t.step(&data).expect("step");
+        t.state.images += 2;
+    }
+    assert_ne!(
+        generator_values(&t.g),
+        start,
+        "G learns from the windows' D"
+    );
+    run(&opts).expect("train on windows");
+    opts.total_images = Some(12);
+    run(&opts).expect("resume on windows");
+    let state: TrainState = serde_json::from_str(
+        &std::fs::read_to_string(opts.run_dir.join("checkpoint/state.json")).expect("state"),
+    )
+    .expect("json");
+    assert_eq!(state.images, 12);
+    let level = Level::of(&[], 0, 2, 64, 64).with_window(Some(16));
+    let d = stage_discriminator(&opts.config, 0, &level, &Device::flex());
+    d.try_load_file(opts.run_dir.join("checkpoint/d.bpk"))
+        .expect("the checkpoint holds a discriminator of windows");
+    let snapshot = std::fs::read_dir(opts.run_dir.join("snapshots"))
+        .expect("snapshots")
+        .filter_map(|e| e.ok())
+        .map(|e| e.path())
+        .max()
+        .expect("a snapshot");
+    // The PNG header's width (big-endian, bytes 16-19).
+    let bytes = std::fs::read(&snapshot).expect("read snapshot");
+    let width = u32::from_be_bytes([bytes[16], bytes[17], bytes[18], bytes[19]]);
+    assert_eq!(width % 64, 0, "whole turns of 64 columns: {width}");
+}
+
 /// A few steps on synthetic data, a checkpoint, and a resume that continues the count.
 #[test]
 fn trains_checkpoints_and_resumes() {
