@@ -229,7 +229,7 @@ impl Trainer {
                     "reconstruction": m.assisted.map(|a| a.reconstruction),
                     "cycle": m.assisted.map(|a| a.cycle),
                     "prior": m.assisted.map(|a| a.prior),
-                    "grid": [self.level.height, self.level.width],
+                    "grid": [self.level.height, self.level.trained_width()],
                     "real": m.real.json(),
                     "fake": m.fake.json(),
                     "elapsed_s": started.elapsed().as_secs_f64(),
