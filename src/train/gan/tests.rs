@@ -184,6 +184,12 @@ fn baselines_train_a_few_steps() {
     }
 }
 
+/// The training state in a run's checkpoint.
+fn saved_state(run_dir: &Path) -> TrainState {
+    let text = std::fs::read_to_string(run_dir.join("checkpoint/state.json")).expect("state");
+    serde_json::from_str(&text).expect("json")
+}
+
 /// Options of a quiet CPU run in `run_dir` on the dataset cache `cache`.
 fn options(run_dir: PathBuf, cache: PathBuf, config: TrainConfig) -> TrainOptions {
     TrainOptions {
@@ -242,10 +248,7 @@ fn a_trained_generator_goes_on_learning_on_windows() {
     run(&opts).expect("train on windows");
     opts.total_images = Some(12);
     run(&opts).expect("resume on windows");
-    let state: TrainState = serde_json::from_str(
-        &std::fs::read_to_string(opts.run_dir.join("checkpoint/state.json")).expect("state"),
-    )
-    .expect("json");
+    let state = saved_state(&opts.run_dir);
     assert_eq!(state.images, 12);
     let level = Level::of(&[], 0, 2, 64, 64).with_window(Some(16));
     let d = stage_discriminator(&opts.config, 0, &level, &Device::flex());
@@ -277,20 +280,14 @@ fn trains_checkpoints_and_resumes() {
         .with_ada_speed_images(10.0);
     let mut opts = options(dir.path().join("run"), cache, config);
     run(&opts).expect("train");
-    let state: TrainState = serde_json::from_str(
-        &std::fs::read_to_string(opts.run_dir.join("checkpoint/state.json")).expect("state"),
-    )
-    .expect("json");
+    let state = saved_state(&opts.run_dir);
     assert_eq!(state.images, 8);
     let log = std::fs::read_to_string(opts.run_dir.join("log.jsonl")).expect("log");
     assert!(log.lines().count() >= 1 || state.step < 10);
     // Resume with a larger budget: continues from 8, not from 0.
     opts.total_images = Some(12);
     run(&opts).expect("resume");
-    let state: TrainState = serde_json::from_str(
-        &std::fs::read_to_string(opts.run_dir.join("checkpoint/state.json")).expect("state"),
-    )
-    .expect("json");
+    let state = saved_state(&opts.run_dir);
     assert_eq!(state.images, 12);
     // A compact checkpoint without the discriminator's optimiser state resumes too.
     std::fs::remove_file(opts.run_dir.join("checkpoint/opt_d.bpk")).expect("rm opt_d");
@@ -434,10 +431,7 @@ fn a_staged_assisted_run_grows_and_resumes_as_if_uninterrupted() {
         total_images: Some(total),
         ..options(dir.path().join(name), cache.clone(), config.clone())
     };
-    let state = |o: &TrainOptions| -> TrainState {
-        let text = std::fs::read_to_string(o.run_dir.join("checkpoint/state.json"));
-        serde_json::from_str(&text.expect("state")).expect("json")
-    };
+    let state = |o: &TrainOptions| saved_state(&o.run_dir);
     // Weight files carry random parameter ids, so the values are compared.
     let device = Device::flex();
     let weights = |o: &TrainOptions| {
@@ -533,10 +527,7 @@ fn a_widened_run_resumes_where_its_source_stopped() {
         ..source.clone()
     };
     run(&wide).expect("resume widened");
-    let state: TrainState = serde_json::from_str(
-        &std::fs::read_to_string(wide_dir.join("checkpoint/state.json")).expect("state"),
-    )
-    .expect("json");
+    let state = saved_state(&wide_dir);
     assert_eq!(state.images, 8);
     let (g, c) = load_generator(&wide_dir, &Device::flex()).expect("load");
     assert_eq!(c.generator.channels, vec![12, 10]);
@@ -573,10 +564,7 @@ fn a_resumed_run_branches_into_the_regularisers() {
     let saved = load_config(&opts.run_dir.join("config.json")).expect("config");
     assert_eq!(saved.regularisation, all);
     assert_eq!(saved.total_images, 16);
-    let state: TrainState = serde_json::from_str(
-        &std::fs::read_to_string(opts.run_dir.join("checkpoint/state.json")).expect("state"),
-    )
-    .expect("json");
+    let state = saved_state(&opts.run_dir);
     let anchors = state.lecam.expect("LeCam's anchors after its steps");
     assert!(anchors.real.is_finite() && anchors.fake.is_finite());
     let log = std::fs::read_to_string(opts.run_dir.join("log.jsonl")).expect("log");
