@@ -17,9 +17,11 @@ use crate::pipeline::SensorChoice;
 use crate::train::growth::{Stage, parse_stage};
 use crate::train::reconstruct::ReconstructionConfig;
 use crate::train::regularise::DRegularisation;
-use crate::train::scans::{Layout, ScanSource};
+use crate::train::scans::{Layout, ScanSource, load_dataset};
 use crate::train::widen::widen_run;
-use crate::train::{Backend, CHECKPOINT, TrainConfig, TrainOptions, load_config, run};
+use crate::train::{
+    Backend, CHECKPOINT, SIMULATED_SCANS, TrainConfig, TrainOptions, load_config, run,
+};
 
 #[derive(Debug, Clone, Copy, clap::ValueEnum)]
 pub enum ArchArg {
@@ -220,6 +222,12 @@ pub struct TrainArgs {
     /// `--init-from`, a trained generator goes on learning detail this way.
     #[arg(long, value_name = "COLS")]
     pub window: Option<usize>,
+    /// Show the discriminator simulated scans of the run's sensor as a share of its real
+    /// ones, `SCANS:SHARE` (e.g. `4000:0.25`): SCANS are simulated once into
+    /// `RUN_DIR/sim.bin` (as `--sim-scans` does). On a resumed run it replaces the saved
+    /// share, so one checkpoint can be branched with and without them; `0:0` turns it off.
+    #[arg(long, value_name = "SCANS:SHARE", value_parser = parse_sim_mix)]
+    pub sim_mix: Option<(usize, f32)>,
     /// The discriminator's LeCam regulariser with this weight (0.1-0.3 for small data):
     /// D's logits on real and generated scans are kept from drifting apart. Any of
     /// `--lecam`, `--diff-augment` and `--apa` on a resumed run replaces its saved
@@ -337,6 +345,17 @@ pub fn run_train(global: &GlobalArgs, args: TrainArgs) -> anyhow::Result<Outcome
         None => args.run.source()?,
     };
     config.check().context("the run's settings")?;
+    if let Some((scans, share)) = args.sim_mix.filter(|&(_, share)| share > 0.0) {
+        // The run's sensor; a new run learns it from its scans (the cache built here).
+        let sensor = if saved.exists() {
+            load_config(&saved)?.sensor
+        } else {
+            load_dataset(&dataset_cache, source.as_ref())?.profile
+        };
+        let cache = args.run.run_dir.join(SIMULATED_SCANS);
+        build_simulated_cache(global, &cache, scans, sensor)?;
+        config = config.with_sim_share(share);
+    }
     let opts = TrainOptions {
         dataset_cache,
         max_duration: args.run.max_duration(),
@@ -348,9 +367,29 @@ pub fn run_train(global: &GlobalArgs, args: TrainArgs) -> anyhow::Result<Outcome
         progress: !global.quiet,
         init_from: args.init_from,
         regularisation,
+        sim_share: args.sim_mix.map(|(_, share)| share),
     };
     run(&opts)?;
     Ok(Outcome::Success)
+}
+
+/// Parses `--sim-mix SCANS:SHARE`.
+fn parse_sim_mix(text: &str) -> Result<(usize, f32), String> {
+    let (scans, share) = text
+        .split_once(':')
+        .ok_or_else(|| format!("'{text}': expected SCANS:SHARE, e.g. 4000:0.25"))?;
+    let scans = scans
+        .parse::<usize>()
+        .map_err(|e| format!("'{scans}': {e}"))?;
+    let share = share
+        .parse::<f32>()
+        .map_err(|e| format!("'{share}': {e}"))?;
+    if !(0.0..=1.0).contains(&share) || (share > 0.0 && scans == 0) {
+        return Err(format!(
+            "'{text}': the share is between 0 and 1, and a share above 0 needs scans"
+        ));
+    }
+    Ok((scans, share))
 }
 
 /// Writes the widened run into the run directory, unless it holds a checkpoint (a resumed
@@ -398,6 +437,15 @@ fn build_simulated_cache(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn sim_mix_takes_scans_and_a_share() {
+        assert_eq!(parse_sim_mix("4000:0.25"), Ok((4000, 0.25)));
+        assert_eq!(parse_sim_mix("0:0"), Ok((0, 0.0)));
+        for bad in ["4000", "4000:1.5", "0:0.5", "x:0.1", "10:-0.1"] {
+            assert!(parse_sim_mix(bad).is_err(), "{bad}");
+        }
+    }
 
     fn run_args(dir: &Path) -> RunArgs {
         RunArgs {

@@ -141,6 +141,11 @@ pub struct TrainConfig {
     /// then a window. None: whole turns.
     #[config(default = "None")]
     pub window: Option<usize>,
+    /// Share of the discriminator's real scans drawn from simulated scans of the run's
+    /// sensor (`RUN_DIR/sim.bin`) instead of the real ones: structure the few real scans
+    /// hold little of (cars, poles, walls with sharp edges). 0: real scans only.
+    #[config(default = 0.0)]
+    pub sim_share: f32,
 }
 
 /// How to run training (not part of the saved config).
@@ -165,6 +170,9 @@ pub struct TrainOptions {
     /// Replaces the (saved) discriminator regularisers, e.g. to branch a run into a
     /// comparison of them from one checkpoint.
     pub regularisation: Option<DRegularisation>,
+    /// Replaces the (saved) share of simulated scans among the real ones, as
+    /// `regularisation` does.
+    pub sim_share: Option<f32>,
 }
 
 /// Mutable training state saved with each checkpoint.
@@ -261,6 +269,11 @@ impl TrainConfig {
         if let Some(g_lr) = self.g_lr {
             positive("g_lr", g_lr)?;
         }
+        anyhow::ensure!(
+            (0.0..=1.0).contains(&self.sim_share),
+            "sim_share must be between 0 and 1 (got {})",
+            self.sim_share
+        );
         if self.window.is_some() {
             anyhow::ensure!(
                 self.arch == Arch::Dusty2,

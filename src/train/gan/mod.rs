@@ -62,6 +62,10 @@ pub fn run(opts: &TrainOptions) -> Result<()> {
     if let Some(r) = &opts.regularisation {
         changed = changed.with_regularisation(r.clone());
     }
+    if let Some(share) = opts.sim_share {
+        changed = changed.with_sim_share(share);
+    }
+    changed.check().context("the run's settings")?;
     let config = if serde_json::to_value(&changed)? != serde_json::to_value(&config)? {
         changed
             .save(&config_path)
@@ -91,9 +95,45 @@ pub fn run(opts: &TrainOptions) -> Result<()> {
             },
         )?;
     }
+    let sim = simulated_scans(&opts.run_dir, &config, &data)?;
     let mut trainer = Trainer::new(&config, opts, &data)?;
+    trainer.sim = sim;
     trainer.train(opts, &data)
 }
+
+/// Where the run mixes simulated scans among the real ones: `RUN_DIR/sim.bin`, on the same
+/// grid as the real scans.
+fn simulated_scans(
+    run_dir: &std::path::Path,
+    config: &TrainConfig,
+    data: &RangeDataset,
+) -> Result<Option<RangeDataset>> {
+    if config.sim_share <= 0.0 {
+        return Ok(None);
+    }
+    let path = run_dir.join(SIMULATED_SCANS);
+    ensure!(
+        path.exists(),
+        "the run mixes in simulated scans (share {}) but '{}' is missing (train --sim-mix builds it)",
+        config.sim_share,
+        path.display()
+    );
+    let sim = RangeDataset::load(&path)?;
+    ensure!(
+        (sim.height, sim.width) == (data.height, data.width) && !sim.is_empty(),
+        "'{}' holds {} scans of {} x {}; the real scans are {} x {}",
+        path.display(),
+        sim.len(),
+        sim.height,
+        sim.width,
+        data.height,
+        data.width
+    );
+    Ok(Some(sim))
+}
+
+/// The simulated scans a run mixes in, in its run directory.
+pub const SIMULATED_SCANS: &str = "sim.bin";
 
 struct Trainer {
     config: TrainConfig,
@@ -116,6 +156,8 @@ struct Trainer {
     snapshot_z: Tensor<2>,
     /// The latest (lazy) R1 estimate, logged on every log line.
     last_r1: Option<f32>,
+    /// Simulated scans mixed among the real ones (`sim_share`).
+    sim: Option<RangeDataset>,
 }
 
 impl Trainer {
@@ -274,14 +316,20 @@ impl Trainer {
         let level = self.level;
         let width = level.trained_width();
         let mut v = Vec::with_capacity(b * level.height * width);
+        let share = self.config.sim_share;
         for k in 0..b {
-            let i = self.state.rng.below(data.len());
+            // Draws nothing more from the stream where no simulated scans are mixed in.
+            let set = match &self.sim {
+                Some(sim) if self.state.rng.uniform() < share => sim,
+                _ => data,
+            };
+            let i = self.state.rng.below(set.len());
             match windows {
-                Some(start) => v.extend(level.crop(data.image(i), start[k])),
-                None if level.factor == 1 => v.extend_from_slice(data.image(i)),
+                Some(start) => v.extend(level.crop(set.image(i), start[k])),
+                None if level.factor == 1 => v.extend_from_slice(set.image(i)),
                 None => {
                     let phase = level.random_phase(&mut self.state.rng);
-                    v.extend(level.sample(data.image(i), data.width, phase));
+                    v.extend(level.sample(set.image(i), set.width, phase));
                 }
             }
         }

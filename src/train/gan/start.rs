@@ -150,6 +150,7 @@ impl Trainer {
             encoder,
             snapshot_z,
             last_r1: None,
+            sim: None,
         };
         trainer.cut_grids();
         Ok(trainer)

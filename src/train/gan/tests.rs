@@ -203,6 +203,7 @@ fn options(run_dir: PathBuf, cache: PathBuf, config: TrainConfig) -> TrainOption
         progress: false,
         init_from: None,
         regularisation: None,
+        sim_share: None,
     }
 }
 
@@ -264,6 +265,41 @@ fn a_trained_generator_goes_on_learning_on_windows() {
     let bytes = std::fs::read(&snapshot).expect("read snapshot");
     let width = u32::from_be_bytes([bytes[16], bytes[17], bytes[18], bytes[19]]);
     assert_eq!(width % 64, 0, "whole turns of 64 columns: {width}");
+}
+
+/// With a share of simulated scans, the discriminator's real batches draw about that share
+/// from the run's `sim.bin`; a run that asks for them without the file stops and says so.
+#[test]
+fn simulated_scans_join_the_real_batches_at_their_share() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let cache = synthetic_cache(dir.path(), 64, 3, |_, _| 0.5);
+    let data = RangeDataset::load(&cache).expect("cache");
+    let sim_dir = dir.path().join("sim");
+    std::fs::create_dir_all(&sim_dir).expect("mkdir");
+    let sim_cache = synthetic_cache(&sim_dir, 4, 4, |_, _| -0.25);
+    let opts = options(
+        dir.path().join("run"),
+        cache,
+        tiny_run_config().with_batch_size(64).with_sim_share(0.25),
+    );
+    let err = run(&opts).expect_err("no sim.bin");
+    assert!(format!("{err:#}").contains("sim.bin"), "{err:#}");
+    std::fs::copy(&sim_cache, opts.run_dir.join(SIMULATED_SCANS)).expect("copy");
+    let simulated_in_batch = |share: f32| {
+        let config = opts.config.clone().with_sim_share(share);
+        let mut t = Trainer::new(&config, &opts, &data).expect("trainer");
+        t.sim = simulated_scans(&opts.run_dir, &config, &data).expect("sim");
+        let batch = tensor_to_vec(t.real_batch(&data, None, &t.device.clone()));
+        let simulated = |image: &[f32]| image.iter().any(|&v| (v + 0.25).abs() < 1e-6);
+        batch
+            .chunks(64 * 64)
+            .filter(|image| simulated(image))
+            .count()
+    };
+    let quarter = simulated_in_batch(0.25);
+    assert!((6..=28).contains(&quarter), "{quarter} of 64 simulated");
+    assert_eq!(simulated_in_batch(1.0), 64);
+    assert_eq!(simulated_in_batch(0.0), 0);
 }
 
 /// A few steps on synthetic data, a checkpoint, and a resume that continues the count.
