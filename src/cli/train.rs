@@ -220,7 +220,7 @@ pub struct TrainArgs {
     /// turn, at random azimuths: the generator renders only the window (about W/COLS times
     /// the images per second), the discriminator sees where each window is. With
     /// `--init-from`, a trained generator goes on learning detail this way.
-    #[arg(long, value_name = "COLS")]
+    #[arg(long, value_name = "COLS", conflicts_with = "widen_from")]
     pub window: Option<usize>,
     /// Show the discriminator simulated scans of the run's sensor as a share of its real
     /// ones, `SCANS:SHARE` (e.g. `4000:0.25`): SCANS are simulated once into
