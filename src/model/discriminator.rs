@@ -3,14 +3,14 @@
 //! and a linear head giving one logit per image. Shared by all three architectures.
 
 use burn::config::Config;
-use burn::module::Module;
+use burn::module::{Module, Param};
 use burn::tensor::{Device, Tensor};
 
 use super::conv::{EqualConv, EqualConvConfig, downsample2x};
 use super::layers::{EqualLinear, EqualLinearConfig, roll, shift_replicate};
 use crate::lidar::range_image::column_azimuth;
 use crate::util::rng::Rng;
-use crate::util::tensor::tensor_from;
+use crate::util::tensor::{tensor_from, tensor_to_vec};
 
 /// Residual block: conv 3x3 -> blur-downsample -> conv 3x3, plus a downsampled 1x1 skip.
 #[derive(Config, Debug)]
@@ -199,6 +199,83 @@ impl Discriminator {
     }
 }
 
+impl Discriminator {
+    /// A discriminator of windows that starts from this whole-turn one. `windows` is a fresh
+    /// discriminator of the same channels and stem at the window's width, reading the
+    /// azimuth; `rows` is the height of the last feature map (the input's over its fold).
+    /// The convolutions carry over, since they are the same at any width. The input layer
+    /// reads the image as before and the azimuth through zeros. The head reads each window
+    /// position as the sum of the turn's positions that fall on it when the turn is tiled
+    /// with windows: a window is first judged as if every window of the turn looked like it.
+    pub fn into_windows(self, windows: Discriminator, rows: usize) -> Discriminator {
+        let stem2 = self.stem * self.stem;
+        // Input channels: the [vertical, horizontal] blurred copies of [image (, azimuth
+        // sine, cosine)], each channel folded into stem^2.
+        let per_copy = windows.from_input.weight.dims()[1] / (2 * stem2);
+        let from_input = carry_weights(
+            &self.from_input.weight,
+            self.from_input.weight_gain,
+            &windows.from_input.weight,
+            windows.from_input.weight_gain,
+            |k| (k / stem2) * per_copy * stem2 + k % stem2,
+        );
+        // The head's inputs: (channel, row, column) of the last feature map, flattened.
+        let c = self.conv_out.weight.dims()[0];
+        let whole_cols = self.fc.weight.dims()[1] / (c * rows);
+        let window_cols = windows.fc.weight.dims()[1] / (c * rows);
+        let fc = carry_weights(
+            &self.fc.weight,
+            self.fc.weight_gain,
+            &windows.fc.weight,
+            windows.fc.weight_gain,
+            |k| (k / whole_cols) * window_cols + (k % whole_cols) % window_cols,
+        );
+        // The window's layers keep their own gains, which the carried weights are scaled to.
+        Discriminator {
+            from_input: EqualConv {
+                weight: from_input,
+                bias: self.from_input.bias,
+                ..windows.from_input
+            },
+            blocks: self.blocks,
+            conv_out: self.conv_out,
+            fc: EqualLinear {
+                weight: fc,
+                bias: self.fc.bias,
+                ..windows.fc
+            },
+            out: self.out,
+            ..windows
+        }
+    }
+}
+
+/// `to`'s weights (`[out, in, ..]`, scaled by `to_gain` in use) holding what `from`'s
+/// (scaled by `from_gain`) computed: input `k` of `from` adds to input `map(k)` of `to`;
+/// inputs nothing maps to read zeros.
+fn carry_weights<const D: usize>(
+    from: &Param<Tensor<D>>,
+    from_gain: f32,
+    to: &Param<Tensor<D>>,
+    to_gain: f32,
+    map: impl Fn(usize) -> usize,
+) -> Param<Tensor<D>> {
+    let (from_dims, to_dims) = (from.dims(), to.dims());
+    let inner: usize = from_dims[2..].iter().product();
+    let (from_in, to_in) = (from_dims[1], to_dims[1]);
+    let values = tensor_to_vec(from.val());
+    let mut out = vec![0f32; to_dims.iter().product()];
+    let scale = from_gain / to_gain;
+    for o in 0..from_dims[0] {
+        for k in 0..from_in {
+            let src = &values[(o * from_in + k) * inner..][..inner];
+            let dst = &mut out[(o * to_in + map(k)) * inner..][..inner];
+            dst.iter_mut().zip(src).for_each(|(d, s)| *d += s * scale);
+        }
+    }
+    Param::from_tensor(tensor_from(out, to_dims, &to.device()))
+}
+
 /// Sine and cosine of the azimuth of each column of windows of a turn of `full_width`
 /// columns: window `i` holds columns `start[i]..start[i] + width` (circular).
 ///
@@ -308,6 +385,40 @@ mod tests {
         let az = tensor_to_vec(column_azimuths(&[56], 16, 64, &dev));
         let expected = column_azimuth(3, 64).sin();
         assert!((az[8 + 3] - expected).abs() < 1e-6);
+    }
+
+    /// On a turn made of one window repeated, the window discriminator started from the
+    /// whole-turn one judges the window exactly as that one judges the turn.
+    #[test]
+    fn a_window_discriminator_starts_as_the_whole_turns_one() {
+        let dev = Device::flex();
+        for (stem, channels) in [(1, vec![4, 8, 8]), (2, vec![4, 8])] {
+            let config = DiscriminatorConfig::new()
+                .with_height(8)
+                .with_width(64)
+                .with_stem(stem)
+                .with_channels(channels)
+                .with_seed(3);
+            let whole = config.init(&dev);
+            let fresh = config
+                .clone()
+                .with_width(16)
+                .with_azimuth_input(true)
+                .with_seed(9)
+                .init(&dev);
+            let windows = whole.clone().into_windows(fresh, 2);
+            let tile = Rng::new(5).normal_tensor([4, 1, 8, 16], &dev);
+            let turn = Tensor::cat(vec![tile.clone(); 4], 3);
+            let expected = tensor_to_vec(whole.forward(turn));
+            let azimuth = column_azimuths(&[16, 48, 0, 7], 16, 64, &dev);
+            let got = tensor_to_vec(windows.forward_at(tile, Some(azimuth)));
+            for (g, e) in got.iter().zip(&expected) {
+                assert!(
+                    (g - e).abs() < 1e-3 * (1.0 + e.abs()),
+                    "stem {stem}: {got:?} vs {expected:?}"
+                );
+            }
+        }
     }
 
     #[test]

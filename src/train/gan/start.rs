@@ -105,14 +105,29 @@ impl Trainer {
         } else if let Some(src) = &opts.init_from {
             // A discriminator of another shape than the source's starts fresh, and learns
             // alone for a while before the trained generator takes its gradients.
+            let source = load_config(&src.join("config.json")).ok();
+            let same_shape = |c: &TrainConfig| {
+                serde_json::to_value(&c.discriminator).ok()
+                    == serde_json::to_value(&config.discriminator).ok()
+            };
             let same_d = level.factor == 1
-                && load_config(&src.join("config.json")).is_ok_and(|c| {
-                    c.window == config.window
-                        && serde_json::to_value(&c.discriminator).ok()
-                            == serde_json::to_value(&config.discriminator).ok()
-                });
+                && (source.as_ref()).is_some_and(|c| c.window == config.window && same_shape(c));
             state.fresh_discriminator = !same_d;
             (g, g_ema, d) = init_from(src, g, g_ema, d, same_d, config.drop_head_only)?;
+            // Windows branched from a whole-turn run: D starts from the source's, which
+            // already tells this generator's scans from real ones.
+            let whole_d = src.join(CHECKPOINT).join("d.bpk");
+            if level.window.is_some()
+                && whole_d.exists()
+                && (source.as_ref()).is_some_and(|c| c.window.is_none() && same_shape(c))
+            {
+                let whole = stage_discriminator(config, 0, &level.with_window(None), &device)
+                    .try_load_file(&whole_d)
+                    .map_err(|e| anyhow::anyhow!("failed to load '{}': {e}", whole_d.display()))?;
+                let d_config = &config.discriminator;
+                let fold = d_config.stem.max(1) << (d_config.channels.len() - 1);
+                d = whole.into_windows(d, level.height / fold);
+            }
             std::fs::write(
                 opts.run_dir.join("init_from.json"),
                 serde_json::to_string_pretty(&serde_json::json!({

@@ -232,6 +232,12 @@ fn a_trained_generator_goes_on_learning_on_windows() {
     std::fs::create_dir_all(&opts.run_dir).expect("mkdir");
     let mut t = Trainer::new(&opts.config, &opts, &data).expect("branch");
     assert!(t.state.fresh_discriminator);
+    // D starts from the whole-turn run's: its convolutions are the source's.
+    let whole = Level::of(&[], 0, 2, 64, 64);
+    let source_d = stage_discriminator(&source.config, 0, &whole, &Device::flex())
+        .try_load_file(source.run_dir.join("checkpoint/d.bpk"))
+        .expect("source d");
+    assert_eq!(module_values(&t.d.blocks), module_values(&source_d.blocks));
     assert_eq!(t.grid.as_ref().map(|g| g.width), Some(16 + 2 * 4));
     let start = generator_values(&t.g);
     t.step(&data).expect("step");
