@@ -230,7 +230,7 @@ pub struct TrainArgs {
     pub sim_mix: Option<(usize, f32)>,
     /// The discriminator's LeCam regulariser with this weight (0.1-0.3 for small data):
     /// D's logits on real and generated scans are kept from drifting apart. Any of
-    /// `--lecam`, `--diff-augment` and `--apa` on a resumed run replaces its saved
+    /// `--lecam`, `--diff-augment`, `--apa` and `--self-supervised` on a resumed run replaces its saved
     /// regularisers with exactly those given, so one checkpoint can be branched into runs
     /// that compare them.
     #[arg(long, value_name = "WEIGHT")]
@@ -242,6 +242,11 @@ pub struct TrainArgs {
     /// real, as often as it overfits (the same measure as adaptive augmentation).
     #[arg(long)]
     pub apa: bool,
+    /// A self-supervised discriminator (FastGAN): a small decoder rebuilds each real scan
+    /// from the discriminator's last features, and this weight puts that loss into the
+    /// discriminator's (1 is FastGAN's). Branches a resumed run as `--lecam` does.
+    #[arg(long, value_name = "WEIGHT")]
+    pub self_supervised: Option<f32>,
 }
 
 pub fn run_train(global: &GlobalArgs, args: TrainArgs) -> anyhow::Result<Outcome> {
@@ -306,14 +311,21 @@ pub fn run_train(global: &GlobalArgs, args: TrainArgs) -> anyhow::Result<Outcome
     if let Some(columns) = args.window {
         config = config.with_window(Some(columns));
     }
-    let regularisation = (args.lecam.is_some() || args.diff_augment || args.apa).then(|| {
+    let any = args.lecam.is_some() || args.diff_augment || args.apa;
+    let regularisation = (any || args.self_supervised.is_some()).then(|| {
         DRegularisation::new()
             .with_lecam(args.lecam.unwrap_or(0.0))
             .with_diff_augment(args.diff_augment)
             .with_apa(args.apa)
+            .with_self_supervised(args.self_supervised.unwrap_or(0.0))
     });
-    if let Some(w) = args.lecam {
-        anyhow::ensure!(w.is_finite() && w >= 0.0, "--lecam must be a weight >= 0");
+    for (flag, weight) in [
+        ("--lecam", args.lecam),
+        ("--self-supervised", args.self_supervised),
+    ] {
+        if let Some(w) = weight {
+            anyhow::ensure!(w.is_finite() && w >= 0.0, "{flag} must be a weight >= 0");
+        }
     }
     if let Some(r) = &regularisation {
         config = config.with_regularisation(r.clone());

@@ -170,7 +170,16 @@ impl Discriminator {
     /// # Shapes
     /// - x: `[batch, 1, H, W]`, azimuth: `[batch, 2, 1, W]` -> logits `[batch, 1]`
     pub fn forward_at(&self, x: Tensor<4>, azimuth: Option<Tensor<4>>) -> Tensor<2> {
-        let [b, _, h, _] = x.dims();
+        self.judge(self.features_at(x, azimuth))
+    }
+
+    /// The last residual block's features of `x`, which [`Discriminator::judge`] reads (and
+    /// a self-supervised decoder rebuilds the scan from).
+    ///
+    /// # Shapes
+    /// - x: `[batch, 1, H, W]`, azimuth: `[batch, 2, 1, W]` -> `[batch, c, H/fold, W/fold]`
+    pub fn features_at(&self, x: Tensor<4>, azimuth: Option<Tensor<4>>) -> Tensor<4> {
+        let [_, _, h, _] = x.dims();
         let x = match azimuth {
             Some(a) => Tensor::cat(vec![x, a.repeat_dim(2, h)], 1), // [batch, 3, H, W]
             None => x,
@@ -192,7 +201,17 @@ impl Discriminator {
         for block in &self.blocks {
             y = block.forward(y); // [batch, c, h, w]
         }
-        let y = minibatch_stddev(y, self.mbstd_group); // [batch, c + 1, h, w]
+        y
+    }
+
+    /// The logits of the last features ([`Discriminator::features_at`]): minibatch standard
+    /// deviation, a convolution and the linear head.
+    ///
+    /// # Shapes
+    /// - features: `[batch, c, h, w]` -> logits `[batch, 1]`
+    pub fn judge(&self, features: Tensor<4>) -> Tensor<2> {
+        let b = features.dims()[0];
+        let y = minibatch_stddev(features, self.mbstd_group); // [batch, c + 1, h, w]
         let y = self.conv_out.forward(y); // [batch, c, h, w]
         let y = y.reshape([b as i64, -1]); // [batch, c*h*w]
         self.out.forward(self.fc.forward(y)) // [batch, 1]

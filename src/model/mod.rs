@@ -25,6 +25,7 @@ pub mod layers;
 pub mod measurement;
 pub mod metrics;
 pub mod sample;
+pub mod self_decoder;
 pub mod two_sample;
 pub mod weights;
 

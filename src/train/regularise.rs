@@ -14,6 +14,9 @@
 //! - **APA** (Jiang et al. 2021): with an adaptive probability each real image in D's batch
 //!   is replaced by a generated one, still labelled real; the probability follows the same
 //!   overfitting heuristic as ADA (E[sign(D(real))] against its target), on the reals left.
+//! - **A self-supervised discriminator** (FastGAN, Liu et al. 2021): a small decoder rebuilds
+//!   each real scan from D's last features, and D learns from that loss as well
+//!   ([`crate::model::self_decoder`]).
 
 use burn::config::Config;
 use burn::tensor::Tensor;
@@ -34,6 +37,10 @@ pub struct DRegularisation {
     /// Adaptive pseudo augmentation: generated images shown to D as real.
     #[config(default = false)]
     pub apa: bool,
+    /// Weight of the FastGAN-style self-supervised reconstruction of real scans from D's
+    /// last features ([`crate::model::self_decoder`]); 0: off.
+    #[config(default = 0.0)]
+    pub self_supervised: f32,
 }
 
 /// Decay per D step of the moving averages of D's logits the LeCam term anchors to.

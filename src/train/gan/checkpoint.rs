@@ -11,6 +11,7 @@ use crate::util::rng::Rng;
 use crate::util::tensor::tensor_to_vec;
 
 use super::Trainer;
+use super::start::{SELF_DECODER, SELF_DECODER_OPT};
 use crate::train::config::TrainOptions;
 use crate::train::run_dir::write_checkpoint;
 
@@ -39,6 +40,15 @@ impl Trainer {
             self.opt_d
                 .save(tmp.join("opt_d.bpk"))
                 .map_err(|e| save_err("opt_d", e))?;
+            if let Some(s) = &self.self_decoder {
+                s.decoder
+                    .clone()
+                    .save_file(tmp.join(SELF_DECODER))
+                    .map_err(|e| save_err("the self-supervised decoder", e))?;
+                s.opt
+                    .save(tmp.join(SELF_DECODER_OPT))
+                    .map_err(|e| save_err("the self-supervised decoder's optimiser", e))?;
+            }
             if let Some(e) = &self.encoder {
                 e.encoder
                     .clone()

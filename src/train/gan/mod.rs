@@ -15,7 +15,7 @@ use std::time::{Duration, Instant};
 
 use anyhow::{Context, Result, bail, ensure};
 use burn::config::Config;
-use burn::optim::{AdamConfig, ModuleOptimizer};
+use burn::optim::ModuleOptimizer;
 use burn::tensor::{Device, Tensor};
 use indicatif::{ProgressBar, ProgressStyle};
 
@@ -35,7 +35,7 @@ mod step;
 
 pub use checkpoint::write_png;
 
-use start::{in_loop_encoder, stage_discriminator};
+use start::{SelfSupervision, adam, in_loop_encoder, stage_discriminator, stage_self_decoder};
 
 /// Train (or resume) in `opts.run_dir`.
 pub fn run(opts: &TrainOptions) -> Result<()> {
@@ -143,6 +143,8 @@ struct Trainer {
     d: Discriminator,
     opt_g: ModuleOptimizer,
     opt_d: ModuleOptimizer,
+    /// The discriminator's self-supervised decoder, where the run has one.
+    self_decoder: Option<SelfSupervision>,
     state: TrainState,
     /// The generator's grid caches (autodiff and inner device) on the full grid; the
     /// current level renders the first blocks of them.
@@ -191,12 +193,9 @@ impl Trainer {
         self.level = Level::of(&self.config.stages, stage, blocks, data.height, data.width)
             .with_window(self.config.window);
         self.d = stage_discriminator(&self.config, stage, &self.level, &self.device);
+        self.self_decoder = stage_self_decoder(&self.config, stage, &self.device);
         self.encoder = in_loop_encoder(&self.config, &self.level, &self.device);
-        self.opt_d = AdamConfig::new()
-            .with_beta_1(self.config.beta1)
-            .with_beta_2(self.config.beta2)
-            .with_epsilon(1e-8)
-            .init();
+        self.opt_d = adam(&self.config);
         self.cut_grids();
         true
     }
@@ -265,6 +264,7 @@ impl Trainer {
                     "ada_p": self.state.ada_p,
                     "apa_p": self.config.regularisation.apa.then_some(self.state.apa_p),
                     "lecam": self.state.lecam.map(|a| [a.real, a.fake]),
+                    "self_supervised": m.self_supervised,
                     "pixel_drop": m.pixel_drop,
                     "images_per_s": ips,
                     "stage": self.state.stage,

@@ -5,11 +5,12 @@ use std::path::Path;
 
 use anyhow::{Context, Result, bail};
 use burn::module::Module;
-use burn::optim::AdamConfig;
+use burn::optim::{AdamConfig, ModuleOptimizer};
 use burn::tensor::Device;
 
 use crate::model::data::RangeDataset;
 use crate::model::discriminator::Discriminator;
+use crate::model::self_decoder::{SelfDecoder, SelfDecoderConfig};
 use crate::model::{AnyGenerator, Arch};
 use crate::util::rng::Rng;
 
@@ -27,14 +28,10 @@ impl Trainer {
     ) -> Result<Self> {
         let inner = opts.backend.device()?;
         let device = inner.clone().autodiff();
-        let adam = AdamConfig::new()
-            .with_beta_1(config.beta1)
-            .with_beta_2(config.beta2)
-            .with_epsilon(1e-8);
         let mut g = init_generator(config, &device);
         let mut g_ema = init_generator(config, &inner);
-        let mut opt_g = adam.init();
-        let mut opt_d = adam.init();
+        let mut opt_g = adam(config);
+        let mut opt_d = adam(config);
         let ck = opts.run_dir.join(CHECKPOINT);
         let resumed = ck.join("state.json").exists();
         let state = if resumed {
@@ -65,6 +62,7 @@ impl Trainer {
         .with_window(config.window);
         let mut state = state;
         let mut d = stage_discriminator(config, state.stage, &level, &device);
+        let mut self_decoder = stage_self_decoder(config, state.stage, &device);
         let mut encoder = in_loop_encoder(config, &level, &device);
         if resumed {
             let load_err = |what: &str, e: burn::store::RecordError| {
@@ -91,6 +89,20 @@ impl Trainer {
                 opt_d = opt_d
                     .load(ck.join("opt_d.bpk"))
                     .map_err(|e| load_err("opt_d", e))?;
+            }
+            // A run branched with a self-supervised discriminator starts its decoder fresh.
+            if let Some(s) = self_decoder
+                .as_mut()
+                .filter(|_| ck.join(SELF_DECODER).exists())
+            {
+                s.decoder = s
+                    .decoder
+                    .clone()
+                    .try_load_file(ck.join(SELF_DECODER))
+                    .map_err(|e| load_err("the self-supervised decoder", e))?;
+                s.opt = std::mem::replace(&mut s.opt, AdamConfig::new().init())
+                    .load(ck.join(SELF_DECODER_OPT))
+                    .map_err(|e| load_err("the self-supervised decoder's optimiser", e))?;
             }
             if let Some(e) = encoder.as_mut().filter(|_| ck.join("e.bpk").exists()) {
                 e.encoder = e
@@ -157,6 +169,7 @@ impl Trainer {
             d,
             opt_g,
             opt_d,
+            self_decoder,
             state,
             full_grid,
             grid: None,
@@ -186,6 +199,42 @@ pub(super) fn stage_discriminator(
         .with_width(level.trained_width())
         .with_azimuth_input(level.window.is_some())
         .init(device)
+}
+
+/// The self-supervised decoder's weights and Adam state in a checkpoint.
+pub(super) const SELF_DECODER: &str = "d_decoder.bpk";
+pub(super) const SELF_DECODER_OPT: &str = "opt_d_decoder.bpk";
+
+/// The discriminator's self-supervised decoder and its optimiser.
+pub(super) struct SelfSupervision {
+    pub(super) decoder: SelfDecoder,
+    pub(super) opt: ModuleOptimizer,
+}
+
+/// A fresh self-supervised decoder for the discriminator of `stage`, where the run has one.
+pub(super) fn stage_self_decoder(
+    config: &TrainConfig,
+    stage: usize,
+    device: &Device,
+) -> Option<SelfSupervision> {
+    (config.regularisation.self_supervised > 0.0).then(|| {
+        let d = config.discriminator_of(stage);
+        let fold = d.stem.max(1) << (d.channels.len() - 1);
+        let last = d.channels[d.channels.len() - 1];
+        SelfSupervision {
+            decoder: SelfDecoderConfig::for_discriminator(last, fold).init(device),
+            opt: adam(config),
+        }
+    })
+}
+
+/// The Adam optimiser of the run's networks.
+pub(super) fn adam(config: &TrainConfig) -> ModuleOptimizer {
+    AdamConfig::new()
+        .with_beta_1(config.beta1)
+        .with_beta_2(config.beta2)
+        .with_epsilon(1e-8)
+        .init()
 }
 
 /// The in-loop encoder for `level` where the run is reconstruction-assisted.

@@ -12,6 +12,7 @@ use crate::model::data::{DROPPED, RangeDataset};
 use crate::model::discriminator::{Discriminator, column_azimuths};
 use crate::model::generator::{Generator, GridCache};
 use crate::model::measurement::MeasurementConfig;
+use crate::model::self_decoder::SelfDecoder;
 use crate::model::{AnyGenerator, Generated};
 use crate::util::rng::Rng;
 use crate::util::tensor::{tensor_from, tensor_to_vec};
@@ -55,6 +56,8 @@ impl Trainer {
         let seeds: Vec<u64> = (0..parts).map(|_| self.state.rng.next_u64()).collect();
         let r1_gamma = self.level.r1_gamma(cfg.r1_gamma);
         let g_inner = self.g.valid();
+        let weight = regularisation.self_supervised;
+        let decoder = self.self_decoder.as_ref().map(|s| (&s.decoder, weight));
         let d_parts: Vec<(DPart, [BatchStats; 2])> = (0..parts)
             .into_par_iter()
             .map(|k| {
@@ -78,7 +81,7 @@ impl Trainer {
                     r1_direction: v,
                     azimuth,
                 };
-                let mut part = d_part(&self.d, &device, &cfg, terms, inputs);
+                let mut part = d_part(&self.d, decoder, &device, &cfg, terms, inputs);
                 part.swapped = swapped;
                 (part, seen)
             })
@@ -88,6 +91,7 @@ impl Trainer {
         let mean = |f: &dyn Fn(&DPart) -> f32| d_parts.iter().map(f).sum::<f32>() / parts as f32;
         let (loss_d, d_fake) = (mean(&|p| p.loss_d), mean(&|p| p.d_fake));
         let r1 = lazy.then(|| mean(&|p| p.r1.unwrap_or(0.0)));
+        let self_supervised = decoder.map(|_| mean(&|p| p.self_supervised.unwrap_or(0.0)));
         let d_real: Vec<f32> = d_parts.iter().flat_map(|p| p.d_real.clone()).collect();
         // The overfitting heuristic reads the real scans D saw, not APA's pseudo reals.
         let truly_real: Vec<f32> = d_parts
@@ -107,8 +111,16 @@ impl Trainer {
         if r1.is_some() {
             self.last_r1 = r1;
         }
-        let grads = mean_grads(&self.d, d_parts.into_iter().map(|p| p.grads).collect());
+        let (grads, decoder_grads): (Vec<_>, Vec<_>) = d_parts
+            .into_iter()
+            .map(|p| (p.grads, p.decoder_grads))
+            .unzip();
+        let grads = mean_grads(&self.d, grads);
         self.d = self.opt_d.step(cfg.lr, self.d.clone(), grads);
+        if let Some(s) = self.self_decoder.as_mut() {
+            let grads = mean_grads(&s.decoder, decoder_grads.into_iter().flatten().collect());
+            s.decoder = s.opt.step(cfg.lr, s.decoder.clone(), grads);
+        }
 
         // Adaptive augmentation (and APA's probability): move p towards
         // E[sign(D(real))] = target.
@@ -136,6 +148,7 @@ impl Trainer {
             loss_d,
             loss_g,
             r1,
+            self_supervised,
             d_real: d_real.iter().sum::<f32>() / d_real.len() as f32,
             d_fake,
             pixel_drop: self.pixel_drop(),
@@ -337,6 +350,8 @@ pub(super) struct StepMetrics {
     pub(super) loss_d: f32,
     pub(super) loss_g: f32,
     pub(super) r1: Option<f32>,
+    /// The self-supervised decoder's reconstruction loss, where the run has one.
+    pub(super) self_supervised: Option<f32>,
     pub(super) d_real: f32,
     pub(super) d_fake: f32,
     pub(super) pixel_drop: f32,
@@ -486,9 +501,11 @@ impl DView {
     }
 }
 
-/// One part of a D step: its gradients and numbers.
+/// One part of a D step: its gradients (and the self-supervised decoder's) and numbers.
 struct DPart {
     grads: GradientsParams,
+    decoder_grads: Option<GradientsParams>,
+    self_supervised: Option<f32>,
     loss_d: f32,
     r1: Option<f32>,
     d_real: Vec<f32>,
@@ -516,9 +533,12 @@ struct DTerms {
 }
 
 /// D's loss on one part of the batch (with the lazy finite-difference R1 where a direction
-/// is given, and the LeCam term, as `terms` say) and its gradients, on a fork of `d`.
+/// is given, and the LeCam term, as `terms` say) and its gradients, on a fork of `d`; with a
+/// self-supervised `decoder` (and its weight), also its loss rebuilding the real scans from
+/// D's features, and the decoder's gradients.
 fn d_part(
     d: &Discriminator,
+    decoder: Option<(&SelfDecoder, f32)>,
     device: &Device,
     cfg: &TrainConfig,
     terms: DTerms,
@@ -531,20 +551,28 @@ fn d_part(
         azimuth,
     } = seen;
     let d = d.clone().fork(device);
+    let decoder = decoder.map(|(m, weight)| (m.clone().fork(device), weight));
     let logit_fake = d.forward_at(fake, azimuth.clone()); // [part, 1]
-    let logit_real = d.forward_at(real.clone(), azimuth.clone()); // [part, 1]
+    let features = d.features_at(real.clone(), azimuth.clone()); // [part, c, h, w]
+    let reconstruction = (decoder.as_ref()).map(|(m, _)| m.loss(features.clone(), real.clone()));
+    let logit_real = d.judge(features); // [part, 1]
     let d_real = tensor_to_vec(logit_real.clone().inner());
     let d_fake = tensor_to_vec(logit_fake.clone().inner());
     let loss_d =
         softplus(logit_fake.clone(), 1.0).mean() + softplus(logit_real.clone().neg(), 1.0).mean();
+    let self_supervised = (reconstruction.as_ref()).map(|r| r.clone().inner().into_scalar::<f32>());
+    let loss_with = match (reconstruction, &decoder) {
+        (Some(r), Some((_, weight))) => loss_d.clone() + r.mul_scalar(*weight),
+        _ => loss_d.clone(),
+    };
     let regularised = match terms.lecam {
         Some((weight, anchors)) => {
-            loss_d.clone()
+            loss_with
                 + anchors
                     .penalty(logit_real.clone(), logit_fake)
                     .mul_scalar(weight)
         }
-        None => loss_d.clone(),
+        None => loss_with,
     };
     let (total, r1) = match v {
         Some(v) => {
@@ -561,8 +589,11 @@ fn d_part(
         }
         None => (regularised, None),
     };
+    let mut grads = total.backward();
     DPart {
-        grads: GradientsParams::from_grads(total.backward(), &d),
+        decoder_grads: decoder.map(|(m, _)| GradientsParams::from_module(&mut grads, &m)),
+        grads: GradientsParams::from_module(&mut grads, &d),
+        self_supervised,
         loss_d: loss_d.inner().into_scalar::<f32>(),
         r1,
         d_fake: d_fake.iter().sum::<f32>() / d_fake.len().max(1) as f32,

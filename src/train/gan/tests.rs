@@ -616,3 +616,52 @@ fn a_resumed_run_branches_into_the_regularisers() {
     assert!(last["lecam"].is_array());
     assert!(log.lines().take(2).all(|l| l.contains("\"apa_p\":null")));
 }
+
+/// A run branched into a self-supervised discriminator trains its decoder beside D: the
+/// reconstruction loss is logged on every line and falls as the decoder learns, and the
+/// decoder and its Adam state are checkpointed and resumed as they were.
+#[test]
+fn a_self_supervised_discriminator_learns_to_rebuild_the_real_scans() {
+    use crate::train::regularise::DRegularisation;
+    let dir = tempfile::tempdir().expect("tempdir");
+    let cache = synthetic_cache(dir.path(), 8, 5, |i, _| (i % 64) as f32 / 64.0 - 0.5);
+    let config = tiny_run_config()
+        .with_total_images(4)
+        .with_snapshot_every_images(1000)
+        .with_log_every_steps(1);
+    let mut opts = options(dir.path().join("run"), cache, config);
+    run(&opts).expect("train");
+    let ck = opts.run_dir.join("checkpoint");
+    assert!(!ck.join("d_decoder.bpk").exists());
+    opts.total_images = Some(80);
+    opts.regularisation = Some(DRegularisation::new().with_self_supervised(1.0));
+    run(&opts).expect("resume with a self-supervised D");
+    let decoder = std::fs::read(ck.join("d_decoder.bpk")).expect("the decoder is saved");
+    assert!(ck.join("opt_d_decoder.bpk").exists());
+    let losses = |log: &str| -> Vec<f64> {
+        log.lines()
+            .filter_map(|l| serde_json::from_str::<serde_json::Value>(l).ok())
+            .filter_map(|v| v["self_supervised"].as_f64())
+            .collect()
+    };
+    let log = std::fs::read_to_string(opts.run_dir.join("log.jsonl")).expect("log");
+    let seen = losses(&log);
+    assert_eq!(seen.len(), 38, "one loss per step after the branch");
+    let mean = |v: &[f64]| v.iter().sum::<f64>() / v.len() as f64;
+    assert!(
+        mean(&seen[30..]) < 0.5 * mean(&seen[..5]),
+        "the reconstruction should fall: {seen:?}"
+    );
+    // Resumed: the decoder goes on from its checkpoint, not from fresh weights.
+    opts.total_images = Some(84);
+    opts.regularisation = None;
+    run(&opts).expect("resume");
+    let log = std::fs::read_to_string(opts.run_dir.join("log.jsonl")).expect("log");
+    let resumed = losses(&log);
+    assert_eq!(resumed.len(), 40);
+    assert!(resumed[38] < 0.5 * mean(&seen[..5]), "{resumed:?}");
+    assert_ne!(
+        std::fs::read(ck.join("d_decoder.bpk")).expect("read"),
+        decoder
+    );
+}
