@@ -1,10 +1,10 @@
 //! The discriminator's self-supervised decoder (FastGAN, Liu et al. 2021): a small
 //! convolutional decoder that rebuilds a real scan, at half its resolution, from the
-//! discriminator's last feature map. Trained beside the discriminator on the scans it is shown as real, it
-//! makes those features describe the whole scan (its layout, objects and drops) rather than
-//! only the few cues that separate the training scans from generated ones, which is how a
-//! discriminator learns some 600 scans by heart. It needs no pretrained weights and is used
-//! in training only.
+//! discriminator's last feature map. Trained beside the discriminator on the scans it is
+//! shown as real, it makes those features describe the whole scan (its layout, objects and
+//! drops) rather than only the few cues that separate the training scans from generated
+//! ones, which is how a discriminator learns some 600 scans by heart. It needs no
+//! pretrained weights and is used in training only.
 
 use burn::config::Config;
 use burn::module::Module;
