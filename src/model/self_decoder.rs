@@ -12,6 +12,7 @@ use burn::tensor::{Device, Tensor};
 
 use super::conv::{EqualConv, EqualConvConfig, downsample2x};
 use crate::util::rng::Rng;
+use crate::util::tensor::upsample_nearest;
 
 #[derive(Config, Debug)]
 pub struct SelfDecoderConfig {
@@ -85,17 +86,6 @@ impl SelfDecoder {
         let target = downsample2x(input.detach());
         (self.forward(features) - target).powi_scalar(2).mean()
     }
-}
-
-/// Nearest-neighbour 2x upsampling.
-///
-/// # Shapes
-/// - x: `[batch, ch, H, W]` -> `[batch, ch, 2H, 2W]`
-fn upsample_nearest(x: Tensor<4>) -> Tensor<4> {
-    let [b, c, h, w] = x.dims();
-    x.reshape([b, c, h, 1, w, 1])
-        .expand([b, c, h, 2, w, 2])
-        .reshape([b, c, 2 * h, 2 * w])
 }
 
 #[cfg(test)]

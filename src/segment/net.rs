@@ -15,7 +15,7 @@ use burn::tensor::{Device, Tensor};
 use super::classes::NUM_CLASSES;
 use super::data::CHANNELS;
 use crate::util::rng::Rng;
-use crate::util::tensor::tensor_from;
+use crate::util::tensor::{tensor_from, upsample_nearest};
 
 #[derive(Config, Debug)]
 pub struct SegNetConfig {
@@ -163,7 +163,7 @@ impl SegNet {
         skips.pop();
         for block in &self.decoder {
             let skip = skips.pop().expect("one skip per decoder level");
-            h = block.forward(Tensor::cat(vec![upsample2(h), skip], 1), circular);
+            h = block.forward(Tensor::cat(vec![upsample_nearest(h), skip], 1), circular);
         }
         self.head.forward(h)
     }
@@ -182,15 +182,6 @@ fn pad1(x: Tensor<4>, circular: bool) -> Tensor<4> {
     let x = Tensor::cat(vec![left, x, right], 3);
     let z = Tensor::zeros([b, c, 1, w + 2], &device);
     Tensor::cat(vec![z.clone(), x, z], 2)
-}
-
-/// Nearest-neighbour 2x upsampling.
-fn upsample2(x: Tensor<4>) -> Tensor<4> {
-    let [b, c, h, w] = x.dims();
-    x.reshape([b, c, h, 1, w, 1])
-        .repeat_dim(3, 2)
-        .repeat_dim(5, 2)
-        .reshape([b, c, 2 * h, 2 * w])
 }
 
 #[cfg(test)]
@@ -236,18 +227,5 @@ mod tests {
         };
         assert_eq!(logits(3), logits(3));
         assert_ne!(logits(3), logits(4));
-    }
-
-    #[test]
-    fn upsample_repeats_each_pixel() {
-        let device = Device::flex();
-        let x = tensor_from(vec![1.0, 2.0, 3.0, 4.0], [1, 1, 2, 2], &device);
-        let y = tensor_to_vec(upsample2(x));
-        assert_eq!(
-            y,
-            vec![
-                1.0, 1.0, 2.0, 2.0, 1.0, 1.0, 2.0, 2.0, 3.0, 3.0, 4.0, 4.0, 3.0, 3.0, 4.0, 4.0
-            ]
-        );
     }
 }
