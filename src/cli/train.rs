@@ -222,6 +222,11 @@ pub struct TrainArgs {
     /// `--init-from`, a trained generator goes on learning detail this way.
     #[arg(long, value_name = "COLS", conflicts_with = "widen_from")]
     pub window: Option<usize>,
+    /// With `--window`: every N steps, one step on whole turns against a discriminator of
+    /// whole turns (started from `--init-from`'s where that run trained on whole turns), so
+    /// the layout of the turn keeps a judge while the windows teach detail.
+    #[arg(long, value_name = "N", requires = "window")]
+    pub whole_every: Option<usize>,
     /// Show the discriminator simulated scans of the run's sensor as a share of its real
     /// ones, `SCANS:SHARE` (e.g. `4000:0.25`): SCANS are simulated once into
     /// `RUN_DIR/sim.bin` (as `--sim-scans` does). On a resumed run it replaces the saved
@@ -263,6 +268,11 @@ pub fn run_train(global: &GlobalArgs, args: TrainArgs) -> anyhow::Result<Outcome
             run.window.map_or("whole turns".to_string(), |c| format!(
                 "windows of {c} columns"
             ))
+        );
+        anyhow::ensure!(
+            args.whole_every.is_none() || args.whole_every == run.whole_every,
+            "'{}' keeps the whole-turn steps it started with (start a branch with --init-from)",
+            args.run.run_dir.display()
         );
     }
     let mut config = match &args.init_from {
@@ -309,7 +319,9 @@ pub fn run_train(global: &GlobalArgs, args: TrainArgs) -> anyhow::Result<Outcome
         );
     }
     if let Some(columns) = args.window {
-        config = config.with_window(Some(columns));
+        config = config
+            .with_window(Some(columns))
+            .with_whole_every(args.whole_every);
     }
     let any = args.lecam.is_some() || args.diff_augment || args.apa;
     let regularisation = (any || args.self_supervised.is_some()).then(|| {

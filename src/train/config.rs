@@ -141,6 +141,12 @@ pub struct TrainConfig {
     /// then a window. None: whole turns.
     #[config(default = "None")]
     pub window: Option<usize>,
+    /// On windows of the turn: every this many steps, one step renders whole turns for a
+    /// discriminator of whole turns (its own, started from a whole-turn source's), which
+    /// keeps judging the layout of the turn while the windows teach detail. A whole turn
+    /// counts as one image, as a window does. None: windows only.
+    #[config(default = "None")]
+    pub whole_every: Option<usize>,
     /// Share of the discriminator's real scans drawn from simulated scans of the run's
     /// sensor (`RUN_DIR/sim.bin`) instead of the real ones: structure the few real scans
     /// hold little of (cars, poles, walls with sharp edges). 0: real scans only.
@@ -282,6 +288,16 @@ impl TrainConfig {
             anyhow::ensure!(
                 self.reconstruction.is_none(),
                 "windows of the turn train without the in-loop encoder, which reads whole turns: turn reconstruction off (--reconstruction 0)"
+            );
+        }
+        if let Some(every) = self.whole_every {
+            anyhow::ensure!(
+                self.window.is_some() && every >= 2,
+                "whole-turn steps (every {every}) go between steps on windows of the turn: they need a window and at least 2 steps apart"
+            );
+            anyhow::ensure!(
+                self.regularisation.self_supervised <= 0.0,
+                "whole-turn steps do not yet carry a self-supervised decoder of whole turns: leave --self-supervised off"
             );
         }
         Ok(())

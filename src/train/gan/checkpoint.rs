@@ -49,6 +49,9 @@ impl Trainer {
                     .save(tmp.join(SELF_DECODER_OPT))
                     .map_err(|e| save_err("the self-supervised decoder's optimiser", e))?;
             }
+            if let Some(w) = &self.whole {
+                w.save(tmp)?;
+            }
             if let Some(e) = &self.encoder {
                 e.encoder
                     .clone()

@@ -32,10 +32,12 @@ use super::reconstruct::InLoopEncoder;
 mod checkpoint;
 mod start;
 mod step;
+mod whole;
 
 pub use checkpoint::write_png;
 
 use start::{SelfSupervision, adam, in_loop_encoder, stage_discriminator, stage_self_decoder};
+use whole::WholePass;
 
 /// Train (or resume) in `opts.run_dir`.
 pub fn run(opts: &TrainOptions) -> Result<()> {
@@ -160,6 +162,8 @@ struct Trainer {
     last_r1: Option<f32>,
     /// Simulated scans mixed among the real ones (`sim_share`).
     sim: Option<RangeDataset>,
+    /// The occasional whole-turn step of a run on windows (`whole_every`).
+    whole: Option<WholePass>,
 }
 
 impl Trainer {
@@ -178,6 +182,7 @@ impl Trainer {
             Some((grid, inner)) => (Some(cut(grid)), Some(cut(inner))),
             None => (None, None),
         };
+        self.cut_whole_grids();
     }
 
     /// Moves to the next coarse-to-fine stage once the images seen reach it: one more block
@@ -196,6 +201,15 @@ impl Trainer {
         self.self_decoder = stage_self_decoder(&self.config, stage, &self.device);
         self.encoder = in_loop_encoder(&self.config, &self.level, &self.device);
         self.opt_d = adam(&self.config);
+        self.whole = match (self.config.whole_every, self.level.window) {
+            (Some(_), Some(_)) => Some(WholePass::fresh(
+                &self.config,
+                stage,
+                &self.level,
+                &self.device,
+            )),
+            _ => None,
+        };
         self.cut_grids();
         true
     }
@@ -236,7 +250,12 @@ impl Trainer {
             self.snapshot(opts, data)?;
         }
         while self.state.images < cfg.total_images {
-            let m = self.step(data)?;
+            let whole_turn = self.whole_turn_due();
+            let m = if whole_turn {
+                self.whole_turn_step(data)?
+            } else {
+                self.step(data)?
+            };
             self.state.step += 1;
             self.state.images += b as u64;
             if self.grow(data) {
@@ -271,7 +290,11 @@ impl Trainer {
                     "reconstruction": m.assisted.map(|a| a.reconstruction),
                     "cycle": m.assisted.map(|a| a.cycle),
                     "prior": m.assisted.map(|a| a.prior),
-                    "grid": [self.level.height, self.level.trained_width()],
+                    "grid": [
+                        self.level.height,
+                        if whole_turn { self.level.width } else { self.level.trained_width() }
+                    ],
+                    "whole_turn": self.whole.as_ref().and_then(|w| w.last.map(|l| l.json(w.counters.ada_p))),
                     "real": m.real.json(),
                     "fake": m.fake.json(),
                     "elapsed_s": started.elapsed().as_secs_f64(),

@@ -15,6 +15,7 @@ use crate::model::{AnyGenerator, Arch};
 use crate::util::rng::Rng;
 
 use super::Trainer;
+use super::whole::WholePass;
 use crate::train::config::{TrainConfig, TrainOptions, TrainState, init_generator, load_config};
 use crate::train::growth::Level;
 use crate::train::reconstruct::InLoopEncoder;
@@ -160,6 +161,17 @@ impl Trainer {
             )),
             AnyGenerator::Conv(_) => None,
         };
+        let whole = match (config.whole_every, level.window) {
+            (Some(_), Some(_)) => Some(WholePass::start(
+                config,
+                state.stage,
+                &level,
+                &opts.run_dir,
+                opts.init_from.as_deref(),
+                &device,
+            )?),
+            _ => None,
+        };
         let snapshot_z = Rng::new(config.seed ^ 0x5eed).normal_tensor([4, g.d_z()], &inner);
         let mut trainer = Self {
             config: config.clone(),
@@ -179,6 +191,7 @@ impl Trainer {
             snapshot_z,
             last_r1: None,
             sim: None,
+            whole,
         };
         trainer.cut_grids();
         Ok(trainer)

@@ -273,6 +273,79 @@ fn a_trained_generator_goes_on_learning_on_windows() {
     assert_eq!(width % 64, 0, "whole turns of 64 columns: {width}");
 }
 
+/// Whole-turn steps between the windows: the whole-turn discriminator starts as the
+/// whole-turn source's (with its ADA probability), steps on every second step only, is
+/// checkpointed with its own step count and resumes; a run without windows refuses them.
+#[test]
+fn whole_turn_steps_keep_their_own_discriminator_between_the_windows() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let cache = synthetic_cache(dir.path(), 8, 5, |i, _| (i % 64) as f32 / 64.0 - 0.5);
+    let data = RangeDataset::load(&cache).expect("cache");
+    let source = options(
+        dir.path().join("whole"),
+        cache.clone(),
+        tiny_run_config().with_total_images(4),
+    );
+    run(&source).expect("train on whole turns");
+    let refused = tiny_run_config().with_whole_every(Some(2)).check();
+    assert!(
+        format!("{:#}", refused.expect_err("no window")).contains("window"),
+        "whole-turn steps need windows"
+    );
+    let config = tiny_run_config()
+        .with_window(Some(16))
+        .with_whole_every(Some(2))
+        .with_d_warmup_images(0)
+        .with_log_every_steps(1)
+        .with_total_images(8);
+    let mut opts = TrainOptions {
+        init_from: Some(source.run_dir.clone()),
+        ..options(dir.path().join("windows"), cache, config)
+    };
+    std::fs::create_dir_all(&opts.run_dir).expect("mkdir");
+    let t = Trainer::new(&opts.config, &opts, &data).expect("branch");
+    let whole = Level::of(&[], 0, 2, 64, 64);
+    let load_whole = |path: PathBuf| {
+        stage_discriminator(&source.config, 0, &whole, &Device::flex())
+            .try_load_file(path)
+            .expect("a discriminator of whole turns")
+    };
+    let source_d = load_whole(source.run_dir.join("checkpoint/d.bpk"));
+    let pass = t.whole.as_ref().expect("a whole-turn pass");
+    assert_eq!(
+        module_values(&pass.d.blocks),
+        module_values(&source_d.blocks)
+    );
+    assert_eq!(pass.counters.ada_p, saved_state(&source.run_dir).ada_p);
+    assert_eq!(pass.grid.as_ref().map(|g| g.width), Some(64));
+    drop(t);
+    run(&opts).expect("train on windows and whole turns");
+    let counters = |dir: &Path| -> whole::DCounters {
+        let text = std::fs::read_to_string(dir.join("checkpoint/whole.json")).expect("whole.json");
+        serde_json::from_str(&text).expect("json")
+    };
+    assert_eq!(counters(&opts.run_dir).step, 2, "every second of 4 steps");
+    let trained = load_whole(opts.run_dir.join("checkpoint").join(whole::WHOLE_D));
+    assert_ne!(
+        module_values(&trained.blocks),
+        module_values(&source_d.blocks)
+    );
+    let log = std::fs::read_to_string(opts.run_dir.join("log.jsonl")).expect("log");
+    let lines: Vec<serde_json::Value> = log
+        .lines()
+        .map(|l| serde_json::from_str(l).expect("json"))
+        .collect();
+    let widths: Vec<u64> = lines
+        .iter()
+        .map(|l| l["grid"][1].as_u64().unwrap_or(0))
+        .collect();
+    assert_eq!(widths, [16, 64, 16, 64], "windows, then a whole turn");
+    assert!(lines[0]["whole_turn"].is_null() && lines[1]["whole_turn"]["loss_d"].is_number());
+    opts.total_images = Some(12);
+    run(&opts).expect("resume");
+    assert_eq!(counters(&opts.run_dir).step, 3, "the count resumes");
+}
+
 /// With a share of simulated scans, the discriminator's real batches draw about that share
 /// from the run's `sim.bin`; a run that asks for them without the file stops and says so.
 #[test]
