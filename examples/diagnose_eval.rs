@@ -5,8 +5,9 @@
 //! diagnosed with the neighbour completion and judged against the truth.
 //!
 //! ```text
-//! cargo run --release --example diagnose_eval [-- --seed 7 --only 0,5,9]
+//! cargo run --release --example diagnose_eval [-- --seed 7 --only 0,5,9 --gains]
 //! ```
+//! `--gains` shows each named effect's held-out gain (nats per pixel, x1000) beside it.
 //! Prints one row per pair, the summary, and the summary per sensor family (beams,
 //! organized or not) as Markdown tables, so a gap shows where it is.
 
@@ -36,7 +37,7 @@ struct Outcome {
 /// apart: what no method can see is not evidence about the method.
 const VISIBLE_SHARE: f64 = 0.005;
 
-fn judge(p: &testgen::Pair, d: &Diagnosis, seconds: f64) -> Outcome {
+fn judge(p: &testgen::Pair, d: &Diagnosis, seconds: f64, gains: bool) -> Outcome {
     let named: Vec<&str> = d.report.effects.iter().map(|e| e.id.as_str()).collect();
     let truth: Vec<&str> = p.truth.iter().map(String::as_str).collect();
     let null = truth.is_empty();
@@ -77,6 +78,11 @@ fn judge(p: &testgen::Pair, d: &Diagnosis, seconds: f64) -> Outcome {
         },
         if named.is_empty() {
             "(none)".into()
+        } else if gains {
+            (d.report.effects.iter())
+                .map(|e| format!("{} ({:.2})", e.id, 1000.0 * e.gain_nats_per_pixel))
+                .collect::<Vec<_>>()
+                .join(", ")
         } else {
             named.join(", ")
         },
@@ -109,6 +115,7 @@ fn judge(p: &testgen::Pair, d: &Diagnosis, seconds: f64) -> Outcome {
 fn main() {
     let mut seed = 7u64;
     let mut only: Option<Vec<usize>> = None;
+    let mut gains = false;
     let mut args = std::env::args().skip(1);
     while let Some(a) = args.next() {
         match a.as_str() {
@@ -122,6 +129,7 @@ fn main() {
                         .collect(),
                 )
             }
+            "--gains" => gains = true,
             other => panic!("unknown argument {other}"),
         }
     }
@@ -138,7 +146,7 @@ fn main() {
             let t = std::time::Instant::now();
             let p = testgen::pair(*pair_seed, effects, *beams);
             let d = testgen::diagnose_pair(&p);
-            let o = judge(&p, &d, t.elapsed().as_secs_f64());
+            let o = judge(&p, &d, t.elapsed().as_secs_f64(), gains);
             eprintln!("{i}: {}", o.line);
             if std::env::var_os("DIAGNOSE_EVAL_VERBOSE").is_some() {
                 eprintln!(
