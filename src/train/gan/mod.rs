@@ -4,10 +4,12 @@
 //! loss log, an indicatif bar and PNG snapshots. Entry point: [`run`].
 //!
 //! Run directory layout: `config.json` (written first), `checkpoint/` (g, g_ema, d, optimiser
-//! records, state.json; replaced atomically), `log.jsonl`, `snapshots/*.png`.
+//! records, state.json, and on windows with whole-turn steps d_whole and whole.json;
+//! replaced atomically), `log.jsonl`, `snapshots/*.png`.
 //!
 //! One file per part: `start` (a fresh, resumed or fine-tuning start), `step` (one D
-//! and G step) and `checkpoint` (checkpoints and snapshots).
+//! and G step), `whole` (the whole-turn steps among windows) and `checkpoint`
+//! (checkpoints and snapshots).
 
 use std::fs::OpenOptions;
 use std::io::Write;
