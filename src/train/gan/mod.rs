@@ -203,15 +203,8 @@ impl Trainer {
         self.self_decoder = stage_self_decoder(&self.config, stage, &self.device);
         self.encoder = in_loop_encoder(&self.config, &self.level, &self.device);
         self.opt_d = adam(&self.config);
-        self.whole = match (self.config.whole_every, self.level.window) {
-            (Some(_), Some(_)) => Some(WholePass::fresh(
-                &self.config,
-                stage,
-                &self.level,
-                &self.device,
-            )),
-            _ => None,
-        };
+        self.whole = WholePass::wanted(&self.config, &self.level)
+            .then(|| WholePass::fresh(&self.config, stage, &self.level, &self.device));
         self.cut_grids();
         true
     }

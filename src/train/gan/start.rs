@@ -161,17 +161,12 @@ impl Trainer {
             )),
             AnyGenerator::Conv(_) => None,
         };
-        let whole = match (config.whole_every, level.window) {
-            (Some(_), Some(_)) => Some(WholePass::start(
-                config,
-                state.stage,
-                &level,
-                &opts.run_dir,
-                opts.init_from.as_deref(),
-                &device,
-            )?),
-            _ => None,
-        };
+        let whole = WholePass::wanted(config, &level)
+            .then(|| {
+                let src = opts.init_from.as_deref();
+                WholePass::start(config, state.stage, &level, &opts.run_dir, src, &device)
+            })
+            .transpose()?;
         let snapshot_z = Rng::new(config.seed ^ 0x5eed).normal_tensor([4, g.d_z()], &inner);
         let mut trainer = Self {
             config: config.clone(),

@@ -207,20 +207,27 @@ fn options(run_dir: PathBuf, cache: PathBuf, config: TrainConfig) -> TrainOption
     }
 }
 
+/// A short whole-turn run in `dir/whole` on synthetic scans (cache seed `seed`), the source
+/// of the branches on windows: its cache, the loaded scans and its options.
+fn whole_turn_source(dir: &Path, seed: u64) -> (PathBuf, RangeDataset, TrainOptions) {
+    let cache = synthetic_cache(dir, 8, seed, |i, _| (i % 64) as f32 / 64.0 - 0.5);
+    let data = RangeDataset::load(&cache).expect("cache");
+    let source = options(
+        dir.join("whole"),
+        cache.clone(),
+        tiny_run_config().with_total_images(4),
+    );
+    run(&source).expect("train on whole turns");
+    (cache, data, source)
+}
+
 /// A trained generator branched into a run on windows of the turn: a fresh discriminator
 /// of windows (reading their azimuths) learns alone first, then the generator moves; the
 /// checkpoint resumes and the snapshots still show whole turns.
 #[test]
 fn a_trained_generator_goes_on_learning_on_windows() {
     let dir = tempfile::tempdir().expect("tempdir");
-    let cache = synthetic_cache(dir.path(), 8, 3, |i, _| (i % 64) as f32 / 64.0 - 0.5);
-    let data = RangeDataset::load(&cache).expect("cache");
-    let source = options(
-        dir.path().join("whole"),
-        cache.clone(),
-        tiny_run_config().with_total_images(4),
-    );
-    run(&source).expect("train on whole turns");
+    let (cache, data, source) = whole_turn_source(dir.path(), 3);
     let config = tiny_run_config()
         .with_window(Some(16))
         .with_d_warmup_images(4)
@@ -279,14 +286,7 @@ fn a_trained_generator_goes_on_learning_on_windows() {
 #[test]
 fn whole_turn_steps_keep_their_own_discriminator_between_the_windows() {
     let dir = tempfile::tempdir().expect("tempdir");
-    let cache = synthetic_cache(dir.path(), 8, 5, |i, _| (i % 64) as f32 / 64.0 - 0.5);
-    let data = RangeDataset::load(&cache).expect("cache");
-    let source = options(
-        dir.path().join("whole"),
-        cache.clone(),
-        tiny_run_config().with_total_images(4),
-    );
-    run(&source).expect("train on whole turns");
+    let (cache, data, source) = whole_turn_source(dir.path(), 5);
     let refused = tiny_run_config().with_whole_every(Some(2)).check();
     assert!(
         format!("{:#}", refused.expect_err("no window")).contains("window"),

@@ -89,6 +89,11 @@ pub(super) struct WholePass {
 }
 
 impl WholePass {
+    /// Whether a run at `level` takes whole-turn steps: on windows, with `whole_every`.
+    pub(super) fn wanted(config: &TrainConfig, level: &Level) -> bool {
+        config.whole_every.is_some() && level.window.is_some()
+    }
+
     /// A fresh whole-turn pass beside the windows of `level`.
     pub(super) fn fresh(
         config: &TrainConfig,
