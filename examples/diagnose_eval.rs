@@ -7,7 +7,8 @@
 //! ```text
 //! cargo run --release --example diagnose_eval [-- --seed 7 --only 0,5,9 --gains]
 //! ```
-//! `--gains` shows each named effect's held-out gain (nats per pixel, x1000) beside it.
+//! `--gains` shows each named effect's held-out gain (nats per pixel, x1000) beside it, and
+//! each true effect left unnamed with the gain and penalty it had as a candidate.
 //! Prints one row per pair, the summary, and the summary per sensor family (beams,
 //! organized or not) as Markdown tables, so a gap shows where it is.
 
@@ -76,16 +77,7 @@ fn judge(p: &testgen::Pair, d: &Diagnosis, seconds: f64, gains: bool) -> Outcome
                 .collect::<Vec<_>>()
                 .join(", ")
         },
-        if named.is_empty() {
-            "(none)".into()
-        } else if gains {
-            (d.report.effects.iter())
-                .map(|e| format!("{} ({:.2})", e.id, 1000.0 * e.gain_nats_per_pixel))
-                .collect::<Vec<_>>()
-                .join(", ")
-        } else {
-            named.join(", ")
-        },
+        named_column(d, &truth, gains),
         fit.before,
         fit.after,
         seconds,
@@ -110,6 +102,36 @@ fn judge(p: &testgen::Pair, d: &Diagnosis, seconds: f64, gains: bool) -> Outcome
         share: p.effect_share,
         visible_named,
     }
+}
+
+/// The named effects; with `gains`, each one's held-out gain, and each true effect left
+/// unnamed with the gain and penalty it had as a candidate (nats per pixel, x1000).
+fn named_column(d: &Diagnosis, truth: &[&str], gains: bool) -> String {
+    let mut parts: Vec<String> = d
+        .report
+        .effects
+        .iter()
+        .map(|e| match gains {
+            true => format!("{} ({:.2})", e.id, 1000.0 * e.gain_nats_per_pixel),
+            false => e.id.clone(),
+        })
+        .collect();
+    if parts.is_empty() {
+        parts.push("(none)".into());
+    }
+    if gains {
+        for c in (d.report.candidates.iter())
+            .filter(|c| truth.contains(&c.id.as_str()) && !c.significant)
+        {
+            parts.push(format!(
+                "unnamed {} ({:.2} / {:.2})",
+                c.id,
+                1000.0 * c.gain,
+                1000.0 * c.penalty
+            ));
+        }
+    }
+    parts.join(", ")
 }
 
 fn main() {
