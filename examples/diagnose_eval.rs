@@ -111,9 +111,12 @@ fn named_column(d: &Diagnosis, truth: &[&str], gains: bool) -> String {
         .report
         .effects
         .iter()
-        .map(|e| match gains {
-            true => format!("{} ({:.2})", e.id, 1000.0 * e.gain_nats_per_pixel),
-            false => e.id.clone(),
+        .map(|e| {
+            if gains {
+                format!("{} ({:.2})", e.id, 1000.0 * e.gain_nats_per_pixel)
+            } else {
+                e.id.clone()
+            }
         })
         .collect();
     if parts.is_empty() {
