@@ -7,20 +7,28 @@
 //! the completion's. The decoded samples are kept beside it (`hole_fill_*.bin`) for reruns.
 //! `--eval FILE` only reports a saved one.
 //!
+//! `--prior-free` fits the fill for sensors no model covers instead
+//! (`hole_fill_prior_free.json`): the completion it corrects is the prior-free one, computed
+//! here as `convert` computes it, its second opinion the line fill in place of x_d, and each
+//! scan is put on a grid of its own (every beam, every second or every fourth; 512, 1024 or
+//! 2048 columns) so that it learns no one sensor's spacing; validated on those grids too.
+//!
 //!     cargo build --release
-//!     cargo run --release --example hole_fill_fit -- [../shared/real_lidar] [per-scan pixels]
-//!         [epochs] [hidden,hidden] [half rows] [half columns] [reach] [passes]
+//!     cargo run --release --example hole_fill_fit -- [--prior-free] [../shared/real_lidar]
+//!         [per-scan pixels] [epochs] [hidden,hidden] [half rows] [half columns] [reach] [passes]
 //!     cargo run --release --example hole_fill_fit -- --eval models/hole_fill.json [../shared/real_lidar]
 use std::path::{Path, PathBuf};
 
 use anyhow::Result;
 use rangegan_mcap::decode::hole_fill::{HoleFill, Window};
+use rangegan_mcap::decode::prior_free::prior_free_fills;
 use rangegan_mcap::lidar::holes::HoleKind;
 use rangegan_mcap::model::data::kitti_validation_split;
 use rangegan_mcap::train::hole_fill::Holed;
 use rangegan_mcap::train::ray_move::{Samples, TrainOptions, mae, train};
 use rangegan_mcap::util::mlp::Mlp;
 use rangegan_mcap::util::rng::{Rng, key_hash};
+use rayon::prelude::*;
 
 #[path = "common/holed.rs"]
 mod holed;
@@ -77,16 +85,87 @@ fn collect(
     Ok(sets)
 }
 
+/// The grids a prior-free sample is drawn on: every `step`-th beam of the HDL-64E, at
+/// `columns`.
+const PRIOR_FREE_GRIDS: [(usize, usize); 9] = [
+    (1, 512),
+    (1, 1024),
+    (1, 2048),
+    (2, 512),
+    (2, 1024),
+    (2, 2048),
+    (4, 512),
+    (4, 1024),
+    (4, 2048),
+];
+
+/// As [`collect`] for the prior-free fill: the `i`-th scan on `grids[draw % grids.len()]`
+/// and completed without a prior, in this process.
+fn collect_prior_free(
+    window: Window,
+    files: &[PathBuf],
+    kinds: &[HoleKind],
+    grids: &[(usize, usize)],
+    per_scan: usize,
+    seed: u64,
+) -> Result<Vec<Samples>> {
+    let per_file: Vec<(usize, Samples)> = (files.par_iter().enumerate())
+        .map(|(i, file)| {
+            let mut rng = Rng::new(key_hash(&[seed, i as u64]));
+            let (step, columns) = grids[rng.below(grids.len())];
+            let scan = holed::project_all(std::slice::from_ref(file), columns)?.remove(0);
+            let scan = holed::every_nth_row(&scan, step);
+            let kind = i % kinds.len();
+            let mask = kinds[kind].cut(&scan.range_m, scan.height, scan.width, &mut rng);
+            let mut degraded = scan.clone();
+            degraded.range_m = holed::observed(&scan, &mask);
+            let (completed, lines) = prior_free_fills(&degraded);
+            let holed = Holed {
+                height: scan.height,
+                width: scan.width,
+                observed: degraded.range_m,
+                completed,
+                x_d: lines,
+                truth: scan.range_m,
+                mask,
+            };
+            Ok((kind, holed.samples(window, per_scan, &mut rng)))
+        })
+        .collect::<Result<_>>()?;
+    let mut sets: Vec<Samples> = kinds.iter().map(|_| Samples::default()).collect();
+    for (kind, s) in per_file {
+        sets[kind].append(s);
+    }
+    Ok(sets)
+}
+
 fn list(s: &str) -> Vec<usize> {
     s.split(',').map(|v| v.parse().expect("a number")).collect()
 }
 
-fn validation(window: Window, data: &Path) -> Result<Vec<Samples>> {
+/// Every cut pixel of every third scan of the validation drive, one set per kind of hole
+/// (`prior_free`: each scan on each of the grids of [`PRIOR_FREE_GRIDS`] at 512 columns, as
+/// `completion_eval --set thinned` puts them).
+fn validation(window: Window, data: &Path, prior_free: bool) -> Result<Vec<Samples>> {
     let (_, files) = kitti_validation_split(data, &["kitti_raw_drive_d".to_string()])?;
     let files: Vec<PathBuf> = files.into_iter().step_by(3).collect();
+    let grids: Vec<(usize, usize)> = PRIOR_FREE_GRIDS
+        .into_iter()
+        .filter(|g| g.1 == 512)
+        .collect();
     HoleKind::ALL
         .iter()
-        .map(|&kind| Ok(collect(window, &files, &[kind], usize::MAX, 0)?.remove(0)))
+        .map(|&kind| {
+            let mut set = Samples::default();
+            if !prior_free {
+                return Ok(collect(window, &files, &[kind], usize::MAX, 0)?.remove(0));
+            }
+            for g in &grids {
+                let one = collect_prior_free(window, &files, &[kind], &[*g], usize::MAX, 0)?;
+                set.append(one.into_iter().next().expect("one kind"));
+            }
+            Ok(set)
+        })
         .collect()
 }
 
@@ -151,7 +230,13 @@ fn report(sets: &[Samples], net: &Mlp) -> String {
         .zip(sets)
         .map(|(kind, set)| {
             let m = mae(set, net);
-            format!("{} {:.3} -> {:.3}", kind.name(), m.fill[0], m.corrected[0])
+            let n = set.len();
+            format!(
+                "{} ({n}) {:.3} -> {:.3}",
+                kind.name(),
+                m.fill[0],
+                m.corrected[0]
+            )
         })
         .collect::<Vec<_>>()
         .join(" | ")
@@ -159,11 +244,12 @@ fn report(sets: &[Samples], net: &Mlp) -> String {
 
 fn main() -> Result<()> {
     let mut args = std::env::args().skip(1).peekable();
+    let prior_free = args.next_if(|a| a == "--prior-free").is_some();
     if args.peek().is_some_and(|a| a == "--eval") {
         args.next();
         let fill = HoleFill::load(Path::new(&args.next().expect("--eval FILE")))?;
         let data = PathBuf::from(args.next().unwrap_or("../shared/real_lidar".into()));
-        let sets = validation(fill.window, &data)?;
+        let sets = validation(fill.window, &data, prior_free)?;
         println!("{}", report(&sets, &fill.net));
         return Ok(());
     }
@@ -180,18 +266,33 @@ fn main() -> Result<()> {
     let (train_files, _) = kitti_validation_split(&data, &["kitti_raw_drive_d".to_string()])?;
     let files: Vec<PathBuf> = (0..passes).flat_map(|_| train_files.clone()).collect();
     let t = std::time::Instant::now();
+    let name = if prior_free {
+        "hole_fill_prior_free"
+    } else {
+        "hole_fill"
+    };
     let tag = format!(
         "{per_scan}-{}-{}-{}-{passes}",
         window.half_rows, window.half_columns, window.reach
     );
-    let training = cached(Path::new(&format!("hole_fill_training-{tag}.bin")), || {
-        collect(window, &files, &HoleKind::ALL, per_scan, 7)
+    let training = cached(Path::new(&format!("{name}_training-{tag}.bin")), || {
+        if prior_free {
+            collect_prior_free(
+                window,
+                &files,
+                &HoleKind::ALL,
+                &PRIOR_FREE_GRIDS,
+                per_scan,
+                7,
+            )
+        } else {
+            collect(window, &files, &HoleKind::ALL, per_scan, 7)
+        }
     })?;
     let samples = Samples::balanced(training);
-    let sets = cached(
-        Path::new(&format!("hole_fill_validation-{tag}.bin")),
-        || validation(window, &data),
-    )?;
+    let sets = cached(Path::new(&format!("{name}_validation-{tag}.bin")), || {
+        validation(window, &data, prior_free)
+    })?;
     eprintln!(
         "{} training scans x {passes}, {} samples ({:.0} s)",
         train_files.len(),
@@ -211,6 +312,6 @@ fn main() -> Result<()> {
         );
     });
     let fill = HoleFill::new(window, net);
-    std::fs::write("hole_fill.json", serde_json::to_string(&fill)?)?;
+    std::fs::write(format!("{name}.json"), serde_json::to_string(&fill)?)?;
     Ok(())
 }

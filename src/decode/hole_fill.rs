@@ -8,6 +8,12 @@
 //! KITTI training drives with holes of every [`HoleKind`](crate::lidar::holes::HoleKind)
 //! cut into them ([`crate::train::hole_fill`]; `cargo run --release --example
 //! hole_fill_fit` rebuilds the shipped `models/hole_fill.json`, built into the binary).
+//!
+//! Sensors no model covers get a second network of the same shape
+//! (`models/hole_fill_prior_free.json`, `hole_fill_fit --prior-free`): it corrects the
+//! completion without a prior and reads the line fill along rows and columns in x_d's place.
+//! It is fitted on KITTI scans thinned to 64, 32 and 16 beams at 512 to 2048 columns, so that
+//! no one sensor's spacing is all it knows.
 
 use std::path::Path;
 use std::sync::OnceLock;
@@ -81,9 +87,24 @@ impl HoleFill {
     /// The network shipped in `models/hole_fill.json`, built into the binary.
     pub fn shipped() -> &'static HoleFill {
         static SHIPPED: OnceLock<HoleFill> = OnceLock::new();
-        SHIPPED.get_or_init(|| {
-            Self::parse(include_str!("../../models/hole_fill.json"))
-                .expect("the shipped hole fill is checked by a unit test")
+        Self::built_in(&SHIPPED, include_str!("../../models/hole_fill.json"))
+    }
+
+    /// The network for sensors no model covers, shipped in
+    /// `models/hole_fill_prior_free.json`: it corrects the completion without a prior and
+    /// reads the line fill where [`HoleFill::shipped`] reads x_d
+    /// ([`crate::decode::prior_free::complete_without_prior`]).
+    pub fn prior_free() -> &'static HoleFill {
+        static SHIPPED: OnceLock<HoleFill> = OnceLock::new();
+        Self::built_in(
+            &SHIPPED,
+            include_str!("../../models/hole_fill_prior_free.json"),
+        )
+    }
+
+    fn built_in(cell: &'static OnceLock<HoleFill>, text: &str) -> &'static HoleFill {
+        cell.get_or_init(|| {
+            Self::parse(text).expect("the shipped hole fills are checked by a unit test")
         })
     }
 
@@ -120,11 +141,23 @@ impl HoleFill {
     /// completion left at 0 stay as they are.
     pub fn refine(
         &self,
-        (observed, completed, x_d): (&[f32], &[f32], &[f32]),
+        images: (&[f32], &[f32], &[f32]),
         distance: &[u32],
         size: (usize, usize),
     ) -> Vec<f32> {
-        let dropped = dropped_features(self.window, (observed, completed, x_d), distance, size);
+        self.refine_where(images, distance, size, |_| true)
+    }
+
+    /// [`HoleFill::refine`] of the dropped pixels in `wanted` only; the others as completed.
+    pub fn refine_where(
+        &self,
+        (observed, completed, x_d): (&[f32], &[f32], &[f32]),
+        distance: &[u32],
+        size: (usize, usize),
+        wanted: impl Fn(usize) -> bool,
+    ) -> Vec<f32> {
+        let images = (observed, completed, x_d);
+        let dropped = dropped_features(self.window, images, distance, size, wanted);
         let moves = self.net.forward(&dropped.x);
         let mut out = completed.to_vec();
         for (&k, m) in dropped.pixels.iter().zip(moves) {
@@ -161,13 +194,14 @@ impl Images<'_> {
     }
 }
 
-/// The features of every dropped pixel of `observed` the network moves: `completed` set
-/// there and a return in two or more directions.
+/// The features of every dropped pixel of `observed` in `wanted` that the network moves:
+/// `completed` set there and a return in two or more directions.
 pub(crate) fn dropped_features(
     window: Window,
     (observed, completed, x_d): (&[f32], &[f32], &[f32]),
     distance: &[u32],
     (h, w): (usize, usize),
+    wanted: impl Fn(usize) -> bool,
 ) -> Dropped {
     let images = Images {
         observed,
@@ -183,7 +217,7 @@ pub(crate) fn dropped_features(
     };
     let mut found = Vec::with_capacity(DIRECTIONS.len());
     for k in 0..h * w {
-        if observed[k] > 0.0 || completed[k] <= 0.0 {
+        if observed[k] > 0.0 || completed[k] <= 0.0 || !wanted(k) {
             continue;
         }
         let (r, c) = (k / w, k % w);
@@ -263,9 +297,11 @@ mod tests {
     use crate::lidar::holes;
 
     #[test]
-    fn the_shipped_hole_fill_loads_and_reads_its_window() {
+    fn the_shipped_hole_fills_load_and_read_their_window() {
+        for fill in [HoleFill::shipped(), HoleFill::prior_free()] {
+            assert_eq!(fill.net.inputs(), fill.window.features());
+        }
         let fill = HoleFill::shipped();
-        assert_eq!(fill.net.inputs(), fill.window.features());
         let mut text = serde_json::to_value(fill).unwrap();
         text["window"]["half_columns"] = 3.into();
         let err = HoleFill::parse(&text.to_string()).unwrap_err();
@@ -284,7 +320,7 @@ mod tests {
         let window = Window::default();
         let distance = holes::distance_to_returns(&observed, h, w);
         let images = (&observed[..], &completed[..], &x_d[..]);
-        let d = dropped_features(window, images, &distance, (h, w));
+        let d = dropped_features(window, images, &distance, (h, w), |_| true);
         assert_eq!(d.pixels, vec![3 * w + 5], "the top row was left at 0");
         assert_eq!(d.x.len(), window.features());
         // Every neighbour there, at the start's depth; x_d 12 m against 10 m.

@@ -28,6 +28,7 @@ pub mod hole_fill;
 pub mod invert;
 pub mod loss;
 pub mod pivotal;
+pub mod prior_free;
 pub mod row_fill;
 
 use std::sync::{Arc, Condvar, Mutex};

@@ -7,14 +7,14 @@ use std::sync::{Arc, Mutex};
 
 use super::{ScanInput, StageOutput, Staged};
 use crate::decode::fill::{complete_observed, fill_from};
+use crate::decode::prior_free::complete_without_prior;
 use crate::decode::{Decoded, Decoder, Fill, PreparedGrid, Rendered, sample_masks, scan_seed};
 use crate::io::Family;
 use crate::io::encoders::{Kind, encode_f32_image, encode_mask, encode_points};
 use crate::lidar::drop_census::{DropCensus, combine_with_rates, row_rates};
-use crate::lidar::line_fill::fill_along_lines;
 use crate::lidar::{
-    AngleGrid, Interpolation, RangeImage, ScatterFill, SensorProfile, SurfaceRule,
-    fill_scattered_in_angle, resample_by_surface, resample_image,
+    AngleGrid, Interpolation, RangeImage, SensorProfile, SurfaceRule, resample_by_surface,
+    resample_image,
 };
 
 /// The range image channel every converted topic gets: range in meters, 32FC1.
@@ -286,8 +286,8 @@ impl<'d> DecodeStage<'d> {
         channels
     }
 
-    /// The channels of a scan no model covers, without a prior: `depth` the edge-aware
-    /// completion of its returns on its own grid ([`prior_free_depth`]), `raydrop_prob` the
+    /// The channels of a scan no model covers, without a prior: `depth` the completion of
+    /// its returns on its own grid ([`complete_without_prior`]), `raydrop_prob` the
     /// recording's own drop rates fitted on its other scans, the masks drawn from them, and
     /// no `x_d`. Extra grids are the returns interpolated edge-aware onto them.
     fn prior_free(
@@ -298,16 +298,12 @@ impl<'d> DecodeStage<'d> {
         out: &Encoder,
     ) -> Vec<StageOutput> {
         let rule = SurfaceRule::default();
-        let how = ScatterFill::Surfaces {
-            guide: None,
-            guide_jump: rule.guide_jump,
-        };
         let drop_prob = census
             .rates_for(image, true)
             .unwrap_or_else(|| row_rates(image));
         let main = Rendered {
             grid: image.angles.clone(),
-            depth_m: prior_free_depth(image, how),
+            depth_m: complete_without_prior(image, self.fill, seed),
             drop_prob,
         };
         let mut channels = vec![out.image("depth", &main.grid, &main.depth_m)];
@@ -324,17 +320,6 @@ impl<'d> DecodeStage<'d> {
         }
         channels
     }
-}
-
-/// The completed depth of a scan without a prior: measured returns kept, each dropped ray
-/// filled from the returns on its surface around it (`how`), and where none is near (wide
-/// holes, sectors, missing beams) along its row or column ([`fill_along_lines`]).
-fn prior_free_depth(image: &RangeImage, how: ScatterFill) -> Vec<f32> {
-    let local = fill_scattered_in_angle(&image.range_m, &image.angles, how, |_| true);
-    let lines = fill_along_lines(&image.range_m, &image.angles, |k| local[k] <= 0.0);
-    (local.iter().zip(&lines))
-        .map(|(&l, &f)| if l > 0.0 { l } else { f })
-        .collect()
 }
 
 /// How far (radians) a pixel of a sensor's grid may look from the model grid's pixel for the

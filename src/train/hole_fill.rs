@@ -20,7 +20,8 @@ pub struct Holed {
     pub observed: Vec<f32>,
     /// `convert`'s completion of `observed` before the learned fill.
     pub completed: Vec<f32>,
-    /// The decoded scene's depth.
+    /// The second opinion the network reads beside the returns: the decoded scene's depth
+    /// x_d, or without a prior the line fill ([`crate::decode::prior_free::prior_free_fills`]).
     pub x_d: Vec<f32>,
     /// The scan itself.
     pub truth: Vec<f32>,
@@ -36,7 +37,7 @@ impl Holed {
         let (completed, truth) = (&self.completed, &self.truth);
         let distance = holes::distance_to_returns(&self.observed, size.0, size.1);
         let images = (&self.observed[..], &completed[..], &self.x_d[..]);
-        let dropped = dropped_features(window, images, &distance, size);
+        let dropped = dropped_features(window, images, &distance, size, |_| true);
         let nf = window.features();
         let cut_with_truth = (0..dropped.pixels.len())
             .filter(|&i| {

@@ -1,0 +1,278 @@
+//! The completed depth of a scan no prior covers (`convert` on a sensor no model covers, or
+//! `--prior-free`): the scan's own returns filled edge-aware, then the learned hole fill for
+//! sensors without a prior ([`HoleFill::prior_free`]) where a check on the scan itself says
+//! it helps.
+//!
+//! The learned fill was fitted on KITTI thinned to other beam counts, and a sensor of
+//! another make, or an indoor scene, may not behave like those. So each scan checks it on
+//! its own returns before trusting it: holes of three kinds (single rays, patches, whole
+//! beams) are cut into its returns, a kind at a time, filled with and without the network,
+//! and for each place a dropped ray can lie in ([`Place`]) the network's moves are kept only
+//! where they came nearer the cut returns. The cut is seeded from the scan, so the choice is deterministic.
+//! Across an empty stretch of a column (an azimuth sector) the network is never used.
+
+use super::fill::Fill;
+use super::hole_fill::HoleFill;
+use crate::lidar::holes::{self, HoleKind};
+use crate::lidar::line_fill::fill_along_lines;
+use crate::lidar::{RangeImage, ScatterFill, SurfaceRule, fill_scattered_in_angle};
+use crate::util::rng::Rng;
+
+/// The kinds of hole each scan checks the learned fill on: one for each [`Place`].
+const PROBES: [HoleKind; 3] = [HoleKind::Pixels, HoleKind::Medium, HoleKind::Beams];
+/// Cut returns of a place below which the check keeps the fill without the network.
+const MIN_PROBED: usize = 30;
+
+/// Where a dropped ray lies among the returns: the network's moves are kept or not for each.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Place {
+    /// On a column with no return within the network's reach above or below (an azimuth
+    /// sector without returns): never moved. The check cuts no sector (one would take a
+    /// twelfth of the scan's returns), so nothing on the scan vouches for the network there.
+    Across,
+    /// On a row with no return within the network's reach on either side: a missing beam.
+    Between,
+    /// Next to a return (single dropped rays, the rim of a hole).
+    Beside,
+    /// Farther inside a hole.
+    Inside,
+}
+
+impl Place {
+    /// The places the check decides for.
+    const CHECKED: [Place; 3] = [Place::Between, Place::Beside, Place::Inside];
+
+    fn index(self) -> usize {
+        self as usize
+    }
+}
+
+/// The two fills of a scan no prior covers (`image`'s returns on its own grid): the
+/// completion (measured returns kept, each dropped ray filled from the returns on its
+/// surface around it, and where none is near (wide holes, sectors, missing beams) along its
+/// row or column, [`fill_along_lines`]) and the line fill of every dropped ray, which the
+/// learned hole fill reads where a prior would give it x_d.
+pub fn prior_free_fills(image: &RangeImage) -> (Vec<f32>, Vec<f32>) {
+    fills_where(image, |_| true, |_| true)
+}
+
+/// [`prior_free_fills`] of the dropped rays in `wanted` only (0 elsewhere), the line fill
+/// only where the completion needs it and in `lines_too`.
+fn fills_where(
+    image: &RangeImage,
+    wanted: impl Fn(usize) -> bool + Copy,
+    lines_too: impl Fn(usize) -> bool,
+) -> (Vec<f32>, Vec<f32>) {
+    let how = ScatterFill::Surfaces {
+        guide: None,
+        guide_jump: SurfaceRule::default().guide_jump,
+    };
+    let local = fill_scattered_in_angle(&image.range_m, &image.angles, how, wanted);
+    let lines = fill_along_lines(&image.range_m, &image.angles, |k| {
+        wanted(k) && (local[k] <= 0.0 || lines_too(k))
+    });
+    let completed = (local.iter().zip(&lines))
+        .map(|(&l, &f)| if l > 0.0 { l } else { f })
+        .collect();
+    (completed, lines)
+}
+
+/// The completed depth of a scan no prior covers: the completion of [`prior_free_fills`];
+/// with [`Fill::Learned`], each dropped ray then moved by the learned fill in the places
+/// where the check on the scan's own returns (drawn with `seed`) found that it helps.
+pub fn complete_without_prior(image: &RangeImage, fill: Fill, seed: u64) -> Vec<f32> {
+    if fill != Fill::Learned {
+        return prior_free_fills(image).0;
+    }
+    let keep = learned_helps(image, seed);
+    let places = places(&image.range_m, (image.height, image.width));
+    let moved = |k: usize| places[k].is_some_and(|p| keep[p.index()]);
+    let (plain, learned) = both_fills(image, |_| true, &moved);
+    (0..plain.len())
+        .map(|k| if moved(k) { learned[k] } else { plain[k] })
+        .collect()
+}
+
+/// The completion (of the dropped rays in `wanted`) without and with the learned fill's
+/// moves (of those in `moved`).
+fn both_fills(
+    image: &RangeImage,
+    wanted: impl Fn(usize) -> bool + Copy,
+    moved: impl Fn(usize) -> bool + Copy,
+) -> (Vec<f32>, Vec<f32>) {
+    let (plain, lines) = fills_where(image, wanted, moved);
+    let size = (image.height, image.width);
+    let distance = holes::distance_to_returns(&image.range_m, size.0, size.1);
+    let images = (&image.range_m[..], &plain[..], &lines[..]);
+    let learned = HoleFill::prior_free().refine_where(images, &distance, size, moved);
+    (plain, learned)
+}
+
+/// For each [`Place`] (by [`Place::index`]), whether the learned fill came nearer than the
+/// fill without it to the returns of `image` cut out as holes of the [`PROBES`] kinds (drawn
+/// with `seed`), over at least [`MIN_PROBED`] of them; never for [`Place::Across`].
+pub fn learned_helps(image: &RangeImage, seed: u64) -> [bool; 4] {
+    let mut rng = Rng::new(seed);
+    // Per place: cut returns scored, and the absolute errors without and with the network.
+    let mut sums = [(0usize, 0.0f64, 0.0f64); 4];
+    // One scan per kind: holes of several kinds in one scan would leave the fill without the
+    // network fewer returns to work from than any one kind of hole does.
+    for kind in PROBES {
+        let (h, w) = (image.height, image.width);
+        let cut = kind.cut(&image.range_m, h, w, &mut rng);
+        let mut probe = image.clone();
+        for (d, &c) in probe.range_m.iter_mut().zip(&cut) {
+            if c {
+                *d = 0.0;
+            }
+        }
+        let (plain, learned) = both_fills(&probe, |k| cut[k], |k| cut[k]);
+        let places = places(&probe.range_m, (h, w));
+        for k in (0..h * w).filter(|&k| cut[k] && image.range_m[k] > 0.0) {
+            let (Some(place), true) = (places[k], plain[k] > 0.0 && learned[k] > 0.0) else {
+                continue;
+            };
+            let truth = image.range_m[k];
+            let s = &mut sums[place.index()];
+            s.0 += 1;
+            s.1 += f64::from((plain[k] - truth).abs());
+            s.2 += f64::from((learned[k] - truth).abs());
+        }
+    }
+    let mut keep = [false; 4];
+    for p in Place::CHECKED {
+        let (n, without, with) = sums[p.index()];
+        keep[p.index()] = n >= MIN_PROBED && with < without;
+    }
+    keep
+}
+
+/// The [`Place`] of every dropped ray of `observed` (`height x width`); `None` on returns.
+pub fn places(observed: &[f32], (h, w): (usize, usize)) -> Vec<Option<Place>> {
+    let reach = HoleFill::prior_free().window.reach;
+    let distance = holes::distance_to_returns(observed, h, w);
+    let row_gap = steps_along_rows(observed, h, w);
+    let column_gap = steps_along_columns(observed, h, w);
+    (0..h * w)
+        .map(|k| {
+            if observed[k] > 0.0 {
+                None
+            } else if column_gap[k] > reach {
+                Some(Place::Across)
+            } else if row_gap[k] > reach {
+                Some(Place::Between)
+            } else if distance[k] <= 1 {
+                Some(Place::Beside)
+            } else {
+                Some(Place::Inside)
+            }
+        })
+        .collect()
+}
+
+/// Columns from every pixel to the nearest return on its own row (columns wrap around);
+/// `usize::MAX` on a row without one.
+fn steps_along_rows(observed: &[f32], h: usize, w: usize) -> Vec<usize> {
+    let mut out = vec![usize::MAX; h * w];
+    for (row, steps) in observed.chunks(w).zip(out.chunks_mut(w)).take(h) {
+        let hits: Vec<usize> = (0..w).filter(|&j| row[j] > 0.0).collect();
+        if hits.is_empty() {
+            continue;
+        }
+        for (j, s) in steps.iter_mut().enumerate() {
+            let after = hits.partition_point(|&x| x < j);
+            let next = hits[after % hits.len()];
+            let before = hits[(after + hits.len() - 1) % hits.len()];
+            *s = ((next + w - j) % w).min((j + w - before) % w);
+        }
+    }
+    out
+}
+
+/// Rows from every pixel to the nearest return in its own column; `usize::MAX` on a column
+/// without one.
+fn steps_along_columns(observed: &[f32], h: usize, w: usize) -> Vec<usize> {
+    let mut out = vec![usize::MAX; h * w];
+    for j in 0..w {
+        let mut last = None;
+        for i in 0..h {
+            if observed[i * w + j] > 0.0 {
+                last = Some(i);
+            }
+            out[i * w + j] = last.map_or(usize::MAX, |l| i - l);
+        }
+        last = None;
+        for i in (0..h).rev() {
+            if observed[i * w + j] > 0.0 {
+                last = Some(i);
+            }
+            let below = last.map_or(usize::MAX, |l| l - i);
+            out[i * w + j] = out[i * w + j].min(below);
+        }
+    }
+    out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::lidar::SensorProfile;
+
+    #[test]
+    fn places_tell_missing_beams_from_rims_and_insides() {
+        let (h, w) = (8, 64);
+        let mut observed = vec![10.0f32; h * w];
+        observed[2 * w..3 * w].fill(0.0); // a missing beam
+        for i in 4..7 {
+            observed[i * w + 10..i * w + 15].fill(0.0); // a 3 x 5 hole
+        }
+        for i in 0..h {
+            observed[i * w + 40] = 0.0; // a sector of one column
+        }
+        let p = places(&observed, (h, w));
+        assert!(
+            p[2 * w..3 * w]
+                .iter()
+                .all(|&x| x == Some(Place::Between) || x == Some(Place::Across))
+        );
+        assert_eq!(p[2 * w + 40], Some(Place::Across));
+        assert_eq!(p[5 * w + 40], Some(Place::Across));
+        assert_eq!(p[4 * w + 10], Some(Place::Beside));
+        assert_eq!(p[5 * w + 12], Some(Place::Inside));
+        assert_eq!(p[0], None);
+        assert_eq!(steps_along_rows(&observed, h, w)[5 * w + 12], 3);
+        assert_eq!(steps_along_columns(&observed, h, w)[5 * w + 12], 2);
+    }
+
+    /// A sloped street of walls at 5-40 m on the VLP-16's grid.
+    fn scene() -> RangeImage {
+        let profile = SensorProfile::builtin("vlp16").unwrap().with_columns(720);
+        let mut image = RangeImage::empty(profile.angle_grid());
+        let w = image.width;
+        for (k, d) in image.range_m.iter_mut().enumerate() {
+            let (i, j) = (k / w, k % w);
+            *d = 5.0 + 35.0 * ((j as f32 * 0.05).sin().abs()) + i as f32 * 0.1;
+        }
+        image
+    }
+
+    #[test]
+    fn the_check_is_seeded_and_the_completion_keeps_every_return() {
+        let mut image = scene();
+        let w = image.width;
+        image.range_m[3 * w..4 * w].fill(0.0);
+        image.range_m[5 * w + 100] = 0.0;
+        let a = complete_without_prior(&image, Fill::Learned, 7);
+        assert_eq!(a, complete_without_prior(&image, Fill::Learned, 7));
+        assert_eq!(learned_helps(&image, 7), learned_helps(&image, 7));
+        for (k, &d) in image.range_m.iter().enumerate() {
+            if d > 0.0 {
+                assert_eq!(a[k], d, "a return keeps its depth");
+            } else {
+                assert!(a[k] > 0.0, "dropped ray {k} is filled");
+            }
+        }
+        let plain = complete_without_prior(&image, Fill::Guided, 7);
+        assert_eq!(plain, prior_free_fills(&image).0);
+    }
+}
