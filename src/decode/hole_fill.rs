@@ -13,7 +13,7 @@
 //! (`models/hole_fill_prior_free.json`, `hole_fill_fit --prior-free`): it corrects the
 //! completion without a prior and reads the line fill along rows and columns in x_d's place.
 //! It is fitted on KITTI scans thinned to 64, 32 and 16 beams at 512 to 2048 columns, so that
-//! no one sensor's spacing is all it knows.
+//! it sees more than one beam spacing; [`crate::decode::prior_free`] checks it on each scan.
 
 use std::path::Path;
 use std::sync::OnceLock;

@@ -87,7 +87,7 @@ pub fn complete_without_prior(image: &RangeImage, fill: Fill, seed: u64) -> Vec<
     let keep = learned_helps(image, seed);
     let places = places(&image.range_m, (image.height, image.width));
     let moved = |k: usize| places[k].is_some_and(|p| keep[p.index()]);
-    let (plain, learned) = both_fills(image, |_| true, &moved);
+    let (plain, learned) = both_fills(image, |_| true, moved);
     (0..plain.len())
         .map(|k| if moved(k) { learned[k] } else { plain[k] })
         .collect()
