@@ -157,10 +157,10 @@ fn validation(window: Window, data: &Path, prior_free: bool) -> Result<Vec<Sampl
     HoleKind::ALL
         .iter()
         .map(|&kind| {
-            let mut set = Samples::default();
             if !prior_free {
                 return Ok(collect(window, &files, &[kind], usize::MAX, 0)?.remove(0));
             }
+            let mut set = Samples::default();
             for g in &grids {
                 let one = collect_prior_free(window, &files, &[kind], &[*g], usize::MAX, 0)?;
                 set.append(one.into_iter().next().expect("one kind"));

@@ -8,8 +8,9 @@
 //! its own returns before trusting it: holes of three kinds (single rays, patches, whole
 //! beams) are cut into its returns, a kind at a time, filled with and without the network,
 //! and for each place a dropped ray can lie in ([`Place`]) the network's moves are kept only
-//! where they came nearer the cut returns. The cut is seeded from the scan, so the choice is deterministic.
-//! Across an empty stretch of a column (an azimuth sector) the network is never used.
+//! where they came nearer the cut returns. The cut is seeded from the scan, so the choice is
+//! deterministic. Across an empty stretch of a column (an azimuth sector) the network is
+//! never used.
 
 use super::fill::Fill;
 use super::hole_fill::HoleFill;
@@ -18,7 +19,9 @@ use crate::lidar::line_fill::fill_along_lines;
 use crate::lidar::{RangeImage, ScatterFill, SurfaceRule, fill_scattered_in_angle};
 use crate::util::rng::Rng;
 
-/// The kinds of hole each scan checks the learned fill on: one for each [`Place`].
+/// The kinds of hole each scan checks the learned fill on, one for each place it decides
+/// for: single rays (mostly [`Place::Beside`]), patches ([`Place::Inside`] and their rims)
+/// and whole beams ([`Place::Between`]).
 const PROBES: [HoleKind; 3] = [HoleKind::Pixels, HoleKind::Medium, HoleKind::Beams];
 /// Cut returns of a place below which the check keeps the fill without the network.
 const MIN_PROBED: usize = 30;
