@@ -13,7 +13,7 @@ use common::{first_file, real_data};
 
 use rangegan_mcap::decode::Sparsify;
 use rangegan_mcap::decode::fill::Fill;
-use rangegan_mcap::decode::prior_free::{complete_without_prior, prior_free_fills};
+use rangegan_mcap::decode::prior_free::{FillCheck, complete_without_prior, prior_free_fills};
 use rangegan_mcap::decode::row_fill::{RowFill, edge_aware_rows};
 use rangegan_mcap::io::{CloudFormat, decode_cloud};
 use rangegan_mcap::lidar::holes::HoleKind;
@@ -544,7 +544,7 @@ fn prior_free_completion_mae(img: &RangeImage) -> (f64, f64) {
             }
         }
         let a = prior_free_fills(&holed).0;
-        let b = complete_without_prior(&holed, Fill::Learned, draw);
+        let b = complete_without_prior(&holed, Fill::Learned, &FillCheck::on(&holed, draw));
         for (k, truth) in img.range_m.iter().enumerate() {
             if cut[k] && *truth > 0.0 && a[k] > 0.0 {
                 plain += f64::from((a[k] - truth).abs());

@@ -4,11 +4,12 @@
 //! it helps.
 //!
 //! The learned fill was fitted on KITTI thinned to other beam counts, and a sensor of
-//! another make, or an indoor scene, may not behave like those. So each scan checks it on
-//! its own returns before trusting it: holes of three kinds (single rays, patches, whole
-//! beams) are cut into its returns, a kind at a time, filled with and without the network,
-//! and for each place a dropped ray can lie in ([`Place`]) the network's moves are kept only
-//! where they came nearer the cut returns. The cut is seeded from the scan, so the choice is
+//! another make, or an indoor scene, may not behave like those. So it is checked on the
+//! topic's own returns before it is trusted ([`FillCheck`], on the first scans of the topic
+//! in the conversion's first pass): holes of three kinds (single rays, patches, whole beams)
+//! are cut into the returns, a kind at a time, filled with and without the network, and for
+//! each place a dropped ray can lie in ([`Place`]) the network's moves are kept only where
+//! they came nearer the cut returns. The cuts are seeded from the scans, so the choice is
 //! deterministic. Across an empty stretch of a column (an azimuth sector) the network is
 //! never used.
 
@@ -82,12 +83,12 @@ fn fills_where(
 
 /// The completed depth of a scan no prior covers: the completion of [`prior_free_fills`];
 /// with [`Fill::Learned`], each dropped ray then moved by the learned fill in the places
-/// where the check on the scan's own returns (drawn with `seed`) found that it helps.
-pub fn complete_without_prior(image: &RangeImage, fill: Fill, seed: u64) -> Vec<f32> {
+/// where `check` found that it helps.
+pub fn complete_without_prior(image: &RangeImage, fill: Fill, check: &FillCheck) -> Vec<f32> {
     if fill != Fill::Learned {
         return prior_free_fills(image).0;
     }
-    let keep = learned_helps(image, seed);
+    let keep = check.keep();
     let places = places(&image.range_m, (image.height, image.width));
     let moved = |k: usize| places[k].is_some_and(|p| keep[p.index()]);
     let (plain, learned) = both_fills(image, |_| true, moved);
@@ -111,43 +112,80 @@ fn both_fills(
     (plain, learned)
 }
 
-/// For each [`Place`] (by [`Place::index`]), whether the learned fill came nearer than the
-/// fill without it to the returns of `image` cut out as holes of the [`PROBES`] kinds (drawn
-/// with `seed`), over at least [`MIN_PROBED`] of them; never for [`Place::Across`].
-pub fn learned_helps(image: &RangeImage, seed: u64) -> [bool; 4] {
-    let mut rng = Rng::new(seed);
-    // Per place: cut returns scored, and the absolute errors without and with the network.
-    let mut sums = [(0usize, 0.0f64, 0.0f64); 4];
-    // One scan per kind: holes of several kinds in one scan would leave the fill without the
-    // network fewer returns to work from than any one kind of hole does.
-    for kind in PROBES {
+/// The check of the learned fill on a topic's scans: per [`Place`], how many cut returns
+/// were scored and how far the fill without and with the network missed them in all.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct FillCheck {
+    scans: usize,
+    sums: [(usize, f64, f64); 4],
+}
+
+impl FillCheck {
+    /// A topic's scans the check runs on: its first, in file order. More cost a conversion
+    /// three fills of each; one scan alone is noisy.
+    pub const SCANS: usize = 4;
+
+    /// The check on `image` alone, its holes drawn with `seed`.
+    pub fn on(image: &RangeImage, seed: u64) -> FillCheck {
+        let mut check = FillCheck::default();
+        check.add(image, seed);
+        check
+    }
+
+    /// The scans the check has run on.
+    pub fn scans(&self) -> usize {
+        self.scans
+    }
+
+    /// Adds `other`'s scans (an order-independent sum but for rounding: merge in file order).
+    pub fn merge(&mut self, other: &FillCheck) {
+        self.scans += other.scans;
+        for (s, o) in self.sums.iter_mut().zip(&other.sums) {
+            *s = (s.0 + o.0, s.1 + o.1, s.2 + o.2);
+        }
+    }
+
+    /// Checks the fill on the returns of `image` cut out as holes of the [`PROBES`] kinds
+    /// (drawn with `seed`), a kind at a time: holes of several kinds in one scan would leave
+    /// the fill without the network fewer returns to work from than any one kind does.
+    pub fn add(&mut self, image: &RangeImage, seed: u64) {
+        let mut rng = Rng::new(seed);
         let (h, w) = (image.height, image.width);
-        let cut = kind.cut(&image.range_m, h, w, &mut rng);
-        let mut probe = image.clone();
-        for (d, &c) in probe.range_m.iter_mut().zip(&cut) {
-            if c {
-                *d = 0.0;
+        for kind in PROBES {
+            let cut = kind.cut(&image.range_m, h, w, &mut rng);
+            let mut probe = image.clone();
+            for (d, &c) in probe.range_m.iter_mut().zip(&cut) {
+                if c {
+                    *d = 0.0;
+                }
+            }
+            let (plain, learned) = both_fills(&probe, |k| cut[k], |k| cut[k]);
+            let places = places(&probe.range_m, (h, w));
+            for k in (0..h * w).filter(|&k| cut[k] && image.range_m[k] > 0.0) {
+                let (Some(place), true) = (places[k], plain[k] > 0.0 && learned[k] > 0.0) else {
+                    continue;
+                };
+                let truth = image.range_m[k];
+                let s = &mut self.sums[place.index()];
+                s.0 += 1;
+                s.1 += f64::from((plain[k] - truth).abs());
+                s.2 += f64::from((learned[k] - truth).abs());
             }
         }
-        let (plain, learned) = both_fills(&probe, |k| cut[k], |k| cut[k]);
-        let places = places(&probe.range_m, (h, w));
-        for k in (0..h * w).filter(|&k| cut[k] && image.range_m[k] > 0.0) {
-            let (Some(place), true) = (places[k], plain[k] > 0.0 && learned[k] > 0.0) else {
-                continue;
-            };
-            let truth = image.range_m[k];
-            let s = &mut sums[place.index()];
-            s.0 += 1;
-            s.1 += f64::from((plain[k] - truth).abs());
-            s.2 += f64::from((learned[k] - truth).abs());
+        self.scans += 1;
+    }
+
+    /// For each [`Place`] (by [`Place::index`]), whether the learned fill came nearer the cut
+    /// returns than the fill without it, over at least [`MIN_PROBED`] of them; never for
+    /// [`Place::Across`].
+    pub fn keep(&self) -> [bool; 4] {
+        let mut keep = [false; 4];
+        for p in Place::CHECKED {
+            let (n, without, with) = self.sums[p.index()];
+            keep[p.index()] = n >= MIN_PROBED && with < without;
         }
+        keep
     }
-    let mut keep = [false; 4];
-    for p in Place::CHECKED {
-        let (n, without, with) = sums[p.index()];
-        keep[p.index()] = n >= MIN_PROBED && with < without;
-    }
-    keep
 }
 
 /// The [`Place`] of every dropped ray of `observed` (`height x width`); `None` on returns.
@@ -265,9 +303,17 @@ mod tests {
         let w = image.width;
         image.range_m[3 * w..4 * w].fill(0.0);
         image.range_m[5 * w + 100] = 0.0;
-        let a = complete_without_prior(&image, Fill::Learned, 7);
-        assert_eq!(a, complete_without_prior(&image, Fill::Learned, 7));
-        assert_eq!(learned_helps(&image, 7), learned_helps(&image, 7));
+        let check = FillCheck::on(&image, 7);
+        assert_eq!(check, FillCheck::on(&image, 7));
+        let mut four = FillCheck::default();
+        (0..4).for_each(|_| four.merge(&check));
+        assert_eq!((check.scans(), four.scans()), (1, 4));
+        assert_eq!(
+            four.keep(),
+            check.keep(),
+            "the same scan four times decides the same"
+        );
+        let a = complete_without_prior(&image, Fill::Learned, &check);
         for (k, &d) in image.range_m.iter().enumerate() {
             if d > 0.0 {
                 assert_eq!(a[k], d, "a return keeps its depth");
@@ -275,7 +321,7 @@ mod tests {
                 assert!(a[k] > 0.0, "dropped ray {k} is filled");
             }
         }
-        let plain = complete_without_prior(&image, Fill::Guided, 7);
+        let plain = complete_without_prior(&image, Fill::Guided, &check);
         assert_eq!(plain, prior_free_fills(&image).0);
     }
 }

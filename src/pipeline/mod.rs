@@ -20,6 +20,7 @@ use std::sync::{Arc, Mutex, mpsc};
 
 use mcap::records::Record;
 
+use crate::decode::prior_free::FillCheck;
 use crate::error::Location;
 use crate::io::encoders::Kind;
 use crate::io::{
@@ -131,6 +132,9 @@ pub struct ScanInput<'a> {
     pub covered: bool,
     /// The recording's own drop counts on this topic's grid, where the first pass made them.
     pub census: Option<&'a DropCensus>,
+    /// The check of the prior-free hole fill on the topic's first scans, where the first
+    /// pass made it (topics no model covers).
+    pub fill_check: Option<&'a FillCheck>,
     /// The scan's chain, when scans are chained; its scans reach the stages in input order.
     pub chain: Option<&'a ChainState>,
 }
@@ -258,6 +262,8 @@ struct ScanProcessor<'a, 's> {
     coverage: Mutex<HashMap<String, bool>>,
     /// Per topic: the recording's own drop counts, from the first pass ([`survey`]).
     census: HashMap<String, DropCensus>,
+    /// Per topic no model covers: the check of the prior-free hole fill, from the first pass.
+    fill_checks: HashMap<String, FillCheck>,
 }
 
 /// A processed scan: the stages' outputs, the kept fraction, the profile and projection used,
@@ -448,6 +454,7 @@ impl<'s> ScanProcessor<'_, 's> {
             image: &image,
             covered: self.covered(&p.topic),
             census: self.census.get(&p.topic),
+            fill_check: self.fill_checks.get(&p.topic),
             chain,
         };
         // One failing stage (e.g. a scan with nothing to decode) does not cost the others.
@@ -738,6 +745,7 @@ pub fn convert(
         fit_warnings: Mutex::new(Vec::new()),
         coverage: Mutex::new(HashMap::new()),
         census: HashMap::new(),
+        fill_checks: HashMap::new(),
     };
     survey::survey(&mut processor, &mut src, file_len);
     let processor = &processor;

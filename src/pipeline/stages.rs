@@ -7,7 +7,7 @@ use std::sync::{Arc, Mutex};
 
 use super::{ScanInput, StageOutput, Staged};
 use crate::decode::fill::{complete_observed, fill_from};
-use crate::decode::prior_free::complete_without_prior;
+use crate::decode::prior_free::{FillCheck, complete_without_prior};
 use crate::decode::{Decoded, Decoder, Fill, PreparedGrid, Rendered, sample_masks, scan_seed};
 use crate::io::Family;
 use crate::io::encoders::{Kind, encode_f32_image, encode_mask, encode_points};
@@ -176,7 +176,7 @@ impl<'d> DecodeStage<'d> {
         {
             return Ok(Staged::Done(self.prior_free(
                 input.image,
-                census,
+                (census, input.fill_check),
                 seed,
                 &out,
             )));
@@ -287,23 +287,34 @@ impl<'d> DecodeStage<'d> {
     }
 
     /// The channels of a scan no model covers, without a prior: `depth` the completion of
-    /// its returns on its own grid ([`complete_without_prior`]), `raydrop_prob` the
+    /// its returns on its own grid ([`complete_without_prior`], with the topic's `check` of
+    /// the prior-free hole fill), `raydrop_prob` the
     /// recording's own drop rates fitted on its other scans, the masks drawn from them, and
     /// no `x_d`. Extra grids are the returns interpolated edge-aware onto them.
     fn prior_free(
         &self,
         image: &RangeImage,
-        census: &DropCensus,
+        (census, check): (&DropCensus, Option<&FillCheck>),
         seed: u64,
         out: &Encoder,
     ) -> Vec<StageOutput> {
         let rule = SurfaceRule::default();
+        // A topic the first pass did not check (no scan of it projected there) is checked on
+        // this scan alone.
+        let own;
+        let check = match check {
+            Some(c) => c,
+            None => {
+                own = FillCheck::on(image, seed);
+                &own
+            }
+        };
         let drop_prob = census
             .rates_for(image, true)
             .unwrap_or_else(|| row_rates(image));
         let main = Rendered {
             grid: image.angles.clone(),
-            depth_m: complete_without_prior(image, self.fill, seed),
+            depth_m: complete_without_prior(image, self.fill, check),
             drop_prob,
         };
         let mut channels = vec![out.image("depth", &main.grid, &main.depth_m)];

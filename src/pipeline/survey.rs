@@ -1,7 +1,8 @@
 //! The first pass of a conversion that decodes: each converted topic's profile, row strategy
 //! and coverage are fixed on its first scans in file order, and every topic's drops are
 //! counted ([`DropCensus`]), so each scan's `raydrop_prob` can draw on the recording's other
-//! scans. Damaged records are passed over here; the main pass reports them.
+//! scans. On a topic no model covers, the prior-free hole fill is checked on its first scans
+//! ([`FillCheck`]). Damaged records are passed over here; the main pass reports them.
 
 use std::collections::HashMap;
 use std::io::{Read, Seek};
@@ -10,6 +11,8 @@ use mcap::records::Record;
 use rayon::prelude::*;
 
 use super::{Converter, ScanProcessor};
+use crate::decode::prior_free::FillCheck;
+use crate::decode::scan_seed;
 use crate::io::{ChannelTable, CloudFormat, DecodedCloud, OnError, decode_cloud, read_records};
 use crate::lidar::drop_census::DropCensus;
 use crate::lidar::{RangeImage, SensorProfile, Strategy, project};
@@ -33,6 +36,7 @@ pub(super) fn survey(
     }
     let mut table = ChannelTable::default();
     let mut census: HashMap<String, DropCensus> = HashMap::new();
+    let mut checks: HashMap<String, FillCheck> = HashMap::new();
     let mut waiting: Vec<Waiting> = Vec::new();
     let opts = processor.opts;
     let proc_ref = &*processor;
@@ -54,23 +58,26 @@ pub(super) fn survey(
             data.to_vec(),
         ));
         if waiting.len() >= SURVEY_TOGETHER {
-            count_drops(proc_ref, &mut waiting, &mut census);
+            count_drops(proc_ref, &mut waiting, &mut census, &mut checks);
         }
         Ok(())
     };
     // A file the main pass cannot read either: it says why.
     let _ = read_records(&mut *src, file_len, OnError::Skip, visit, |_| {});
-    count_drops(proc_ref, &mut waiting, &mut census);
+    count_drops(proc_ref, &mut waiting, &mut census, &mut checks);
     processor.census = census;
+    processor.fill_checks = checks;
 }
 
 /// Counts the drops of the `waiting` scans: decoded in parallel, each topic's profile fixed
 /// in file order, projected in parallel, and added to their topics' counts in file order (a
-/// topic's first scan sets its grid).
+/// topic's first scan sets its grid); and checks the prior-free hole fill on the first
+/// scans of each topic no model covers (in parallel, merged in file order).
 fn count_drops(
     processor: &ScanProcessor<'_, '_>,
     waiting: &mut Vec<Waiting>,
     census: &mut HashMap<String, DropCensus>,
+    checks: &mut HashMap<String, FillCheck>,
 ) {
     let clouds: Vec<Option<DecodedCloud>> = (waiting.par_iter())
         .map(|(_, _, format, data)| decode_cloud(*format, data).ok())
@@ -87,7 +94,28 @@ fn count_drops(
             project(&cloud.scan, profile, *strategy).ok()
         })
         .collect();
-    for ((topic, ..), image) in waiting.drain(..).zip(images) {
+    let mut wanted: HashMap<&str, usize> = HashMap::new();
+    let to_check: Vec<bool> = (waiting.iter().zip(&images))
+        .map(|((topic, ..), image)| {
+            if image.is_none() || processor.covered(topic) {
+                return false;
+            }
+            let done = checks.get(topic.as_str()).map_or(0, FillCheck::scans);
+            let n = wanted.entry(topic).or_insert(done);
+            *n += 1;
+            *n <= FillCheck::SCANS
+        })
+        .collect();
+    let checked: Vec<Option<FillCheck>> = (waiting.par_iter().zip(&images).zip(&to_check))
+        .map(|(((topic, log_time, ..), image), &check)| {
+            let image = image.as_ref().filter(|_| check)?;
+            Some(FillCheck::on(image, scan_seed(topic, *log_time)))
+        })
+        .collect();
+    for (((topic, ..), image), check) in waiting.drain(..).zip(images).zip(checked) {
+        if let Some(check) = check {
+            checks.entry(topic.clone()).or_default().merge(&check);
+        }
         if let Some(image) = image {
             (census.entry(topic))
                 .or_insert_with(|| DropCensus::new(image.height, image.width))
