@@ -324,4 +324,26 @@ mod tests {
         let plain = complete_without_prior(&image, Fill::Guided, &check);
         assert_eq!(plain, prior_free_fills(&image).0);
     }
+
+    #[test]
+    fn scans_without_returns_or_with_one_beam_complete_without_a_panic() {
+        let mut empty = scene();
+        empty.range_m.fill(0.0);
+        let check = FillCheck::on(&empty, 3);
+        assert_eq!(
+            check.keep(),
+            [false; 4],
+            "nothing to check on, nothing kept"
+        );
+        let out = complete_without_prior(&empty, Fill::Learned, &check);
+        assert!(out.iter().all(|&d| d == 0.0));
+        let mut profile = SensorProfile::builtin("vlp16").unwrap().with_columns(90);
+        profile.elevation_deg = vec![0.0];
+        let mut one = RangeImage::empty(profile.angle_grid());
+        one.range_m = (0..90)
+            .map(|j| if j % 7 == 0 { 0.0 } else { 8.0 })
+            .collect();
+        let out = complete_without_prior(&one, Fill::Learned, &FillCheck::on(&one, 3));
+        assert!((0..90).all(|j| out[j] > 0.0 && (j % 7 == 0 || out[j] == 8.0)));
+    }
 }
