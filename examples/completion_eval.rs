@@ -21,7 +21,9 @@
 //! one table each. Flags after `--` go to
 //! `convert` (e.g. `--upsample-method gan` for the decoded scene alone in the holes);
 //! `--against` scores a second convert beside it, side by side (by default
-//! `--upsample-method guided`, the completion without the learned hole fill).
+//! `--upsample-method guided`, the completion without the learned hole fill; with
+//! `-- --prior-free`, give it `--against '--prior-free --upsample-method guided'` for the
+//! completion without the prior-free hole fill).
 
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
