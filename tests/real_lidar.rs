@@ -459,31 +459,48 @@ fn scattered_restoration_mae(img: &RangeImage) -> (f64, f64) {
 }
 
 /// The first file (by name) in `dir` whose name ends with `suffix`.
+/// The first nuScenes HDL-32E scan and the first VLP-16 cloud under `root`, each on its
+/// sensor's grid, with a name.
+fn other_makes(root: &Path) -> [(&'static str, RangeImage); 2] {
+    let first = |dir: &str, suffix: &str| first_file(&root.join(dir), suffix);
+    let on = |scan: Scan, sensor: &str| {
+        project(
+            &scan,
+            &SensorProfile::builtin(sensor).unwrap(),
+            Strategy::Auto,
+        )
+        .unwrap()
+    };
+    [
+        (
+            "nuScenes HDL-32E",
+            on(
+                nuscenes::read_bin(&first("nuscenes", ".pcd.bin")).unwrap(),
+                "hdl32e",
+            ),
+        ),
+        (
+            "VLP-16, indoors",
+            on(pcd::read_pcd(&first("nebula", ".pcd")).unwrap(), "vlp16"),
+        ),
+    ]
+}
+
 #[test]
 fn scattered_restoration_beats_idw_on_three_real_sensors() {
     let Some(root) = real_data("scattered_restoration_beats_idw_on_three_real_sensors") else {
         return;
     };
-    let first = |dir: &str, suffix: &str| first_file(&root.join(dir), suffix);
-    let sensors = [
-        (
-            "KITTI HDL-64E, 64 x 512",
-            kitti::read_scan(&first("semantickitti_ssv3", ".bin"), None).unwrap(),
-            SensorProfile::kitti_hdl64e().with_columns(512),
-        ),
-        (
-            "nuScenes HDL-32E",
-            nuscenes::read_bin(&first("nuscenes", ".pcd.bin")).unwrap(),
-            SensorProfile::builtin("hdl32e").unwrap(),
-        ),
-        (
-            "VLP-16, indoors",
-            pcd::read_pcd(&first("nebula", ".pcd")).unwrap(),
-            SensorProfile::builtin("vlp16").unwrap(),
-        ),
-    ];
-    for (name, scan, profile) in sensors {
-        let img = project(&scan, &profile, Strategy::Auto).unwrap();
+    let kitti = (
+        "KITTI HDL-64E, 64 x 512",
+        project(
+            &kitti::read_scan(&first_file(&root.join("semantickitti_ssv3"), ".bin"), None).unwrap(),
+            &SensorProfile::kitti_hdl64e().with_columns(512),
+            Strategy::Auto,
+        )
+        .unwrap(),
+    );
+    for (name, img) in std::iter::once(kitti).chain(other_makes(&root)) {
         let (idw, surfaces) = scattered_restoration_mae(&img);
         eprintln!(
             "{name}: 10 % of the returns, MAE IDW {idw:.3} m, local surfaces {surfaces:.3} m"
@@ -562,21 +579,7 @@ fn prior_free_hole_fill_beats_the_plain_completion_on_two_makes() {
     else {
         return;
     };
-    let first = |dir: &str, suffix: &str| first_file(&root.join(dir), suffix);
-    let sensors = [
-        (
-            "nuScenes HDL-32E",
-            nuscenes::read_bin(&first("nuscenes", ".pcd.bin")).unwrap(),
-            SensorProfile::builtin("hdl32e").unwrap(),
-        ),
-        (
-            "VLP-16, indoors",
-            pcd::read_pcd(&first("nebula", ".pcd")).unwrap(),
-            SensorProfile::builtin("vlp16").unwrap(),
-        ),
-    ];
-    for (name, scan, profile) in sensors {
-        let img = project(&scan, &profile, Strategy::Auto).unwrap();
+    for (name, img) in other_makes(&root) {
         let (plain, learned) = prior_free_completion_mae(&img);
         eprintln!(
             "{name}: medium holes, MAE without {plain:.3} m, with the hole fill {learned:.3} m"
