@@ -43,13 +43,14 @@ fn degraded(image: &RangeImage, mask: &[bool]) -> Scan {
     scan
 }
 
-/// `depth` of each scan of `input` converted with `flags`.
-fn depth(input: &Path, output: &Path, flags: &[&str]) -> Vec<Vec<f32>> {
+/// `depth` of each scan of `input` converted at `columns` with `flags`.
+fn depth(input: &Path, output: &Path, columns: usize, flags: &[&str]) -> Vec<Vec<f32>> {
+    let columns = columns.to_string();
     let out = bin()
         .args(["--quiet", "convert"])
         .arg(input)
         .arg(output)
-        .args(["--sensor", "hdl64e", "--columns", "512", "--force"])
+        .args(["--sensor", "hdl64e", "--columns", &columns, "--force"])
         .args(flags)
         .output()
         .unwrap();
@@ -83,8 +84,8 @@ fn the_learned_hole_fill_beats_the_completion_it_corrects_on_every_kind_of_hole(
         .collect();
     write_scans(&input, &recording);
     let output = dir.path().join("out.mcap");
-    let learned = depth(&input, &output, &[]);
-    let guided = depth(&input, &output, &["--upsample-method", "guided"]);
+    let learned = depth(&input, &output, 512, &[]);
+    let guided = depth(&input, &output, 512, &["--upsample-method", "guided"]);
     assert_eq!(learned.len(), 6);
     for kind in KINDS {
         let (mut n, mut sums) = (0usize, [0.0f64; 2]);
@@ -116,4 +117,79 @@ fn the_learned_hole_fill_beats_the_completion_it_corrects_on_every_kind_of_hole(
         assert!(n > 1000, "{}: {n} pixels", kind.name());
         assert!(l < 0.97 * g, "{}: learned {l} m against {g} m", kind.name());
     }
+}
+
+/// Mean absolute error of `depth` on the cut pixels of each scan with a true return.
+fn cut_mae(depth: &[Vec<f32>], scans: &[RangeImage], masks: &[Vec<bool>]) -> f64 {
+    let (mut n, mut sum) = (0usize, 0.0f64);
+    for ((d, s), mask) in depth.iter().zip(scans).zip(masks) {
+        for k in (0..mask.len()).filter(|&k| mask[k] && s.range_m[k] > 0.0) {
+            n += 1;
+            sum += f64::from((d[k] - s.range_m[k]).abs());
+        }
+    }
+    assert!(n > 1000, "{n} cut pixels");
+    sum / n as f64
+}
+
+/// Each cut pixel of `scan` interpolated linearly along its row between the nearest
+/// returns left and right of it that `mask` left (rows wrap round); 0 without both.
+fn along_rows(scan: &RangeImage, mask: &[bool]) -> Vec<f32> {
+    let w = scan.width;
+    let kept = |k: usize| !mask[k] && scan.range_m[k] > 0.0;
+    (0..mask.len())
+        .map(|k| {
+            let (row, j) = (k / w * w, k % w);
+            let side = |step: usize| {
+                (1..w)
+                    .map(|d| (d, row + (j + step * d) % w))
+                    .find(|&(_, m)| kept(m))
+            };
+            match (side(w - 1), side(1)) {
+                (Some((a, ka)), Some((b, kb))) if mask[k] => {
+                    let t = a as f32 / (a + b) as f32;
+                    scan.range_m[ka] * (1.0 - t) + scan.range_m[kb] * t
+                }
+                _ => 0.0,
+            }
+        })
+        .collect()
+}
+
+#[test]
+fn a_grid_finer_than_the_returns_gets_depth_better_than_interpolating_its_rows() {
+    let Some(root) = real_data("a_grid_finer_than_the_returns_gets_depth_better") else {
+        return;
+    };
+    // Scans of a drive no model trained on hold about 30 000 points: on 1 024 columns nine
+    // returns in ten have an empty ray beside them along the row.
+    let profile = SensorProfile::kitti_hdl64e().with_columns(1024);
+    let scans: Vec<RangeImage> = ["0000000000.bin", "0000000030.bin", "0000000060.bin"]
+        .iter()
+        .map(|f| root.join("kitti_raw_drive_d").join(f))
+        .map(|b| project(&kitti::read_bin(&b).unwrap(), &profile, Strategy::Auto).unwrap())
+        .collect();
+    let masks: Vec<Vec<bool>> = (scans.iter().enumerate())
+        .map(|(i, s)| {
+            let mut rng = Rng::new(key_hash(&[93, i as u64]));
+            HoleKind::Pixels.cut(&s.range_m, s.height, s.width, &mut rng)
+        })
+        .collect();
+    let dir = tempfile::tempdir().unwrap();
+    let input = dir.path().join("holes.mcap");
+    let recording: Vec<Scan> = (scans.iter().zip(&masks))
+        .map(|(s, m)| degraded(s, m))
+        .collect();
+    write_scans(&input, &recording);
+    let output = dir.path().join("out.mcap");
+    let default = cut_mae(&depth(&input, &output, 1024, &[]), &scans, &masks);
+    let rows: Vec<Vec<f32>> = (scans.iter().zip(&masks))
+        .map(|(s, m)| along_rows(s, m))
+        .collect();
+    let rows = cut_mae(&rows, &scans, &masks);
+    eprintln!("single dropped rays at 1 024 columns: default {default:.3} m, rows {rows:.3} m");
+    assert!(
+        default < 0.9 * rows,
+        "default {default} m against rows {rows} m"
+    );
 }

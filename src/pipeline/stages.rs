@@ -7,7 +7,7 @@ use std::sync::{Arc, Mutex};
 
 use super::{ScanInput, StageOutput, Staged};
 use crate::decode::fill::{complete_observed, fill_from};
-use crate::decode::prior_free::{FillCheck, complete_without_prior};
+use crate::decode::prior_free::{FillCheck, complete_without_prior, finer_than_returns};
 use crate::decode::{Decoded, Decoder, Fill, PreparedGrid, Rendered, sample_masks, scan_seed};
 use crate::io::Family;
 use crate::io::encoders::{Kind, encode_f32_image, encode_mask, encode_points};
@@ -248,7 +248,14 @@ impl<'d> DecodeStage<'d> {
                     (suffix.clone(), fill_from(observed, &x_d, r, self.fill))
                 })
                 .collect();
-            (complete_observed(observed, rendered, self.fill), x_d, extra)
+            let mut main = complete_observed(observed, rendered, self.fill);
+            // The decoded hole fill misleads on a grid much finer than the scan's returns,
+            // where the completion without a prior does well.
+            if self.fill == Fill::Learned && finer_than_returns(observed) {
+                let check = FillCheck::on(observed, decoded.seed);
+                main.depth_m = complete_without_prior(observed, self.fill, &check);
+            }
+            (main, x_d, extra)
         };
         if let Some((weight, rates)) = rates.filter(|(_, r)| r.len() == main.drop_prob.len()) {
             combine_with_rates(&mut main.drop_prob, rates, *weight);
