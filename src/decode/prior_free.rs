@@ -335,7 +335,7 @@ mod tests {
         assert_eq!(row_continuity(&image), 0.0);
         assert!(finer_than_returns(&image));
         image.range_m.fill(0.0);
-        assert!(finer_than_returns(&image), "no return is none followed");
+        assert!(finer_than_returns(&image), "a scan without returns");
     }
 
     /// A sloped street of walls at 5-40 m on the VLP-16's grid.
