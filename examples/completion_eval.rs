@@ -171,52 +171,6 @@ fn sensor(data: &Path, name: &str, source: &str, bin: &Path, dir: &Path) -> Resu
     })
 }
 
-/// Each missing pixel of `observed` (0 = none) on a line between the nearest returns before
-/// and after it along rows (`along_rows`, circular) or along columns; the one neighbour
-/// where there is only one; 0 where the line holds no return.
-fn interpolate(observed: &[f32], h: usize, w: usize, along_rows: bool) -> Vec<f32> {
-    let mut out = observed.to_vec();
-    let (lines, len) = if along_rows { (h, w) } else { (w, h) };
-    let at = |line: usize, t: usize| {
-        if along_rows {
-            line * w + t
-        } else {
-            t * w + line
-        }
-    };
-    for line in 0..lines {
-        let hits: Vec<usize> = (0..len).filter(|&t| observed[at(line, t)] > 0.0).collect();
-        if hits.is_empty() {
-            continue;
-        }
-        for t in (0..len).filter(|&t| observed[at(line, t)] <= 0.0) {
-            let after = hits.partition_point(|&x| x < t);
-            let (before, next) = match (after.checked_sub(1), hits.get(after)) {
-                (Some(b), Some(&n)) => (Some(hits[b] as isize), Some(n as isize)),
-                (Some(b), None) if along_rows => {
-                    (Some(hits[b] as isize), Some((hits[0] + len) as isize))
-                }
-                (None, Some(&n)) if along_rows => (
-                    Some(hits[hits.len() - 1] as isize - len as isize),
-                    Some(n as isize),
-                ),
-                (b, n) => (b.map(|b| hits[b] as isize), n.map(|&n| n as isize)),
-            };
-            let value = |x: isize| observed[at(line, x.rem_euclid(len as isize) as usize)];
-            out[at(line, t)] = match (before, next) {
-                (Some(a), Some(b)) => {
-                    let f = (t as isize - a) as f32 / (b - a) as f32;
-                    value(a) * (1.0 - f) + value(b) * f
-                }
-                (Some(a), None) => value(a),
-                (None, Some(b)) => value(b),
-                (None, None) => 0.0,
-            };
-        }
-    }
-    out
-}
-
 #[derive(Default)]
 struct Score {
     pixels: usize,
@@ -335,8 +289,8 @@ fn score_recording(
         for (s, truth) in scans.iter().enumerate() {
             let (h, w) = (truth.height, truth.width);
             let observed = holed::observed(truth, &masks[s]);
-            let rows = interpolate(&observed, h, w, true);
-            let cols = interpolate(&observed, h, w, false);
+            let rows = holed::interpolate(&observed, h, w, true);
+            let cols = holed::interpolate(&observed, h, w, false);
 
             for k in (0..h * w).filter(|&k| masks[s][k] && truth.range_m[k] > 0.0) {
                 let t = truth.range_m[k];

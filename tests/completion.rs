@@ -6,6 +6,10 @@
 //! Skips with a message when `../shared/real_lidar` is absent.
 
 mod common;
+// The completion examples' holes and interpolation baselines; the tests use only some.
+#[allow(dead_code)]
+#[path = "../examples/common/holed.rs"]
+mod holed;
 
 use std::path::{Path, PathBuf};
 
@@ -133,30 +137,6 @@ fn cut_mae(depth: &[Vec<f32>], scans: &[RangeImage], masks: &[Vec<bool>]) -> f64
     sum / n as f64
 }
 
-/// Each cut pixel of `scan` interpolated linearly along its row between the nearest
-/// returns left and right of it that `mask` left (rows wrap round); 0 without both.
-fn along_rows(scan: &RangeImage, mask: &[bool]) -> Vec<f32> {
-    let w = scan.width;
-    let kept = |k: usize| !mask[k] && scan.range_m[k] > 0.0;
-    (0..mask.len())
-        .map(|k| {
-            let (row, j) = (k / w * w, k % w);
-            let side = |step: usize| {
-                (1..w)
-                    .map(|d| (d, row + (j + step * d) % w))
-                    .find(|&(_, m)| kept(m))
-            };
-            match (side(w - 1), side(1)) {
-                (Some((a, ka)), Some((b, kb))) if mask[k] => {
-                    let t = a as f32 / (a + b) as f32;
-                    scan.range_m[ka] * (1.0 - t) + scan.range_m[kb] * t
-                }
-                _ => 0.0,
-            }
-        })
-        .collect()
-}
-
 #[test]
 fn a_grid_finer_than_the_returns_gets_depth_better_than_interpolating_its_rows() {
     let Some(root) = real_data("a_grid_finer_than_the_returns_gets_depth_better") else {
@@ -185,7 +165,7 @@ fn a_grid_finer_than_the_returns_gets_depth_better_than_interpolating_its_rows()
     let output = dir.path().join("out.mcap");
     let default = cut_mae(&depth(&input, &output, 1024, &[]), &scans, &masks);
     let rows: Vec<Vec<f32>> = (scans.iter().zip(&masks))
-        .map(|(s, m)| along_rows(s, m))
+        .map(|(s, m)| holed::interpolate(&holed::observed(s, m), s.height, s.width, true))
         .collect();
     let rows = cut_mae(&rows, &scans, &masks);
     eprintln!("single dropped rays at 1 024 columns: default {default:.3} m, rows {rows:.3} m");

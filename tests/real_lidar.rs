@@ -458,7 +458,6 @@ fn scattered_restoration_mae(img: &RangeImage) -> (f64, f64) {
     (idw / n as f64, surfaces / n as f64)
 }
 
-/// The first file (by name) in `dir` whose name ends with `suffix`.
 /// The first nuScenes HDL-32E scan and the first VLP-16 cloud under `root`, each on its
 /// sensor's grid, with a name.
 fn other_makes(root: &Path) -> [(&'static str, RangeImage); 2] {
