@@ -7,7 +7,8 @@
 //! with the real data's global drop frequency (config B), `pixel` with its
 //! per-pixel frequency (config C), `gan` (config E) with the GAN's drop
 //! probability x_n of each scan: the scan is auto-decoded (`fast`), x_n rendered on
-//! its grid and every ray dropped by a Bernoulli draw seeded from (topic, log time).
+//! its grid and every ray dropped by a Bernoulli draw seeded from (topic, log time);
+//! `--drop-sharpness` first concentrates x_n's drops where it is highest (`decode::sharpen`).
 
 use std::borrow::Cow;
 use std::collections::{BTreeMap, HashMap, VecDeque};
@@ -17,7 +18,7 @@ use anyhow::Context;
 use mcap::records::Record;
 
 use super::{GlobalArgs, Outcome};
-use crate::decode::{sample_masks, scan_seed};
+use crate::decode::{sample_masks, scan_seed, sharpen_drop_prob};
 use crate::diagnose::completion::par_gan_render;
 use crate::diagnose::real_scan::as_sim_scan;
 use crate::io::encoders::encode_scan;
@@ -54,6 +55,11 @@ pub struct RenderArgs {
     pub real: Option<PathBuf>,
     #[command(flatten)]
     pub gan: super::diagnose::GanArgs,
+    /// With `--raydrop gan`: sharpen each scan's x_n by this factor on the logit scale
+    /// before drawing, keeping the scan's mean drop probability (1: draw from x_n as it is).
+    /// Above 1, drops gather where x_n is highest instead of speckling whole surfaces.
+    #[arg(long, default_value_t = 1.0)]
+    pub drop_sharpness: f32,
     /// Point-cloud topic (default: the first point-cloud topic).
     #[arg(long)]
     pub topic: Option<String>,
@@ -224,6 +230,7 @@ pub fn run(global: &GlobalArgs, args: RenderArgs) -> anyhow::Result<Outcome> {
                                 .map_err(|e| format!("auto-decoding: {e}"))?;
                             let seed = scan_seed(&input.topic, header.log_time)
                                 ^ args.seed.wrapping_mul(0x9e37_79b9_7f4a_7c15);
+                            let prob = sharpen_drop_prob(&prob, args.drop_sharpness);
                             drop_bernoulli(&mut scan, &prob, seed);
                         }
                         kept += scan.image.valid_count() as u64;
@@ -294,8 +301,12 @@ fn check_args(args: &RenderArgs) -> anyhow::Result<()> {
     }
     let gan = args.raydrop == Some(RayDrop::Gan);
     anyhow::ensure!(
-        gan || !args.gan.given(),
-        "--model, --encoder and --tune-steps are for --raydrop gan"
+        gan || (!args.gan.given() && args.drop_sharpness == 1.0),
+        "--model, --encoder, --tune-steps and --drop-sharpness are for --raydrop gan"
+    );
+    anyhow::ensure!(
+        args.drop_sharpness.is_finite() && args.drop_sharpness > 0.0,
+        "--drop-sharpness must be a factor > 0 (1: x_n as it is)"
     );
     anyhow::ensure!(
         !gan || args.real.is_none(),
@@ -342,8 +353,13 @@ fn gan_drop_probabilities(
         sum += p.iter().map(|v| f64::from(*v)).sum::<f64>();
         n += p.len();
     }
+    let sharpened = if args.drop_sharpness == 1.0 {
+        String::new()
+    } else {
+        format!(", sharpened {}x with its mean kept", args.drop_sharpness)
+    };
     let words = format!(
-        "raydrop_gan: x_n of each scan from {} (fast auto-decoding; mean drop probability {:.1} %)",
+        "raydrop_gan: x_n of each scan from {} (fast auto-decoding; mean drop probability {:.1} %{sharpened})",
         decoder.source(),
         100.0 * sum / n.max(1) as f64
     );

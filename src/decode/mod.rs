@@ -30,6 +30,7 @@ pub mod loss;
 pub mod pivotal;
 pub mod prior_free;
 pub mod row_fill;
+pub mod sharpen;
 
 use std::sync::{Arc, Condvar, Mutex};
 
@@ -50,6 +51,7 @@ use amortised::TrainedEncoder;
 pub use fill::Fill;
 pub use invert::Schedule;
 use loss::relative_depth_error;
+pub use sharpen::sharpen_drop_prob;
 
 /// How hard to work per scan.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
