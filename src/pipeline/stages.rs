@@ -7,7 +7,9 @@ use std::sync::{Arc, Mutex};
 
 use super::{ScanInput, StageOutput, Staged};
 use crate::decode::fill::{complete_observed, fill_from};
-use crate::decode::prior_free::{FillCheck, complete_without_prior, finer_than_returns};
+use crate::decode::prior_free::{
+    FillCheck, Place, complete_without_prior, finer_than_returns, places, sparser_beams_than,
+};
 use crate::decode::{Decoded, Decoder, Fill, PreparedGrid, Rendered, sample_masks, scan_seed};
 use crate::io::Family;
 use crate::io::encoders::{Kind, encode_f32_image, encode_mask, encode_points};
@@ -249,11 +251,22 @@ impl<'d> DecodeStage<'d> {
                 })
                 .collect();
             let mut main = complete_observed(observed, rendered, self.fill);
-            // The decoded hole fill misleads on a grid much finer than the scan's returns,
-            // where the completion without a prior does well.
-            if self.fill == Fill::Learned && finer_than_returns(observed) {
+            // The decoded hole fill misleads on a grid much finer than the scan's returns, and
+            // on beams much sparser than the model's, where the completion without a prior
+            // does well; across a sector without returns the decoded scene still knows more.
+            let sparse = sparser_beams_than(&observed.angles, self.decoder.model_grid());
+            if self.fill == Fill::Learned && (sparse || finer_than_returns(observed)) {
                 let check = FillCheck::on(observed, decoded.seed);
-                main.depth_m = complete_without_prior(observed, self.fill, &check);
+                let free = complete_without_prior(observed, self.fill, &check);
+                let across = match sparse {
+                    true => places(&observed.range_m, (observed.height, observed.width)),
+                    false => Vec::new(),
+                };
+                for (k, depth) in main.depth_m.iter_mut().enumerate() {
+                    if across.get(k) != Some(&Some(Place::Across)) {
+                        *depth = free[k];
+                    }
+                }
             }
             (main, x_d, extra)
         };
