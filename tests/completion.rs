@@ -2,7 +2,8 @@
 //! model trained on: holes of several kinds cut into them, the recording converted with the
 //! default fill (the learned hole fill) and with `--upsample-method guided` (the completion
 //! it corrects), and every cut pixel with a true return scored against the scan itself; on a
-//! grid finer than the scans' returns and on every fourth beam, against interpolating the scan's rows.
+//! grid finer than the scans' returns and on every fourth beam, against interpolating the
+//! scan's rows.
 //! Skips with a message when `../shared/real_lidar` is absent.
 
 mod common;

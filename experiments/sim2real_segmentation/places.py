@@ -14,18 +14,20 @@ import random
 from collections import defaultdict
 from pathlib import Path
 
-CONFIGS = ["A", "B", "C", "E", "F", "G", "real"]
+CONFIGS = ["A", "B", "C", "E", "Es", "F", "G", "real"]
 DESCRIPTION = {
     "A": "no ray drop",
     "B": "global drop frequency",
     "C": "per-pixel drop frequency",
     "E": "GAN x_n",
+    "Es": "GAN x_n, sharpened (`--drop-sharpness 8`)",
     "F": "physics fitted by `diagnose`",
     "G": "F's perturbations, GAN ray drop",
     "real": "trained on real scans (oracle)",
 }
 SCORED = ["car", "person", "road", "sidewalk", "building", "vegetation", "pole"]
-# Places whose unlabelled scans trained the generator behind E's and G's ray drop.
+# Places whose unlabelled scans trained the generator behind E's, Es's and G's ray drop.
+GAN_CONFIGS = ("E", "Es", "G")
 GAN_SAW = {"01", "02", "03", "04", "05", "06", "09", "10"}
 
 
@@ -100,7 +102,7 @@ def main():
         row = []
         for c in configs:
             v = fmt(seed_mean(runs, c, [p]))
-            row.append(v + ("*" if c in ("E", "G") and p in GAN_SAW and v != "-" else ""))
+            row.append(v + ("*" if c in GAN_CONFIGS and p in GAN_SAW and v != "-" else ""))
         print(f"| {p} | " + " | ".join(row) + " |")
 
     rng = random.Random(args.seed)
@@ -139,11 +141,13 @@ def main():
         print(f"| {c} | {DESCRIPTION[c]} | {len(seeds[c])} | {fmt(point)} | {interval(draws[c])} | "
               f"{diff} | {diff_iv} | {fmt(person)} | {fmt(clean)} |")
 
-    if "E" in runs and "C" in runs:
-        diffs = [x - y for x, y in zip(draws["E"], draws["C"]) if x is not None and y is not None]
-        point = seed_mean(runs, "E", places) - seed_mean(runs, "C", places)
+    for e in ("E", "Es"):
+        if e not in runs or "C" not in runs:
+            continue
+        diffs = [x - y for x, y in zip(draws[e], draws["C"]) if x is not None and y is not None]
+        point = seed_mean(runs, e, places) - seed_mean(runs, "C", places)
         print()
-        print(f"E - C (the generator's x_n against the real per-pixel frequency): {point:.1f} "
+        print(f"{e} - C (the generator's x_n against the real per-pixel frequency): {point:.1f} "
               f"(interval {interval(diffs)}).")
 
     if "real" in runs:

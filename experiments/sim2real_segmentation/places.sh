@@ -6,7 +6,7 @@
 #   experiments/sim2real_segmentation/places.sh [OUT]      (default OUT: target/sim2real)
 #
 # Nothing scored on a place learnt anything from that place:
-# - A, E and G train on simulated scans alone: their networks are the shipped ones
+# - A, E, Es and G train on simulated scans alone: their networks are the shipped ones
 #   (models/segment/<config>/s<seed>, or OUT/runs/<config>-s<seed> from run.sh). E's and G's
 #   ray drop comes from the generator, which was trained on unlabelled KITTI scans that
 #   include sequences 01-06, 09 and 10 (not 00 and 07; places.py says which places each
@@ -110,7 +110,7 @@ score() { # CONFIG SEED MODEL PLACE...
   done
 }
 for seed in $SEEDS; do
-  for c in A E G; do
+  for c in A E Es G; do
     model=runs/$c-s$seed/model
     [ -d "$model" ] || model=$MODELS/$c/s$seed
     [ -d "$model" ] && score $c $seed "$model" $FOLD_A $FOLD_B

@@ -13,6 +13,7 @@ DESCRIPTION = {
     "B": "+ global drop frequency",
     "C": "+ per-pixel drop frequency",
     "E": "+ GAN auto-decoded x_n",
+    "Es": "+ GAN x_n, sharpened",
     "F": "+ physics fitted by `diagnose`",
     "G": "+ fitted perturbations, GAN ray drop",
     "real": "Real (oracle)",
