@@ -93,7 +93,7 @@ def main():
     places = sorted({p for c in configs for s in runs[c].values() for p in s})
     seeds = {c: sorted(runs[c]) for c in configs}
 
-    print("mIoU (%, 7 classes) per place, mean over seeds; `*`: the generator behind E's and")
+    print("mIoU (%, 7 classes) per place, mean over seeds; `*`: the generator behind E's, Es's and")
     print("G's ray drop trained on that place's unlabelled scans.")
     print()
     print("| place | " + " | ".join(configs) + " |")
