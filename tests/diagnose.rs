@@ -218,7 +218,7 @@ fn diagnose_names_a_concealed_range_dropout_and_render_applies_it() {
 
 /// `render --raydrop gan` (paper config E): every simulated scan auto-decoded, its
 /// x_n sampled; a readable recording, a plausible drop rate, the same bytes with 1
-/// and 2 threads.
+/// and 2 threads; sharpened, as many drops and fewer of them inside surfaces.
 #[test]
 fn render_raydrop_gan_drops_rays_deterministically() {
     let dir = tempfile::tempdir().unwrap();
@@ -241,7 +241,7 @@ fn render_raydrop_gan_drops_rays_deterministically() {
     assert!(out.status.success(), "{}", stderr(&out));
     let v: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
     let keep_ideal = v["keep_rate"].as_f64().unwrap();
-    let render = |threads: &str, name: &str| {
+    let render = |threads: &str, name: &str, sharpness: &str| {
         let path = d.join(name);
         let out = run(&[
             "--json",
@@ -252,6 +252,8 @@ fn render_raydrop_gan_drops_rays_deterministically() {
             "gan",
             "--tune-steps",
             "2",
+            "--drop-sharpness",
+            sharpness,
             ideal.to_str().unwrap(),
             path.to_str().unwrap(),
         ]);
@@ -259,7 +261,7 @@ fn render_raydrop_gan_drops_rays_deterministically() {
         let v: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
         (path, v)
     };
-    let (one, v) = render("1", "gan1.mcap");
+    let (one, v) = render("1", "gan1.mcap", "1");
     assert_eq!(v["scans"], 3, "{v}");
     assert_eq!(v["skipped"], 0, "{v}");
     assert!(
@@ -271,11 +273,19 @@ fn render_raydrop_gan_drops_rays_deterministically() {
     // probability, not a mask).
     assert!(keep < keep_ideal - 0.005, "{keep} vs ideal {keep_ideal}");
     assert!(keep > 0.1 * keep_ideal, "{keep} vs ideal {keep_ideal}");
-    let (two, _) = render("2", "gan2.mcap");
+    let (two, _) = render("2", "gan2.mcap", "1");
     assert!(
         std::fs::read(&one).unwrap() == std::fs::read(&two).unwrap(),
         "1 and 2 threads give different recordings"
     );
+    let (sharp, v) = render("1", "gan_sharp.mcap", "8");
+    let keep_sharp = v["keep_rate"].as_f64().unwrap();
+    let (inside, inside_sharp) = (holes_inside_surfaces(&one), holes_inside_surfaces(&sharp));
+    eprintln!(
+        "keep {keep:.3} -> {keep_sharp:.3}; inside surfaces {inside:.4} -> {inside_sharp:.4}"
+    );
+    assert!((keep_sharp - keep).abs() < 0.02, "{keep} -> {keep_sharp}");
+    assert!(inside_sharp < 0.5 * inside, "{inside} -> {inside_sharp}");
     // The output is a recording the tool reads, with every scan.
     let rec = rangegan_mcap::recording::read(
         &one,
@@ -299,6 +309,32 @@ fn render_raydrop_gan_drops_rays_deterministically() {
     ]);
     assert!(!out.status.success());
     assert!(stderr(&out).contains("--real"), "{}", stderr(&out));
+}
+
+/// The share of `path`'s rays lost between two returns of one surface: an empty pixel whose
+/// nearest returns along the row (within 3 columns each side) lie within 5 % in range.
+fn holes_inside_surfaces(path: &Path) -> f64 {
+    let grid = rangegan_mcap::recording::Grid::FromRecording { columns: None };
+    let rec = rangegan_mcap::recording::read(path, None, &grid).unwrap();
+    let (mut holes, mut returns) = (0usize, 0usize);
+    for image in &rec.images {
+        let w = image.width as isize;
+        for row in image.range_m.chunks(image.width) {
+            let near = |j: isize, step: isize| {
+                (1..=3)
+                    .map(|d| row[(j + step * d).rem_euclid(w) as usize])
+                    .find(|r| *r > 0.0)
+            };
+            for j in 0..w {
+                if row[j as usize] > 0.0 {
+                    returns += 1;
+                } else if let (Some(l), Some(r)) = (near(j, -1), near(j, 1)) {
+                    holes += usize::from((l - r).abs() <= 0.05 * l.min(r));
+                }
+            }
+        }
+    }
+    holes as f64 / (holes + returns).max(1) as f64
 }
 
 #[test]
