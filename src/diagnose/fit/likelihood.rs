@@ -136,7 +136,7 @@ pub(super) fn model_keep(
 }
 
 /// NLL of one pixel's kept/dropped state under keep probability `k`.
-fn pixel_nll(kept: bool, k: f64) -> f64 {
+pub(super) fn pixel_nll(kept: bool, k: f64) -> f64 {
     let k = k.clamp(1e-12, KEEP_MAX);
     if kept { -k.ln() } else { -(1.0 - k).ln() }
 }

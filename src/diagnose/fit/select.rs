@@ -2,7 +2,9 @@
 //! candidates beat their penalty on held-out scans, and of two that read the same
 //! drops, the simpler.
 
-use super::likelihood::{best_scale, fit_both, fit_given, mask_nll_ahead_behind, model_keep};
+use super::likelihood::{
+    best_scale, fit_both, fit_given, mask_nll_ahead_behind, model_keep, pixel_nll,
+};
 use super::{Baseline, DropFamily, DropFit, MIN_GAIN_NATS, Pixels, mask_nll};
 
 /// One effect the selection kept, with its held-out numbers.
@@ -82,7 +84,8 @@ pub fn keep_under(
 /// Greedy forward selection of `families` (at most `max_effects`), then
 /// backward elimination: an effect that no longer beats its penalty once the
 /// others are refitted without it (a proxy chosen early, e.g. range for grazing
-/// incidence on far ground) is removed and the selection rerun without it.
+/// incidence on far ground), or whose gain lies in the classes a material effect
+/// names, is removed and the selection rerun without it.
 pub fn select(
     families: &[&dyn DropFamily],
     baseline: &Baseline,
@@ -95,7 +98,8 @@ pub fn select(
     loop {
         let mut selection = forward(&allowed, baseline, train, test, max_effects)?;
         let tried = first_tried.get_or_insert_with(|| selection.tried.clone());
-        let redundant = redundant_effect(&allowed, &selection, baseline, train, test);
+        let redundant = redundant_effect(&allowed, &selection, baseline, train, test)
+            .or_else(|| absorbed_effect(&allowed, &selection, baseline, train, test));
         match redundant {
             Some(id) => allowed.retain(|f| f.id() != id),
             None => {
@@ -118,32 +122,80 @@ fn redundant_effect(
     if selection.selected.len() < 2 {
         return None;
     }
-    let base_train = baseline.keep_of(train);
-    let base_test = baseline.keep_of(test);
-    let family = |id: &str| families.iter().copied().find(|f| f.id() == id);
     selection
         .selected
         .iter()
         .filter_map(|drop| {
-            let mut c = selection.keep_scale;
-            let mut fits: Vec<(&dyn DropFamily, DropFit)> = Vec::new();
-            for s in selection.selected.iter().filter(|s| s.id != drop.id) {
-                let f = family(s.id)?;
-                let given: Vec<(&dyn DropFamily, &DropFit)> =
-                    fits.iter().map(|(f, d)| (*f, d)).collect();
-                let (fit, c_fit) =
-                    fit_given(f, train, &base_train, c, &given, selection.scale_refitted)?;
-                c = c_fit;
-                fits.push((f, fit));
-            }
-            let given: Vec<(&dyn DropFamily, &DropFit)> =
-                fits.iter().map(|(f, d)| (*f, d)).collect();
-            let without = mask_nll(test, &model_keep(test, &base_test, c, &given));
-            let loss = without - selection.after_nll;
+            let keep = keep_without(families, selection, baseline, (train, test), drop.id)?;
+            let loss = mask_nll(test, &keep) - selection.after_nll;
             (loss < drop.penalty).then_some((drop.id, loss - drop.penalty))
         })
         .min_by(|a, b| a.1.total_cmp(&b.1))
         .map(|(id, _)| id)
+}
+
+/// A selected effect weaker than a selected `material_dropout` whose held-out gain lies in
+/// the classes the material effect gives rates to: outside them it gains less than its
+/// penalty. Materials are parts of objects (a car's glass above its paint), so one rate per
+/// class leaves the drops of an object's glassy parts to whatever else reads them (its
+/// outline for `edge_dropout`); an effect of physics shows beyond one class's objects.
+fn absorbed_effect(
+    families: &[&dyn DropFamily],
+    selection: &DropSelection,
+    baseline: &Baseline,
+    train: &Pixels,
+    test: &Pixels,
+) -> Option<&'static str> {
+    let material = selection
+        .selected
+        .iter()
+        .find(|s| s.id == "material_dropout")?;
+    let named = |i: usize| {
+        (material.fit.drop_prob)
+            .get(usize::from(test.class[i]))
+            .is_some_and(|p| *p > 0.0)
+    };
+    let keep_with = keep_under(families, selection, baseline, test);
+    selection
+        .selected
+        .iter()
+        .filter(|s| s.id != material.id && s.gain() < material.gain())
+        .find(|effect| {
+            let Some(keep) = keep_without(families, selection, baseline, (train, test), effect.id)
+            else {
+                return false;
+            };
+            let outside: f64 = (0..test.len())
+                .filter(|&i| !named(i))
+                .map(|i| pixel_nll(test.kept[i], keep[i]) - pixel_nll(test.kept[i], keep_with[i]))
+                .sum();
+            outside / (test.len().max(1) as f64) < effect.penalty
+        })
+        .map(|effect| effect.id)
+}
+
+/// The held-out keep probabilities of `selection` without the effect `id`, the others
+/// refitted in their order (None if one cannot be refitted).
+fn keep_without(
+    families: &[&dyn DropFamily],
+    selection: &DropSelection,
+    baseline: &Baseline,
+    (train, test): (&Pixels, &Pixels),
+    id: &str,
+) -> Option<Vec<f64>> {
+    let family = |id: &str| families.iter().copied().find(|f| f.id() == id);
+    let base_train = baseline.keep_of(train);
+    let mut c = selection.keep_scale;
+    let mut fits: Vec<(&dyn DropFamily, DropFit)> = Vec::new();
+    for s in selection.selected.iter().filter(|s| s.id != id) {
+        let f = family(s.id)?;
+        let given: Vec<(&dyn DropFamily, &DropFit)> = fits.iter().map(|(f, d)| (*f, d)).collect();
+        let (fit, c_fit) = fit_given(f, train, &base_train, c, &given, selection.scale_refitted)?;
+        c = c_fit;
+        fits.push((f, fit));
+    }
+    let given: Vec<(&dyn DropFamily, &DropFit)> = fits.iter().map(|(f, d)| (*f, d)).collect();
+    Some(model_keep(test, &baseline.keep_of(test), c, &given))
 }
 
 /// Greedy forward selection of `families` (at most `max_effects`).
