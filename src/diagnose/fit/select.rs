@@ -137,8 +137,8 @@ fn redundant_effect(
 /// A selected effect weaker than a selected `material_dropout` whose held-out gain lies in
 /// the classes the material effect gives rates to: outside them it gains less than its
 /// penalty. Materials are parts of objects (a car's glass above its paint), so one rate per
-/// class leaves the drops of an object's glassy parts to whatever else reads them (its
-/// outline for `edge_dropout`); an effect of physics shows beyond one class's objects.
+/// class leaves the drops of an object's glassy parts to whatever else reads them (laser
+/// rates, depth edges); an effect of physics shows beyond one class's objects.
 fn absorbed_effect(
     families: &[&dyn DropFamily],
     selection: &DropSelection,
