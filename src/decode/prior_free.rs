@@ -89,8 +89,35 @@ pub fn complete_without_prior(image: &RangeImage, fill: Fill, check: &FillCheck)
     if fill != Fill::Learned {
         return prior_free_fills(image).0;
     }
-    let keep = check.keep();
     let places = places(&image.range_m, (image.height, image.width));
+    learned_completion(image, check, &places)
+}
+
+/// [`complete_without_prior`] written into `depth` (another completion of `image`'s grid)
+/// everywhere but across azimuth sectors without returns ([`Place::Across`]), where `depth`
+/// keeps its own: a decoded scene there knows more than the sector's two edges.
+pub fn complete_without_prior_but_across(
+    image: &RangeImage,
+    fill: Fill,
+    check: &FillCheck,
+    depth: &mut [f32],
+) {
+    let places = places(&image.range_m, (image.height, image.width));
+    let free = match fill {
+        Fill::Learned => learned_completion(image, check, &places),
+        _ => prior_free_fills(image).0,
+    };
+    for ((d, f), place) in depth.iter_mut().zip(free).zip(&places) {
+        if *place != Some(Place::Across) {
+            *d = f;
+        }
+    }
+}
+
+/// The completion of every dropped ray, moved by the learned fill in the `places` where
+/// `check` found that it helps.
+fn learned_completion(image: &RangeImage, check: &FillCheck, places: &[Option<Place>]) -> Vec<f32> {
+    let keep = check.keep();
     let moved = |k: usize| places[k].is_some_and(|p| keep[p.index()]);
     let (plain, learned) = both_fills(image, |_| true, moved);
     (0..plain.len())

@@ -8,7 +8,8 @@ use std::sync::{Arc, Mutex};
 use super::{ScanInput, StageOutput, Staged};
 use crate::decode::fill::{complete_observed, fill_from};
 use crate::decode::prior_free::{
-    FillCheck, Place, complete_without_prior, finer_than_returns, places, sparser_beams_than,
+    FillCheck, complete_without_prior, complete_without_prior_but_across, finer_than_returns,
+    sparser_beams_than,
 };
 use crate::decode::{Decoded, Decoder, Fill, PreparedGrid, Rendered, sample_masks, scan_seed};
 use crate::io::Family;
@@ -257,15 +258,14 @@ impl<'d> DecodeStage<'d> {
             let sparse = sparser_beams_than(&observed.angles, self.decoder.model_grid());
             if self.fill == Fill::Learned && (sparse || finer_than_returns(observed)) {
                 let check = FillCheck::on(observed, decoded.seed);
-                let free = complete_without_prior(observed, self.fill, &check);
-                let across = match sparse {
-                    true => places(&observed.range_m, (observed.height, observed.width)),
-                    false => Vec::new(),
-                };
-                for (k, depth) in main.depth_m.iter_mut().enumerate() {
-                    if across.get(k) != Some(&Some(Place::Across)) {
-                        *depth = free[k];
-                    }
+                match sparse {
+                    true => complete_without_prior_but_across(
+                        observed,
+                        self.fill,
+                        &check,
+                        &mut main.depth_m,
+                    ),
+                    false => main.depth_m = complete_without_prior(observed, self.fill, &check),
                 }
             }
             (main, x_d, extra)

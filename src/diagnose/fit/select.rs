@@ -98,8 +98,9 @@ pub fn select(
     loop {
         let mut selection = forward(&allowed, baseline, train, test, max_effects)?;
         let tried = first_tried.get_or_insert_with(|| selection.tried.clone());
-        let redundant = redundant_effect(&allowed, &selection, baseline, train, test)
-            .or_else(|| absorbed_effect(&allowed, &selection, baseline, train, test));
+        let without = keeps_without(&allowed, &selection, baseline, (train, test));
+        let redundant = redundant_effect(&selection, test, &without)
+            .or_else(|| absorbed_effect(&allowed, &selection, baseline, test, &without));
         match redundant {
             Some(id) => allowed.retain(|f| f.id() != id),
             None => {
@@ -110,24 +111,41 @@ pub fn select(
     }
 }
 
-/// The selected effect whose removal (the others refitted in their order)
-/// costs the least held-out NLL below its penalty, if any.
-fn redundant_effect(
+/// Each selected effect's id and the held-out keep probabilities without it, the others
+/// refitted in their order ([`keep_without`]); none for a single effect, which neither
+/// check below removes.
+fn keeps_without(
     families: &[&dyn DropFamily],
     selection: &DropSelection,
     baseline: &Baseline,
-    train: &Pixels,
-    test: &Pixels,
-) -> Option<&'static str> {
+    (train, test): (&Pixels, &Pixels),
+) -> Vec<(&'static str, Option<Vec<f64>>)> {
     if selection.selected.len() < 2 {
-        return None;
+        return Vec::new();
     }
+    (selection.selected.iter())
+        .map(|s| {
+            (
+                s.id,
+                keep_without(families, selection, baseline, (train, test), s.id),
+            )
+        })
+        .collect()
+}
+
+/// The selected effect whose removal (the others refitted in their order, `without`)
+/// costs the least held-out NLL below its penalty, if any.
+fn redundant_effect(
+    selection: &DropSelection,
+    test: &Pixels,
+    without: &[(&'static str, Option<Vec<f64>>)],
+) -> Option<&'static str> {
     selection
         .selected
         .iter()
-        .filter_map(|drop| {
-            let keep = keep_without(families, selection, baseline, (train, test), drop.id)?;
-            let loss = mask_nll(test, &keep) - selection.after_nll;
+        .zip(without)
+        .filter_map(|(drop, (_, keep))| {
+            let loss = mask_nll(test, keep.as_ref()?) - selection.after_nll;
             (loss < drop.penalty).then_some((drop.id, loss - drop.penalty))
         })
         .min_by(|a, b| a.1.total_cmp(&b.1))
@@ -143,8 +161,8 @@ fn absorbed_effect(
     families: &[&dyn DropFamily],
     selection: &DropSelection,
     baseline: &Baseline,
-    train: &Pixels,
     test: &Pixels,
+    without: &[(&'static str, Option<Vec<f64>>)],
 ) -> Option<&'static str> {
     let material = selection
         .selected
@@ -159,10 +177,10 @@ fn absorbed_effect(
     selection
         .selected
         .iter()
-        .filter(|s| s.id != material.id && s.gain() < material.gain())
-        .find(|effect| {
-            let Some(keep) = keep_without(families, selection, baseline, (train, test), effect.id)
-            else {
+        .zip(without)
+        .filter(|(s, _)| s.id != material.id && s.gain() < material.gain())
+        .find(|(effect, (_, keep))| {
+            let Some(keep) = keep else {
                 return false;
             };
             let outside: f64 = (0..test.len())
@@ -171,7 +189,7 @@ fn absorbed_effect(
                 .sum();
             outside / (test.len().max(1) as f64) < effect.penalty
         })
-        .map(|effect| effect.id)
+        .map(|(effect, _)| effect.id)
 }
 
 /// The held-out keep probabilities of `selection` without the effect `id`, the others
