@@ -287,6 +287,9 @@ fn concealed_material_dropout() {
     };
     for (_, d) in diagnose_cases(121, 222, effect) {
         assert_named_first(&d, "material_dropout");
+        // Nothing beside it: the drops on the objects' outlines (edge rates) are the
+        // material's too.
+        assert_eq!(d.report.effects.len(), 1, "{}", summary(&d));
     }
 }
 

@@ -153,10 +153,12 @@ fn redundant_effect(
 }
 
 /// A selected effect weaker than a selected `material_dropout` whose held-out gain lies in
-/// the classes the material effect gives rates to: outside them it gains less than its
-/// penalty. Materials are parts of objects (a car's glass above its paint), so one rate per
-/// class leaves the drops of an object's glassy parts to whatever else reads them (laser
-/// rates, depth edges); an effect of physics shows beyond one class's objects.
+/// the classes the material effect gives rates to and on their outlines ([`OUTLINE_PX`]):
+/// outside them it gains less than its penalty. Materials are parts of objects (a car's
+/// glass above its paint), so one rate per class leaves the drops of an object's glassy
+/// parts to whatever else reads them (laser rates, depth edges); and a dropped ray on an
+/// object's outline takes the class of what lies behind it. An effect of physics shows
+/// beyond one class's objects.
 fn absorbed_effect(
     families: &[&dyn DropFamily],
     selection: &DropSelection,
@@ -168,11 +170,7 @@ fn absorbed_effect(
         .selected
         .iter()
         .find(|s| s.id == "material_dropout")?;
-    let named = |i: usize| {
-        (material.fit.drop_prob)
-            .get(usize::from(test.class[i]))
-            .is_some_and(|p| *p > 0.0)
-    };
+    let named = near_classes(test, &material.fit.drop_prob, OUTLINE_PX);
     let keep_with = keep_under(families, selection, baseline, test);
     selection
         .selected
@@ -184,12 +182,38 @@ fn absorbed_effect(
                 return false;
             };
             let outside: f64 = (0..test.len())
-                .filter(|&i| !named(i))
+                .filter(|&i| !named[i])
                 .map(|i| pixel_nll(test.kept[i], keep[i]) - pixel_nll(test.kept[i], keep_with[i]))
                 .sum();
             outside / (test.len().max(1) as f64) < effect.penalty
         })
         .map(|(effect, _)| effect.id)
+}
+
+/// Pixels around a class's objects that [`absorbed_effect`] counts as theirs: the ray
+/// beside an object's outline (its class is the background's once the ray is dropped, or
+/// when the beam straddles the edge).
+const OUTLINE_PX: usize = 1;
+
+/// Whether each pixel of `px` lies within `reach` pixels along its row and column (a
+/// square, in its own scan; columns wrap) of a pixel whose class has a drop rate in
+/// `rates`.
+fn near_classes(px: &Pixels, rates: &[f64], reach: usize) -> Vec<bool> {
+    let named = |c: u16| rates.get(usize::from(c)).is_some_and(|p| *p > 0.0);
+    let (h, w) = (px.height, px.width);
+    let at = |i: usize, row: usize, column: usize| (px.scan[i] as usize * h + row) * w + column;
+    let mut grid = vec![false; px.scan_range_m.len() * h * w];
+    for i in (0..px.len()).filter(|&i| named(px.class[i])) {
+        grid[at(i, px.row[i].into(), px.column[i].into())] = true;
+    }
+    (0..px.len())
+        .map(|i| {
+            let (row, column) = (usize::from(px.row[i]), usize::from(px.column[i]));
+            let rows = row.saturating_sub(reach)..(row + reach + 1).min(h);
+            rows.into_iter()
+                .any(|r| (0..=2 * reach).any(|d| grid[at(i, r, (column + w + d - reach) % w)]))
+        })
+        .collect()
 }
 
 /// The held-out keep probabilities of `selection` without the effect `id`, the others
@@ -464,6 +488,37 @@ mod tests {
             candidate(1, 2, 0.0033),
         ];
         assert!(simpler_rival(&apart[0], &apart, |_| true).is_none());
+    }
+
+    #[test]
+    fn a_class_reaches_the_rays_on_its_outline_in_its_own_scan() {
+        // Two scans of 3 x 4; class 10 (a car) at row 1, column 3 of scan 0 only.
+        let mut px = Pixels {
+            height: 3,
+            width: 4,
+            scan_range_m: vec![vec![10.0; 12]; 2],
+            ..Pixels::default()
+        };
+        for scan in 0..2u32 {
+            for k in 0..12 {
+                px.scan.push(scan);
+                px.row.push((k / 4) as u16);
+                px.column.push((k % 4) as u16);
+                px.class.push(if scan == 0 && k == 7 { 10 } else { 40 });
+                px.kept.push(true);
+            }
+        }
+        let mut rates = vec![0.0; 41];
+        rates[10] = 0.5;
+        let around = near_classes(&px, &rates, 1);
+        let scan0: Vec<usize> = (0..12).filter(|&k| around[k]).collect();
+        // Rows 0-2 at columns 2, 3 and 0 (the columns wrap around).
+        assert_eq!(scan0, [0, 2, 3, 4, 6, 7, 8, 10, 11]);
+        assert!(around[12..].iter().all(|a| !a), "scan 1 holds no car");
+        let only: Vec<usize> = (0..24)
+            .filter(|&k| near_classes(&px, &rates, 0)[k])
+            .collect();
+        assert_eq!(only, [7]);
     }
 
     #[test]
