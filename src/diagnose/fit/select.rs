@@ -515,10 +515,9 @@ mod tests {
         // Rows 0-2 at columns 2, 3 and 0 (the columns wrap around).
         assert_eq!(scan0, [0, 2, 3, 4, 6, 7, 8, 10, 11]);
         assert!(around[12..].iter().all(|a| !a), "scan 1 holds no car");
-        let only: Vec<usize> = (0..24)
-            .filter(|&k| near_classes(&px, &rates, 0)[k])
-            .collect();
-        assert_eq!(only, [7]);
+        let class_only = near_classes(&px, &rates, 0);
+        let only: Vec<usize> = (0..24).filter(|&k| class_only[k]).collect();
+        assert_eq!(only, [7], "no reach: the class's own pixels");
     }
 
     #[test]
