@@ -586,8 +586,11 @@ impl SeamModel {
 const MIN_SEAM_SHIFT_M: f64 = 0.1;
 
 /// The smallest share of the seam's steps that motion is claimed to shift: it moves every
-/// surface facing the sensor across the seam, the ground included.
-const MIN_MOVED_SHARE: f64 = 0.3;
+/// surface facing the sensor across the seam, the ground included. On the development plan
+/// seeds (317-347) every motion claimed in a pair without it fit 50 % of the steps or fewer,
+/// and every true one 80 % or more; this is the lowest share of the fit's grid above the
+/// former.
+const MIN_MOVED_SHARE: f64 = 0.6;
 
 /// Seam steps a held-out scan needs for its own check of a seam shift.
 const MIN_SCAN_SEAM_STEPS: usize = 5;
@@ -690,7 +693,7 @@ impl ResidualFamily for MotionFamily {
         // surfaces that face the sensor across the seam, a good share of them; a few steps
         // shifted alone are the scene's edges.
         let forward = |shift: f64| motion_per_sweep_m(shift, azimuth).is_none_or(|m| m >= -0.5);
-        let shares: Vec<f64> = (3..=10).map(|i| 0.1 * f64::from(i)).collect();
+        let shares: Vec<f64> = (6..=10).map(|i| 0.1 * f64::from(i)).collect();
         debug_assert!((shares[0] - MIN_MOVED_SHARE).abs() < 1e-9);
         let (h_train, h_test) = (SeamModel::hist(&train), SeamModel::hist(&test));
         let (share, i) = real_model.fit(&h_train, &shares, forward);
@@ -814,11 +817,13 @@ mod tests {
                 .fit(&sim, &train, &test, &ResidualContext::default())
                 .expect("enough steps")
         };
-        // 12 of 40 seam returns on surfaces facing the sensor moved by 0.8 m.
-        let moving = fit(0.05, 12);
+        // 26 of 40 seam returns on surfaces facing the sensor moved by 0.8 m.
+        let moving = fit(0.05, 26);
         assert!(moving.significant(), "gain {}", moving.gain());
         assert!((moving.params["seam_shift_m"].as_f64().unwrap() - 0.8).abs() < 0.11);
-        assert!((moving.params["moved_share"].as_f64().unwrap() - 0.3).abs() < 0.11);
+        assert!((moving.params["moved_share"].as_f64().unwrap() - 0.65).abs() < 0.11);
+        // 12 of 40 moved: a few of the scene's surfaces, not every one facing the sensor.
+        assert!(!fit(0.05, 12).significant());
         // Range noise widens the seam's steps and the control steps alike: no motion.
         let noisy = fit(0.3, 0);
         assert!(
