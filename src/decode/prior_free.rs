@@ -103,14 +103,25 @@ pub fn complete_without_prior_but_across(
     depth: &mut [f32],
 ) {
     let places = places(&image.range_m, (image.height, image.width));
-    let free = match fill {
-        Fill::Learned => learned_completion(image, check, &places),
-        _ => prior_free_fills(image).0,
-    };
+    let free = free_completion(image, fill, check, &places);
     for ((d, f), place) in depth.iter_mut().zip(free).zip(&places) {
         if *place != Some(Place::Across) {
             *d = f;
         }
+    }
+}
+
+/// The completion of `image` without a prior: with [`Fill::Learned`] [`learned_completion`]
+/// over its `places`, else the completion of [`prior_free_fills`].
+fn free_completion(
+    image: &RangeImage,
+    fill: Fill,
+    check: &FillCheck,
+    places: &[Option<Place>],
+) -> Vec<f32> {
+    match fill {
+        Fill::Learned => learned_completion(image, check, places),
+        _ => prior_free_fills(image).0,
     }
 }
 

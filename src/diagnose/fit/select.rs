@@ -123,11 +123,12 @@ fn keeps_without(
     if selection.selected.len() < 2 {
         return Vec::new();
     }
+    let base = (baseline.keep_of(train), baseline.keep_of(test));
     (selection.selected.iter())
         .map(|s| {
             (
                 s.id,
-                keep_without(families, selection, baseline, (train, test), s.id),
+                keep_without(families, selection, &base, (train, test), s.id),
             )
         })
         .collect()
@@ -217,27 +218,27 @@ fn near_classes(px: &Pixels, rates: &[f64], reach: usize) -> Vec<bool> {
 }
 
 /// The held-out keep probabilities of `selection` without the effect `id`, the others
-/// refitted in their order (None if one cannot be refitted).
+/// refitted in their order (None if one cannot be refitted); `base_train` and `base_test`
+/// are the baseline's keep probabilities of the two sets.
 fn keep_without(
     families: &[&dyn DropFamily],
     selection: &DropSelection,
-    baseline: &Baseline,
+    (base_train, base_test): &(Vec<f64>, Vec<f64>),
     (train, test): (&Pixels, &Pixels),
     id: &str,
 ) -> Option<Vec<f64>> {
     let family = |id: &str| families.iter().copied().find(|f| f.id() == id);
-    let base_train = baseline.keep_of(train);
     let mut c = selection.keep_scale;
     let mut fits: Vec<(&dyn DropFamily, DropFit)> = Vec::new();
     for s in selection.selected.iter().filter(|s| s.id != id) {
         let f = family(s.id)?;
         let given: Vec<(&dyn DropFamily, &DropFit)> = fits.iter().map(|(f, d)| (*f, d)).collect();
-        let (fit, c_fit) = fit_given(f, train, &base_train, c, &given, selection.scale_refitted)?;
+        let (fit, c_fit) = fit_given(f, train, base_train, c, &given, selection.scale_refitted)?;
         c = c_fit;
         fits.push((f, fit));
     }
     let given: Vec<(&dyn DropFamily, &DropFit)> = fits.iter().map(|(f, d)| (*f, d)).collect();
-    Some(model_keep(test, &baseline.keep_of(test), c, &given))
+    Some(model_keep(test, base_test, c, &given))
 }
 
 /// Greedy forward selection of `families` (at most `max_effects`).
