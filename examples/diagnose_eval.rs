@@ -6,7 +6,10 @@
 //!
 //! ```text
 //! cargo run --release --example diagnose_eval [-- --seed 7 --only 0,5,9 --gains]
+//! cargo run --release --example diagnose_eval -- --seed 437..459:2   # twelve plan seeds at once
 //! ```
+//! `--seed` takes one plan seed, a list (`7,9,11`) or a range with a step (`437..459:2`, both
+//! ends included); `--only` picks pairs by their index within each seed's plan.
 //! `--gains` shows each named effect's held-out gain (nats per pixel, x1000) beside it, and
 //! each true effect left unnamed with the gain and penalty it had as a candidate.
 //! Prints one row per pair, the summary, and the summary per sensor family (beams,
@@ -32,6 +35,8 @@ struct Outcome {
     /// Every left-out effect that can be seen (it moves returns, or drops at least
     /// [`VISIBLE_SHARE`] of the rays alone) is among the named.
     visible_named: bool,
+    /// Effects named that are not in the pair (null pairs' are counted by `null_clean`).
+    extras: usize,
 }
 
 /// Left-out effects that dropped less than this share of the real rays are reported
@@ -101,6 +106,11 @@ fn judge(p: &testgen::Pair, d: &Diagnosis, seconds: f64, gains: bool) -> Outcome
         single: truth.len() == 1,
         share: p.effect_share,
         visible_named,
+        extras: if null {
+            0
+        } else {
+            named.iter().filter(|n| !truth.contains(n)).count()
+        },
     }
 }
 
@@ -138,13 +148,19 @@ fn named_column(d: &Diagnosis, truth: &[&str], gains: bool) -> String {
 }
 
 fn main() {
-    let mut seed = 7u64;
+    let mut seeds = vec![7u64];
     let mut only: Option<Vec<usize>> = None;
     let mut gains = false;
     let mut args = std::env::args().skip(1);
     while let Some(a) = args.next() {
         match a.as_str() {
-            "--seed" => seed = args.next().and_then(|s| s.parse().ok()).expect("--seed N"),
+            "--seed" => {
+                seeds = args
+                    .next()
+                    .as_deref()
+                    .and_then(parse_seeds)
+                    .expect("--seed N, N,M,... or A..B:STEP")
+            }
             "--only" => {
                 only = Some(
                     args.next()
@@ -158,10 +174,8 @@ fn main() {
             other => panic!("unknown argument {other}"),
         }
     }
-    let plan = testgen::plan(seed);
-    let chosen: Vec<_> = plan
-        .into_iter()
-        .enumerate()
+    let chosen: Vec<_> = (seeds.iter())
+        .flat_map(|&seed| testgen::plan(seed).into_iter().enumerate())
         .filter(|(i, _)| only.as_ref().is_none_or(|o| o.contains(i)))
         .collect();
     let started = std::time::Instant::now();
@@ -249,6 +263,11 @@ fn main() {
         count(&|o| o.null_clean == Some(true), &nulls),
         nulls.len()
     );
+    let extras: usize = with_effect.iter().map(|o| o.extras).sum();
+    println!(
+        "| effects named that are not in the pair (pairs with effects) | {extras} ({:.0} per 736 pairs) |",
+        736.0 * extras as f64 / outcomes.len().max(1) as f64
+    );
     println!(
         "| held-out fit better with the fitted effects | {} / {} |",
         count(&|o| o.fit_better, &with_effect),
@@ -274,6 +293,17 @@ fn main() {
         started.elapsed().as_secs_f64(),
         rayon::current_num_threads()
     );
+}
+
+/// Plan seeds from `N`, `N,M,...` or `A..B:STEP` (both ends included; the step 1 if left out).
+fn parse_seeds(arg: &str) -> Option<Vec<u64>> {
+    if let Some((from, rest)) = arg.split_once("..") {
+        let (to, step) = rest.split_once(':').unwrap_or((rest, "1"));
+        let (from, to, step): (u64, u64, usize) =
+            (from.parse().ok()?, to.parse().ok()?, step.parse().ok()?);
+        return (step > 0 && from <= to).then(|| (from..=to).step_by(step).collect());
+    }
+    arg.split(',').map(|s| s.parse().ok()).collect()
 }
 
 /// The summary per sensor family: pairs, a true effect named first, every true effect
