@@ -401,9 +401,9 @@ fn independent_generator_pairs_are_named() {
 
 /// A strong effect's curve never fits it exactly, and whichever other family traces what
 /// it leaves would be named beside it: grazing-incidence dropout alone on 128 beams is named
-/// alone, while a range dropout beside a five times stronger incidence dropout (32 beams,
-/// 13 % of the rays) is still named. Pairs of the independent generator's plan seeds 393,
-/// 417 and 435.
+/// alone, while a range dropout (32 beams, 13 % of the rays) beside an incidence dropout
+/// that gains 28 times as much is still named. Pairs of the independent generator's plan
+/// seeds 393, 417 and 435 (development seeds of the suite).
 #[test]
 fn a_strong_effects_misfit_is_not_named_beside_it() {
     let cases: [(u64, usize, &[&str]); 3] = [
