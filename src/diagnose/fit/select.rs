@@ -283,6 +283,7 @@ fn forward(
     for round in 0..max_effects {
         let effects: Vec<(&dyn DropFamily, &DropFit)> =
             chosen.iter().map(|(i, f, _)| (families[*i], f)).collect();
+        let floor = misfit_floor(chosen.first().map(|(.., s)| s)).max(MIN_GAIN_NATS);
         let mut viable: Vec<Candidate> = Vec::new();
         for (fi, family) in families.iter().enumerate() {
             if chosen.iter().any(|(i, ..)| *i == fi) {
@@ -321,9 +322,7 @@ fn forward(
                 }
             };
             let halves = mask_nll_ahead_behind(test, &keep);
-            let penalty = (fit.n_params as f64 * n.ln() / (2.0 * n))
-                .max(MIN_GAIN_NATS)
-                .max(misfit_floor(chosen.first().map(|(.., s)| s)));
+            let penalty = (fit.n_params as f64 * n.ln() / (2.0 * n)).max(floor);
             // A direction-invariant effect that helps only on one side of the
             // sensor is the scenes' difference, not physics: no gain.
             let one_sided =
