@@ -14,7 +14,7 @@ import random
 from collections import defaultdict
 from pathlib import Path
 
-CONFIGS = ["A", "B", "C", "E", "Es", "F", "G", "real"]
+CONFIGS = ["A", "B", "C", "E", "Es", "F", "G", "real", "real_boxes"]
 DESCRIPTION = {
     "A": "no ray drop",
     "B": "global drop frequency",
@@ -24,7 +24,9 @@ DESCRIPTION = {
     "F": "physics fitted by `diagnose`",
     "G": "F's perturbations, GAN ray drop",
     "real": "trained on real scans (oracle)",
+    "real_boxes": "real scans + KITTI object boxes (oracle)",
 }
+ORACLES = ("real", "real_boxes")
 SCORED = ["car", "person", "road", "sidewalk", "building", "vegetation", "pole"]
 # Places whose unlabelled scans trained the generator behind E's, Es's and G's ray drop.
 GAN_CONFIGS = ("E", "Es", "G")
@@ -150,15 +152,15 @@ def main():
         print(f"{e} - C (the generator's x_n against the real per-pixel frequency): {point:.1f} "
               f"(interval {interval(diffs)}).")
 
-    if "real" in runs:
-        sims = [c for c in configs if c != "real"]
+    sims = [c for c in configs if c not in ORACLES]
+    for oracle in (o for o in ORACLES if o in runs):
         best = max(sims, key=lambda c: seed_mean(runs, c, places) or -1)
-        ratio = [x / y for x, y in zip(draws[best], draws["real"]) if x and y]
-        point = seed_mean(runs, best, places) / seed_mean(runs, "real", places)
+        ratio = [x / y for x, y in zip(draws[best], draws[oracle]) if x and y]
+        point = seed_mean(runs, best, places) / seed_mean(runs, oracle, places)
         ratio_sorted = sorted(ratio)
         lo, hi = ratio_sorted[int(0.025 * len(ratio))], ratio_sorted[int(0.975 * len(ratio)) - 1]
         print()
-        print(f"Best simulated config {best}: {100 * point:.0f} % of the oracle "
+        print(f"Best simulated config {best}: {100 * point:.0f} % of the oracle {oracle} "
               f"(interval {100 * lo:.0f}-{100 * hi:.0f} %).")
 
     print()

@@ -61,6 +61,8 @@ import_sequences from_b_val $(last $FOLD_B)
 import_sequences from_a $FOLD_A
 import_sequences from_a_fit $(all_but_last $FOLD_A)
 import_sequences from_a_val $(last $FOLD_A)
+# The KITTI object scans with car and pedestrian boxes (partial labels), for real_boxes.
+[ -f real/boxes.mcap ] || rg import "$REAL/kitti_object_acdc" real/boxes.mcap
 log "places and folds imported"
 
 if [ "$SHIPPED" != 1 ]; then
@@ -86,11 +88,13 @@ for c in B C F; do for f in a b; do
 done; done
 mkdir -p runs
 export STEPS PATIENCE VAL_EVERY
-for c in real F C B; do for f in a b; do for seed in $SEEDS; do echo "$c $f $seed"; done; done; done |
+for c in real real_boxes F C B; do for f in a b; do for seed in $SEEDS; do echo "$c $f $seed"; done; done; done |
   xargs -r -P "$JOBS" -L1 bash -c '
   c=$0; f=$1; seed=$2
   if [ "$c" = real ]; then
     data=(real/from_${f}_fit.mcap --val real/from_${f}_val.mcap --augment)
+  elif [ "$c" = real_boxes ]; then
+    data=(real/from_${f}_fit.mcap real/boxes.mcap --val real/from_${f}_val.mcap --augment)
   else
     data=(split/${c}_from_$f/train --val split/${c}_from_$f/val)
   fi
@@ -115,7 +119,7 @@ for seed in $SEEDS; do
     [ -d "$model" ] || model=$MODELS/$c/s$seed
     [ -d "$model" ] && score $c $seed "$model" $FOLD_A $FOLD_B
   done
-  for c in B C F real; do
+  for c in B C F real real_boxes; do
     for f in a b; do
       model=runs/${c}_from_$f-s$seed/model
       [ "$SHIPPED" = 1 ] && model=$MODELS/places/${c}_from_$f/s$seed
