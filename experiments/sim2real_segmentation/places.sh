@@ -11,9 +11,10 @@
 #   ray drop comes from the generator, which was trained on unlabelled KITTI scans that
 #   include sequences 01-06, 09 and 10 (not 00 and 07; places.py says which places each
 #   config saw that way).
-# - B, C and F take drop statistics from real scans, and the oracle trains on real scans:
-#   they are trained once per fold of places, on the other fold's sequences, and score only
-#   the places of their own fold.
+# - B, C and F take drop statistics from real scans, and the oracles train on real scans
+#   (real_boxes also on the KITTI object scans of kitti_object_acdc, with their car and
+#   pedestrian boxes as partial labels): they are trained once per fold of places, on the
+#   other fold's sequences, and score only the places of their own fold.
 #
 # Settings (environment) as run.sh (STEPS, PATIENCE, VAL_EVERY, SEEDS, JOBS, RANGEGAN_BIN,
 # REAL_LIDAR), FOLD_A / FOLD_B, the two folds of sequences, and SHIPPED=1 to score the
