@@ -153,8 +153,8 @@ def main():
               f"(interval {interval(diffs)}).")
 
     sims = [c for c in configs if c not in ORACLES]
+    best = max(sims, key=lambda c: seed_mean(runs, c, places) or -1)
     for oracle in (o for o in ORACLES if o in runs):
-        best = max(sims, key=lambda c: seed_mean(runs, c, places) or -1)
         ratio = [x / y for x, y in zip(draws[best], draws[oracle]) if x and y]
         point = seed_mean(runs, best, places) / seed_mean(runs, oracle, places)
         ratio_sorted = sorted(ratio)
