@@ -14,7 +14,7 @@ import random
 from collections import defaultdict
 from pathlib import Path
 
-CONFIGS = ["A", "B", "C", "E", "Es", "F", "G", "real", "real_boxes"]
+CONFIGS = ["A", "B", "C", "E", "Es", "F", "G", "real", "real_boxes", "real_boxes_lopo"]
 DESCRIPTION = {
     "A": "no ray drop",
     "B": "global drop frequency",
@@ -25,8 +25,9 @@ DESCRIPTION = {
     "G": "F's perturbations, GAN ray drop",
     "real": "trained on real scans (oracle)",
     "real_boxes": "real scans + KITTI object boxes (oracle)",
+    "real_boxes_lopo": "real_boxes trained on every place but the one scored (oracle)",
 }
-ORACLES = ("real", "real_boxes")
+ORACLES = ("real", "real_boxes", "real_boxes_lopo")
 SCORED = ["car", "person", "road", "sidewalk", "building", "vegetation", "pole"]
 # Places whose unlabelled scans trained the generator behind E's, Es's and G's ray drop.
 GAN_CONFIGS = ("E", "Es", "G")

@@ -15,11 +15,14 @@
 #   (real_boxes also on the KITTI object scans of kitti_object_acdc, with their car and
 #   pedestrian boxes as partial labels): they are trained once per fold of places, on the
 #   other fold's sequences, and score only the places of their own fold.
+# - real_boxes_lopo is real_boxes trained once per place, on every other place (one of
+#   them validates), and scores that place alone: leave one place out.
 #
 # Settings (environment) as run.sh (STEPS, PATIENCE, VAL_EVERY, SEEDS, JOBS, RANGEGAN_BIN,
-# REAL_LIDAR), FOLD_A / FOLD_B, the two folds of sequences, and SHIPPED=1 to score the
-# shipped networks (models/segment/places/<config>_from_<fold>/s<seed>) instead of training
-# them. Every step is skipped when its output exists, so a killed run resumes (a training
+# REAL_LIDAR), FOLD_A / FOLD_B, the two folds of sequences, LOPO, the places whose
+# leave-one-place-out networks are trained (default: all), and SHIPPED=1 to score the shipped
+# networks (models/segment/places/<config>_from_<fold>/s<seed>,
+# models/segment/places/real_boxes_lopo/<place>/s<seed>) instead of training them. Every step is skipped when its output exists, so a killed run resumes (a training
 # from its checkpoint).
 set -euo pipefail
 
@@ -62,6 +65,17 @@ import_sequences from_b_val $(last $FOLD_B)
 import_sequences from_a $FOLD_A
 import_sequences from_a_fit $(all_but_last $FOLD_A)
 import_sequences from_a_val $(last $FOLD_A)
+# Leave one place out: each place's networks fit the others but one, which validates (the
+# last place, and for the last place the first).
+PLACES=($FOLD_A $FOLD_B)
+lopo_val() { # PLACE
+  if [ "$1" = "${PLACES[-1]}" ]; then echo "${PLACES[0]}"; else echo "${PLACES[-1]}"; fi
+}
+for p in "${PLACES[@]}"; do
+  v=$(lopo_val "$p")
+  import_sequences lopo_${p}_fit $(printf '%s\n' "${PLACES[@]}" | grep -vx -e "$p" -e "$v")
+  import_sequences lopo_${p}_val "$v"
+done
 # The KITTI object scans with car and pedestrian boxes (partial labels), for real_boxes.
 [ -f real/boxes.mcap ] || rg import "$REAL/kitti_object_acdc" real/boxes.mcap
 log "places and folds imported"
@@ -89,17 +103,23 @@ for c in B C F; do for f in a b; do
 done; done
 mkdir -p runs
 export STEPS PATIENCE VAL_EVERY
-for c in real real_boxes F C B; do for f in a b; do for seed in $SEEDS; do echo "$c $f $seed"; done; done; done |
+LOPO=${LOPO:-"${PLACES[*]}"}
+{ for seed in $SEEDS; do for p in $LOPO; do echo "real_boxes_lopo $p $seed"; done; done
+  for c in real real_boxes F C B; do for f in a b; do for seed in $SEEDS; do echo "$c $f $seed"; done; done; done; } |
   xargs -r -P "$JOBS" -L1 bash -c '
   c=$0; f=$1; seed=$2
-  if [ "$c" = real ]; then
+  run=runs/${c}_from_$f-s$seed
+  if [ "$c" = real_boxes_lopo ]; then
+    run=runs/${c}_$f-s$seed
+    data=(real/lopo_${f}_fit.mcap real/boxes.mcap --val real/lopo_${f}_val.mcap --augment)
+  elif [ "$c" = real ]; then
     data=(real/from_${f}_fit.mcap --val real/from_${f}_val.mcap --augment)
   elif [ "$c" = real_boxes ]; then
     data=(real/from_${f}_fit.mcap real/boxes.mcap --val real/from_${f}_val.mcap --augment)
   else
     data=(split/${c}_from_$f/train --val split/${c}_from_$f/val)
   fi
-  "$BIN" --quiet --threads 1 segment train runs/${c}_from_$f-s$seed "${data[@]}" \
+  "$BIN" --quiet --threads 1 segment train "$run" "${data[@]}" \
     --steps "$STEPS" --patience "$PATIENCE" --val-every "$VAL_EVERY" --seed "$seed"
 ' 2>&1 | tee -a places_train_errors.log
 log "trained the fold networks"
@@ -127,6 +147,11 @@ for seed in $SEEDS; do
       [ -d "$model" ] || continue
       if [ $f = a ]; then score $c $seed "$model" $FOLD_B; else score $c $seed "$model" $FOLD_A; fi
     done
+  done
+  for p in "${PLACES[@]}"; do
+    model=runs/real_boxes_lopo_$p-s$seed/model
+    [ "$SHIPPED" = 1 ] && model=$MODELS/places/real_boxes_lopo/$p/s$seed
+    [ -d "$model" ] && score real_boxes_lopo $seed "$model" $p
   done
 done
 python3 "$HERE/places.py" eval/places > places.md
