@@ -21,9 +21,10 @@
 # Settings (environment) as run.sh (STEPS, PATIENCE, VAL_EVERY, SEEDS, JOBS, RANGEGAN_BIN,
 # REAL_LIDAR), FOLD_A / FOLD_B, the two folds of sequences, LOPO, the places whose
 # leave-one-place-out networks are trained (default: all), and SHIPPED=1 to score the shipped
-# networks (models/segment/places/<config>_from_<fold>/s<seed>,
-# models/segment/places/real_boxes_lopo/<place>/s<seed>) instead of training them. Every step is skipped when its output exists, so a killed run resumes (a training
-# from its checkpoint).
+# networks (models/segment/places/<config>_from_<fold>/s<seed> and
+# models/segment/places/real_boxes_lopo/<place>/s<seed>) instead of training them. Every step
+# is skipped when its output exists, so a killed run resumes (a training from its
+# checkpoint).
 set -euo pipefail
 
 OUT=${1:-target/sim2real}
@@ -51,7 +52,8 @@ mkdir -p "$OUT" && cd "$OUT"
 ALL_SCENES=$((SCENES + VAL_SCENES))
 source "$HERE/common.sh"
 
-# 1. Each place as a recording, and each fold's real training data (the other fold's places).
+# 1. Each place as a recording, and the real training data of each fold and of each place left
+#    out.
 mkdir -p places real
 for s in $FOLD_A $FOLD_B; do
   [ -f places/$s.mcap ] || rg import "$REAL/semantickitti_mini/$s" places/$s.mcap
