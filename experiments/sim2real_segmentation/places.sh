@@ -70,11 +70,8 @@ import_sequences from_a_val $(last $FOLD_A)
 # Leave one place out: each place's networks fit the others but one, which validates (the
 # last place, and for the last place the first).
 PLACES=($FOLD_A $FOLD_B)
-lopo_val() { # PLACE
-  if [ "$1" = "${PLACES[-1]}" ]; then echo "${PLACES[0]}"; else echo "${PLACES[-1]}"; fi
-}
 for p in "${PLACES[@]}"; do
-  v=$(lopo_val "$p")
+  v=${PLACES[-1]}; [ "$p" = "$v" ] && v=${PLACES[0]}
   import_sequences lopo_${p}_fit $(printf '%s\n' "${PLACES[@]}" | grep -vx -e "$p" -e "$v")
   import_sequences lopo_${p}_val "$v"
 done
@@ -109,22 +106,19 @@ LOPO=${LOPO:-"${PLACES[*]}"}
 { for seed in $SEEDS; do for p in $LOPO; do echo "real_boxes_lopo $p $seed"; done; done
   for c in real real_boxes F C B; do for f in a b; do for seed in $SEEDS; do echo "$c $f $seed"; done; done; done; } |
   xargs -r -P "$JOBS" -L1 bash -c '
-  c=$0; f=$1; seed=$2
+  c=$0; f=$1; seed=$2   # f: the fold (a, b), or for real_boxes_lopo the place left out
   run=runs/${c}_from_$f-s$seed
-  if [ "$c" = real_boxes_lopo ]; then
-    run=runs/${c}_$f-s$seed
-    data=(real/lopo_${f}_fit.mcap real/boxes.mcap --val real/lopo_${f}_val.mcap --augment)
-  elif [ "$c" = real ]; then
-    data=(real/from_${f}_fit.mcap --val real/from_${f}_val.mcap --augment)
-  elif [ "$c" = real_boxes ]; then
-    data=(real/from_${f}_fit.mcap real/boxes.mcap --val real/from_${f}_val.mcap --augment)
-  else
-    data=(split/${c}_from_$f/train --val split/${c}_from_$f/val)
-  fi
+  case $c in
+    real_boxes_lopo) run=runs/${c}_$f-s$seed
+      data=(real/lopo_${f}_fit.mcap real/boxes.mcap --val real/lopo_${f}_val.mcap --augment) ;;
+    real) data=(real/from_${f}_fit.mcap --val real/from_${f}_val.mcap --augment) ;;
+    real_boxes) data=(real/from_${f}_fit.mcap real/boxes.mcap --val real/from_${f}_val.mcap --augment) ;;
+    *) data=(split/${c}_from_$f/train --val split/${c}_from_$f/val) ;;
+  esac
   "$BIN" --quiet --threads 1 segment train "$run" "${data[@]}" \
     --steps "$STEPS" --patience "$PATIENCE" --val-every "$VAL_EVERY" --seed "$seed"
 ' 2>&1 | tee -a places_train_errors.log
-log "trained the fold networks"
+log "trained the fold and left-out-place networks"
 fi
 
 # 4. Every network on every place it may score: eval/places/CONFIG-sSEED/PLACE.json.
