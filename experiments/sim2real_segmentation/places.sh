@@ -20,7 +20,8 @@
 #
 # Settings (environment) as run.sh (STEPS, PATIENCE, VAL_EVERY, SEEDS, JOBS, RANGEGAN_BIN,
 # REAL_LIDAR), FOLD_A / FOLD_B, the two folds of sequences, LOPO, the places whose
-# leave-one-place-out networks are trained (default: all), and SHIPPED=1 to score the shipped
+# leave-one-place-out networks are trained (default: all), FOLD_CONFIGS, the configs whose fold
+# networks are trained (default: real real_boxes F C B; empty for none), and SHIPPED=1 to score the shipped
 # networks (models/segment/places/<config>_from_<fold>/s<seed> and
 # models/segment/places/real_boxes_lopo/<place>/s<seed>) instead of training them. Every step
 # is skipped when its output exists, so a killed run resumes (a training from its
@@ -102,9 +103,10 @@ for c in B C F; do for f in a b; do
 done; done
 mkdir -p runs
 export STEPS PATIENCE VAL_EVERY
-LOPO=${LOPO:-"${PLACES[*]}"}
+LOPO=${LOPO-"${PLACES[*]}"}
+FOLD_CONFIGS=${FOLD_CONFIGS-"real real_boxes F C B"}
 { for seed in $SEEDS; do for p in $LOPO; do echo "real_boxes_lopo $p $seed"; done; done
-  for c in real real_boxes F C B; do for f in a b; do for seed in $SEEDS; do echo "$c $f $seed"; done; done; done; } |
+  for c in $FOLD_CONFIGS; do for f in a b; do for seed in $SEEDS; do echo "$c $f $seed"; done; done; done; } |
   xargs -r -P "$JOBS" -L1 bash -c '
   c=$0; f=$1; seed=$2   # f: the fold (a, b), or for real_boxes_lopo the place left out
   run=runs/${c}_from_$f-s$seed
