@@ -15,8 +15,8 @@
 #
 # Settings (environment): SCENES (15), VAL_SCENES (2), SCANS_PER_SCENE (40), STEPS (2000),
 # PATIENCE (6), VAL_EVERY (200), WIDTHS (the network's default), SEEDS ("0 1"),
-# CONFIGS ("A B C E Es F G real real_boxes": the training sets to train and score; after new
-# generator weights, "E Es F G" reruns the ones that use them), JOBS (2 trainings at once, one thread
+# CONFIGS ("A B C E Es F G real real_boxes": the training sets to render, train and score; after
+# new generator weights, "E Es F G" reruns the ones that use them), JOBS (2 trainings at once, one thread
 # each), RANGEGAN_BIN (target/release/rangegan-mcap), REAL_LIDAR (../shared/real_lidar). Every step is skipped when its output exists, so a
 # killed run resumes where it stopped (a training resumes from its checkpoint).
 set -euo pipefail
@@ -63,20 +63,26 @@ log "real recordings ready"
 simulate_scenes
 log "simulated $ALL_SCENES scenes x $SCANS scans"
 
+# Whether CONFIGS holds config $1: only the sets it trains are rendered.
+wants() { [[ " $CONFIGS " == *" $1 "* ]]; }
+
 # 3. What diagnose finds between the simulator and the real training scans (config F).
+if wants F || wants G; then
 [ -f diagnosis/fitted_physics.json ] || rg diagnose --sim sim/A/scene1.mcap --real real/train.mcap --report diagnosis --force
 # G keeps F's perturbations (range noise, mixed pixels, ...) and takes its ray drop from the GAN.
 python3 "$HERE/physics_without_drops.py" diagnosis/fitted_physics.json > diagnosis/perturbations_only.json
+fi
 
 # 4. The rendered training sets, one recording per scene; draws seeded per scene.
-render_set B --raydrop global --real real/train.mcap
-render_set C --raydrop pixel --real real/train.mcap
-render_set F --physics diagnosis/fitted_physics.json
-render_set E --raydrop gan
+wants B && render_set B --raydrop global --real real/train.mcap
+wants C && render_set C --raydrop pixel --real real/train.mcap
+wants F && render_set F --physics diagnosis/fitted_physics.json
+wants E && render_set E --raydrop gan
 # Es: the same x_n sharpened so that its drops gather where it is highest (each scan's mean drop
 # probability kept); the factor 8 brings the rendered validation scenes' drops inside surfaces
 # (1.7 %) to the unlabelled KITTI training drives' (1.8 %; drop_by_class.py --surfaces).
-render_set Es --raydrop gan --drop-sharpness 8
+wants Es && render_set Es --raydrop gan --drop-sharpness 8
+if wants G; then
 mkdir -p sim/Fp
 for s in $(seq 1 "$ALL_SCENES"); do
   [ -f sim/Fp/scene$s.mcap ] || rg render --physics diagnosis/perturbations_only.json --seed "$s" sim/A/scene$s.mcap sim/Fp/scene$s.mcap
@@ -85,11 +91,13 @@ mkdir -p sim/G
 for s in $(seq 1 "$ALL_SCENES"); do
   [ -f sim/G/scene$s.mcap ] || echo "$s"
 done | xargs -r -P "$JOBS" -I{} "$BIN" --quiet --threads 1 render --raydrop gan --seed {} sim/Fp/scene{}.mcap sim/G/scene{}.mcap
-log "rendered training sets B C E Es F G"
+fi
+log "rendered the training sets of $CONFIGS"
 
 # 5. One network per training set and seed, the same budget each, chosen on validation.
 #    Scenes move into train/ and val/ folders of links so that a folder is a training set.
 for c in A B C E Es F G; do
+  wants $c || continue
   mkdir -p split/$c/train split/$c/val
   for s in $(seq 1 "$ALL_SCENES"); do
     part=train; [ "$s" -gt "$SCENES" ] && part=val
