@@ -30,10 +30,11 @@ simulate_scenes() {
   done
 }
 
-# sim/SET/sceneN.mcap: each scene of A rendered by `render ARGS`, draws seeded per scene.
+# sim/SET/sceneN.mcap: each scene of A (or of the set FROM names) rendered by `render ARGS`,
+# draws seeded per scene.
 render_set() { # SET ARGS...
-  local c=$1; shift; mkdir -p sim/$c
+  local c=$1 from=${FROM:-A}; shift; mkdir -p sim/$c
   for s in $(seq 1 "$ALL_SCENES"); do
     [ -f sim/$c/scene$s.mcap ] || echo "$s"
-  done | xargs -r -P "$JOBS" -I{} "$BIN" --quiet --threads 1 render "$@" --seed {} sim/A/scene{}.mcap sim/$c/scene{}.mcap
+  done | xargs -r -P "$JOBS" -I{} "$BIN" --quiet --threads 1 render "$@" --seed {} sim/$from/scene{}.mcap sim/$c/scene{}.mcap
 }

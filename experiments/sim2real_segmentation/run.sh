@@ -68,9 +68,9 @@ wants() { [[ " $CONFIGS " == *" $1 "* ]]; }
 
 # 3. What diagnose finds between the simulator and the real training scans (config F).
 if wants F || wants G; then
-[ -f diagnosis/fitted_physics.json ] || rg diagnose --sim sim/A/scene1.mcap --real real/train.mcap --report diagnosis --force
-# G keeps F's perturbations (range noise, mixed pixels, ...) and takes its ray drop from the GAN.
-python3 "$HERE/physics_without_drops.py" diagnosis/fitted_physics.json > diagnosis/perturbations_only.json
+  [ -f diagnosis/fitted_physics.json ] || rg diagnose --sim sim/A/scene1.mcap --real real/train.mcap --report diagnosis --force
+  # G keeps F's perturbations (range noise, mixed pixels, ...) and takes its ray drop from the GAN.
+  python3 "$HERE/physics_without_drops.py" diagnosis/fitted_physics.json > diagnosis/perturbations_only.json
 fi
 
 # 4. The rendered training sets, one recording per scene; draws seeded per scene.
@@ -83,14 +83,8 @@ wants E && render_set E --raydrop gan
 # (1.7 %) to the unlabelled KITTI training drives' (1.8 %; drop_by_class.py --surfaces).
 wants Es && render_set Es --raydrop gan --drop-sharpness 8
 if wants G; then
-mkdir -p sim/Fp
-for s in $(seq 1 "$ALL_SCENES"); do
-  [ -f sim/Fp/scene$s.mcap ] || rg render --physics diagnosis/perturbations_only.json --seed "$s" sim/A/scene$s.mcap sim/Fp/scene$s.mcap
-done
-mkdir -p sim/G
-for s in $(seq 1 "$ALL_SCENES"); do
-  [ -f sim/G/scene$s.mcap ] || echo "$s"
-done | xargs -r -P "$JOBS" -I{} "$BIN" --quiet --threads 1 render --raydrop gan --seed {} sim/Fp/scene{}.mcap sim/G/scene{}.mcap
+  render_set Fp --physics diagnosis/perturbations_only.json
+  FROM=Fp render_set G --raydrop gan
 fi
 log "rendered the training sets of $CONFIGS"
 
