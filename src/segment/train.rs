@@ -12,7 +12,6 @@
 //! state.json; replaced atomically), `log.jsonl` (training loss; validation IoU per class),
 //! and `model/` (the exported model folder: the best on validation, else the last).
 
-use std::fs::OpenOptions;
 use std::io::Write;
 use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
@@ -34,7 +33,7 @@ use super::loss::{
 };
 use super::net::{SegNet, SegNetConfig};
 use super::{SegModel, SegModelInfo};
-use crate::train::{CHECKPOINT, write_checkpoint};
+use crate::train::{CHECKPOINT, open_log, write_checkpoint};
 use crate::util::rng::Rng;
 use crate::util::tensor::{tensor_from, tensor_to_vec};
 
@@ -290,12 +289,7 @@ impl Trainer {
             .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar()),
         );
         bar.set_position(self.state.step);
-        let log_path = opts.run_dir.join("log.jsonl");
-        let mut log = OpenOptions::new()
-            .create(true)
-            .append(true)
-            .open(&log_path)
-            .with_context(|| format!("cannot open {}", log_path.display()))?;
+        let mut log = open_log(&opts.run_dir, self.state.step)?;
         let mut last_ckpt = Instant::now();
         let mut window = (Instant::now(), self.state.step, 0.0f64);
         let mut flattened = self.flattened();

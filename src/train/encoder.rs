@@ -10,7 +10,6 @@
 //! state.json; replaced atomically), `export/` (config.json + encoder.bpk, the form shipped in
 //! `models/encoder/`), `log.jsonl`.
 
-use std::fs::OpenOptions;
 use std::io::Write;
 use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
@@ -23,6 +22,7 @@ use burn::tensor::Device;
 use serde::{Deserialize, Serialize};
 
 use super::Backend;
+use super::run_dir::open_log;
 use super::scans::ScanSource;
 use crate::decode::Sparsify;
 use crate::decode::amortised::{Encoder, EncoderConfig};
@@ -227,11 +227,7 @@ impl Trainer {
     fn train(&mut self, opts: &EncoderTrainOptions, data: &RangeDataset) -> Result<()> {
         let started = Instant::now();
         let mut last_ck = Instant::now();
-        let mut log = OpenOptions::new()
-            .create(true)
-            .append(true)
-            .open(opts.run_dir.join("log.jsonl"))
-            .context("failed to open log.jsonl")?;
+        let mut log = open_log(&opts.run_dir, self.state.step)?;
         let mut window = Vec::new();
         let mut window_start = Instant::now();
         while self.state.step < self.config.total_steps {

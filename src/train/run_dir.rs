@@ -1,10 +1,12 @@
 //! What every training run directory shares (the GAN, the encoder, the segmentation
-//! network): the backend it computes on, and the checkpoint folder, replaced atomically so a
-//! kill leaves the previous checkpoint or the new one.
+//! network): the backend it computes on, the checkpoint folder, replaced atomically so a
+//! kill leaves the previous checkpoint or the new one, and the JSONL log, which holds each
+//! step the checkpoint has trained exactly once.
 
+use std::fs::{File, OpenOptions};
 use std::path::Path;
 
-use anyhow::{Result, bail};
+use anyhow::{Context, Result, bail};
 use burn::tensor::Device;
 use serde::{Deserialize, Serialize};
 
@@ -90,9 +92,81 @@ pub(crate) fn write_checkpoint(
     Ok(())
 }
 
+/// Opens `RUN_DIR/log.jsonl` for appending from a checkpoint at `step` (0 for a fresh run).
+/// A run killed between checkpoints logged steps its checkpoint never kept; the resumed run
+/// trains them again, so their old lines are dropped first (atomically) and the log holds
+/// every step once, in order.
+pub(crate) fn open_log(run_dir: &Path, step: u64) -> Result<File> {
+    let path = run_dir.join("log.jsonl");
+    if let Ok(text) = std::fs::read_to_string(&path) {
+        let kept = log_through(&text, step);
+        if kept.len() < text.len() {
+            let tmp = run_dir.join("log.jsonl.tmp");
+            std::fs::write(&tmp, kept)
+                .and_then(|()| std::fs::rename(&tmp, &path))
+                .with_context(|| format!("failed to rewrite '{}'", path.display()))?;
+        }
+    }
+    OpenOptions::new()
+        .create(true)
+        .append(true)
+        .open(&path)
+        .with_context(|| format!("failed to open '{}'", path.display()))
+}
+
+/// The lines of a JSONL training log up to and including `step`. A line's step is its
+/// `step` field or its `validation.step`; lines with neither (and lines that are not JSON)
+/// are kept, since nothing says they came later.
+pub(crate) fn log_through(text: &str, step: u64) -> String {
+    let line_step = |line: &str| {
+        let value: serde_json::Value = serde_json::from_str(line).ok()?;
+        value["step"]
+            .as_u64()
+            .or_else(|| value["validation"]["step"].as_u64())
+    };
+    text.lines()
+        .filter(|line| line_step(line).is_none_or(|s| s <= step))
+        .map(|line| format!("{line}\n"))
+        .collect()
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_log_keeps_the_lines_through_the_checkpoint_step() {
+        let log = "{\"step\":10}\n{\"validation\":{\"step\":10,\"miou\":0.5}}\n\
+                   {\"step\":20}\nnot json\n{\"validation\":{\"step\":30}}\n{\"step\":30}\n";
+        assert_eq!(
+            log_through(log, 20),
+            "{\"step\":10}\n{\"validation\":{\"step\":10,\"miou\":0.5}}\n{\"step\":20}\nnot json\n"
+        );
+        assert_eq!(log_through(log, 30), log);
+        assert_eq!(log_through(log, 0), "not json\n");
+    }
+
+    #[test]
+    fn a_resumed_log_drops_the_steps_trained_again_and_appends() {
+        let tmp = tempfile::tempdir().expect("tempdir");
+        let dir = tmp.path();
+        {
+            use std::io::Write;
+            let mut log = open_log(dir, 0).expect("fresh log");
+            writeln!(log, "{{\"step\":1}}\n{{\"step\":2}}\n{{\"step\":3}}").expect("write");
+        }
+        {
+            use std::io::Write;
+            let mut log = open_log(dir, 2).expect("resumed log");
+            writeln!(log, "{{\"step\":3,\"again\":true}}").expect("write");
+        }
+        let text = std::fs::read_to_string(dir.join("log.jsonl")).expect("log");
+        assert_eq!(
+            text,
+            "{\"step\":1}\n{\"step\":2}\n{\"step\":3,\"again\":true}\n"
+        );
+        assert!(!dir.join("log.jsonl.tmp").exists());
+    }
 
     #[test]
     fn backends_parse_by_name_and_the_cpu_ones_always_exist() {

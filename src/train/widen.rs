@@ -26,8 +26,8 @@ use crate::model::generator::{Generator, GeneratorConfig, SynthesisBlock};
 use crate::model::layers::{EqualLinear, FourierFeatures, ModulatedLinear, fixed_param};
 use crate::util::tensor::{tensor_from, tensor_to_vec};
 
-use super::config::load_config;
-use super::run_dir::{CHECKPOINT, write_checkpoint};
+use super::config::{TrainState, load_config};
+use super::run_dir::{CHECKPOINT, log_through, write_checkpoint};
 
 /// How one axis of a weight grows: consecutive segments, each `(old, new)` long, whose first
 /// `old` entries are the trained ones.
@@ -274,8 +274,13 @@ pub fn widen_run(
     wider
         .save(dst.join("config.json"))
         .with_context(|| format!("failed to write '{}'", dst.join("config.json").display()))?;
-    if src.join("log.jsonl").exists() {
-        std::fs::copy(src.join("log.jsonl"), dst.join("log.jsonl"))?;
+    // The widened run's log goes on from the source's, through the checkpoint it widens.
+    if let Ok(log) = std::fs::read_to_string(src.join("log.jsonl")) {
+        let state: TrainState =
+            serde_json::from_str(&std::fs::read_to_string(src_ck.join("state.json"))?)
+                .with_context(|| format!("bad '{}'", src_ck.join("state.json").display()))?;
+        std::fs::write(dst.join("log.jsonl"), log_through(&log, state.step))
+            .with_context(|| format!("failed to write '{}'", dst.join("log.jsonl").display()))?;
     }
     write_checkpoint(dst, |tmp| {
         let save = |m: Generator, name: &str| {

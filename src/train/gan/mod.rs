@@ -11,7 +11,6 @@
 //! and G step), `whole` (the whole-turn steps among windows) and `checkpoint`
 //! (checkpoints and snapshots).
 
-use std::fs::OpenOptions;
 use std::io::Write;
 use std::time::{Duration, Instant};
 
@@ -30,6 +29,7 @@ use crate::util::tensor::tensor_from;
 use super::config::{TrainConfig, TrainOptions, TrainState, load_config};
 use super::growth::{Level, stage_at};
 use super::reconstruct::InLoopEncoder;
+use super::run_dir::open_log;
 
 mod checkpoint;
 mod start;
@@ -230,12 +230,7 @@ impl Trainer {
             .unwrap_or_else(|_| ProgressStyle::default_bar()),
         );
         bar.set_position(self.state.images);
-        let log_path = opts.run_dir.join("log.jsonl");
-        let mut log = OpenOptions::new()
-            .create(true)
-            .append(true)
-            .open(&log_path)
-            .with_context(|| format!("failed to open '{}'", log_path.display()))?;
+        let mut log = open_log(&opts.run_dir, self.state.step)?;
         let started = Instant::now();
         let mut last_ckpt = Instant::now();
         let mut window = (Instant::now(), self.state.images);

@@ -617,6 +617,11 @@ fn a_widened_run_resumes_where_its_source_stopped() {
     let config = tiny_run_config().with_total_images(4);
     let source = options(dir.path().join("run"), cache, config);
     run(&source).expect("train");
+    // A line the source logged after its last checkpoint (a killed run) stays behind.
+    let source_log = source.run_dir.join("log.jsonl");
+    let mut text = std::fs::read_to_string(&source_log).unwrap_or_default();
+    text.push_str("{\"step\":999,\"after_the_checkpoint\":true}\n");
+    std::fs::write(&source_log, &text).expect("write log");
     let wide_dir = dir.path().join("wide");
     let widen = || {
         crate::train::widen::widen_run(
@@ -633,6 +638,9 @@ fn a_widened_run_resumes_where_its_source_stopped() {
         std::fs::read(wide_dir.join("checkpoint/d.bpk")).expect("read"),
         std::fs::read(source.run_dir.join("checkpoint/d.bpk")).expect("read"),
     );
+    let wide_log = std::fs::read_to_string(wide_dir.join("log.jsonl")).expect("widened log");
+    assert!(!wide_log.contains("after_the_checkpoint"), "{wide_log}");
+    assert!(text.starts_with(&wide_log));
     // Widening never writes over a run.
     assert!(widen().is_err());
 
