@@ -33,7 +33,7 @@ use super::loss::{
 };
 use super::net::{SegNet, SegNetConfig};
 use super::{SegModel, SegModelInfo};
-use crate::train::{CHECKPOINT, open_log, write_checkpoint};
+use crate::train::{CHECKPOINT, open_log, read_state, write_checkpoint};
 use crate::util::rng::Rng;
 use crate::util::tensor::{tensor_from, tensor_to_vec};
 
@@ -241,8 +241,7 @@ impl Trainer {
             opt = opt
                 .load(ck.join("opt.bpk"))
                 .map_err(|e| err("the optimiser", e))?;
-            let text = std::fs::read_to_string(ck.join("state.json"))?;
-            state = serde_json::from_str(&text).context("bad checkpoint/state.json")?;
+            state = read_state(&ck)?;
         }
         Ok(Trainer {
             config: config.clone(),

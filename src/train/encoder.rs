@@ -22,7 +22,7 @@ use burn::tensor::Device;
 use serde::{Deserialize, Serialize};
 
 use super::Backend;
-use super::run_dir::open_log;
+use super::run_dir::{open_log, read_state};
 use super::scans::ScanSource;
 use crate::decode::Sparsify;
 use crate::decode::amortised::{Encoder, EncoderConfig};
@@ -205,8 +205,7 @@ impl Trainer {
             opt = opt
                 .load(ck.join("opt.bpk"))
                 .map_err(|e| anyhow::anyhow!("failed to load '{}': {e}", ck.display()))?;
-            let text = std::fs::read_to_string(ck.join("state.json"))?;
-            state = serde_json::from_str(&text).context("bad checkpoint/state.json")?;
+            state = read_state(&ck)?;
         }
         Ok(Trainer {
             config,

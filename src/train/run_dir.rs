@@ -8,6 +8,7 @@ use std::path::Path;
 
 use anyhow::{Context, Result, bail};
 use burn::tensor::Device;
+use serde::de::DeserializeOwned;
 use serde::{Deserialize, Serialize};
 
 pub use crate::model::weights::CHECKPOINT;
@@ -92,6 +93,14 @@ pub(crate) fn write_checkpoint(
     Ok(())
 }
 
+/// The training state a checkpoint folder saved in its `state.json`.
+pub(crate) fn read_state<T: DeserializeOwned>(checkpoint: &Path) -> Result<T> {
+    let path = checkpoint.join("state.json");
+    let text = std::fs::read_to_string(&path)
+        .with_context(|| format!("failed to read '{}'", path.display()))?;
+    serde_json::from_str(&text).with_context(|| format!("bad '{}'", path.display()))
+}
+
 /// Opens `RUN_DIR/log.jsonl` for appending from a checkpoint at `step` (0 for a fresh run).
 /// A run killed between checkpoints logged steps its checkpoint never kept; the resumed run
 /// trains them again, so their old lines are dropped first (atomically) and the log holds
@@ -124,9 +133,8 @@ pub(crate) fn log_through(text: &str, step: u64) -> String {
             .as_u64()
             .or_else(|| value["validation"]["step"].as_u64())
     };
-    text.lines()
+    text.split_inclusive('\n')
         .filter(|line| line_step(line).is_none_or(|s| s <= step))
-        .map(|line| format!("{line}\n"))
         .collect()
 }
 

@@ -27,7 +27,7 @@ use crate::model::layers::{EqualLinear, FourierFeatures, ModulatedLinear, fixed_
 use crate::util::tensor::{tensor_from, tensor_to_vec};
 
 use super::config::{TrainState, load_config};
-use super::run_dir::{CHECKPOINT, log_through, write_checkpoint};
+use super::run_dir::{CHECKPOINT, log_through, read_state, write_checkpoint};
 
 /// How one axis of a weight grows: consecutive segments, each `(old, new)` long, whose first
 /// `old` entries are the trained ones.
@@ -276,9 +276,7 @@ pub fn widen_run(
         .with_context(|| format!("failed to write '{}'", dst.join("config.json").display()))?;
     // The widened run's log goes on from the source's, through the checkpoint it widens.
     if let Ok(log) = std::fs::read_to_string(src.join("log.jsonl")) {
-        let state: TrainState =
-            serde_json::from_str(&std::fs::read_to_string(src_ck.join("state.json"))?)
-                .with_context(|| format!("bad '{}'", src_ck.join("state.json").display()))?;
+        let state: TrainState = read_state(&src_ck)?;
         std::fs::write(dst.join("log.jsonl"), log_through(&log, state.step))
             .with_context(|| format!("failed to write '{}'", dst.join("log.jsonl").display()))?;
     }

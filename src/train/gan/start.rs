@@ -3,7 +3,7 @@
 
 use std::path::Path;
 
-use anyhow::{Context, Result, bail};
+use anyhow::{Result, bail};
 use burn::module::Module;
 use burn::optim::{AdamConfig, ModuleOptimizer};
 use burn::tensor::Device;
@@ -19,7 +19,7 @@ use super::whole::WholePass;
 use crate::train::config::{TrainConfig, TrainOptions, TrainState, init_generator, load_config};
 use crate::train::growth::Level;
 use crate::train::reconstruct::InLoopEncoder;
-use crate::train::run_dir::CHECKPOINT;
+use crate::train::run_dir::{CHECKPOINT, read_state};
 
 impl Trainer {
     pub(super) fn new(
@@ -36,8 +36,7 @@ impl Trainer {
         let ck = opts.run_dir.join(CHECKPOINT);
         let resumed = ck.join("state.json").exists();
         let state = if resumed {
-            let text = std::fs::read_to_string(ck.join("state.json"))?;
-            serde_json::from_str(&text).context("bad checkpoint/state.json")?
+            read_state(&ck)?
         } else {
             TrainState {
                 step: 0,
