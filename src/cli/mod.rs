@@ -14,6 +14,7 @@ mod segment;
 mod simulate;
 mod train;
 mod train_encoder;
+mod train_spatial;
 
 use std::process::ExitCode;
 
@@ -65,6 +66,8 @@ pub enum Command {
     Train(train::TrainArgs),
     /// Train the amortised encoder of `convert --quality fast` against the frozen generator.
     TrainEncoder(train_encoder::TrainEncoderArgs),
+    /// Train the spatial-latent model (encoder and renderer) that decodes every sensor.
+    TrainSpatial(train_spatial::TrainSpatialArgs),
     /// Draw scans from the trained GAN: depth, drop probability, mask, range, points.
     Sample(sample::SampleArgs),
     /// Sim2Real segmentation: train a range-image segmentation network on labelled recordings, score it on real ones.
@@ -198,6 +201,7 @@ pub fn run(args: Args) -> anyhow::Result<Outcome> {
         Command::Simulate(a) => simulate::run(&args.global, a),
         Command::Train(a) => train::run_train(&args.global, a),
         Command::TrainEncoder(a) => train_encoder::run_train_encoder(&args.global, a),
+        Command::TrainSpatial(a) => train_spatial::run_train_spatial(&args.global, a),
         Command::Sample(a) => sample::run(&args.global, a),
         Command::Segment(a) => segment::run_segment(&args.global, a),
     }

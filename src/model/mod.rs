@@ -26,6 +26,7 @@ pub mod measurement;
 pub mod metrics;
 pub mod sample;
 pub mod self_decoder;
+pub mod spatial;
 pub mod two_sample;
 pub mod weights;
 

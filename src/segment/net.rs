@@ -5,17 +5,18 @@
 //! a 1x1 head gives one logit per class and pixel.
 
 use burn::config::Config;
-use burn::module::{Module, Param};
+use burn::module::Module;
 use burn::nn::conv::{Conv2d, Conv2dConfig};
 use burn::nn::pool::{MaxPool2d, MaxPool2dConfig};
-use burn::nn::{BatchNorm, BatchNormConfig, Initializer, PaddingConfig2d};
+use burn::nn::{BatchNorm, BatchNormConfig, PaddingConfig2d};
 use burn::tensor::activation::relu;
 use burn::tensor::{Device, Tensor};
 
 use super::classes::NUM_CLASSES;
 use super::data::CHANNELS;
+use crate::util::init::conv2d as seeded;
 use crate::util::rng::Rng;
-use crate::util::tensor::{tensor_from, upsample_nearest};
+use crate::util::tensor::upsample_nearest;
 
 #[derive(Config, Debug)]
 pub struct SegNetConfig {
@@ -65,29 +66,6 @@ impl SegNetConfig {
             head: seeded(Conv2dConfig::new([d_in, self.classes], [1, 1]), rng, device),
         }
     }
-}
-
-/// A convolution with burn's default initialisation (weights and bias uniform within
-/// +-1/sqrt(fan_in)), drawn from `rng` rather than the backend's unseeded generator.
-fn seeded(config: Conv2dConfig, rng: &mut Rng, device: &Device) -> Conv2d {
-    let [d_in, d_out] = config.channels;
-    let [kh, kw] = config.kernel_size;
-    let bound = 1.0 / ((d_in * kh * kw) as f32).sqrt();
-    let mut draw = |n: usize| -> Vec<f32> {
-        rng.uniform_vec(n)
-            .into_iter()
-            .map(|u| (2.0 * u - 1.0) * bound)
-            .collect()
-    };
-    let weight = tensor_from(draw(d_out * d_in * kh * kw), [d_out, d_in, kh, kw], device);
-    let bias = config
-        .bias
-        .then(|| Param::from_tensor(tensor_from(draw(d_out), [d_out], device)));
-    // Zeros: nothing is drawn from the backend's unseeded generator; both are replaced.
-    let mut conv = config.with_initializer(Initializer::Zeros).init(device);
-    conv.weight = Param::from_tensor(weight);
-    conv.bias = bias;
-    conv
 }
 
 /// 3x3 convolution, batch norm, ReLU.

@@ -31,6 +31,7 @@ pub mod regularise;
 pub mod row_fill;
 pub mod run_dir;
 pub mod scans;
+pub mod spatial;
 pub mod update;
 pub mod widen;
 

@@ -15,6 +15,7 @@
 pub mod adam;
 pub mod bounds;
 pub mod fs;
+pub mod init;
 pub mod json;
 pub mod math;
 pub mod matmul;

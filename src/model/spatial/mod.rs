@@ -1,0 +1,190 @@
+//! DUSty v2 inverted into a spatial latent: one model for every sensor.
+//!
+//! The global-latent generator renders a whole scan from one vector w, so it must store every
+//! object of every scan in its weights. Here an [`encoder`] maps the observed scan, on the
+//! sensor's own grid, to a latent grid at half its resolution, which stands in for the
+//! generator's coarse features; the implicit [`render`]er (DUSty v2's finer levels: Fourier
+//! features of each query's own angles, per-query layers) turns that grid into inverse depth
+//! x_d and the ray-drop probability x_n at any (elevation, azimuth). The structure of a decoded
+//! scan thus comes from the scan, and the network only learns how LiDAR scenes look locally.
+//!
+//! Observations distinguish three states per ray: a return (its range), a known drop (the
+//! sensor fired and nothing came back) and unknown (held back, or a beam the sensor lacks). The
+//! drop probability of a ray is rendered from an observation in which that ray is unknown
+//! ([`decode`]), so x_n predicts whether the ray returns instead of copying whether it did.
+
+pub mod decode;
+pub mod encoder;
+pub mod render;
+
+use std::path::Path;
+
+use anyhow::{Context, Result};
+use burn::config::Config;
+use burn::module::Module;
+use burn::tensor::{Device, Tensor};
+
+pub use encoder::{EncoderConfig, INPUT_CHANNELS, MULTIPLE};
+pub use render::{Queries, Query, Rendered, RendererConfig};
+
+use crate::lidar::AngleGrid;
+use crate::util::rng::Rng;
+use crate::util::tensor::tensor_from;
+
+/// The file name of a spatial model's weights in its folder (beside `config.json`).
+pub const WEIGHTS: &str = "spatial.bpk";
+
+#[derive(Config, Debug, PartialEq)]
+pub struct SpatialConfig {
+    /// Always "spatial": tells this model's `config.json` from a generator's.
+    #[config(default = "String::from(\"spatial\")")]
+    pub family: String,
+    #[config(default = "EncoderConfig::new()")]
+    pub encoder: EncoderConfig,
+    #[config(default = "RendererConfig::new()")]
+    pub renderer: RendererConfig,
+    /// Returns nearer than this or farther than `max_range_m` are treated as no return.
+    #[config(default = 0.3)]
+    pub min_range_m: f32,
+    #[config(default = 250.0)]
+    pub max_range_m: f32,
+}
+
+#[derive(Module, Debug)]
+pub struct SpatialNet {
+    pub encoder: encoder::Encoder,
+    pub renderer: render::Renderer,
+}
+
+impl SpatialConfig {
+    pub fn init(&self, rng: &mut Rng, device: &Device) -> SpatialNet {
+        SpatialNet {
+            encoder: self.encoder.init(rng, device),
+            renderer: self.renderer.init(self.encoder.latent, rng, device),
+        }
+    }
+
+    /// Reads a model folder's `config.json`.
+    pub fn load(path: &Path) -> Result<Self> {
+        let text = std::fs::read_to_string(path)
+            .with_context(|| format!("failed to read '{}'", path.display()))?;
+        let config: SpatialConfig = serde_json::from_str(&text)
+            .with_context(|| format!("'{}' is not a spatial model config", path.display()))?;
+        anyhow::ensure!(
+            config.family == "spatial",
+            "'{}' is a '{}' model, not a spatial one",
+            path.display(),
+            config.family
+        );
+        Ok(config)
+    }
+}
+
+/// What is known of each ray of a scan on its grid.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum Ray {
+    Return(f32),
+    Dropped,
+    Unknown,
+}
+
+/// An observed scan on its sensor's grid: one [`Ray`] per pixel, row-major, and the grid.
+#[derive(Debug, Clone)]
+pub struct Observation<'a> {
+    pub rays: &'a [Ray],
+    pub angles: &'a AngleGrid,
+}
+
+/// The encoder input of one observation, `[INPUT_CHANNELS, H', W']` with H' and W' rounded up
+/// to [`MULTIPLE`]; padding is unknown. Channels: normalised log range of a return, "returned",
+/// "known", elevation, sin and cos of azimuth.
+pub fn encoder_input(obs: &Observation, config: &SpatialConfig) -> (Vec<f32>, [usize; 2]) {
+    let (h, w) = (obs.angles.height, obs.angles.width);
+    let (hp, wp) = (h.next_multiple_of(MULTIPLE), w.next_multiple_of(MULTIPLE));
+    let plane = hp * wp;
+    let mut x = vec![0.0f32; INPUT_CHANNELS * plane];
+    for i in 0..h {
+        for j in 0..w {
+            let k = i * w + j;
+            let p = i * wp + j;
+            match obs.rays[k] {
+                Ray::Return(r) if r >= config.min_range_m && r <= config.max_range_m => {
+                    x[p] = (r.ln() - render::LN_MID_DEPTH) / render::LOG_DEPTH_SPAN;
+                    x[plane + p] = 1.0;
+                    x[2 * plane + p] = 1.0;
+                }
+                Ray::Return(_) | Ray::Dropped => x[2 * plane + p] = 1.0,
+                Ray::Unknown => {}
+            }
+            let (s, c) = obs.angles.azimuth_rad[k].sin_cos();
+            x[3 * plane + p] = 2.0 * obs.angles.elevation_rad[k];
+            x[4 * plane + p] = s;
+            x[5 * plane + p] = c;
+        }
+    }
+    (x, [hp, wp])
+}
+
+/// The queries of every pixel of `angles` (the grid the encoder saw), in row-major order.
+pub fn grid_queries(angles: &AngleGrid) -> Vec<Query> {
+    let mut q = Vec::with_capacity(angles.len());
+    for i in 0..angles.height {
+        for j in 0..angles.width {
+            let k = i * angles.width + j;
+            q.push(Query {
+                row: pixel_to_cell(i as f32),
+                col: pixel_to_cell(j as f32),
+                elevation: angles.elevation_rad[k],
+                azimuth: angles.azimuth_rad[k],
+            });
+        }
+    }
+    q
+}
+
+/// A pixel coordinate of the input grid as a latent-cell coordinate (cells are 2x2 pixels;
+/// both count from the centre of the first).
+pub fn pixel_to_cell(p: f32) -> f32 {
+    (p + 0.5) / 2.0 - 0.5
+}
+
+impl SpatialNet {
+    /// Latent grids of a batch of encoder inputs, `[batch, INPUT_CHANNELS, H', W']` (host,
+    /// row-major) -> `[batch, latent, H'/2, W'/2]`.
+    pub fn encode(
+        &self,
+        inputs: Vec<f32>,
+        batch: usize,
+        [hp, wp]: [usize; 2],
+        circular: bool,
+        device: &Device,
+    ) -> Tensor<4> {
+        let x = tensor_from(inputs, [batch, INPUT_CHANNELS, hp, wp], device);
+        self.encoder.forward(x, circular)
+    }
+
+    pub fn render(&self, latent: Tensor<4>, queries: &Queries) -> Rendered {
+        self.renderer.forward(latent, queries)
+    }
+}
+
+/// A trained spatial model: its config and network.
+#[derive(Debug, Clone)]
+pub struct SpatialModel {
+    pub config: SpatialConfig,
+    pub net: SpatialNet,
+}
+
+impl SpatialModel {
+    /// Loads `DIR/config.json` and `DIR/spatial.bpk`.
+    pub fn load(dir: &Path, device: &Device) -> Result<Self> {
+        let config = SpatialConfig::load(&dir.join("config.json"))?;
+        let net = config
+            .init(&mut Rng::new(0), device)
+            .try_load_file(dir.join(WEIGHTS))
+            .map_err(|e| {
+                anyhow::anyhow!("failed to load '{}': {e}", dir.join(WEIGHTS).display())
+            })?;
+        Ok(SpatialModel { config, net })
+    }
+}
