@@ -11,17 +11,15 @@ use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use anyhow::{Context, bail};
 use clap::ValueEnum;
 
+use super::decoding::{self, DecoderArg, Decoding};
 use super::{GlobalArgs, Outcome};
 use crate::dataset::manifest::{self, Counts};
-use crate::decode::amortised::TrainedEncoder;
-use crate::decode::{DecodeOptions, Decoder, Fill, Quality, Sparsify};
+use crate::decode::Fill;
 use crate::io::{McapOutput, OnError, WriterSettings};
-use crate::lidar::drop_census::X_N_WEIGHT;
 use crate::lidar::{SensorProfile, Strategy};
-use crate::model::weights::Model;
 use crate::pipeline::{
-    self, ConvertOptions, ConvertReport, DecodeOutputs, DecodeStage, PriorUse, SensorChoice,
-    StageOutput, Staged,
+    self, ConvertOptions, ConvertReport, DecodeStage, SensorChoice, SpatialStage, StageOutput,
+    Staged,
 };
 
 #[derive(Debug, clap::Args)]
@@ -68,15 +66,20 @@ pub struct ConvertArgs {
     pub compression: CompressionArg,
     #[command(flatten)]
     pub dataset: DatasetArgs,
-    /// Auto-decoding with the range-image GAN: `fast` (amortised encoder + 33 pivotal-tuning
-    /// steps), `paper` (encoder + 500 pivotal-tuning steps, seconds per scan) or `off` (range
-    /// images only).
+    /// Which model decodes: `spatial` (the default: the spatial-latent model, one forward
+    /// pass per scan, every sensor on its own grid) or `gan` (the paper's global-latent
+    /// generator, auto-decoded per scan by an encoder and pivotal tuning; `--quality`).
+    #[arg(long, value_enum, default_value = "spatial")]
+    pub decoder: DecoderArg,
+    /// Auto-decoding: `fast`, `off` (range images only), or with `--decoder gan` also `paper`
+    /// (`fast`: amortised encoder + 33 pivotal-tuning steps; `paper`: encoder + 500 steps,
+    /// seconds per scan).
     #[arg(long, value_enum, default_value = "fast")]
     pub quality: QualityArg,
-    /// Generator: a model directory (config.json + g_ema.bpk) or a training run directory.
-    /// Default: the shipped weights, used only on topics whose sensor they cover (their
-    /// training beams and ranges span it); other topics get prior-free channels. A model
-    /// named here decodes every topic.
+    /// The model: a spatial model directory (config.json + spatial.bpk, or a `train-spatial`
+    /// run's `export/` or `best/`), or with `--decoder gan` a generator directory (config.json
+    /// + g_ema.bpk) or a GAN training run. Default: the shipped weights. The shipped GAN is
+    /// used only on topics whose sensor it covers; other topics get prior-free channels.
     #[arg(long)]
     pub model: Option<PathBuf>,
     /// Encoder that starts each decode: a `train-encoder` run or model directory (default: the
@@ -194,115 +197,6 @@ pub enum QualityArg {
     Off,
 }
 
-/// The decoder and its extra outputs, from the decoding flags (`None` for `--quality off`).
-pub(crate) fn resolve_decoding(
-    args: &ConvertArgs,
-) -> anyhow::Result<Option<(Decoder, DecodeOutputs)>> {
-    let quality = match args.quality {
-        QualityArg::Off => {
-            let used = args.mask_samples != 1
-                || args.raw_raydrop
-                || !args.upsample.is_empty()
-                || !args.target_sensor.is_empty()
-                || args.restore_lines.is_some()
-                || args.restore_fraction.is_some();
-            if used {
-                bail!(
-                    "--upsample, --target-sensor, --restore-*, --mask-samples and --raw-raydrop need decoding; drop --quality off"
-                );
-            }
-            return Ok(None);
-        }
-        QualityArg::Fast => Quality::Fast,
-        QualityArg::Paper => Quality::Paper,
-    };
-    if !args.channels.is_empty() && args.channels.iter().all(|c| c == "range") {
-        return Ok(None); // no decoded channel chosen: nothing to decode
-    }
-    let mut opts = DecodeOptions::new(quality);
-    opts.calibrate_raydrop = !args.raw_raydrop;
-    if let Some(n) = args.w_steps {
-        opts.schedule.w_steps = n;
-    }
-    if let Some(n) = args.tune_steps {
-        opts.schedule.set_tune_steps(n);
-    }
-    if !args.coarse_steps.is_empty() {
-        let fine = args.tune_steps.unwrap_or(5);
-        opts.schedule = opts.schedule.with_coarse_steps(&args.coarse_steps, fine);
-    }
-    opts.restore = match (args.restore_lines, args.restore_fraction) {
-        (Some(n), _) if n == 0 || n > 64 => bail!("--restore-lines {n}: give 1 to 64 rows"),
-        (Some(n), _) => Some(Sparsify::Lines(n)),
-        (_, Some(f)) if !(f > 0.0 && f <= 1.0) => {
-            bail!("--restore-fraction {f}: give a fraction in (0, 1]")
-        }
-        (_, Some(f)) => Some(Sparsify::Fraction(f)),
-        _ => None,
-    };
-    let device = burn::tensor::Device::flex();
-    let model = Model::load(args.model.as_deref(), &device)?;
-    let mut decoder = Decoder::new(model, opts)?;
-    if let Some(dir) = &args.encoder {
-        decoder = decoder.with_encoder(TrainedEncoder::from_dir(dir, &device)?)?;
-    }
-    let x_n_weight = x_n_weight(args, &decoder);
-    let target_sensors = args
-        .target_sensor
-        .iter()
-        .map(|s| SensorProfile::resolve(s).map_err(anyhow::Error::from))
-        .collect::<anyhow::Result<Vec<_>>>()?;
-    Ok(Some((
-        decoder,
-        DecodeOutputs {
-            mask_samples: args.mask_samples,
-            upsample: args.upsample.clone(),
-            target_sensors,
-            fill: args.upsample_method,
-            hand_off: args.hand_off,
-            x_n_weight,
-        },
-    )))
-}
-
-/// Where the decoder's model is used: nowhere with `--prior-free`; on every topic when a
-/// model is named (`--model`) or the decode restores a sparse model grid, else where it
-/// covers the sensor.
-fn prior_use(args: &ConvertArgs, decoder: &Decoder) -> PriorUse {
-    if args.prior_free {
-        return PriorUse::Never;
-    }
-    if args.model.is_some() || decoder.options().restore.is_some() {
-        return PriorUse::Always;
-    }
-    PriorUse::WhereCovered
-}
-
-/// Says, once per run, that a model without a ray-drop calibration gives `raydrop_prob` no
-/// x_n: each recording's own drop rates stand in for it.
-pub(crate) fn warn_uncalibrated(global: &GlobalArgs, decoding: Option<&(Decoder, DecodeOutputs)>) {
-    if let Some((decoder, outputs)) = decoding
-        && outputs.x_n_weight == Some(0.0)
-        && !global.quiet
-    {
-        eprintln!(
-            "warning: model {} has no ray-drop calibration (calibration.json beside its weights), so `raydrop_prob` and the masks are each recording's own drop rates, without x_n; fit one with `rangegan-mcap calibrate-raydrop --data RECORDINGS --model DIR --out DIR/calibration.json`, or take the raw x_n with --raw-raydrop",
-            decoder.source()
-        );
-    }
-}
-
-/// The weight of the generator's x_n against each recording's own drop rates in
-/// `raydrop_prob` ([`X_N_WEIGHT`]): 0 (the rates alone) for a model without a ray-drop
-/// calibration, and `None` (x_n alone) for `--raw-raydrop`.
-fn x_n_weight(args: &ConvertArgs, decoder: &Decoder) -> Option<f32> {
-    match (args.raw_raydrop, decoder.calibration_source()) {
-        (true, _) => None,
-        (false, Some(_)) => Some(X_N_WEIGHT),
-        (false, None) => Some(0.0),
-    }
-}
-
 /// The help of the `--sensor` flag of the commands that project recordings.
 pub(crate) const SENSOR_HELP: &str = "Sensor profile: `auto` (estimated from the first scan), a built-in name (hdl64e, hdl32e, vlp16, vlp32c, vls128, pandar64, pandarxt32; Ouster os0-N, os1-N (gen 2), os1-N-gen1, os2-N with N beams), or a profile / Ouster metadata JSON file (a unit's own beam angles)";
 
@@ -327,6 +221,7 @@ fn flag_value(v: &impl ValueEnum) -> String {
 /// threads, jobs and shards are left out: they do not change any output.
 pub(crate) fn output_settings(args: &ConvertArgs) -> String {
     let mut parts = vec![
+        format!("--decoder {}", flag_value(&args.decoder)),
         format!("--quality {}", flag_value(&args.quality)),
         format!("--sensor {}", args.sensor),
         format!("--projection {}", flag_value(&args.projection)),
@@ -465,6 +360,7 @@ pub(crate) fn with_progress<R>(
 /// every file (and every thread).
 pub(crate) struct FileConverter<'d> {
     decode_stage: Option<DecodeStage<'d>>,
+    spatial_stage: Option<SpatialStage>,
     write_range: bool,
     channels: Vec<String>,
     opts: ConvertOptions,
@@ -482,7 +378,7 @@ pub(crate) struct Converted {
 impl<'d> FileConverter<'d> {
     pub fn new(
         args: &ConvertArgs,
-        decoding: Option<&'d (Decoder, DecodeOutputs)>,
+        decoding: Option<&'d Decoding>,
         counters: &Counters,
     ) -> anyhow::Result<Self> {
         let settings = output_settings(args);
@@ -491,12 +387,18 @@ impl<'d> FileConverter<'d> {
             ("version".to_string(), env!("CARGO_PKG_VERSION").to_string()),
             ("args".to_string(), settings.clone()),
         ]);
-        let decode_stage = match decoding {
-            Some((decoder, outputs)) => Some(DecodeStage::new(decoder, outputs)?),
-            None => None,
+        let (decode_stage, spatial_stage) = match decoding {
+            Some(Decoding::Gan(decoder, outputs)) => {
+                (Some(DecodeStage::new(decoder, outputs)?), None)
+            }
+            Some(Decoding::Spatial(model, outputs)) => {
+                (None, Some(SpatialStage::new(model.clone(), outputs)?))
+            }
+            None => (None, None),
         };
         let known: Vec<String> = std::iter::once("range".to_string())
             .chain(decode_stage.iter().flat_map(|s| s.channel_names()))
+            .chain(spatial_stage.iter().flat_map(|s| s.channel_names()))
             .collect();
         // Upsampled grids are named by their size, which follows each sensor's grid.
         let upsampled = |c: &str| {
@@ -513,14 +415,20 @@ impl<'d> FileConverter<'d> {
             bail!(
                 "--channels {unknown}: this conversion writes {}{}",
                 known.join(", "),
-                if decode_stage.is_none() {
+                if decoding.is_none() {
                     " (decoded channels need --quality fast or paper)"
                 } else {
                     ""
                 }
             );
         }
-        if let (Some((decoder, _)), Some(_)) = (decoding, &decode_stage) {
+        if let Some(Decoding::Spatial(..)) = decoding {
+            metadata.insert(
+                "decode_model".to_string(),
+                decoding.map(Decoding::source).unwrap_or_default(),
+            );
+        }
+        if let (Some(Decoding::Gan(decoder, _)), Some(_)) = (decoding, &decode_stage) {
             // What made the decoded channels, so a regenerated dataset says which weights it used.
             let schedule = &decoder.options().schedule;
             metadata.extend([
@@ -540,6 +448,7 @@ impl<'d> FileConverter<'d> {
         }
         Ok(FileConverter {
             decode_stage,
+            spatial_stage,
             write_range: channel_selected(&args.channels, "range"),
             channels: args.channels.clone(),
             opts: ConvertOptions {
@@ -550,10 +459,11 @@ impl<'d> FileConverter<'d> {
                 on_error: args.on_error,
                 metadata,
                 scans_processed: Some(counters.scans.clone()),
-                prior: decoding.map(|(decoder, _)| prior_use(args, decoder)),
-                model_sensor: decoding
-                    .map(|(decoder, _)| decoder.model_sensor().clone())
-                    .unwrap_or_else(crate::model::config::default_sensor),
+                prior: decoding.and_then(|d| decoding::prior_use(args, d)),
+                model_sensor: match decoding {
+                    Some(Decoding::Gan(decoder, _)) => decoder.model_sensor().clone(),
+                    _ => crate::model::config::default_sensor(),
+                },
                 chain_stride: args.chain_stride,
                 ..ConvertOptions::default()
             },
@@ -591,12 +501,16 @@ impl<'d> FileConverter<'d> {
             outputs.retain(|o| channel_selected(&self.channels, &o.suffix));
             outputs
         };
-        let decode = |i: &pipeline::ScanInput<'_>| match &self.decode_stage {
-            Some(s) => Ok(match s.run(i)? {
+        let decode = |i: &pipeline::ScanInput<'_>| {
+            let staged = match (&self.decode_stage, &self.spatial_stage) {
+                (Some(s), _) => s.run(i)?,
+                (None, Some(s)) => s.run(i)?,
+                (None, None) => return Ok(Staged::Done(Vec::new())),
+            };
+            Ok(match staged {
                 Staged::Done(outputs) => Staged::Done(selected(outputs)),
                 Staged::Later(later) => Staged::Later(Box::new(move || later().map(selected))),
-            }),
-            None => Ok(Staged::Done(Vec::new())),
+            })
         };
         let stages: [&pipeline::Stage<'_>; 2] = [&range, &decode];
         let reader = std::io::BufReader::with_capacity(1 << 20, file);
@@ -726,8 +640,8 @@ pub fn run(global: &GlobalArgs, args: ConvertArgs) -> anyhow::Result<Outcome> {
         crate::lidar::profile::check_columns(c).map_err(anyhow::Error::msg)?;
     }
     std::fs::File::open(input).with_context(|| format!("cannot open {}", input.display()))?;
-    let decoding = resolve_decoding(&args)?;
-    warn_uncalibrated(global, decoding.as_ref());
+    let decoding = decoding::resolve(&args)?;
+    decoding::warn_uncalibrated(global, decoding.as_ref());
     let counters = Counters::default();
     let mut converter = FileConverter::new(&args, decoding.as_ref(), &counters)?;
     // One file: a --strict run that exits non-zero keeps no output.

@@ -177,8 +177,8 @@ pub fn run(global: &GlobalArgs, args: &ConvertArgs) -> anyhow::Result<Outcome> {
     if !todo.is_empty() {
         let manifest_path = out.join(manifest::manifest_name(shard));
         let writer = Mutex::new(ManifestWriter::open(&manifest_path)?);
-        let decoding = super::convert::resolve_decoding(args)?;
-        super::convert::warn_uncalibrated(global, decoding.as_ref());
+        let decoding = super::decoding::resolve(args)?;
+        super::decoding::warn_uncalibrated(global, decoding.as_ref());
         let counters = Counters::default();
         let converter = FileConverter::new(args, decoding.as_ref(), &counters)?;
         let bytes = todo.iter().map(|p| p.file.size).sum();

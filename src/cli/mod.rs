@@ -5,6 +5,7 @@
 mod calibrate;
 mod convert;
 mod convert_dataset;
+mod decoding;
 mod diagnose;
 mod import;
 mod info;

@@ -32,7 +32,7 @@ pub mod prior_free;
 pub mod row_fill;
 pub mod sharpen;
 
-use std::sync::{Arc, Condvar, Mutex};
+use std::sync::Arc;
 
 use anyhow::{Result, bail};
 use burn::module::Module;
@@ -45,6 +45,7 @@ use crate::model::calibration::RaydropCalibration;
 use crate::model::data::DepthRange;
 use crate::model::generator::{Generator, GridCache};
 use crate::model::weights::Model;
+use crate::util::pools::Pools;
 use crate::util::rng::Rng;
 use crate::util::tensor::{tensor_from, tensor_to_vec};
 use amortised::TrainedEncoder;
@@ -174,60 +175,6 @@ impl Rendered {
                 [d * x, d * y, d * z]
             })
             .collect()
-    }
-}
-
-/// One-thread rayon pools, one per worker of the caller's pool. A decode borrows one, so its
-/// tensor work runs on a single thread (bit-identical results whatever the thread count) and
-/// at most as many scans are decoded at once as there are pools. (Installing a fresh pool per
-/// scan would let the waiting worker pick up further scans, starting all of a batch at once.)
-///
-/// A pool is handed back by its own thread when the decode ends, never by the waiting caller:
-/// a caller that waits for a pool may itself be blocked inside work it picked up meanwhile.
-struct Pools {
-    pools: Vec<rayon::ThreadPool>,
-    free: Mutex<Vec<usize>>,
-    returned: Condvar,
-}
-
-impl Pools {
-    fn new(n: usize) -> Result<Self> {
-        let pools = (0..n.max(1))
-            .map(|_| rayon::ThreadPoolBuilder::new().num_threads(1).build())
-            .collect::<Result<Vec<_>, _>>()?;
-        Ok(Pools {
-            free: Mutex::new((0..pools.len()).collect()),
-            pools,
-            returned: Condvar::new(),
-        })
-    }
-
-    fn run<R: Send>(&self, op: impl FnOnce() -> R + Send) -> R {
-        let index = {
-            let mut free = self.free.lock().unwrap_or_else(|e| e.into_inner());
-            loop {
-                if let Some(i) = free.pop() {
-                    break i;
-                }
-                free = self.returned.wait(free).unwrap_or_else(|e| e.into_inner());
-            }
-        };
-        // Runs on the pool's thread when `op` ends (also on a panic).
-        struct Release<'a>(&'a Pools, usize);
-        impl Drop for Release<'_> {
-            fn drop(&mut self) {
-                self.0
-                    .free
-                    .lock()
-                    .unwrap_or_else(|e| e.into_inner())
-                    .push(self.1);
-                self.0.returned.notify_one();
-            }
-        }
-        self.pools[index].install(|| {
-            let _release = Release(self, index);
-            op()
-        })
     }
 }
 

@@ -31,9 +31,11 @@ use crate::lidar::drop_census::DropCensus;
 use crate::lidar::{RangeImage, SensorProfile, Strategy, estimate_profile, project};
 use crate::model::generator::Generator;
 
+mod spatial;
 mod stages;
 mod survey;
 
+pub use spatial::{SpatialOutputs, SpatialStage};
 pub use stages::{DecodeOutputs, DecodeStage, range_stage};
 
 /// Which sensor grid a topic's scans are projected onto.

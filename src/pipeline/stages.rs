@@ -88,7 +88,7 @@ pub struct DecodeOutputs {
 }
 
 /// A channel-safe name for a sensor (`Ouster OS1-64` -> `ouster_os1_64`).
-fn suffix_of(name: &str) -> String {
+pub(super) fn suffix_of(name: &str) -> String {
     name.chars()
         .map(|c| {
             if c.is_ascii_alphanumeric() {
@@ -101,7 +101,7 @@ fn suffix_of(name: &str) -> String {
 }
 
 /// The extra grids of a sensor grid: `(suffix, grid)`.
-fn extra_grids(
+pub(super) fn extra_grids(
     own: &AngleGrid,
     upsample: &[usize],
     targets: &[(String, AngleGrid)],
@@ -379,14 +379,14 @@ fn nearest_on(r: &Rendered, grid: &AngleGrid) -> Vec<f32> {
 }
 
 /// Encodes one scan's channels with its family, stamp and frame.
-struct Encoder {
-    family: Family,
-    stamp: u64,
-    frame: String,
+pub(super) struct Encoder {
+    pub family: Family,
+    pub stamp: u64,
+    pub frame: String,
 }
 
 impl Encoder {
-    fn image(&self, suffix: &str, grid: &AngleGrid, values: &[f32]) -> StageOutput {
+    pub fn image(&self, suffix: &str, grid: &AngleGrid, values: &[f32]) -> StageOutput {
         StageOutput {
             suffix: suffix.to_string(),
             kind: Kind::Image,
@@ -400,7 +400,7 @@ impl Encoder {
         }
     }
 
-    fn mask(&self, suffix: &str, grid: &AngleGrid, mask: &[bool]) -> StageOutput {
+    pub fn mask(&self, suffix: &str, grid: &AngleGrid, mask: &[bool]) -> StageOutput {
         StageOutput {
             suffix: suffix.to_string(),
             kind: Kind::Image,
@@ -415,7 +415,7 @@ impl Encoder {
     }
 
     /// The completed cloud: a point wherever `r` has a depth, with its range and x_n.
-    fn points(&self, suffix: &str, r: &Rendered) -> StageOutput {
+    pub fn points(&self, suffix: &str, r: &Rendered) -> StageOutput {
         let keep: Vec<usize> = (0..r.grid.len()).filter(|&k| r.depth_m[k] > 0.0).collect();
         let all = r.points();
         let xyz = keep.iter().map(|&k| all[k]).collect();

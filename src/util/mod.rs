@@ -21,5 +21,6 @@ pub mod math;
 pub mod matmul;
 pub mod mlp;
 pub mod png;
+pub mod pools;
 pub mod rng;
 pub mod tensor;

@@ -5,11 +5,14 @@
 //! drop probability x_n from the pass that did not, so x_n is what the model predicts from the
 //! ray's surroundings, never a copy of whether the ray itself returned.
 
-use burn::tensor::Device;
 use burn::tensor::activation::sigmoid;
+use burn::tensor::{Device, Tensor};
 
-use super::{Observation, Queries, Ray, SpatialConfig, SpatialNet, encoder_input, grid_queries};
+use super::{
+    Observation, Queries, Query, Ray, SpatialConfig, SpatialNet, encoder_input, grid_queries,
+};
 use crate::lidar::AngleGrid;
+use crate::lidar::range_image::azimuth_column;
 use crate::util::tensor::tensor_to_vec;
 
 /// Columns per hidden stripe of the two passes.
@@ -35,15 +38,25 @@ pub fn wraps(angles: &AngleGrid) -> bool {
     angles.width.is_multiple_of(super::MULTIPLE)
 }
 
-/// Decodes one scan: `rays` on `angles` (row-major).
-pub fn decode(
+/// A scan encoded by both passes: the latent grids `[2, latent, H'/2, W'/2]`.
+pub struct Encoded {
+    latent: Tensor<4>,
+    /// Latent cells (rows, columns).
+    cells: (usize, usize),
+    circular: bool,
+    /// The grid the scan was observed on.
+    grid: AngleGrid,
+}
+
+/// Encodes one scan: `rays` on `angles` (row-major), each pass hiding its stripes.
+pub fn encode(
     net: &SpatialNet,
     config: &SpatialConfig,
     rays: &[Ray],
     angles: &AngleGrid,
     device: &Device,
-) -> Decoded {
-    let (h, w) = (angles.height, angles.width);
+) -> Encoded {
+    let w = angles.width;
     let mut inputs = Vec::new();
     let mut shape = [0, 0];
     for pass in 0..2 {
@@ -69,22 +82,135 @@ pub fn decode(
         shape = s;
     }
     let circular = wraps(angles);
-    let latent = net.encode(inputs, 2, shape, circular, device);
-    let queries = Queries::new(
-        &grid_queries(angles),
-        (shape[0] / 2, shape[1] / 2),
+    Encoded {
+        latent: net.encode(inputs, 2, shape, circular, device),
+        cells: (shape[0] / 2, shape[1] / 2),
         circular,
+        grid: angles.clone(),
+    }
+}
+
+/// Decodes one scan on its own grid.
+pub fn decode(
+    net: &SpatialNet,
+    config: &SpatialConfig,
+    rays: &[Ray],
+    angles: &AngleGrid,
+    device: &Device,
+) -> Decoded {
+    render_own(
+        net,
+        config,
+        &encode(net, config, rays, angles, device),
+        device,
+    )
+}
+
+/// Renders an encoded scan on the grid it was observed on, pixel for pixel.
+pub fn render_own(
+    net: &SpatialNet,
+    config: &SpatialConfig,
+    encoded: &Encoded,
+    device: &Device,
+) -> Decoded {
+    let grid = &encoded.grid;
+    let columns: Vec<usize> = (0..grid.len()).map(|k| k % grid.width).collect();
+    render_queries(net, config, encoded, &grid_queries(grid), &columns, device)
+}
+
+/// Renders an encoded scan on another grid (denser, or another sensor's). Pixels more than
+/// [`OUTSIDE_RAD`] above or below the scan's beams get depth 0 and drop probability 1: the
+/// scan says nothing of them.
+pub fn render_onto(
+    net: &SpatialNet,
+    config: &SpatialConfig,
+    encoded: &Encoded,
+    target: &AngleGrid,
+    device: &Device,
+) -> Decoded {
+    let source = &encoded.grid;
+    let rows = row_elevations(source);
+    let mut queries = Vec::with_capacity(target.len());
+    let mut columns = Vec::with_capacity(target.len());
+    let mut inside = Vec::with_capacity(target.len());
+    for k in 0..target.len() {
+        let (phi, theta) = (target.elevation_rad[k], target.azimuth_rad[k]);
+        let (row, within) = row_of(&rows, phi);
+        let col = azimuth_column(theta, source.width);
+        queries.push(Query {
+            row: super::pixel_to_cell(row),
+            col: super::pixel_to_cell(col),
+            elevation: phi,
+            azimuth: theta,
+        });
+        columns.push((col.round() as usize) % source.width.max(1));
+        inside.push(within);
+    }
+    let mut out = render_queries(net, config, encoded, &queries, &columns, device);
+    for (k, _) in inside.iter().enumerate().filter(|(_, i)| !**i) {
+        out.depth_m[k] = 0.0;
+        out.drop_prob[k] = 1.0;
+    }
+    out
+}
+
+/// How far outside its beams (radians) a scan is still rendered: 1 degree.
+pub const OUTSIDE_RAD: f32 = std::f32::consts::PI / 180.0;
+
+/// The mean elevation of each row of a grid, top first.
+fn row_elevations(grid: &AngleGrid) -> Vec<f32> {
+    (0..grid.height)
+        .map(|i| {
+            let row = &grid.elevation_rad[i * grid.width..(i + 1) * grid.width];
+            row.iter().sum::<f32>() / row.len().max(1) as f32
+        })
+        .collect()
+}
+
+/// The fractional row at elevation `phi` on rows whose elevations fall from the top, and
+/// whether it lies within [`OUTSIDE_RAD`] of them.
+fn row_of(rows: &[f32], phi: f32) -> (f32, bool) {
+    let n = rows.len();
+    if n < 2 {
+        return (0.0, n == 1 && (rows[0] - phi).abs() <= OUTSIDE_RAD);
+    }
+    let within = phi <= rows[0] + OUTSIDE_RAD && phi >= rows[n - 1] - OUTSIDE_RAD;
+    // The segment [i, i + 1] that holds phi (the end segments extend outwards).
+    let i = rows.windows(2).position(|p| phi >= p[1]).unwrap_or(n - 2);
+    let (a, b) = (rows[i], rows[i + 1]);
+    let t = if (a - b).abs() > 1e-9 {
+        (a - phi) / (a - b)
+    } else {
+        0.0
+    };
+    (i as f32 + t, within)
+}
+
+/// Renders `queries` from both passes; each query takes x_d from the pass that saw its
+/// nearest column (`columns`) and x_n from the pass that hid it.
+fn render_queries(
+    net: &SpatialNet,
+    config: &SpatialConfig,
+    encoded: &Encoded,
+    queries: &[Query],
+    columns: &[usize],
+    device: &Device,
+) -> Decoded {
+    let placed = Queries::new(
+        queries,
+        encoded.cells,
+        encoded.circular,
         &config.renderer,
         device,
     );
-    let out = net.render(latent, &queries);
+    let out = net.render(encoded.latent.clone(), &placed);
     let log_depth = tensor_to_vec(out.log_depth);
     let keep = tensor_to_vec(sigmoid(out.keep_logit));
-    let n = h * w;
+    let n = queries.len();
     let mut depth_m = Vec::with_capacity(n);
     let mut drop_prob = Vec::with_capacity(n);
-    for k in 0..n {
-        let hidden_in = hiding_pass(k % w);
+    for (k, &c) in columns.iter().enumerate() {
+        let hidden_in = hiding_pass(c);
         let seen_in = 1 - hidden_in;
         depth_m.push(log_depth[seen_in * n + k].exp());
         drop_prob.push(1.0 - keep[hidden_in * n + k]);
@@ -142,5 +268,34 @@ mod tests {
         let b = decode(&net, &config, &rays_of(&flipped), &angles, &device);
         assert_eq!(a.drop_prob[k], b.drop_prob[k]);
         assert_ne!(a.depth_m[k], b.depth_m[k]);
+    }
+
+    #[test]
+    fn rendering_onto_the_own_grid_is_the_decode_and_other_beams_are_left_out() {
+        let device = Device::flex();
+        let config = SpatialConfig::new();
+        let net = config.init(&mut Rng::new(4), &device);
+        let angles = SensorProfile::builtin("vlp16")
+            .expect("vlp16")
+            .with_columns(64)
+            .angle_grid();
+        let range = vec![10.0; angles.len()];
+        let rays = rays_of(&range);
+        let own = decode(&net, &config, &rays, &angles, &device);
+        let encoded = encode(&net, &config, &rays, &angles, &device);
+        let again = render_onto(&net, &config, &encoded, &angles, &device);
+        for k in 0..angles.len() {
+            assert!((own.depth_m[k] - again.depth_m[k]).abs() < 1e-3 * own.depth_m[k]);
+        }
+        // An OS0's +-45 deg: beams beyond the VLP-16's +-15 deg are not rendered.
+        let wide = SensorProfile::builtin("os0-32")
+            .expect("os0")
+            .with_columns(64)
+            .angle_grid();
+        let out = render_onto(&net, &config, &encoded, &wide, &device);
+        assert_eq!(out.depth_m[0], 0.0);
+        assert_eq!(out.drop_prob[0], 1.0);
+        let middle = (wide.height / 2) * wide.width;
+        assert!(out.depth_m[middle] > 0.0);
     }
 }

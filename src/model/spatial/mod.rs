@@ -22,7 +22,8 @@ use std::path::Path;
 use anyhow::{Context, Result};
 use burn::config::Config;
 use burn::module::Module;
-use burn::tensor::{Device, Tensor};
+use burn::store::ModuleRecord;
+use burn::tensor::{Bytes, Device, Tensor};
 
 pub use encoder::{EncoderConfig, INPUT_CHANNELS, MULTIPLE};
 pub use render::{Queries, Query, Rendered, RendererConfig};
@@ -168,23 +169,51 @@ impl SpatialNet {
     }
 }
 
+/// The shipped model's config and weights, compiled into the binary.
+const SHIPPED_CONFIG: &str = include_str!("../../../models/spatial/config.json");
+const SHIPPED_WEIGHTS: &[u8] = include_bytes!("../../../models/spatial/spatial.bpk");
+
 /// A trained spatial model: its config and network.
 #[derive(Debug, Clone)]
 pub struct SpatialModel {
     pub config: SpatialConfig,
     pub net: SpatialNet,
+    /// Where it came from, for reports ("shipped" or a path).
+    pub source: String,
 }
 
 impl SpatialModel {
     /// Loads `DIR/config.json` and `DIR/spatial.bpk`.
     pub fn load(dir: &Path, device: &Device) -> Result<Self> {
         let config = SpatialConfig::load(&dir.join("config.json"))?;
+        let path = dir.join(WEIGHTS);
         let net = config
             .init(&mut Rng::new(0), device)
-            .try_load_file(dir.join(WEIGHTS))
+            .try_load_file(&path)
+            .map_err(|e| anyhow::anyhow!("failed to load '{}': {e}", path.display()))?;
+        Ok(SpatialModel {
+            config,
+            net,
+            source: dir.display().to_string(),
+        })
+    }
+
+    /// The weights shipped in `models/spatial`.
+    pub fn shipped(device: &Device) -> Result<Self> {
+        let config: SpatialConfig = serde_json::from_str(SHIPPED_CONFIG)
+            .context("the shipped spatial model's config.json")?;
+        let record = ModuleRecord::from_bytes(Bytes::from_bytes_vec(SHIPPED_WEIGHTS.to_vec()))
+            .map_err(|e| anyhow::anyhow!("the shipped spatial weights are unreadable: {e}"))?;
+        let net = config
+            .init(&mut Rng::new(0), device)
+            .try_load_record(record)
             .map_err(|e| {
-                anyhow::anyhow!("failed to load '{}': {e}", dir.join(WEIGHTS).display())
+                anyhow::anyhow!("the shipped spatial weights do not fit their config: {e}")
             })?;
-        Ok(SpatialModel { config, net })
+        Ok(SpatialModel {
+            config,
+            net,
+            source: "shipped".into(),
+        })
     }
 }

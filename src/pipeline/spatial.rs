@@ -1,0 +1,158 @@
+//! The decoding stage through the spatial-latent model ([`crate::model::spatial`]): every
+//! scan, of any sensor, decoded on its own grid in one forward pass.
+//!
+//! Channels: `x_d` the model's depth at every ray, `depth` the measured returns with x_d where
+//! no return came back, `raydrop_prob` x_n (rendered for each ray from an encoding that did
+//! not see it), masks drawn from x_n, the completed cloud, and `depth_*`/`points_*` on the
+//! extra grids (the sensor's grid upsampled, other sensors'), rendered from the same latent.
+//! A restoration (`--restore-lines`, `--restore-fraction`) marks the rays it leaves out as
+//! unknown and writes the scan's own grid.
+
+use burn::tensor::Device;
+
+use super::stages::{Encoder, extra_grids, suffix_of};
+use super::{ScanInput, Staged};
+use crate::decode::{Rendered, Sparsify, sample_masks, scan_seed};
+use crate::lidar::{AngleGrid, SensorProfile};
+use crate::model::spatial::decode::{Decoded, encode, render_onto, render_own};
+use crate::model::spatial::{Ray, SpatialModel};
+use crate::util::pools::Pools;
+use crate::util::rng::Rng;
+
+pub struct SpatialStage {
+    model: SpatialModel,
+    device: Device,
+    pools: Pools,
+    mask_samples: usize,
+    upsample: Vec<usize>,
+    /// `(suffix, grid)` of each target sensor.
+    targets: Vec<(String, AngleGrid)>,
+    restore: Option<Sparsify>,
+}
+
+/// What the stage writes besides the sensor-grid channels.
+#[derive(Debug, Clone, Default)]
+pub struct SpatialOutputs {
+    pub mask_samples: usize,
+    pub upsample: Vec<usize>,
+    pub target_sensors: Vec<SensorProfile>,
+    pub restore: Option<Sparsify>,
+}
+
+impl SpatialStage {
+    pub fn new(model: SpatialModel, outputs: &SpatialOutputs) -> anyhow::Result<Self> {
+        if let Some(f) = outputs.upsample.iter().find(|f| !(1..=8).contains(*f)) {
+            anyhow::bail!("--upsample {f}: factors from 1 to 8 are supported");
+        }
+        Ok(SpatialStage {
+            model,
+            device: Device::flex(),
+            pools: Pools::new(rayon::current_num_threads())?,
+            mask_samples: outputs.mask_samples,
+            upsample: outputs.upsample.clone(),
+            targets: (outputs.target_sensors.iter())
+                .map(|p| (suffix_of(&p.name), p.angle_grid()))
+                .collect(),
+            restore: outputs.restore,
+        })
+    }
+
+    /// The channels [`run`](Self::run) writes (`raydrop_mask` stands for every mask; the
+    /// upsampled grids, named by their size, follow each sensor's grid).
+    pub fn channel_names(&self) -> Vec<String> {
+        let mut names: Vec<String> = ["depth", "x_d", "raydrop_prob", "raydrop_mask", "points"]
+            .map(String::from)
+            .into();
+        for (suffix, _) in &self.targets {
+            names.extend([format!("depth_{suffix}"), format!("points_{suffix}")]);
+        }
+        names
+    }
+
+    pub fn run(&self, input: &ScanInput<'_>) -> anyhow::Result<Staged<'static>> {
+        let seed = scan_seed(input.topic, input.log_time);
+        let image = input.image;
+        let grid = &image.angles;
+        let rays = self.observed_rays(&image.range_m, grid, seed);
+        let extra = extra_grids(grid, &self.upsample, &self.targets);
+        let (own, rendered) = self.pools.run(|| {
+            let (net, config) = (&self.model.net, &self.model.config);
+            let encoded = encode(net, config, &rays, grid, &self.device);
+            let own = render_own(net, config, &encoded, &self.device);
+            let extra: Vec<Decoded> = (extra.iter())
+                .map(|(_, g)| render_onto(net, config, &encoded, g, &self.device))
+                .collect();
+            (own, extra)
+        });
+        let out = Encoder {
+            family: input.family,
+            stamp: input.cloud.stamp_nanos,
+            frame: input.cloud.frame_id.clone(),
+        };
+        let depth: Vec<f32> = rays
+            .iter()
+            .zip(&own.depth_m)
+            .map(|(r, &x_d)| match r {
+                Ray::Return(m) => *m,
+                _ => x_d,
+            })
+            .collect();
+        let main = Rendered {
+            grid: grid.clone(),
+            depth_m: depth,
+            drop_prob: own.drop_prob,
+        };
+        let mut channels = vec![
+            out.image("depth", grid, &main.depth_m),
+            out.image("x_d", grid, &own.depth_m),
+            out.image("raydrop_prob", grid, &main.drop_prob),
+        ];
+        for (i, mask) in sample_masks(&main.drop_prob, self.mask_samples, seed)
+            .iter()
+            .enumerate()
+        {
+            let suffix = match i {
+                0 => "raydrop_mask".to_string(),
+                i => format!("raydrop_mask_{i}"),
+            };
+            channels.push(out.mask(&suffix, grid, mask));
+        }
+        channels.push(out.points("points", &main));
+        for ((suffix, g), d) in extra.into_iter().zip(rendered) {
+            let r = Rendered {
+                grid: g,
+                depth_m: d.depth_m,
+                drop_prob: d.drop_prob,
+            };
+            channels.push(out.image(&format!("depth_{suffix}"), &r.grid, &r.depth_m));
+            channels.push(out.points(&format!("points_{suffix}"), &r));
+        }
+        Ok(Staged::Done(channels))
+    }
+
+    /// The scan's rays as the model sees them: returns and drops, with the rays a
+    /// restoration leaves out unknown (seeded by the scan, so reruns agree).
+    fn observed_rays(&self, range_m: &[f32], grid: &AngleGrid, seed: u64) -> Vec<Ray> {
+        let mut rays = crate::model::spatial::decode::rays_of(range_m);
+        match self.restore {
+            Some(Sparsify::Lines(n)) => {
+                let kept = Sparsify::kept_rows(n, grid.height);
+                for (k, r) in rays.iter_mut().enumerate() {
+                    if !kept.contains(&(k / grid.width.max(1))) {
+                        *r = Ray::Unknown;
+                    }
+                }
+            }
+            Some(Sparsify::Fraction(f)) => {
+                let mut rng = Rng::new(seed ^ 0x7265_7374); // "rest"
+                for r in rays.iter_mut() {
+                    if rng.uniform() >= f {
+                        *r = Ray::Unknown;
+                    }
+                }
+            }
+            None => {}
+        }
+        rays
+    }
+}
