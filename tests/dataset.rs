@@ -277,7 +277,7 @@ fn chosen_channels_and_writer_settings() {
     let dir = tempfile::tempdir().unwrap();
     let input = dir.path().join("in");
     write_dataset(&input, &["x.mcap"]);
-    let quick = ["--w-steps", "2", "--tune-steps", "2"];
+    let quick = ["--decoder", "gan", "--w-steps", "2", "--tune-steps", "2"];
     // Decoded channels chosen; the same bytes with 1 and 2 files at once.
     let mut outs = Vec::new();
     for (name, jobs) in [("j1", "1"), ("j2", "2")] {

@@ -19,7 +19,7 @@ use rangegan_mcap::model::weights::Model;
 const FAMILIES: [Family; 3] = [Family::Ros2, Family::Ros1, Family::Foxglove];
 
 /// Quick decoding flags: 2 + 2 optimisation steps.
-const QUICK: [&str; 4] = ["--w-steps", "2", "--tune-steps", "2"];
+const QUICK: [&str; 6] = ["--decoder", "gan", "--w-steps", "2", "--tune-steps", "2"];
 
 /// The shipped model's directory: naming it decodes every topic through it.
 const MODEL: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/models/dusty2");
@@ -195,6 +195,8 @@ fn chained_scans_continue_their_chain_whatever_the_threads() {
                 input.to_str().unwrap(),
                 output.to_str().unwrap(),
                 "--quiet",
+                "--decoder",
+                "gan",
                 "--model",
                 MODEL,
                 "--tune-steps",
@@ -264,7 +266,15 @@ fn the_chains_of_two_topics_run_side_by_side_and_apart() {
         let output = dir.path().join(name);
         let o = bin()
             .args(["convert", input.to_str().unwrap(), output.to_str().unwrap()])
-            .args(["--quiet", "--tune-steps", "4", "--channels", "depth"])
+            .args([
+                "--quiet",
+                "--decoder",
+                "gan",
+                "--tune-steps",
+                "4",
+                "--channels",
+                "depth",
+            ])
             .env("RAYON_NUM_THREADS", threads)
             .output()
             .expect("binary runs");
@@ -293,7 +303,8 @@ fn bad_decoding_flags_are_clear_errors() {
     let (i, o) = (input.to_str().unwrap(), output.to_str().unwrap());
     for (args, expected) in [
         (vec!["--quality", "off", "--upsample", "2"], "need decoding"),
-        (vec!["--restore-lines", "0"], "1 to 64 rows"),
+        (vec!["--restore-lines", "0"], "--restore-lines 0"),
+        (vec!["--tune-steps", "4"], "--decoder gan"),
         (vec!["--restore-fraction", "1.5"], "fraction in (0, 1]"),
         (vec!["--model", "/nonexistent/model"], "/nonexistent/model"),
         (vec!["--target-sensor", "nosuchlidar"], "nosuchlidar"),

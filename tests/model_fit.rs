@@ -40,6 +40,8 @@ fn convert(input: &Path, dir: &Path, flags: &[&str]) -> (String, PathBuf) {
         input.to_str().unwrap(),
         output.to_str().unwrap(),
         "--force",
+        "--decoder",
+        "gan",
         "--w-steps",
         "1",
         "--tune-steps",

@@ -31,6 +31,8 @@ fn convert_with(model: &str, input: &Path, output: &Path) -> std::process::Outpu
         input.to_str().unwrap(),
         output.to_str().unwrap(),
         "--force",
+        "--decoder",
+        "gan",
         "--model",
         model,
         "--w-steps",

@@ -315,7 +315,30 @@ pub fn run(global: &GlobalArgs, args: ImportArgs) -> anyhow::Result<Outcome> {
         labelled: label.is_some(),
         warning: None,
     });
-    write(global, &args, files.len(), items, warnings)
+    let own = files
+        .first()
+        .and_then(|(first, _)| own_start_secs(&args.dir, first));
+    write(global, &args, files.len(), items, warnings, own)
+}
+
+/// The first scan's own time, where the files carry one: the first line of a KITTI drive's
+/// `timestamps.txt` (in the folder, or in the `velodyne_points` folder above `data/`), or the
+/// microseconds that end a nuScenes file name (`..._1532402927647951.pcd.bin`).
+fn own_start_secs(dir: &Path, first: &Path) -> Option<f64> {
+    let candidates = [dir.join("timestamps.txt"), dir.join("../timestamps.txt")];
+    if let Some(text) = candidates
+        .iter()
+        .find_map(|p| std::fs::read_to_string(p).ok())
+    {
+        return text.lines().next().and_then(crate::util::time::parse_utc);
+    }
+    let name = first.file_name()?.to_str()?;
+    let stem = name.strip_suffix(".pcd.bin")?;
+    let micros = stem.rsplit('_').next()?;
+    (micros.len() == 16 && micros.bytes().all(|b| b.is_ascii_digit()))
+        .then(|| micros.parse::<u64>().ok())
+        .flatten()
+        .map(|us| us as f64 / 1e6)
 }
 
 /// The metadata JSON of an Ouster capture: `--metadata`, else the `.json` beside it whose
@@ -421,7 +444,7 @@ fn run_pcap(global: &GlobalArgs, args: &ImportArgs) -> anyhow::Result<Outcome> {
                 warning,
             }
         });
-    write(global, args, total, items, warnings)
+    write(global, args, total, items, warnings, None)
 }
 
 /// The largest Ouster capture `import` reads (it is read whole).
@@ -435,8 +458,9 @@ fn write(
     total: usize,
     items: impl Iterator<Item = Item>,
     mut warnings: Vec<String>,
+    own_start_secs: Option<f64>,
 ) -> anyhow::Result<Outcome> {
-    let start_nanos = args.out.start_nanos(total as u64)?;
+    let start_nanos = args.out.start_nanos(total as u64, own_start_secs)?;
     let mut out = args.out.create()?;
     out.write_metadata(
         "rangegan",

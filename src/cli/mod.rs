@@ -87,13 +87,19 @@ pub struct CloudOutputArgs {
     #[arg(long, default_value = "velodyne")]
     pub frame_id: String,
     /// Log time of the first scan, seconds since 1970-01-01 UTC; scans follow at 10 Hz.
-    /// 0 shows as 1970 in Foxglove: give a real date, e.g. `--start-secs $(date +%s)`.
-    #[arg(long, default_value_t = 0.0)]
-    pub start_secs: f64,
+    /// Default: the scans' own time where the files carry one (a KITTI drive's
+    /// `timestamps.txt`, nuScenes file names), else 2020-01-01 00:00:00 UTC; never the
+    /// clock, so the same input gives the same bytes.
+    #[arg(long)]
+    pub start_secs: Option<f64>,
     /// Overwrite an existing OUT.
     #[arg(long)]
     pub force: bool,
 }
+
+/// Where `import` and `simulate` start when neither `--start-secs` nor the files give a time:
+/// 2020-01-01 00:00:00 UTC (fixed, so outputs are the same bytes on every run).
+pub const DEFAULT_START_SECS: f64 = 1_577_836_800.0;
 
 impl CloudOutputArgs {
     /// The output file, created atomically (refused if it exists, unless `--force`).
@@ -101,19 +107,21 @@ impl CloudOutputArgs {
         crate::io::McapOutput::create(&self.output, self.force)
     }
 
-    /// `--start-secs` in nanoseconds, for `scans` scans at 10 Hz: refused unless every
+    /// The first scan's log time in nanoseconds, for `scans` scans at 10 Hz: `--start-secs`,
+    /// else `own` (the scans' own time), else [`DEFAULT_START_SECS`]. Refused unless every
     /// scan's header stamp fits ROS 2's `int32` seconds (and so the log times their u64
     /// nanoseconds), rather than wrapping.
-    pub fn start_nanos(&self, scans: u64) -> anyhow::Result<u64> {
-        let last = self.start_secs + scans.saturating_sub(1) as f64 * 0.1;
+    pub fn start_nanos(&self, scans: u64, own: Option<f64>) -> anyhow::Result<u64> {
+        let start = self.start_secs.or(own).unwrap_or(DEFAULT_START_SECS);
+        let last = start + scans.saturating_sub(1) as f64 * 0.1;
         anyhow::ensure!(
-            self.start_secs.is_finite() && self.start_secs >= 0.0 && last <= i32::MAX as f64,
+            start.is_finite() && start >= 0.0 && last <= i32::MAX as f64,
             "--start-secs must be between 0 and {} so that the last of {scans} scans at 10 Hz \
              has a header stamp ROS 2 can hold (int32 seconds, until 2038-01-19); got {}",
             (i32::MAX as f64 - scans.saturating_sub(1) as f64 * 0.1).floor(),
-            self.start_secs
+            start
         );
-        Ok((self.start_secs * 1e9).round() as u64)
+        Ok((start * 1e9).round() as u64)
     }
 }
 

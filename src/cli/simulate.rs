@@ -93,7 +93,7 @@ pub fn run(global: &GlobalArgs, args: SimulateArgs) -> anyhow::Result<Outcome> {
     if physics_file.is_file() {
         crate::io::writer::refuse_overwriting_inputs(&args.out.output, &[physics_file])?;
     }
-    let start_nanos = args.out.start_nanos(args.scans as u64)?;
+    let start_nanos = args.out.start_nanos(args.scans as u64, None)?;
     let mut out = args.out.create()?;
     out.write_metadata(
         "rangegan.simulate",
@@ -244,7 +244,7 @@ mod tests {
                 out: crate::cli::CloudOutputArgs {
                     topic: "/points".into(),
                     frame_id: "velodyne".into(),
-                    start_secs: 0.0,
+                    start_secs: None,
                     force: true,
                     output: path.clone(),
                 },

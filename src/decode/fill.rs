@@ -4,7 +4,7 @@
 //! observed return reaches. Chosen by measurement on held-out KITTI (BENCHMARKS.md,
 //! "Guided upsampling and restoration", "A learned correction of restored rows").
 
-use super::hole_fill::HoleFill;
+use super::hole_fill::{COMPLETION_REACH, HoleFill};
 use super::row_fill::{RowFill, rows_image};
 use super::{Decoded, PreparedGrid, Rendered, Sparsify};
 use crate::lidar::holes;
@@ -63,11 +63,6 @@ impl Default for Fill {
         Fill::DEFAULT
     }
 }
-
-/// Steps from the nearest return within which a dropped ray of the model grid is filled
-/// from the returns around it; farther in, the rendering x_d is the better guess (on the
-/// validation drive: 3 beats 2, 4, 6 and 8 on large holes, within 1 % elsewhere).
-pub const COMPLETION_REACH: u32 = 3;
 
 /// `source` resampled onto `target.grid` by `fill`, guided by `guide_source` (on the source
 /// grid) and `target.depth_m`; 0 where no observed return reaches.

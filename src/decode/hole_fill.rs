@@ -24,6 +24,11 @@ use serde::{Deserialize, Serialize};
 use super::row_fill::moved;
 use crate::util::mlp::Mlp;
 
+/// Steps from the nearest return within which a dropped ray of the model grid is filled
+/// from the returns around it; farther in, the rendering x_d is the better guess (on the
+/// validation drive: 3 beats 2, 4, 6 and 8 on large holes, within 1 % elsewhere).
+pub const COMPLETION_REACH: u32 = 3;
+
 /// What the network reads around a dropped pixel.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 pub struct Window {
@@ -285,9 +290,7 @@ fn push_features(
         here.ln() / 4.0,
         r as f32 / images.h as f32,
         (1.0 + images.distance[k].min(1000) as f32).ln() / 3.0,
-        f32::from(u8::from(
-            images.distance[k] <= super::fill::COMPLETION_REACH,
-        )),
+        f32::from(u8::from(images.distance[k] <= COMPLETION_REACH)),
     ]);
 }
 

@@ -252,7 +252,7 @@ fn depth_keeps_every_return_and_fills_dropped_rays_by_reach() {
     for (k, &steps) in distance.iter().enumerate() {
         if r.observed_m[k] > 0.0 {
             assert_eq!(out.depth_m[k].to_bits(), r.observed_m[k].to_bits(), "{k}");
-        } else if steps > super::fill::COMPLETION_REACH {
+        } else if steps > super::hole_fill::COMPLETION_REACH {
             assert_eq!(out.depth_m[k], r.model.depth_m[k], "{k}: x_d beyond reach");
             rendered += 1;
         } else if out.depth_m[k] != r.model.depth_m[k] {

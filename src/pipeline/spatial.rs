@@ -8,16 +8,32 @@
 //! A restoration (`--restore-lines`, `--restore-fraction`) marks the rays it leaves out as
 //! unknown and writes the scan's own grid.
 
+use std::sync::{Arc, Mutex};
+
 use burn::tensor::Device;
 
 use super::stages::{Encoder, extra_grids, suffix_of};
 use super::{ScanInput, Staged};
 use crate::decode::{Rendered, Sparsify, sample_masks, scan_seed};
 use crate::lidar::{AngleGrid, SensorProfile};
-use crate::model::spatial::decode::{Decoded, encode, render_onto, render_own};
+use crate::model::spatial::decode::{
+    Decoded, GridQueries, encode, onto_queries, own_queries, render,
+};
 use crate::model::spatial::{Ray, SpatialModel};
 use crate::util::pools::Pools;
 use crate::util::rng::Rng;
+
+/// A sensor grid's queries and those of its extra grids, prepared once.
+struct SensorGrids {
+    grid: AngleGrid,
+    own: GridQueries,
+    /// `(suffix, grid, queries)` per upsampling factor, then per target sensor.
+    extra: Vec<(String, AngleGrid, GridQueries)>,
+}
+
+/// At most this many sensor grids are kept prepared (a topic whose angles change from scan
+/// to scan prepares each scan's afresh).
+const PREPARED_GRIDS: usize = 16;
 
 pub struct SpatialStage {
     model: SpatialModel,
@@ -28,6 +44,7 @@ pub struct SpatialStage {
     /// `(suffix, grid)` of each target sensor.
     targets: Vec<(String, AngleGrid)>,
     restore: Option<Sparsify>,
+    prepared: Mutex<Vec<Arc<SensorGrids>>>,
 }
 
 /// What the stage writes besides the sensor-grid channels.
@@ -54,6 +71,7 @@ impl SpatialStage {
                 .map(|p| (suffix_of(&p.name), p.angle_grid()))
                 .collect(),
             restore: outputs.restore,
+            prepared: Mutex::new(Vec::new()),
         })
     }
 
@@ -74,13 +92,13 @@ impl SpatialStage {
         let image = input.image;
         let grid = &image.angles;
         let rays = self.observed_rays(&image.range_m, grid, seed);
-        let extra = extra_grids(grid, &self.upsample, &self.targets);
+        let grids = self.grids(grid);
         let (own, rendered) = self.pools.run(|| {
             let (net, config) = (&self.model.net, &self.model.config);
             let encoded = encode(net, config, &rays, grid, &self.device);
-            let own = render_own(net, config, &encoded, &self.device);
-            let extra: Vec<Decoded> = (extra.iter())
-                .map(|(_, g)| render_onto(net, config, &encoded, g, &self.device))
+            let own = render(net, &encoded, &grids.own);
+            let extra: Vec<Decoded> = (grids.extra.iter())
+                .map(|(_, _, q)| render(net, &encoded, q))
                 .collect();
             (own, extra)
         });
@@ -118,9 +136,9 @@ impl SpatialStage {
             channels.push(out.mask(&suffix, grid, mask));
         }
         channels.push(out.points("points", &main));
-        for ((suffix, g), d) in extra.into_iter().zip(rendered) {
+        for ((suffix, g, _), d) in grids.extra.iter().zip(rendered) {
             let r = Rendered {
-                grid: g,
+                grid: g.clone(),
                 depth_m: d.depth_m,
                 drop_prob: d.drop_prob,
             };
@@ -128,6 +146,29 @@ impl SpatialStage {
             channels.push(out.points(&format!("points_{suffix}"), &r));
         }
         Ok(Staged::Done(channels))
+    }
+
+    /// The prepared queries of the sensor grid `own` and its extra grids.
+    fn grids(&self, own: &AngleGrid) -> Arc<SensorGrids> {
+        let mut prepared = self.prepared.lock().unwrap_or_else(|e| e.into_inner());
+        if let Some(found) = prepared.iter().find(|g| g.grid == *own) {
+            return found.clone();
+        }
+        let config = &self.model.config;
+        let grids = Arc::new(SensorGrids {
+            grid: own.clone(),
+            own: own_queries(config, own, &self.device),
+            extra: (extra_grids(own, &self.upsample, &self.targets).into_iter())
+                .map(|(suffix, g)| {
+                    let q = onto_queries(config, own, &g, &self.device);
+                    (suffix, g, q)
+                })
+                .collect(),
+        });
+        if prepared.len() < PREPARED_GRIDS {
+            prepared.push(grids.clone());
+        }
+        grids
     }
 
     /// The scan's rays as the model sees them: returns and drops, with the rays a

@@ -24,3 +24,4 @@ pub mod png;
 pub mod pools;
 pub mod rng;
 pub mod tensor;
+pub mod time;

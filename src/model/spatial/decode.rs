@@ -41,11 +41,6 @@ pub fn wraps(angles: &AngleGrid) -> bool {
 /// A scan encoded by both passes: the latent grids `[2, latent, H'/2, W'/2]`.
 pub struct Encoded {
     latent: Tensor<4>,
-    /// Latent cells (rows, columns).
-    cells: (usize, usize),
-    circular: bool,
-    /// The grid the scan was observed on.
-    grid: AngleGrid,
 }
 
 /// Encodes one scan: `rays` on `angles` (row-major), each pass hiding its stripes.
@@ -81,12 +76,8 @@ pub fn encode(
         inputs.extend(x);
         shape = s;
     }
-    let circular = wraps(angles);
     Encoded {
-        latent: net.encode(inputs, 2, shape, circular, device),
-        cells: (shape[0] / 2, shape[1] / 2),
-        circular,
-        grid: angles.clone(),
+        latent: net.encode(inputs, 2, shape, wraps(angles), device),
     }
 }
 
@@ -98,41 +89,59 @@ pub fn decode(
     angles: &AngleGrid,
     device: &Device,
 ) -> Decoded {
-    render_own(
-        net,
-        config,
-        &encode(net, config, rays, angles, device),
-        device,
-    )
+    let encoded = encode(net, config, rays, angles, device);
+    render(net, &encoded, &own_queries(config, angles, device))
 }
 
-/// Renders an encoded scan on the grid it was observed on, pixel for pixel.
-pub fn render_own(
-    net: &SpatialNet,
-    config: &SpatialConfig,
-    encoded: &Encoded,
-    device: &Device,
-) -> Decoded {
-    let grid = &encoded.grid;
-    let columns: Vec<usize> = (0..grid.len()).map(|k| k % grid.width).collect();
-    render_queries(net, config, encoded, &grid_queries(grid), &columns, device)
+/// Where a grid's pixels are read from an encoding, prepared once per grid: the placed
+/// queries (their Fourier features are the costly part), the nearest source column of each
+/// (which pass saw it) and which pixels lie within the source's beams.
+pub struct GridQueries {
+    queries: Queries,
+    columns: Vec<usize>,
+    outside: Vec<usize>,
 }
 
-/// Renders an encoded scan on another grid (denser, or another sensor's). Pixels more than
-/// [`OUTSIDE_RAD`] above or below the scan's beams get depth 0 and drop probability 1: the
-/// scan says nothing of them.
-pub fn render_onto(
-    net: &SpatialNet,
+/// The latent grid an observation on `grid` is encoded to: (rows, columns) of cells, and
+/// whether it wraps around.
+fn cells_of(grid: &AngleGrid) -> ((usize, usize), bool) {
+    let (h, w) = (grid.height, grid.width);
+    let cells = (
+        h.next_multiple_of(super::MULTIPLE) / 2,
+        w.next_multiple_of(super::MULTIPLE) / 2,
+    );
+    (cells, wraps(grid))
+}
+
+/// The queries of a scan's own grid, pixel for pixel.
+pub fn own_queries(config: &SpatialConfig, grid: &AngleGrid, device: &Device) -> GridQueries {
+    let (cells, circular) = cells_of(grid);
+    GridQueries {
+        queries: Queries::new(
+            &grid_queries(grid),
+            cells,
+            circular,
+            &config.renderer,
+            device,
+        ),
+        columns: (0..grid.len()).map(|k| k % grid.width).collect(),
+        outside: Vec::new(),
+    }
+}
+
+/// The queries of another grid (denser, or another sensor's) read from scans on `source`.
+/// Pixels more than [`OUTSIDE_RAD`] above or below the source's beams get depth 0 and drop
+/// probability 1: the scan says nothing of them.
+pub fn onto_queries(
     config: &SpatialConfig,
-    encoded: &Encoded,
+    source: &AngleGrid,
     target: &AngleGrid,
     device: &Device,
-) -> Decoded {
-    let source = &encoded.grid;
+) -> GridQueries {
     let rows = row_elevations(source);
     let mut queries = Vec::with_capacity(target.len());
     let mut columns = Vec::with_capacity(target.len());
-    let mut inside = Vec::with_capacity(target.len());
+    let mut outside = Vec::new();
     for k in 0..target.len() {
         let (phi, theta) = (target.elevation_rad[k], target.azimuth_rad[k]);
         let (row, within) = row_of(&rows, phi);
@@ -144,10 +153,22 @@ pub fn render_onto(
             azimuth: theta,
         });
         columns.push((col.round() as usize) % source.width.max(1));
-        inside.push(within);
+        if !within {
+            outside.push(k);
+        }
     }
-    let mut out = render_queries(net, config, encoded, &queries, &columns, device);
-    for (k, _) in inside.iter().enumerate().filter(|(_, i)| !**i) {
+    let (cells, circular) = cells_of(source);
+    GridQueries {
+        queries: Queries::new(&queries, cells, circular, &config.renderer, device),
+        columns,
+        outside,
+    }
+}
+
+/// Renders an encoded scan at prepared queries.
+pub fn render(net: &SpatialNet, encoded: &Encoded, at: &GridQueries) -> Decoded {
+    let mut out = render_queries(net, encoded, &at.queries, &at.columns);
+    for &k in &at.outside {
         out.depth_m[k] = 0.0;
         out.drop_prob[k] = 1.0;
     }
@@ -186,27 +207,18 @@ fn row_of(rows: &[f32], phi: f32) -> (f32, bool) {
     (i as f32 + t, within)
 }
 
-/// Renders `queries` from both passes; each query takes x_d from the pass that saw its
-/// nearest column (`columns`) and x_n from the pass that hid it.
+/// Renders placed `queries` from both passes; each query takes x_d from the pass that saw
+/// its nearest column (`columns`) and x_n from the pass that hid it.
 fn render_queries(
     net: &SpatialNet,
-    config: &SpatialConfig,
     encoded: &Encoded,
-    queries: &[Query],
+    queries: &Queries,
     columns: &[usize],
-    device: &Device,
 ) -> Decoded {
-    let placed = Queries::new(
-        queries,
-        encoded.cells,
-        encoded.circular,
-        &config.renderer,
-        device,
-    );
-    let out = net.render(encoded.latent.clone(), &placed);
+    let out = net.render(encoded.latent.clone(), queries);
     let log_depth = tensor_to_vec(out.log_depth);
     let keep = tensor_to_vec(sigmoid(out.keep_logit));
-    let n = queries.len();
+    let n = queries.len;
     let mut depth_m = Vec::with_capacity(n);
     let mut drop_prob = Vec::with_capacity(n);
     for (k, &c) in columns.iter().enumerate() {
@@ -283,7 +295,14 @@ mod tests {
         let rays = rays_of(&range);
         let own = decode(&net, &config, &rays, &angles, &device);
         let encoded = encode(&net, &config, &rays, &angles, &device);
-        let again = render_onto(&net, &config, &encoded, &angles, &device);
+        let onto = |target: &AngleGrid| {
+            render(
+                &net,
+                &encoded,
+                &onto_queries(&config, &angles, target, &device),
+            )
+        };
+        let again = onto(&angles);
         for k in 0..angles.len() {
             assert!((own.depth_m[k] - again.depth_m[k]).abs() < 1e-3 * own.depth_m[k]);
         }
@@ -292,7 +311,7 @@ mod tests {
             .expect("os0")
             .with_columns(64)
             .angle_grid();
-        let out = render_onto(&net, &config, &encoded, &wide, &device);
+        let out = onto(&wide);
         assert_eq!(out.depth_m[0], 0.0);
         assert_eq!(out.drop_prob[0], 1.0);
         let middle = (wide.height / 2) * wide.width;

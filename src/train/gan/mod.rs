@@ -16,7 +16,7 @@ use std::time::{Duration, Instant};
 
 use anyhow::{Context, Result, bail, ensure};
 use burn::config::Config;
-use burn::optim::ModuleOptimizer;
+use burn::optim::{AdamConfig, ModuleOptimizer};
 use burn::tensor::{Device, Tensor};
 use indicatif::{ProgressBar, ProgressStyle};
 
@@ -38,7 +38,7 @@ mod whole;
 
 pub use checkpoint::write_png;
 
-use start::{SelfSupervision, adam, in_loop_encoder, stage_discriminator, stage_self_decoder};
+use start::{SelfSupervision, in_loop_encoder, stage_self_decoder};
 use whole::WholePass;
 
 /// Train (or resume) in `opts.run_dir`.
@@ -374,3 +374,28 @@ impl Trainer {
 
 #[cfg(test)]
 mod tests;
+
+/// A fresh discriminator for `level`'s resolution.
+pub(super) fn stage_discriminator(
+    config: &TrainConfig,
+    stage: usize,
+    level: &Level,
+    device: &Device,
+) -> Discriminator {
+    config
+        .discriminator_of(stage)
+        .clone()
+        .with_height(level.height)
+        .with_width(level.trained_width())
+        .with_azimuth_input(level.window.is_some())
+        .init(device)
+}
+
+/// The Adam optimiser of the run's networks.
+pub(super) fn adam(config: &TrainConfig) -> ModuleOptimizer {
+    AdamConfig::new()
+        .with_beta_1(config.beta1)
+        .with_beta_2(config.beta2)
+        .with_epsilon(1e-8)
+        .init()
+}

@@ -14,8 +14,8 @@ use crate::model::self_decoder::{SelfDecoder, SelfDecoderConfig};
 use crate::model::{AnyGenerator, Arch};
 use crate::util::rng::Rng;
 
-use super::Trainer;
 use super::whole::WholePass;
+use super::{Trainer, adam, stage_discriminator};
 use crate::train::config::{TrainConfig, TrainOptions, TrainState, init_generator, load_config};
 use crate::train::growth::Level;
 use crate::train::reconstruct::InLoopEncoder;
@@ -192,22 +192,6 @@ impl Trainer {
     }
 }
 
-/// A fresh discriminator for `level`'s resolution.
-pub(super) fn stage_discriminator(
-    config: &TrainConfig,
-    stage: usize,
-    level: &Level,
-    device: &Device,
-) -> Discriminator {
-    config
-        .discriminator_of(stage)
-        .clone()
-        .with_height(level.height)
-        .with_width(level.trained_width())
-        .with_azimuth_input(level.window.is_some())
-        .init(device)
-}
-
 /// The self-supervised decoder's weights and Adam state in a checkpoint.
 pub(super) const SELF_DECODER: &str = "d_decoder.bpk";
 pub(super) const SELF_DECODER_OPT: &str = "opt_d_decoder.bpk";
@@ -233,15 +217,6 @@ pub(super) fn stage_self_decoder(
             opt: adam(config),
         }
     })
-}
-
-/// The Adam optimiser of the run's networks.
-pub(super) fn adam(config: &TrainConfig) -> ModuleOptimizer {
-    AdamConfig::new()
-        .with_beta_1(config.beta1)
-        .with_beta_2(config.beta2)
-        .with_epsilon(1e-8)
-        .init()
 }
 
 /// The in-loop encoder for `level` where the run is reconstruction-assisted.

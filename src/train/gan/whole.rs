@@ -25,8 +25,8 @@ use crate::train::regularise::LecamAnchors;
 use crate::train::run_dir::CHECKPOINT;
 
 use super::Trainer;
-use super::start::{adam, stage_discriminator};
 use super::step::StepMetrics;
+use super::{adam, stage_discriminator};
 
 /// The whole-turn discriminator's weights, Adam state and counters in a checkpoint.
 pub(super) const WHOLE_D: &str = "d_whole.bpk";
