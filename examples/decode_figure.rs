@@ -1,18 +1,20 @@
-//! A picture of what `convert` writes for one held-out real KITTI scan: the measured range
-//! image, the completed depth x_d, the calibrated ray-drop probability x_n, a sampled ray-drop
-//! mask, and the decoded scene rendered at 4x the columns (a quarter of the azimuth, to show
-//! the pixels). `fast` decoding with the shipped weights.
+//! A picture of what `convert` writes for one held-out, full-resolution real KITTI scan
+//! (64 x 2048, never trained or tuned on), decoded by the shipped spatial-latent model: the
+//! measured range, x_d, `depth`, x_n, a sampled ray-drop mask, and x_d restored from 16 of
+//! the 64 beams. Each panel shows the front quarter of the turn (columns 768-1279), each
+//! pixel drawn 2 x 2.
 //!
 //!     cargo run --release --example decode_figure -- ../shared/real_lidar/semantickitti_ssv3/000000.bin \
-//!         docs/img/decode_example.png
+//!         docs/img/decode_example.png [MODEL_DIR]
 
 use std::path::PathBuf;
 
 use anyhow::{Context, Result};
 use plotters::prelude::*;
-use rangegan_mcap::decode::{DecodeOptions, Decoder, Quality, scan_seed};
+use rangegan_mcap::decode::{Sparsify, sample_masks, scan_seed};
 use rangegan_mcap::lidar::{self, SensorProfile, Strategy};
-use rangegan_mcap::model::weights::Model;
+use rangegan_mcap::model::spatial::decode::{decode, rays_of};
+use rangegan_mcap::model::spatial::{Ray, SpatialModel};
 use rangegan_mcap::report::plot::{register_font, viridis};
 use rangegan_mcap::util::fs::write_atomic;
 use rangegan_mcap::util::png::encode_rgb;
@@ -20,6 +22,8 @@ use rangegan_mcap::util::png::encode_rgb;
 /// Panel width in pixels; the 64-row images are drawn with 2x2 pixels per range-image pixel.
 const WIDTH: u32 = 1024;
 const TITLE: u32 = 22;
+/// Columns of the full-resolution grid.
+const COLUMNS: usize = 2048;
 
 /// One panel: a title and an `h x w` image coloured per pixel.
 struct Panel {
@@ -40,82 +44,96 @@ fn depth_colour(d: f32) -> [u8; 3] {
 
 fn main() -> Result<()> {
     let mut args = std::env::args().skip(1);
-    let scan_path = PathBuf::from(
-        args.next()
-            .context("usage: decode_figure SCAN.bin OUT.png")?,
-    );
-    let out = PathBuf::from(
-        args.next()
-            .context("usage: decode_figure SCAN.bin OUT.png")?,
-    );
-    let profile = SensorProfile::kitti_hdl64e().with_columns(512);
+    let usage = "usage: decode_figure SCAN.bin OUT.png [MODEL_DIR]";
+    let scan_path = PathBuf::from(args.next().context(usage)?);
+    let out = PathBuf::from(args.next().context(usage)?);
+    let device = burn::tensor::Device::flex();
+    let model = match args.next() {
+        Some(dir) => SpatialModel::load(std::path::Path::new(&dir), &device)?,
+        None => SpatialModel::shipped(&device)?,
+    };
+    let profile = SensorProfile::kitti_hdl64e().with_columns(COLUMNS);
     let scan = lidar::kitti::read_bin(&scan_path)?;
     let image = lidar::project(&scan, &profile, Strategy::Auto)?;
-    let device = burn::tensor::Device::flex();
-    let decoder = Decoder::new(Model::shipped(&device)?, DecodeOptions::new(Quality::Fast))?;
-    let decoded = decoder.decode(&image, scan_seed("/velodyne_points", 0))?;
-    let mask = decoded.sample_masks(1).remove(0);
-    let dense = decoded.render(&decoder, &profile.with_columns(2048).angle_grid());
-    eprintln!(
-        "{}: relative error on the measured pixels {:.3}",
-        scan_path.display(),
-        decoded.error.unwrap_or(f32::NAN)
-    );
-
-    let (range, depth) = (image.range_m.clone(), decoded.model.depth_m.clone());
-    let x_n = decoded.model.drop_prob.clone();
-    let quarter: Vec<f32> = (0..64 * 512)
-        .map(|k| dense.depth_m[(k / 512) * 2048 + 768 + k % 512])
-        .collect();
-    let measured_quarter: Vec<f32> = (0..64 * 512)
-        .map(|k| {
-            let (r, c) = (k / 512, 192 + (k % 512) / 4);
-            image.range_m[r * 512 + c]
+    let (net, config) = (&model.net, &model.config);
+    let rays = rays_of(&image.range_m);
+    let decoded = decode(net, config, &rays, &image.angles, &device);
+    let mask = sample_masks(&decoded.drop_prob, 1, scan_seed("/velodyne_points", 0)).remove(0);
+    let kept = Sparsify::kept_rows(16, 64);
+    let sparse: Vec<Ray> = (rays.iter().enumerate())
+        .map(|(k, &r)| {
+            if kept.contains(&(k / COLUMNS)) {
+                r
+            } else {
+                Ray::Unknown
+            }
         })
         .collect();
+    let restored = decode(net, config, &sparse, &image.angles, &device);
+    let returns: Vec<usize> = (0..image.len())
+        .filter(|&k| image.range_m[k] > 0.0)
+        .collect();
+    let rel = returns
+        .iter()
+        .map(|&k| ((decoded.depth_m[k] - image.range_m[k]) / image.range_m[k]).abs())
+        .sum::<f32>()
+        / returns.len().max(1) as f32;
+    eprintln!(
+        "{}: x_d relative L1 at the returns {rel:.4}",
+        scan_path.display()
+    );
+    let depth: Vec<f32> = (0..image.len())
+        .map(|k| match image.range_m[k] > 0.0 {
+            true => image.range_m[k],
+            false => decoded.depth_m[k],
+        })
+        .collect();
+    // The front quarter of the turn.
+    let front = |v: &[f32]| -> Vec<f32> {
+        (0..64 * 512)
+            .map(|k| v[(k / 512) * COLUMNS + 768 + k % 512])
+            .collect()
+    };
+    let (range, x_d, depth) = (
+        front(&image.range_m),
+        front(&decoded.depth_m),
+        front(&depth),
+    );
+    let (x_n, restored) = (front(&decoded.drop_prob), front(&restored.depth_m));
+    let mask: Vec<bool> = (0..64 * 512)
+        .map(|k| mask[(k / 512) * COLUMNS + 768 + k % 512])
+        .collect();
+    let panel = |title: String, colour: Box<dyn Fn(usize) -> [u8; 3]>| Panel {
+        title,
+        h: 64,
+        w: 512,
+        colour,
+    };
     let panels = [
-        Panel {
-            title:
-                "measured range, 64 x 512 (log scale: yellow 1.45 m, dark 80 m; black: no return)"
-                    .into(),
-            h: 64,
-            w: 512,
-            colour: Box::new(move |k| depth_colour(range[k])),
-        },
-        Panel {
-            title: format!(
-                "completed depth x_d (fast decode; {:.1} % relative error on the measured pixels)",
-                100.0 * decoded.error.unwrap_or(f32::NAN)
-            ),
-            h: 64,
-            w: 512,
-            colour: Box::new(move |k| depth_colour(depth[k])),
-        },
-        Panel {
-            title: "ray-drop probability x_n, calibrated (dark 0, yellow 1)".into(),
-            h: 64,
-            w: 512,
-            colour: Box::new(move |k| viridis(x_n[k])),
-        },
-        Panel {
-            title: "a sampled ray-drop mask (white: return kept)".into(),
-            h: 64,
-            w: 512,
-            colour: Box::new(move |k| if mask[k] { [255; 3] } else { [0; 3] }),
-        },
-        Panel {
-            title: "measured, columns 192-319 of 512 (the front quarter), each shown 4x wide"
-                .into(),
-            h: 64,
-            w: 512,
-            colour: Box::new(move |k| depth_colour(measured_quarter[k])),
-        },
-        Panel {
-            title: "x_d rendered at 2048 columns, the same quarter (columns 768-1279)".into(),
-            h: 64,
-            w: 512,
-            colour: Box::new(move |k| depth_colour(quarter[k])),
-        },
+        panel(
+            "measured range, 64 x 2048, front quarter (log scale: yellow 1.45 m, dark 80 m; black: no return)".into(),
+            Box::new(move |k| depth_colour(range[k])),
+        ),
+        panel(
+            format!("x_d, the decoded depth at every ray ({:.1} % relative error at the returns)", 100.0 * rel),
+            Box::new(move |k| depth_colour(x_d[k])),
+        ),
+        panel(
+            "depth: the measured returns, x_d where no return came back".into(),
+            Box::new(move |k| depth_colour(depth[k])),
+        ),
+        panel(
+            "ray-drop probability x_n, each ray predicted without seeing it (dark 0, yellow 1)".into(),
+            Box::new(move |k| viridis(x_n[k])),
+        ),
+        panel(
+            "a ray-drop mask drawn from x_n (white: return kept)".into(),
+            Box::new(move |k| if mask[k] { [255; 3] } else { [0; 3] }),
+        ),
+        panel(
+            "x_d restored from 16 of the 64 beams (the other 48 unknown to the model)".into(),
+            Box::new(move |k| depth_colour(restored[k])),
+        ),
     ];
 
     register_font();

@@ -99,7 +99,13 @@ fn import_writes_ros2_clouds_with_ring_and_label() {
             rangegan_mcap::io::decode_cloud(rangegan_mcap::io::CloudFormat::Ros2Cdr, &m.data)
                 .unwrap(),
         );
-        assert_eq!(m.log_time, (clouds.len() as u64 - 1) * 100_000_000, "10 Hz");
+        // A folder without times of its own starts at 2020-01-01 00:00:00 UTC, at 10 Hz.
+        let start = 1_577_836_800_000_000_000u64;
+        assert_eq!(
+            m.log_time,
+            start + (clouds.len() as u64 - 1) * 100_000_000,
+            "10 Hz"
+        );
     }
     assert_eq!(clouds.len(), 3);
     let scan = &clouds[0].scan;
@@ -137,6 +143,33 @@ fn one_scan_folder(root: &Path) {
     write_bin(
         &root.join("velodyne/000000.bin"),
         &[[5.0, 0.0, 0.0, 0.5], [0.0, 5.0, -1.0, 0.5]],
+    );
+}
+
+#[test]
+fn import_stamps_a_kitti_drive_with_its_own_time() {
+    let dir = tempfile::tempdir().unwrap();
+    let seq = dir.path().join("drive");
+    one_scan_folder(&seq);
+    std::fs::write(
+        seq.join("timestamps.txt"),
+        "2011-09-26 13:10:51.158069617\n2011-09-26 13:10:51.261567322\n",
+    )
+    .unwrap();
+    let out = dir.path().join("o.mcap");
+    let o = run(&["import", seq.to_str().unwrap(), out.to_str().unwrap()]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let bytes = std::fs::read(&out).unwrap();
+    let m = mcap::MessageStream::new(&bytes)
+        .unwrap()
+        .next()
+        .unwrap()
+        .unwrap();
+    let expected = 1_317_042_651_158_069_617i128;
+    assert!(
+        (m.log_time as i128 - expected).abs() < 1_000,
+        "{}",
+        m.log_time
     );
 }
 

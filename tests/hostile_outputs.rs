@@ -153,11 +153,12 @@ fn interrupted_conversions_leave_no_temporary_file() {
     let (dir, input, output) = in_out();
     write_recording(&input, &[Family::Ros2], 40, Some(16 * 1024));
     for (signal, code) in [("TERM", 143), ("INT", 130)] {
-        // Auto-decoding (through the model, which these 16-beam scans would otherwise skip)
-        // makes the run long enough to be interrupted.
+        // Auto-decoding by the GAN (through the model, which these 16-beam scans would
+        // otherwise skip) makes the run long enough to be interrupted.
         let model = concat!(env!("CARGO_MANIFEST_DIR"), "/models/dusty2");
         let mut child = bin()
-            .args(["convert", "--quiet", "--threads", "1", "--model", model])
+            .args(["convert", "--quiet", "--threads", "1", "--decoder", "gan"])
+            .args(["--model", model])
             .args([&input, &output])
             .spawn()
             .unwrap();

@@ -184,3 +184,67 @@ fn a_tiny_spatial_model_trains_resumes_and_decodes() {
     let x_d = images(&output, "/velodyne_points/rangegan/x_d");
     assert!(!x_d.is_empty() && x_d[0].2.iter().all(|v| v.is_finite() && *v > 0.0));
 }
+
+/// Every topic a layout panel names (image topic and 3D topics).
+fn panel_topics(layout: &serde_json::Value) -> std::collections::BTreeSet<String> {
+    let mut wanted = std::collections::BTreeSet::new();
+    for (id, panel) in layout["configById"].as_object().unwrap() {
+        let mut topics: Vec<String> = panel["imageMode"]["imageTopic"]
+            .as_str()
+            .map(String::from)
+            .into_iter()
+            .collect();
+        if let Some(t) = panel["topics"].as_object() {
+            topics.extend(t.keys().cloned());
+        }
+        assert!(!topics.is_empty(), "panel {id} names no topic");
+        wanted.extend(topics);
+    }
+    wanted
+}
+
+#[test]
+fn a_layout_for_the_recordings_own_topic_fills_every_panel_with_every_channel() {
+    let dir = tempfile::tempdir().unwrap();
+    let (input, output) = (dir.path().join("in.mcap"), dir.path().join("out.mcap"));
+    let topic = "/sensing/lidar/top/pointcloud_raw";
+    let scans: Vec<_> = (0..2).map(|i| synthetic_scan(12.0, i)).collect();
+    rangegan_mcap::io::roundtrip::write_scans(&input, topic, "lidar_top", &scans).unwrap();
+    let o = run(&[
+        "convert",
+        input.to_str().unwrap(),
+        output.to_str().unwrap(),
+        "--upsample",
+        "2",
+        "--target-sensor",
+        "vlp16",
+        "--mask-samples",
+        "2",
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let o = run(&["layout", output.to_str().unwrap()]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let path = dir.path().join("out.foxglove-layout.json");
+    let layout: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&path).unwrap()).unwrap();
+    let wanted = panel_topics(&layout);
+    let bytes = std::fs::read(&output).unwrap();
+    let written: std::collections::BTreeSet<String> = mcap::MessageStream::new(&bytes)
+        .unwrap()
+        .map(|m| m.unwrap().channel.topic.clone())
+        .collect();
+    let missing: Vec<_> = wanted.difference(&written).collect();
+    assert!(
+        missing.is_empty(),
+        "panels of topics not written: {missing:?}"
+    );
+    let converted: Vec<_> = written
+        .iter()
+        .filter(|t| t.starts_with(&format!("{topic}/rangegan/")))
+        .collect();
+    assert!(converted.len() >= 10, "{converted:?}");
+    for t in converted {
+        assert!(wanted.contains(t), "{t} has no panel");
+    }
+    assert!(wanted.contains(topic), "the input cloud has a panel");
+}

@@ -86,6 +86,7 @@ pub(crate) fn resolve(args: &ConvertArgs) -> anyhow::Result<Option<Decoding>> {
                 upsample: args.upsample.clone(),
                 target_sensors,
                 restore,
+                fill: args.upsample_method,
             },
         )));
     }

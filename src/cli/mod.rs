@@ -9,6 +9,7 @@ mod decoding;
 mod diagnose;
 mod import;
 mod info;
+mod layout;
 mod render;
 mod sample;
 mod segment;
@@ -56,6 +57,8 @@ pub enum Command {
     Diagnose(diagnose::DiagnoseArgs),
     /// Channels, schemas, message counts, point-cloud topics and their sensor layout.
     Info(info::InfoArgs),
+    /// Write a Foxglove layout for the channels `convert` wrote into a recording.
+    Layout(layout::LayoutArgs),
     /// Turn a folder of scans (KITTI / SemanticKITTI `.bin`, nuScenes `.pcd.bin`, `.pcd`) into an
     /// MCAP of ROS 2 PointCloud2 messages.
     Import(import::ImportArgs),
@@ -205,6 +208,7 @@ pub fn run(args: Args) -> anyhow::Result<Outcome> {
         Command::CalibrateRaydrop(a) => calibrate::run(&args.global, a),
         Command::Diagnose(a) => diagnose::run(&args.global, a),
         Command::Info(a) => info::run(&args.global, a),
+        Command::Layout(a) => layout::run(&args.global, a),
         Command::Render(a) => render::run(&args.global, a),
         Command::Import(a) => import::run(&args.global, a),
         Command::Simulate(a) => simulate::run(&args.global, a),

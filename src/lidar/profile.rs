@@ -304,6 +304,19 @@ impl SensorProfile {
         if let Some(e) = (self.elevation_deg.iter()).find(|e| !(-90.0..=90.0).contains(*e)) {
             return Err(format!("elevation {e} deg is outside -90..90 deg"));
         }
+        // Rows are beams top first: a table in another order would put every row at another
+        // beam's elevation.
+        let e = &self.elevation_deg;
+        if let Some(i) = (1..e.len()).find(|&i| e[i] > e[i - 1]) {
+            return Err(format!(
+                "elevation_deg must list the beams top first, but beam {i} ({} deg) is above \
+                 beam {} ({} deg); order the beams from the highest to the lowest, with their \
+                 azimuth offsets in the same order",
+                e[i],
+                i - 1,
+                e[i - 1]
+            ));
+        }
         if let Some(off) = &self.azimuth_offset_deg
             && let Some(a) = off.iter().find(|a| !(-360.0..=360.0).contains(*a))
         {
@@ -367,6 +380,22 @@ mod tests {
         assert_eq!(SensorProfile::builtin("KITTI").unwrap().beams(), 64);
         let err = SensorProfile::builtin("hdl65").unwrap_err().to_string();
         assert!(err.contains("hdl65") && err.contains("vlp16"), "{err}");
+    }
+
+    #[test]
+    fn a_table_that_is_not_top_first_is_refused_by_file_and_field() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("bottom_first.json");
+        let mut p = SensorProfile::builtin("vlp16").unwrap();
+        p.elevation_deg.reverse();
+        std::fs::write(&path, serde_json::to_string(&p).unwrap()).unwrap();
+        let err = SensorProfile::load(&path).unwrap_err().to_string();
+        assert!(
+            err.contains("bottom_first.json")
+                && err.contains("elevation_deg")
+                && err.contains("top first"),
+            "{err}"
+        );
     }
 
     #[test]

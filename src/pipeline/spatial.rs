@@ -1,8 +1,8 @@
 //! The decoding stage through the spatial-latent model ([`crate::model::spatial`]): every
 //! scan, of any sensor, decoded on its own grid in one forward pass.
 //!
-//! Channels: `x_d` the model's depth at every ray, `depth` the measured returns with x_d where
-//! no return came back, `raydrop_prob` x_n (rendered for each ray from an encoding that did
+//! Channels: `x_d` the model's depth at every ray, `depth` the measured returns with the dropped
+//! rays completed (near returns from the returns around them, x_d farther in), `raydrop_prob` x_n (rendered for each ray from an encoding that did
 //! not see it), masks drawn from x_n, the completed cloud, and `depth_*`/`points_*` on the
 //! extra grids (the sensor's grid upsampled, other sensors'), rendered from the same latent.
 //! A restoration (`--restore-lines`, `--restore-fraction`) marks the rays it leaves out as
@@ -12,10 +12,10 @@ use std::sync::{Arc, Mutex};
 
 use burn::tensor::Device;
 
-use super::stages::{Encoder, extra_grids, suffix_of};
+use super::stages::{Encoder, complete, extra_grids, suffix_of};
 use super::{ScanInput, Staged};
-use crate::decode::{Rendered, Sparsify, sample_masks, scan_seed};
-use crate::lidar::{AngleGrid, SensorProfile};
+use crate::decode::{Fill, Rendered, Sparsify, sample_masks, scan_seed};
+use crate::lidar::{AngleGrid, RangeImage, SensorProfile};
 use crate::model::spatial::decode::{
     Decoded, GridQueries, encode, onto_queries, own_queries, render,
 };
@@ -44,6 +44,9 @@ pub struct SpatialStage {
     /// `(suffix, grid)` of each target sensor.
     targets: Vec<(String, AngleGrid)>,
     restore: Option<Sparsify>,
+    fill: Fill,
+    /// The grid whose beam spacing tells a sparse scan ([`complete`]): KITTI's 64 x 512.
+    reference_grid: AngleGrid,
     prepared: Mutex<Vec<Arc<SensorGrids>>>,
 }
 
@@ -54,6 +57,9 @@ pub struct SpatialOutputs {
     pub upsample: Vec<usize>,
     pub target_sensors: Vec<SensorProfile>,
     pub restore: Option<Sparsify>,
+    /// What the dropped rays of `depth` hold: near returns a fill from the returns around
+    /// them, x_d farther in ([`complete`]); [`Fill::Gan`]: x_d everywhere.
+    pub fill: Fill,
 }
 
 impl SpatialStage {
@@ -71,6 +77,8 @@ impl SpatialStage {
                 .map(|p| (suffix_of(&p.name), p.angle_grid()))
                 .collect(),
             restore: outputs.restore,
+            fill: outputs.fill,
+            reference_grid: SensorProfile::kitti_hdl64e().with_columns(512).angle_grid(),
             prepared: Mutex::new(Vec::new()),
         })
     }
@@ -93,7 +101,7 @@ impl SpatialStage {
         let grid = &image.angles;
         let rays = self.observed_rays(&image.range_m, grid, seed);
         let grids = self.grids(grid);
-        let (own, rendered) = self.pools.run(|| {
+        let (own, on_extra) = self.pools.run(|| {
             let (net, config) = (&self.model.net, &self.model.config);
             let encoded = encode(net, config, &rays, grid, &self.device);
             let own = render(net, &encoded, &grids.own);
@@ -107,22 +115,23 @@ impl SpatialStage {
             stamp: input.cloud.stamp_nanos,
             frame: input.cloud.frame_id.clone(),
         };
-        let depth: Vec<f32> = rays
-            .iter()
-            .zip(&own.depth_m)
-            .map(|(r, &x_d)| match r {
-                Ray::Return(m) => *m,
-                _ => x_d,
-            })
-            .collect();
-        let main = Rendered {
+        // What the model saw as returns: a restoration's left-out rays are not among them.
+        let mut observed = RangeImage::empty(grid.clone());
+        for (k, r) in rays.iter().enumerate() {
+            if let Ray::Return(m) = r {
+                observed.range_m[k] = *m;
+            }
+        }
+        let x_d = own.depth_m.clone();
+        let rendered = Rendered {
             grid: grid.clone(),
-            depth_m: depth,
+            depth_m: own.depth_m,
             drop_prob: own.drop_prob,
         };
+        let main = complete(&observed, rendered, self.fill, &self.reference_grid, seed);
         let mut channels = vec![
             out.image("depth", grid, &main.depth_m),
-            out.image("x_d", grid, &own.depth_m),
+            out.image("x_d", grid, &x_d),
             out.image("raydrop_prob", grid, &main.drop_prob),
         ];
         for (i, mask) in sample_masks(&main.drop_prob, self.mask_samples, seed)
@@ -136,7 +145,7 @@ impl SpatialStage {
             channels.push(out.mask(&suffix, grid, mask));
         }
         channels.push(out.points("points", &main));
-        for ((suffix, g, _), d) in grids.extra.iter().zip(rendered) {
+        for ((suffix, g, _), d) in grids.extra.iter().zip(on_extra) {
             let r = Rendered {
                 grid: g.clone(),
                 depth_m: d.depth_m,

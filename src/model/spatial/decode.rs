@@ -9,11 +9,12 @@ use burn::tensor::activation::sigmoid;
 use burn::tensor::{Device, Tensor};
 
 use super::{
-    Observation, Queries, Query, Ray, SpatialConfig, SpatialNet, encoder_input, grid_queries,
+    Observation, Queries, Query, RAY_FEATURES, Ray, SpatialConfig, SpatialNet, encoder_input,
+    grid_queries, ray_features,
 };
 use crate::lidar::AngleGrid;
 use crate::lidar::range_image::azimuth_column;
-use crate::util::tensor::tensor_to_vec;
+use crate::util::tensor::{tensor_from, tensor_to_vec};
 
 /// Columns per hidden stripe of the two passes.
 pub const STRIPE: usize = 4;
@@ -41,6 +42,8 @@ pub fn wraps(angles: &AngleGrid) -> bool {
 /// A scan encoded by both passes: the latent grids `[2, latent, H'/2, W'/2]`.
 pub struct Encoded {
     latent: Tensor<4>,
+    /// What each pass showed of every ray of the observed grid, `[2, H W, RAY_FEATURES]`.
+    own_rays: Tensor<3>,
 }
 
 /// Encodes one scan: `rays` on `angles` (row-major), each pass hiding its stripes.
@@ -53,6 +56,7 @@ pub fn encode(
 ) -> Encoded {
     let w = angles.width;
     let mut inputs = Vec::new();
+    let mut own = Vec::with_capacity(2 * rays.len() * RAY_FEATURES);
     let mut shape = [0, 0];
     for pass in 0..2 {
         let hidden: Vec<Ray> = rays
@@ -75,9 +79,11 @@ pub fn encode(
         );
         inputs.extend(x);
         shape = s;
+        own.extend(hidden.iter().flat_map(|&r| ray_features(r, config)));
     }
     Encoded {
         latent: net.encode(inputs, 2, shape, wraps(angles), device),
+        own_rays: tensor_from(own, [2, rays.len(), RAY_FEATURES], device),
     }
 }
 
@@ -100,6 +106,8 @@ pub struct GridQueries {
     queries: Queries,
     columns: Vec<usize>,
     outside: Vec<usize>,
+    /// The queries are the observed grid's own rays, in order.
+    own_grid: bool,
 }
 
 /// The latent grid an observation on `grid` is encoded to: (rows, columns) of cells, and
@@ -126,6 +134,7 @@ pub fn own_queries(config: &SpatialConfig, grid: &AngleGrid, device: &Device) ->
         ),
         columns: (0..grid.len()).map(|k| k % grid.width).collect(),
         outside: Vec::new(),
+        own_grid: true,
     }
 }
 
@@ -162,12 +171,14 @@ pub fn onto_queries(
         queries: Queries::new(&queries, cells, circular, &config.renderer, device),
         columns,
         outside,
+        own_grid: false,
     }
 }
 
 /// Renders an encoded scan at prepared queries.
 pub fn render(net: &SpatialNet, encoded: &Encoded, at: &GridQueries) -> Decoded {
-    let mut out = render_queries(net, encoded, &at.queries, &at.columns);
+    let own = at.own_grid.then(|| encoded.own_rays.clone());
+    let mut out = render_queries(net, encoded, &at.queries, &at.columns, own);
     for &k in &at.outside {
         out.depth_m[k] = 0.0;
         out.drop_prob[k] = 1.0;
@@ -214,8 +225,9 @@ fn render_queries(
     encoded: &Encoded,
     queries: &Queries,
     columns: &[usize],
+    own_rays: Option<Tensor<3>>,
 ) -> Decoded {
-    let out = net.render(encoded.latent.clone(), queries);
+    let out = net.render(encoded.latent.clone(), queries, own_rays);
     let log_depth = tensor_to_vec(out.log_depth);
     let keep = tensor_to_vec(sigmoid(out.keep_logit));
     let n = queries.len;
@@ -283,7 +295,7 @@ mod tests {
     }
 
     #[test]
-    fn rendering_onto_the_own_grid_is_the_decode_and_other_beams_are_left_out() {
+    fn other_grids_render_like_the_own_grid_and_leave_other_beams_out() {
         let device = Device::flex();
         let config = SpatialConfig::new();
         let net = config.init(&mut Rng::new(4), &device);
@@ -291,8 +303,8 @@ mod tests {
             .expect("vlp16")
             .with_columns(64)
             .angle_grid();
-        let range = vec![10.0; angles.len()];
-        let rays = rays_of(&range);
+        // Unknown rays: the own grid then reads nothing of its own rays either.
+        let rays = vec![Ray::Unknown; angles.len()];
         let own = decode(&net, &config, &rays, &angles, &device);
         let encoded = encode(&net, &config, &rays, &angles, &device);
         let onto = |target: &AngleGrid| {

@@ -69,7 +69,15 @@ impl SpatialConfig {
     pub fn load(path: &Path) -> Result<Self> {
         let text = std::fs::read_to_string(path)
             .with_context(|| format!("failed to read '{}'", path.display()))?;
-        let config: SpatialConfig = serde_json::from_str(&text)
+        let value: serde_json::Value = serde_json::from_str(&text)
+            .with_context(|| format!("'{}' is not JSON", path.display()))?;
+        anyhow::ensure!(
+            value["family"] == "spatial",
+            "'{}' is not a spatial model's config (a generator's folder? decode with it by adding \
+             --decoder gan)",
+            path.display()
+        );
+        let config: SpatialConfig = serde_json::from_value(value)
             .with_context(|| format!("'{}' is not a spatial model config", path.display()))?;
         anyhow::ensure!(
             config.family == "spatial",
@@ -96,6 +104,24 @@ pub struct Observation<'a> {
     pub angles: &'a AngleGrid,
 }
 
+/// Values per ray that describe what was observed of it: normalised log range of a return,
+/// "returned", "known" (all 0 for an unknown ray).
+pub const RAY_FEATURES: usize = 3;
+
+/// What was observed of one ray, as the encoder's first channels and the renderer's own-ray
+/// input see it.
+pub fn ray_features(ray: Ray, config: &SpatialConfig) -> [f32; RAY_FEATURES] {
+    match ray {
+        Ray::Return(r) if r >= config.min_range_m && r <= config.max_range_m => [
+            (r.ln() - render::LN_MID_DEPTH) / render::LOG_DEPTH_SPAN,
+            1.0,
+            1.0,
+        ],
+        Ray::Return(_) | Ray::Dropped => [0.0, 0.0, 1.0],
+        Ray::Unknown => [0.0; RAY_FEATURES],
+    }
+}
+
 /// The encoder input of one observation, `[INPUT_CHANNELS, H', W']` with H' and W' rounded up
 /// to [`MULTIPLE`]; padding is unknown. Channels: normalised log range of a return, "returned",
 /// "known", elevation, sin and cos of azimuth.
@@ -108,14 +134,8 @@ pub fn encoder_input(obs: &Observation, config: &SpatialConfig) -> (Vec<f32>, [u
         for j in 0..w {
             let k = i * w + j;
             let p = i * wp + j;
-            match obs.rays[k] {
-                Ray::Return(r) if r >= config.min_range_m && r <= config.max_range_m => {
-                    x[p] = (r.ln() - render::LN_MID_DEPTH) / render::LOG_DEPTH_SPAN;
-                    x[plane + p] = 1.0;
-                    x[2 * plane + p] = 1.0;
-                }
-                Ray::Return(_) | Ray::Dropped => x[2 * plane + p] = 1.0,
-                Ray::Unknown => {}
+            for (c, v) in ray_features(obs.rays[k], config).into_iter().enumerate() {
+                x[c * plane + p] = v;
             }
             let (s, c) = obs.angles.azimuth_rad[k].sin_cos();
             x[3 * plane + p] = 2.0 * obs.angles.elevation_rad[k];
@@ -164,8 +184,13 @@ impl SpatialNet {
         self.encoder.forward(x, circular)
     }
 
-    pub fn render(&self, latent: Tensor<4>, queries: &Queries) -> Rendered {
-        self.renderer.forward(latent, queries)
+    pub fn render(
+        &self,
+        latent: Tensor<4>,
+        queries: &Queries,
+        own_rays: Option<Tensor<3>>,
+    ) -> Rendered {
+        self.renderer.forward(latent, queries, own_rays)
     }
 }
 

@@ -4,8 +4,10 @@
 //! A query reads the four latent cells around its position on the grid, each through its own
 //! linear map and weighted bilinearly, adds a linear map of its offset inside the cell and of
 //! circular Fourier features of its own angles (DUSty v2's positional encoding, exactly
-//! 2pi-periodic in azimuth), and runs the sum through a small MLP. The corner maps are applied
-//! to the cells before the gather, so their cost is paid per cell rather than per query.
+//! 2pi-periodic in azimuth), and, where the query is a ray of the observed grid, a linear map
+//! of what was observed of that ray (its range, or that it was dropped or unknown), and runs
+//! the sum through a small MLP. The corner maps are applied to the cells before the gather,
+//! so their cost is paid per cell rather than per query.
 
 use burn::config::Config;
 use burn::module::Module;
@@ -71,6 +73,11 @@ impl RendererConfig {
                 device,
             ),
             position: linear(LinearConfig::new(self.position_features(), h), rng, device),
+            own_ray: linear(
+                LinearConfig::new(super::RAY_FEATURES, h).with_bias(false),
+                rng,
+                device,
+            ),
             mid: linear(LinearConfig::new(h, h), rng, device),
             head: linear(LinearConfig::new(h, 2), rng, device),
         }
@@ -81,6 +88,7 @@ impl RendererConfig {
 pub struct Renderer {
     corners: Linear,
     position: Linear,
+    own_ray: Linear,
     mid: Linear,
     head: Linear,
 }
@@ -173,7 +181,15 @@ pub struct Rendered {
 impl Renderer {
     /// # Shapes
     /// - latent: `[batch, ch, rows, cols]`, the grid `queries` were placed on
-    pub fn forward(&self, latent: Tensor<4>, queries: &Queries) -> Rendered {
+    /// - own_rays: `[batch, n, RAY_FEATURES]`, what each scan's encoder was shown of each
+    ///   query's own ray ([`super::ray_features`]); `None` for queries between the observed
+    ///   rays (another grid), which read as unknown
+    pub fn forward(
+        &self,
+        latent: Tensor<4>,
+        queries: &Queries,
+        own_rays: Option<Tensor<3>>,
+    ) -> Rendered {
         let [b, c, rows, cols] = latent.dims();
         let cells = latent.permute([0, 2, 3, 1]).reshape([b, rows * cols, c]);
         let projected = self.corners.forward(cells); // [b, cells, 4 * hidden]
@@ -190,6 +206,9 @@ impl Renderer {
                 .select(1, idx.clone());
             let w = queries.weights.clone().narrow(1, k, 1).reshape([1, n, 1]);
             h = h + gathered * w;
+        }
+        if let Some(own) = own_rays {
+            h = h + self.own_ray.forward(own);
         }
         let h = leaky_relu(h, SLOPE);
         let h = leaky_relu(self.mid.forward(h), SLOPE);

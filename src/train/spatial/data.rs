@@ -18,7 +18,9 @@ use rayon::prelude::*;
 use crate::lidar::holes::HoleKind;
 use crate::lidar::{AngleGrid, SensorProfile, Strategy};
 use crate::model::spatial::decode::{STRIPE, hiding_pass};
-use crate::model::spatial::{Observation, Query, Ray, SpatialConfig, encoder_input, grid_queries};
+use crate::model::spatial::{
+    Observation, Query, RAY_FEATURES, Ray, SpatialConfig, encoder_input, grid_queries, ray_features,
+};
 use crate::sim::{SceneConfig, Simulator};
 use crate::util::rng::Rng;
 
@@ -227,6 +229,9 @@ pub struct Batch {
     pub input_shape: [usize; 2],
     pub circular: bool,
     pub queries: Vec<Query>,
+    /// Per example and query: what the encoder was shown of the query's own ray,
+    /// `[size, queries, RAY_FEATURES]`.
+    pub own_rays: Vec<f32>,
     /// Per example and query: ln(true range) where a true return, else 0.
     pub log_range: Vec<f32>,
     /// 1 where a true return the encoder saw.
@@ -246,6 +251,10 @@ pub struct Hiding {
     pub cut: f32,
     /// Share of the crop's rays that are queries (the rest are neither rendered nor scored).
     pub query_share: f32,
+    /// Share of examples whose ranges are scaled by a factor from 0.15 to 1.2 (log-uniform):
+    /// a street seen at a tenth of its size looks like a room or a car park, which the
+    /// streets of the training data do not show.
+    pub rescale: f32,
 }
 
 /// Draws a batch of `size` examples of `source`, each `crop` columns wide (or the whole turn).
@@ -276,6 +285,7 @@ pub fn batch(
         input_shape: [0, 0],
         circular: whole && crate::model::spatial::decode::wraps(&angles),
         queries: picked.iter().map(|&q| all_queries[q]).collect(),
+        own_rays: Vec::with_capacity(size * n * RAY_FEATURES),
         log_range: Vec::with_capacity(size * n),
         seen_return: Vec::with_capacity(size * n),
         hidden_return: Vec::with_capacity(size * n),
@@ -284,6 +294,10 @@ pub fn batch(
     };
     for _ in 0..size {
         let mut range = source.scans[rng.below(source.scans.len())].clone();
+        if rng.chance(hiding.rescale) {
+            let scale = rng.range(0.15f32.ln(), 1.2f32.ln()).exp();
+            range.iter_mut().for_each(|r| *r *= scale);
+        }
         if rng.chance(0.5) {
             mirror(&mut range, h, w);
         }
@@ -309,6 +323,7 @@ pub fn batch(
             })
             .collect();
         for &q in &picked {
+            b.own_rays.extend(ray_features(rays[q], config));
             let k = at(q);
             let ret = returns(k);
             let hidden = unknown[k] || cut[k];
@@ -405,6 +420,7 @@ mod tests {
         let hiding = Hiding {
             cut: 0.5,
             query_share: 0.5,
+            rescale: 0.3,
         };
         let b = batch(&source, 4, 64, &config, hiding, &mut rng).expect("batch");
         let n = b.queries.len();

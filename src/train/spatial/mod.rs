@@ -25,7 +25,7 @@ use serde::{Deserialize, Serialize};
 
 use super::Backend;
 use super::run_dir::{open_log, read_state, write_checkpoint};
-use crate::model::spatial::{Queries, SpatialConfig, SpatialNet, WEIGHTS};
+use crate::model::spatial::{Queries, RAY_FEATURES, SpatialConfig, SpatialNet, WEIGHTS};
 use crate::util::rng::Rng;
 use crate::util::tensor::tensor_from;
 use data::{Hiding, Source};
@@ -56,6 +56,9 @@ pub struct SpatialTrainConfig {
     /// of a batch): the loss is an unbiased estimate at a fraction of the renderer's cost.
     #[config(default = 0.35)]
     pub query_share: f32,
+    /// Share of examples with their ranges scaled ([`Hiding::rescale`]).
+    #[config(default = 0.3)]
+    pub rescale: f32,
     /// Shares of the three kinds of source: full-resolution KITTI, 512-column KITTI, simulated.
     #[config(default = "[0.35, 0.3, 0.35]")]
     pub shares: [f32; 3],
@@ -102,9 +105,15 @@ pub fn run(opts: &SpatialTrainOptions) -> Result<()> {
         .with_context(|| format!("failed to create '{}'", opts.run_dir.display()))?;
     let config_path = opts.run_dir.join("config.json");
     let mut config = if config_path.exists() {
+        // A run saved before a setting existed takes that setting's default.
         let text = std::fs::read_to_string(&config_path)
             .with_context(|| format!("failed to read '{}'", config_path.display()))?;
-        serde_json::from_str(&text).with_context(|| format!("bad '{}'", config_path.display()))?
+        let saved: serde_json::Value = serde_json::from_str(&text)
+            .with_context(|| format!("bad '{}'", config_path.display()))?;
+        let mut value = serde_json::to_value(SpatialTrainConfig::new())?;
+        crate::util::json::merge(&mut value, saved);
+        serde_json::from_value(value)
+            .with_context(|| format!("bad '{}'", config_path.display()))?
     } else {
         opts.config.clone()
     };
@@ -261,6 +270,7 @@ impl Trainer {
         let hiding = Hiding {
             cut: self.config.cut,
             query_share: self.config.query_share,
+            rescale: self.config.rescale,
         };
         let halves = [size.div_ceil(2), size / 2];
         let batches = halves
@@ -371,7 +381,8 @@ fn half_step(
         &config.model.renderer,
         ad,
     );
-    let out = net.render(latent, &queries);
+    let own = tensor_from(b.own_rays, [b.size, queries.len, RAY_FEATURES], ad);
+    let out = net.render(latent, &queries, Some(own));
     let shape = [b.size, queries.len];
     let t = |v: Vec<f32>| tensor_from(v, shape, ad);
     let err = (out.log_depth - t(b.log_range)).abs();
