@@ -71,7 +71,8 @@ fn decoded(recording: &Path, topic: &str, dir: &Path) -> (f64, f64, f64) {
                 kept += 1;
                 nll -= (1.0 - p).ln();
             } else {
-                assert_eq!(depth, x_d, "{topic}: x_d fills a ray without a return");
+                // A ray without a return is completed (from the returns around it or x_d).
+                assert!(depth.is_finite() && depth >= 0.0, "{topic}: depth {depth}");
                 nll -= p.ln();
             }
         }

@@ -11,10 +11,9 @@ use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use anyhow::{Context, bail};
 use clap::ValueEnum;
 
-use super::decoding::{self, DecoderArg, Decoding};
+use super::decoding::{self, DecodeArgs, Decoding, QualityArg};
 use super::{GlobalArgs, Outcome};
 use crate::dataset::manifest::{self, Counts};
-use crate::decode::Fill;
 use crate::io::{McapOutput, OnError, WriterSettings};
 use crate::lidar::{SensorProfile, Strategy};
 use crate::pipeline::{
@@ -66,90 +65,8 @@ pub struct ConvertArgs {
     pub compression: CompressionArg,
     #[command(flatten)]
     pub dataset: DatasetArgs,
-    /// Which model decodes: `spatial` (the default: the spatial-latent model, one forward
-    /// pass per scan, every sensor on its own grid) or `gan` (the paper's global-latent
-    /// generator, auto-decoded per scan by an encoder and pivotal tuning; `--quality`).
-    #[arg(long, value_enum, default_value = "spatial")]
-    pub decoder: DecoderArg,
-    /// Auto-decoding: `fast`, `off` (range images only), or with `--decoder gan` also `paper`
-    /// (`fast`: amortised encoder + 33 pivotal-tuning steps; `paper`: encoder + 500 steps,
-    /// seconds per scan).
-    #[arg(long, value_enum, default_value = "fast")]
-    pub quality: QualityArg,
-    /// The model: a spatial model directory (config.json + spatial.bpk, or a `train-spatial`
-    /// run's `export/` or `best/`), or with `--decoder gan` a generator directory (config.json
-    /// + g_ema.bpk) or a GAN training run. Default: the shipped weights. The shipped GAN is
-    /// used only on topics whose sensor it covers; other topics get prior-free channels.
-    #[arg(long)]
-    pub model: Option<PathBuf>,
-    /// Encoder that starts each decode: a `train-encoder` run or model directory (default: the
-    /// shipped weights).
-    #[arg(long)]
-    pub encoder: Option<PathBuf>,
-    /// Override the optimisation steps on w after the encoder (default 0; at most 100 000).
-    #[arg(long, value_parser = super::steps())]
-    pub w_steps: Option<usize>,
-    /// Override the pivotal-tuning steps on the generator weights (fast: 33, paper: 500; at
-    /// most 100 000).
-    #[arg(long, value_parser = super::steps())]
-    pub tune_steps: Option<usize>,
-    /// Tune coarse to fine first: steps at 1/8, 1/4 and 1/2 of the model grid's resolution
-    /// (coarsest first, e.g. `48,48,4`), each a fraction of a full-resolution step's cost; the
-    /// `--tune-steps` that follow (default 5) then decay their rate to 0.
-    #[arg(long, value_delimiter = ',', value_parser = super::steps())]
-    pub coarse_steps: Vec<usize>,
-    /// Chain each topic's scans: scan k's pivotal tuning starts from the weights scan k - N
-    /// hands on (0: every scan from the shared generator). Consecutive scans see nearly the
-    /// same scene, so a chain fits each scan better in the same steps (docs/decode.md); N
-    /// chains per topic decode in parallel. The output depends on N, never on the threads.
-    #[arg(long, default_value_t = pipeline::DEFAULT_CHAIN_STRIDE,
-          value_parser = clap::builder::RangedU64ValueParser::<usize>::new().range(0..=1024))]
-    pub chain_stride: usize,
-    /// The tuning step after which a chained scan hands its weights on to the chain's next
-    /// scan, which starts tuning while this one goes on (default: after all of them, so the
-    /// next scan starts from this one's final weights). With `--chain-stride 1 --hand-off 16`
-    /// one chain keeps two cores busy (docs/decode.md).
-    #[arg(long, value_parser = super::steps())]
-    pub hand_off: Option<usize>,
-    /// Write the generator's own x_n, without the per-beam calibration shipped with the model
-    /// (`calibration.json`; `rangegan-mcap calibrate-raydrop` fits one).
-    #[arg(long)]
-    pub raw_raydrop: bool,
-    /// Bernoulli ray-drop masks written per scan (`raydrop_mask`, `raydrop_mask_1`, ...),
-    /// at most 64.
-    #[arg(long, default_value_t = 1,
-          value_parser = clap::builder::RangedU64ValueParser::<usize>::new().range(0..=64))]
-    pub mask_samples: usize,
-    /// Also write the scan on its sensor's grid upsampled by these factors (beams and
-    /// columns), named by the grid's size: `2,4` on a 64 x 512 scan -> `depth_128x1024`,
-    /// `points_128x1024`, `depth_256x2048`, `points_256x2048`.
-    #[arg(long, value_delimiter = ',')]
-    pub upsample: Vec<usize>,
-    /// Also render it on another sensor's grid (built-in name or profile JSON), e.g.
-    /// `vlp32c` -> `depth_vlp32c`, `points_vlp32c` (repeatable).
-    #[arg(long)]
-    pub target_sensor: Vec<String>,
-    /// Decode from only N evenly spaced rows of the 64-row model grid (restoration).
-    #[arg(long, conflicts_with = "restore_fraction")]
-    pub restore_lines: Option<usize>,
-    /// Decode from a random fraction (0..1) of the measured points (restoration).
-    #[arg(long)]
-    pub restore_fraction: Option<f32>,
-    /// What the `--upsample` and `--target-sensor` grids and a `--restore-*` depth hold:
-    /// `learned` (the default: as `edge-aware`, then rows restored between kept beams moved
-    /// along their rays by a small network trained on KITTI), `edge-aware` (measured returns
-    /// kept, new pixels interpolated only from neighbouring returns on their own surface;
-    /// from scattered points a local inverse-depth plane where one fits), `guided` (the same,
-    /// the decoded scene picking the surface where it clearly can), `bilinear`
-    /// (inverse-distance weighting for scattered points), `nearest`, or `gan` (the decoded
-    /// scene's rendering). Where no observed return reaches, the rendering fills in.
-    #[arg(long, value_enum, default_value_t = Fill::DEFAULT)]
-    pub upsample_method: Fill,
-    /// Prior-free channels on every topic, whatever model covers its sensor: `depth` the
-    /// completion of each scan's own returns, `raydrop_prob` the recording's own drop rates,
-    /// no `x_d`. Several times faster than decoding; what a sensor no model covers gets.
-    #[arg(long, conflicts_with_all = ["model", "restore_lines", "restore_fraction"])]
-    pub prior_free: bool,
+    #[command(flatten)]
+    pub decode: DecodeArgs,
 }
 
 /// Flags of dataset mode (several inputs, a folder, or an existing output folder).
@@ -190,13 +107,6 @@ pub enum CompressionArg {
     None,
 }
 
-#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
-pub enum QualityArg {
-    Fast,
-    Paper,
-    Off,
-}
-
 /// The help of the `--sensor` flag of the commands that project recordings.
 pub(crate) const SENSOR_HELP: &str = "Sensor profile: `auto` (estimated from the first scan), a built-in name (hdl64e, hdl32e, vlp16, vlp32c, vls128, pandar64, pandarxt32; Ouster os0-N, os1-N (gen 2), os1-N-gen1, os2-N with N beams), or a profile / Ouster metadata JSON file (a unit's own beam angles)";
 
@@ -221,8 +131,8 @@ fn flag_value(v: &impl ValueEnum) -> String {
 /// threads, jobs and shards are left out: they do not change any output.
 pub(crate) fn output_settings(args: &ConvertArgs) -> String {
     let mut parts = vec![
-        format!("--decoder {}", flag_value(&args.decoder)),
-        format!("--quality {}", flag_value(&args.quality)),
+        format!("--decoder {}", flag_value(&args.decode.decoder)),
+        format!("--quality {}", flag_value(&args.decode.quality)),
         format!("--sensor {}", args.sensor),
         format!("--projection {}", flag_value(&args.projection)),
         format!("--on-error {}", flag_value(&args.on_error)),
@@ -234,19 +144,28 @@ pub(crate) fn output_settings(args: &ConvertArgs) -> String {
         ("--columns", args.columns.map(|v| v.to_string())),
         (
             "--model",
-            args.model.as_ref().map(|p| p.display().to_string()),
+            args.decode.model.as_ref().map(|p| p.display().to_string()),
         ),
         (
             "--encoder",
-            args.encoder.as_ref().map(|p| p.display().to_string()),
+            args.decode
+                .encoder
+                .as_ref()
+                .map(|p| p.display().to_string()),
         ),
-        ("--w-steps", args.w_steps.map(|v| v.to_string())),
-        ("--tune-steps", args.tune_steps.map(|v| v.to_string())),
-        ("--hand-off", args.hand_off.map(|v| v.to_string())),
-        ("--restore-lines", args.restore_lines.map(|v| v.to_string())),
+        ("--w-steps", args.decode.w_steps.map(|v| v.to_string())),
+        (
+            "--tune-steps",
+            args.decode.tune_steps.map(|v| v.to_string()),
+        ),
+        ("--hand-off", args.decode.hand_off.map(|v| v.to_string())),
+        (
+            "--restore-lines",
+            args.decode.restore_lines.map(|v| v.to_string()),
+        ),
         (
             "--restore-fraction",
-            args.restore_fraction.map(|v| v.to_string()),
+            args.decode.restore_fraction.map(|v| v.to_string()),
         ),
     ];
     for (flag, value) in optional {
@@ -254,20 +173,20 @@ pub(crate) fn output_settings(args: &ConvertArgs) -> String {
             parts.push(format!("{flag} {v}"));
         }
     }
-    if args.quality != QualityArg::Off {
-        parts.push(format!("--mask-samples {}", args.mask_samples));
+    if args.decode.quality != QualityArg::Off {
+        parts.push(format!("--mask-samples {}", args.decode.mask_samples));
     }
-    if args.quality != QualityArg::Off {
-        parts.push(format!("--chain-stride {}", args.chain_stride));
+    if args.decode.quality != QualityArg::Off {
+        parts.push(format!("--chain-stride {}", args.decode.chain_stride));
     }
-    if args.raw_raydrop {
+    if args.decode.raw_raydrop {
         parts.push("--raw-raydrop".into());
     }
     let list = |v: &[String]| v.join(",");
-    let upsample: Vec<String> = args.upsample.iter().map(|f| f.to_string()).collect();
+    let upsample: Vec<String> = args.decode.upsample.iter().map(|f| f.to_string()).collect();
     for (flag, values) in [
         ("--upsample", upsample),
-        ("--target-sensor", args.target_sensor.clone()),
+        ("--target-sensor", args.decode.target_sensor.clone()),
         ("--channels", args.channels.clone()),
     ] {
         if !values.is_empty() {
@@ -406,7 +325,7 @@ impl<'d> FileConverter<'d> {
                 .strip_prefix("depth_")
                 .or_else(|| c.strip_prefix("points_"));
             let dims = size.and_then(|s| s.split_once('x'));
-            !args.upsample.is_empty()
+            !args.decode.upsample.is_empty()
                 && dims
                     .is_some_and(|(h, w)| h.parse::<usize>().is_ok() && w.parse::<usize>().is_ok())
         };
@@ -436,7 +355,7 @@ impl<'d> FileConverter<'d> {
                 ("decode_steps".to_string(), schedule.describe()),
                 (
                     "raydrop_calibration".to_string(),
-                    match (decoder.calibration_source(), args.raw_raydrop) {
+                    match (decoder.calibration_source(), args.decode.raw_raydrop) {
                         (_, true) => "none".to_string(),
                         (Some(source), false) => source.to_string(),
                         (None, false) => {
@@ -459,12 +378,12 @@ impl<'d> FileConverter<'d> {
                 on_error: args.on_error,
                 metadata,
                 scans_processed: Some(counters.scans.clone()),
-                prior: decoding.and_then(|d| decoding::prior_use(args, d)),
+                prior: decoding.and_then(|d| decoding::prior_use(&args.decode, d)),
                 model_sensor: match decoding {
                     Some(Decoding::Gan(decoder, _)) => decoder.model_sensor().clone(),
                     _ => crate::model::config::default_sensor(),
                 },
-                chain_stride: args.chain_stride,
+                chain_stride: args.decode.chain_stride,
                 ..ConvertOptions::default()
             },
             writer: writer_settings(args)?,
@@ -631,8 +550,8 @@ pub fn run(global: &GlobalArgs, args: ConvertArgs) -> anyhow::Result<Outcome> {
     // sensor profile given as a file.
     let sensor_file = Some(Path::new(&args.sensor)).filter(|p| p.is_file());
     let inputs: Vec<&Path> = std::iter::once(input.as_path())
-        .chain(args.model.as_deref())
-        .chain(args.encoder.as_deref())
+        .chain(args.decode.model.as_deref())
+        .chain(args.decode.encoder.as_deref())
         .chain(sensor_file)
         .collect();
     crate::io::writer::refuse_overwriting_inputs(&args.output, &inputs)?;
@@ -640,7 +559,7 @@ pub fn run(global: &GlobalArgs, args: ConvertArgs) -> anyhow::Result<Outcome> {
         crate::lidar::profile::check_columns(c).map_err(anyhow::Error::msg)?;
     }
     std::fs::File::open(input).with_context(|| format!("cannot open {}", input.display()))?;
-    let decoding = decoding::resolve(&args)?;
+    let decoding = decoding::resolve(&args.decode, &args.channels)?;
     decoding::warn_uncalibrated(global, decoding.as_ref());
     let counters = Counters::default();
     let mut converter = FileConverter::new(&args, decoding.as_ref(), &counters)?;

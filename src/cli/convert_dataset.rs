@@ -177,7 +177,7 @@ pub fn run(global: &GlobalArgs, args: &ConvertArgs) -> anyhow::Result<Outcome> {
     if !todo.is_empty() {
         let manifest_path = out.join(manifest::manifest_name(shard));
         let writer = Mutex::new(ManifestWriter::open(&manifest_path)?);
-        let decoding = super::decoding::resolve(args)?;
+        let decoding = super::decoding::resolve(&args.decode, &args.channels)?;
         super::decoding::warn_uncalibrated(global, decoding.as_ref());
         let counters = Counters::default();
         let converter = FileConverter::new(args, decoding.as_ref(), &counters)?;

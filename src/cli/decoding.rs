@@ -2,10 +2,12 @@
 //! spatial-latent model (the default, every sensor) or the paper's global-latent GAN with
 //! pivotal tuning (`--decoder gan`), from the decoding flags.
 
+use std::path::PathBuf;
+
 use anyhow::bail;
 
 use super::GlobalArgs;
-use super::convert::{ConvertArgs, QualityArg};
+use crate::decode::Fill;
 use crate::decode::amortised::TrainedEncoder;
 use crate::decode::{DecodeOptions, Decoder, Quality, Sparsify};
 use crate::lidar::SensorProfile;
@@ -13,6 +15,102 @@ use crate::lidar::drop_census::X_N_WEIGHT;
 use crate::model::spatial::SpatialModel;
 use crate::model::weights::Model;
 use crate::pipeline::{DecodeOutputs, PriorUse, SpatialOutputs};
+
+/// The decoding flags of `convert`.
+#[derive(Debug, clap::Args)]
+pub struct DecodeArgs {
+    /// Which model decodes: `spatial` (the default: the spatial-latent model, one forward
+    /// pass per scan, every sensor on its own grid) or `gan` (the paper's global-latent
+    /// generator, auto-decoded per scan by an encoder and pivotal tuning; `--quality`).
+    #[arg(long, value_enum, default_value = "spatial")]
+    pub decoder: DecoderArg,
+    /// Auto-decoding: `fast`, `off` (range images only), or with `--decoder gan` also `paper`
+    /// (`fast`: amortised encoder + 33 pivotal-tuning steps; `paper`: encoder + 500 steps,
+    /// seconds per scan).
+    #[arg(long, value_enum, default_value = "fast")]
+    pub quality: QualityArg,
+    /// The model: a spatial model directory (config.json + spatial.bpk, or a `train-spatial`
+    /// run's `export/` or `best/`), or with `--decoder gan` a generator directory (config.json
+    /// + g_ema.bpk) or a GAN training run. Default: the shipped weights. The shipped GAN is
+    /// used only on topics whose sensor it covers; other topics get prior-free channels.
+    #[arg(long)]
+    pub model: Option<PathBuf>,
+    /// Encoder that starts each decode: a `train-encoder` run or model directory (default: the
+    /// shipped weights).
+    #[arg(long)]
+    pub encoder: Option<PathBuf>,
+    /// Override the optimisation steps on w after the encoder (default 0; at most 100 000).
+    #[arg(long, value_parser = super::steps())]
+    pub w_steps: Option<usize>,
+    /// Override the pivotal-tuning steps on the generator weights (fast: 33, paper: 500; at
+    /// most 100 000).
+    #[arg(long, value_parser = super::steps())]
+    pub tune_steps: Option<usize>,
+    /// Tune coarse to fine first: steps at 1/8, 1/4 and 1/2 of the model grid's resolution
+    /// (coarsest first, e.g. `48,48,4`), each a fraction of a full-resolution step's cost; the
+    /// `--tune-steps` that follow (default 5) then decay their rate to 0.
+    #[arg(long, value_delimiter = ',', value_parser = super::steps())]
+    pub coarse_steps: Vec<usize>,
+    /// Chain each topic's scans: scan k's pivotal tuning starts from the weights scan k - N
+    /// hands on (0: every scan from the shared generator). Consecutive scans see nearly the
+    /// same scene, so a chain fits each scan better in the same steps (docs/decode.md); N
+    /// chains per topic decode in parallel. The output depends on N, never on the threads.
+    #[arg(long, default_value_t = crate::pipeline::DEFAULT_CHAIN_STRIDE,
+          value_parser = clap::builder::RangedU64ValueParser::<usize>::new().range(0..=1024))]
+    pub chain_stride: usize,
+    /// The tuning step after which a chained scan hands its weights on to the chain's next
+    /// scan, which starts tuning while this one goes on (default: after all of them, so the
+    /// next scan starts from this one's final weights). With `--chain-stride 1 --hand-off 16`
+    /// one chain keeps two cores busy (docs/decode.md).
+    #[arg(long, value_parser = super::steps())]
+    pub hand_off: Option<usize>,
+    /// Write the generator's own x_n, without the per-beam calibration shipped with the model
+    /// (`calibration.json`; `rangegan-mcap calibrate-raydrop` fits one).
+    #[arg(long)]
+    pub raw_raydrop: bool,
+    /// Bernoulli ray-drop masks written per scan (`raydrop_mask`, `raydrop_mask_1`, ...),
+    /// at most 64.
+    #[arg(long, default_value_t = 1,
+          value_parser = clap::builder::RangedU64ValueParser::<usize>::new().range(0..=64))]
+    pub mask_samples: usize,
+    /// Also write the scan on its sensor's grid upsampled by these factors (beams and
+    /// columns), named by the grid's size: `2,4` on a 64 x 512 scan -> `depth_128x1024`,
+    /// `points_128x1024`, `depth_256x2048`, `points_256x2048`.
+    #[arg(long, value_delimiter = ',')]
+    pub upsample: Vec<usize>,
+    /// Also render it on another sensor's grid (built-in name or profile JSON), e.g.
+    /// `vlp32c` -> `depth_vlp32c`, `points_vlp32c` (repeatable).
+    #[arg(long)]
+    pub target_sensor: Vec<String>,
+    /// Decode from only N evenly spaced rows of the 64-row model grid (restoration).
+    #[arg(long, conflicts_with = "restore_fraction")]
+    pub restore_lines: Option<usize>,
+    /// Decode from a random fraction (0..1) of the measured points (restoration).
+    #[arg(long)]
+    pub restore_fraction: Option<f32>,
+    /// What the `--upsample` and `--target-sensor` grids and a `--restore-*` depth hold:
+    /// `learned` (the default: as `edge-aware`, then rows restored between kept beams moved
+    /// along their rays by a small network trained on KITTI), `edge-aware` (measured returns
+    /// kept, new pixels interpolated only from neighbouring returns on their own surface;
+    /// from scattered points a local inverse-depth plane where one fits), `guided` (the same,
+    /// the decoded scene picking the surface where it clearly can), `bilinear`
+    /// (inverse-distance weighting for scattered points), `nearest`, or `gan` (the decoded
+    /// scene's rendering). Where no observed return reaches, the rendering fills in.
+    #[arg(long, value_enum, default_value_t = Fill::DEFAULT)]
+    pub upsample_method: Fill,
+    /// Prior-free channels on every topic, whatever model covers its sensor: `depth` the
+    /// completion of each scan's own returns, `raydrop_prob` the recording's own drop rates,
+    /// no `x_d`. Several times faster than decoding; what a sensor no model covers gets.
+    #[arg(long, conflicts_with_all = ["model", "restore_lines", "restore_fraction"])]
+    pub prior_free: bool,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum QualityArg {
+    Fast,
+    Paper,
+    Off,
+}
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
 pub enum DecoderArg {
@@ -40,7 +138,7 @@ impl Decoding {
 
 /// The decoder and its extra outputs, from the decoding flags (`None` for `--quality off`
 /// or when only `range` is written).
-pub(crate) fn resolve(args: &ConvertArgs) -> anyhow::Result<Option<Decoding>> {
+pub(crate) fn resolve(args: &DecodeArgs, channels: &[String]) -> anyhow::Result<Option<Decoding>> {
     if args.quality == QualityArg::Off {
         let used = args.mask_samples != 1
             || args.raw_raydrop
@@ -55,7 +153,7 @@ pub(crate) fn resolve(args: &ConvertArgs) -> anyhow::Result<Option<Decoding>> {
         }
         return Ok(None);
     }
-    if !args.channels.is_empty() && args.channels.iter().all(|c| c == "range") {
+    if !channels.is_empty() && channels.iter().all(|c| c == "range") {
         return Ok(None); // no decoded channel chosen: nothing to decode
     }
     let restore = match (args.restore_lines, args.restore_fraction) {
@@ -133,7 +231,7 @@ pub(crate) fn resolve(args: &ConvertArgs) -> anyhow::Result<Option<Decoding>> {
 }
 
 /// The pivotal-tuning flags mean nothing to the spatial model's forward pass.
-fn refuse_gan_flags(args: &ConvertArgs) -> anyhow::Result<()> {
+fn refuse_gan_flags(args: &DecodeArgs) -> anyhow::Result<()> {
     let given = [
         ("--encoder", args.encoder.is_some()),
         ("--w-steps", args.w_steps.is_some()),
@@ -152,7 +250,7 @@ fn refuse_gan_flags(args: &ConvertArgs) -> anyhow::Result<()> {
 /// Where the GAN's model is used: nowhere with `--prior-free`; on every topic when a model is
 /// named (`--model`) or the decode restores a sparse model grid, else where it covers the
 /// sensor. The spatial model covers every sensor and needs no check.
-pub(crate) fn prior_use(args: &ConvertArgs, decoding: &Decoding) -> Option<PriorUse> {
+pub(crate) fn prior_use(args: &DecodeArgs, decoding: &Decoding) -> Option<PriorUse> {
     let Decoding::Gan(decoder, _) = decoding else {
         return None;
     };
@@ -182,7 +280,7 @@ pub(crate) fn warn_uncalibrated(global: &GlobalArgs, decoding: Option<&Decoding>
 /// The weight of the generator's x_n against each recording's own drop rates in
 /// `raydrop_prob` ([`X_N_WEIGHT`]): 0 (the rates alone) for a model without a ray-drop
 /// calibration, and `None` (x_n alone) for `--raw-raydrop`.
-fn x_n_weight(args: &ConvertArgs, decoder: &Decoder) -> Option<f32> {
+fn x_n_weight(args: &DecodeArgs, decoder: &Decoder) -> Option<f32> {
     match (args.raw_raydrop, decoder.calibration_source()) {
         (true, _) => None,
         (false, Some(_)) => Some(X_N_WEIGHT),

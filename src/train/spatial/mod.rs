@@ -112,8 +112,7 @@ pub fn run(opts: &SpatialTrainOptions) -> Result<()> {
             .with_context(|| format!("bad '{}'", config_path.display()))?;
         let mut value = serde_json::to_value(SpatialTrainConfig::new())?;
         crate::util::json::merge(&mut value, saved);
-        serde_json::from_value(value)
-            .with_context(|| format!("bad '{}'", config_path.display()))?
+        serde_json::from_value(value).with_context(|| format!("bad '{}'", config_path.display()))?
     } else {
         opts.config.clone()
     };
