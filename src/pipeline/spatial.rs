@@ -19,6 +19,7 @@ use crate::lidar::{AngleGrid, RangeImage, SensorProfile};
 use crate::model::spatial::decode::{
     Decoded, GridQueries, encode, onto_queries, own_queries, render,
 };
+use crate::model::spatial::host::HostRenderer;
 use crate::model::spatial::{Ray, SpatialModel};
 use crate::util::pools::Pools;
 use crate::util::rng::Rng;
@@ -37,6 +38,7 @@ const PREPARED_GRIDS: usize = 16;
 
 pub struct SpatialStage {
     model: SpatialModel,
+    host: HostRenderer,
     device: Device,
     pools: Pools,
     mask_samples: usize,
@@ -68,6 +70,7 @@ impl SpatialStage {
             anyhow::bail!("--upsample {f}: factors from 1 to 8 are supported");
         }
         Ok(SpatialStage {
+            host: HostRenderer::from_net(&model.net.renderer, model.config.encoder.latent),
             model,
             device: Device::flex(),
             pools: Pools::new(rayon::current_num_threads())?,
@@ -104,9 +107,9 @@ impl SpatialStage {
         let (own, on_extra) = self.pools.run(|| {
             let (net, config) = (&self.model.net, &self.model.config);
             let encoded = encode(net, config, &rays, grid, &self.device);
-            let own = render(net, &encoded, &grids.own);
+            let own = render(&self.host, &encoded, &grids.own);
             let extra: Vec<Decoded> = (grids.extra.iter())
-                .map(|(_, _, q)| render(net, &encoded, q))
+                .map(|(_, _, q)| render(&self.host, &encoded, q))
                 .collect();
             (own, extra)
         });
@@ -166,10 +169,10 @@ impl SpatialStage {
         let config = &self.model.config;
         let grids = Arc::new(SensorGrids {
             grid: own.clone(),
-            own: own_queries(config, own, &self.device),
+            own: own_queries(config, own),
             extra: (extra_grids(own, &self.upsample, &self.targets).into_iter())
                 .map(|(suffix, g)| {
-                    let q = onto_queries(config, own, &g, &self.device);
+                    let q = onto_queries(config, own, &g);
                     (suffix, g, q)
                 })
                 .collect(),

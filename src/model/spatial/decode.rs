@@ -4,17 +4,20 @@
 //! [`STRIPE`] columns (marks them unknown). A ray's x_d comes from the pass that saw it, its
 //! drop probability x_n from the pass that did not, so x_n is what the model predicts from the
 //! ray's surroundings, never a copy of whether the ray itself returned.
+//!
+//! The encoder runs in burn; the renderer on the host ([`super::host`]), prepared once per
+//! model ([`HostRenderer`]) and once per grid ([`GridQueries`]).
 
-use burn::tensor::activation::sigmoid;
-use burn::tensor::{Device, Tensor};
+use burn::tensor::Device;
 
+use super::host::{HostQueries, HostRenderer};
 use super::{
-    Observation, Queries, Query, RAY_FEATURES, Ray, SpatialConfig, SpatialNet, encoder_input,
-    grid_queries, ray_features,
+    Observation, Query, RAY_FEATURES, Ray, SpatialConfig, SpatialNet, encoder_input, grid_queries,
+    ray_features,
 };
 use crate::lidar::AngleGrid;
 use crate::lidar::range_image::azimuth_column;
-use crate::util::tensor::{tensor_from, tensor_to_vec};
+use crate::util::tensor::tensor_to_vec;
 
 /// Columns per hidden stripe of the two passes.
 pub const STRIPE: usize = 4;
@@ -39,11 +42,11 @@ pub fn wraps(angles: &AngleGrid) -> bool {
     angles.width.is_multiple_of(super::MULTIPLE)
 }
 
-/// A scan encoded by both passes: the latent grids `[2, latent, H'/2, W'/2]`.
+/// A scan encoded by both passes: the latent grids `[2, latent, H'/2, W'/2]`, on the host.
 pub struct Encoded {
-    latent: Tensor<4>,
+    latent: Vec<f32>,
     /// What each pass showed of every ray of the observed grid, `[2, H W, RAY_FEATURES]`.
-    own_rays: Tensor<3>,
+    own_rays: Vec<f32>,
 }
 
 /// Encodes one scan: `rays` on `angles` (row-major), each pass hiding its stripes.
@@ -82,8 +85,8 @@ pub fn encode(
         own.extend(hidden.iter().flat_map(|&r| ray_features(r, config)));
     }
     Encoded {
-        latent: net.encode(inputs, 2, shape, wraps(angles), device),
-        own_rays: tensor_from(own, [2, rays.len(), RAY_FEATURES], device),
+        latent: tensor_to_vec(net.encode(inputs, 2, shape, wraps(angles), device)),
+        own_rays: own,
     }
 }
 
@@ -96,14 +99,15 @@ pub fn decode(
     device: &Device,
 ) -> Decoded {
     let encoded = encode(net, config, rays, angles, device);
-    render(net, &encoded, &own_queries(config, angles, device))
+    let host = HostRenderer::from_net(&net.renderer, config.encoder.latent);
+    render(&host, &encoded, &own_queries(config, angles))
 }
 
 /// Where a grid's pixels are read from an encoding, prepared once per grid: the placed
 /// queries (their Fourier features are the costly part), the nearest source column of each
 /// (which pass saw it) and which pixels lie within the source's beams.
 pub struct GridQueries {
-    queries: Queries,
+    queries: HostQueries,
     columns: Vec<usize>,
     outside: Vec<usize>,
     /// The queries are the observed grid's own rays, in order.
@@ -122,16 +126,10 @@ fn cells_of(grid: &AngleGrid) -> ((usize, usize), bool) {
 }
 
 /// The queries of a scan's own grid, pixel for pixel.
-pub fn own_queries(config: &SpatialConfig, grid: &AngleGrid, device: &Device) -> GridQueries {
+pub fn own_queries(config: &SpatialConfig, grid: &AngleGrid) -> GridQueries {
     let (cells, circular) = cells_of(grid);
     GridQueries {
-        queries: Queries::new(
-            &grid_queries(grid),
-            cells,
-            circular,
-            &config.renderer,
-            device,
-        ),
+        queries: HostQueries::new(&grid_queries(grid), cells, circular, &config.renderer),
         columns: (0..grid.len()).map(|k| k % grid.width).collect(),
         outside: Vec::new(),
         own_grid: true,
@@ -141,12 +139,7 @@ pub fn own_queries(config: &SpatialConfig, grid: &AngleGrid, device: &Device) ->
 /// The queries of another grid (denser, or another sensor's) read from scans on `source`.
 /// Pixels more than [`OUTSIDE_RAD`] above or below the source's beams get depth 0 and drop
 /// probability 1: the scan says nothing of them.
-pub fn onto_queries(
-    config: &SpatialConfig,
-    source: &AngleGrid,
-    target: &AngleGrid,
-    device: &Device,
-) -> GridQueries {
+pub fn onto_queries(config: &SpatialConfig, source: &AngleGrid, target: &AngleGrid) -> GridQueries {
     let rows = row_elevations(source);
     let mut queries = Vec::with_capacity(target.len());
     let mut columns = Vec::with_capacity(target.len());
@@ -168,7 +161,7 @@ pub fn onto_queries(
     }
     let (cells, circular) = cells_of(source);
     GridQueries {
-        queries: Queries::new(&queries, cells, circular, &config.renderer, device),
+        queries: HostQueries::new(&queries, cells, circular, &config.renderer),
         columns,
         outside,
         own_grid: false,
@@ -176,9 +169,8 @@ pub fn onto_queries(
 }
 
 /// Renders an encoded scan at prepared queries.
-pub fn render(net: &SpatialNet, encoded: &Encoded, at: &GridQueries) -> Decoded {
-    let own = at.own_grid.then(|| encoded.own_rays.clone());
-    let mut out = render_queries(net, encoded, &at.queries, &at.columns, own);
+pub fn render(host: &HostRenderer, encoded: &Encoded, at: &GridQueries) -> Decoded {
+    let mut out = render_queries(host, encoded, at);
     for &k in &at.outside {
         out.depth_m[k] = 0.0;
         out.drop_prob[k] = 1.0;
@@ -218,26 +210,29 @@ fn row_of(rows: &[f32], phi: f32) -> (f32, bool) {
     (i as f32 + t, within)
 }
 
-/// Renders placed `queries` from both passes; each query takes x_d from the pass that saw
-/// its nearest column (`columns`) and x_n from the pass that hid it.
-fn render_queries(
-    net: &SpatialNet,
-    encoded: &Encoded,
-    queries: &Queries,
-    columns: &[usize],
-    own_rays: Option<Tensor<3>>,
-) -> Decoded {
-    let out = net.render(encoded.latent.clone(), queries, own_rays);
-    let log_depth = tensor_to_vec(out.log_depth);
-    let keep = tensor_to_vec(sigmoid(out.keep_logit));
-    let n = queries.len;
+/// Renders the queries of `at` from both passes; each query takes x_d from the pass that saw
+/// its nearest column and x_n from the pass that hid it.
+fn render_queries(host: &HostRenderer, encoded: &Encoded, at: &GridQueries) -> Decoded {
+    let n = at.queries.len();
+    let per_pass = encoded.latent.len() / 2;
+    let own_per_pass = encoded.own_rays.len() / 2;
+    let passes: Vec<_> = (0..2)
+        .map(|p| {
+            let latent = &encoded.latent[p * per_pass..(p + 1) * per_pass];
+            let own = at
+                .own_grid
+                .then(|| &encoded.own_rays[p * own_per_pass..(p + 1) * own_per_pass]);
+            host.render(latent, &at.queries, own)
+        })
+        .collect();
     let mut depth_m = Vec::with_capacity(n);
     let mut drop_prob = Vec::with_capacity(n);
-    for (k, &c) in columns.iter().enumerate() {
+    for (k, &c) in at.columns.iter().enumerate() {
         let hidden_in = hiding_pass(c);
         let seen_in = 1 - hidden_in;
-        depth_m.push(log_depth[seen_in * n + k].exp());
-        drop_prob.push(1.0 - keep[hidden_in * n + k]);
+        depth_m.push(passes[seen_in].log_depth[k].exp());
+        let keep = 1.0 / (1.0 + (-passes[hidden_in].keep_logit[k]).exp());
+        drop_prob.push(1.0 - keep);
     }
     Decoded { depth_m, drop_prob }
 }
@@ -307,13 +302,9 @@ mod tests {
         let rays = vec![Ray::Unknown; angles.len()];
         let own = decode(&net, &config, &rays, &angles, &device);
         let encoded = encode(&net, &config, &rays, &angles, &device);
-        let onto = |target: &AngleGrid| {
-            render(
-                &net,
-                &encoded,
-                &onto_queries(&config, &angles, target, &device),
-            )
-        };
+        let host = HostRenderer::from_net(&net.renderer, config.encoder.latent);
+        let onto =
+            |target: &AngleGrid| render(&host, &encoded, &onto_queries(&config, &angles, target));
         let again = onto(&angles);
         for k in 0..angles.len() {
             assert!((own.depth_m[k] - again.depth_m[k]).abs() < 1e-3 * own.depth_m[k]);

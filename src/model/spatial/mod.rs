@@ -15,6 +15,7 @@
 
 pub mod decode;
 pub mod encoder;
+pub mod host;
 pub mod render;
 
 use std::path::Path;

@@ -115,54 +115,82 @@ pub struct Query {
     pub azimuth: f32,
 }
 
+/// Queries placed on a latent grid, on the host: the four cells of each (flat indices), their
+/// bilinear weights and the position features, `[n, position_features]` row-major.
+pub(super) struct Placed {
+    pub corners: Vec<[u32; 4]>,
+    pub weights: Vec<[f32; 4]>,
+    pub position: Vec<f32>,
+}
+
+/// Places `queries` on a latent grid of `rows x cols` cells; columns wrap when `circular`,
+/// otherwise they are clamped like rows.
+pub(super) fn place(
+    queries: &[Query],
+    (rows, cols): (usize, usize),
+    circular: bool,
+    config: &RendererConfig,
+) -> Placed {
+    let n = queries.len();
+    let freqs = config.frequencies();
+    let mut placed = Placed {
+        corners: Vec::with_capacity(n),
+        weights: Vec::with_capacity(n),
+        position: Vec::with_capacity(n * config.position_features()),
+    };
+    let clamp = |i: i64, len: usize| i.clamp(0, len as i64 - 1);
+    for q in queries {
+        let (r0, fr) = (q.row.floor(), q.row - q.row.floor());
+        let (c0, fc) = (q.col.floor(), q.col - q.col.floor());
+        let rows_at = [clamp(r0 as i64, rows), clamp(r0 as i64 + 1, rows)];
+        let col = |c: i64| {
+            if circular {
+                c.rem_euclid(cols as i64)
+            } else {
+                clamp(c, cols)
+            }
+        };
+        let cols_at = [col(c0 as i64), col(c0 as i64 + 1)];
+        let mut idx = [0u32; 4];
+        let mut w = [0.0f32; 4];
+        for (k, (a, b)) in [(0, 0), (0, 1), (1, 0), (1, 1)].into_iter().enumerate() {
+            idx[k] = (rows_at[a] * cols as i64 + cols_at[b]) as u32;
+            let wr = if a == 0 { 1.0 - fr } else { fr };
+            let wc = if b == 0 { 1.0 - fc } else { fc };
+            w[k] = wr * wc;
+        }
+        placed.corners.push(idx);
+        placed.weights.push(w);
+        placed.position.push(2.0 * fr - 1.0);
+        placed.position.push(2.0 * fc - 1.0);
+        for [be, ba, p] in &freqs {
+            let a = be * q.elevation + ba * q.azimuth + p;
+            placed.position.push(a.sin());
+            placed.position.push(a.cos());
+        }
+    }
+    placed
+}
+
 impl Queries {
-    /// Places `queries` on a latent grid of `rows x cols` cells; columns wrap when `circular`,
-    /// otherwise they are clamped like rows.
+    /// Places `queries` on a latent grid of `rows x cols` cells ([`place`]), as tensors.
     pub fn new(
         queries: &[Query],
-        (rows, cols): (usize, usize),
+        cells: (usize, usize),
         circular: bool,
         config: &RendererConfig,
         device: &Device,
     ) -> Queries {
         let n = queries.len();
-        let freqs = config.frequencies();
-        let mut idx: [Vec<i64>; 4] = Default::default();
-        let mut weights = Vec::with_capacity(4 * n);
-        let mut position = Vec::with_capacity(n * config.position_features());
-        let clamp = |i: i64, len: usize| i.clamp(0, len as i64 - 1);
-        for q in queries {
-            let (r0, fr) = (q.row.floor(), q.row - q.row.floor());
-            let (c0, fc) = (q.col.floor(), q.col - q.col.floor());
-            let rows_at = [clamp(r0 as i64, rows), clamp(r0 as i64 + 1, rows)];
-            let col = |c: i64| {
-                if circular {
-                    c.rem_euclid(cols as i64)
-                } else {
-                    clamp(c, cols)
-                }
-            };
-            let cols_at = [col(c0 as i64), col(c0 as i64 + 1)];
-            for (k, (a, b)) in [(0, 0), (0, 1), (1, 0), (1, 1)].into_iter().enumerate() {
-                idx[k].push(rows_at[a] * cols as i64 + cols_at[b]);
-                let wr = if a == 0 { 1.0 - fr } else { fr };
-                let wc = if b == 0 { 1.0 - fc } else { fc };
-                weights.push(wr * wc);
-            }
-            position.push(2.0 * fr - 1.0);
-            position.push(2.0 * fc - 1.0);
-            for [be, ba, p] in &freqs {
-                let a = be * q.elevation + ba * q.azimuth + p;
-                position.push(a.sin());
-                position.push(a.cos());
-            }
-        }
-        let int = |v: Vec<i64>| Tensor::<1, Int>::from_data(TensorData::new(v, [n]), device);
-        let [a, b, c, d] = idx;
+        let placed = place(queries, cells, circular, config);
+        let int = |k: usize| {
+            let v: Vec<i64> = placed.corners.iter().map(|c| i64::from(c[k])).collect();
+            Tensor::<1, Int>::from_data(TensorData::new(v, [n]), device)
+        };
         Queries {
-            corners: [int(a), int(b), int(c), int(d)],
-            weights: tensor_from(weights, [n, 4], device),
-            position: tensor_from(position, [n, config.position_features()], device),
+            corners: [int(0), int(1), int(2), int(3)],
+            weights: tensor_from(placed.weights.concat(), [n, 4], device),
+            position: tensor_from(placed.position, [n, config.position_features()], device),
             len: n,
         }
     }
@@ -179,6 +207,17 @@ pub struct Rendered {
 }
 
 impl Renderer {
+    /// The layers (corner maps, position, own ray, middle, head), for the host renderer.
+    pub(super) fn layers(&self) -> (&Linear, &Linear, &Linear, &Linear, &Linear) {
+        (
+            &self.corners,
+            &self.position,
+            &self.own_ray,
+            &self.mid,
+            &self.head,
+        )
+    }
+
     /// # Shapes
     /// - latent: `[batch, ch, rows, cols]`, the grid `queries` were placed on
     /// - own_rays: `[batch, n, RAY_FEATURES]`, what each scan's encoder was shown of each
