@@ -119,7 +119,7 @@ fn main() -> Result<()> {
             Box::new(move |k| depth_colour(x_d[k])),
         ),
         panel(
-            "depth: the measured returns, x_d where no return came back".into(),
+            "the measured returns with x_d in the rays that came back empty".into(),
             Box::new(move |k| depth_colour(depth[k])),
         ),
         panel(

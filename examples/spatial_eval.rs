@@ -12,7 +12,9 @@
 //!
 //! `--set full-resolution` (default) is the six full-resolution scans of `semantickitti_ssv3`
 //! and `patchworkpp` at 2048 columns; `--set heldout` the 26 scans of SemanticKITTI 00 and 07
-//! stored at every fourth point, at 512 columns.
+//! stored at every fourth point, at 512 columns. Settings are chosen on `--set validation`
+//! (every third scan of the drive held out of training, 512 columns) and `--set
+//! validation-full-resolution` (every fourth of the full-resolution drive's held-out frames).
 //!
 //!     cargo run --release --example spatial_eval -- [--data ../shared/real_lidar]
 //!         [--set full-resolution|heldout] [--model DIR]
@@ -24,9 +26,10 @@ use burn::tensor::Device;
 use rangegan_mcap::decode::Sparsify;
 use rangegan_mcap::lidar::RangeImage;
 use rangegan_mcap::lidar::holes::HoleKind;
-use rangegan_mcap::model::data::{EVALUATION_FOLDERS, kitti_heldout_files};
-use rangegan_mcap::model::spatial::decode::{decode, rays_of};
+use rangegan_mcap::model::data::{EVALUATION_FOLDERS, kitti_heldout_files, kitti_validation_split};
+use rangegan_mcap::model::spatial::decode::{blend_with_row_rates, decode, rays_of};
 use rangegan_mcap::model::spatial::{Ray, SpatialModel};
+use rangegan_mcap::train::spatial::data;
 use rangegan_mcap::train::spatial::validate::{bernoulli_nll, row_keep_rates};
 use rangegan_mcap::util::rng::Rng;
 use rayon::prelude::*;
@@ -78,13 +81,19 @@ impl Mae {
     }
 }
 
+/// Weights of x_n against the scan's own per-beam rates that are scored.
+const WEIGHTS: [f32; 5] = [0.0, 0.25, 0.5, 0.75, 1.0];
+
 /// Scores of one scan: [model, rows, columns] MAE per hole kind; x_d rel L1; restoration
-/// [model, column linear]; x_n [model, row rate] NLL.
+/// [model, column linear]; x_n [model, row rate] NLL in medium holes; x_n blended with the
+/// scan's own rates at each of [`WEIGHTS`], in the holes and on the whole scan.
 struct ScanScore {
     holes: Vec<[Mae; 3]>,
     seen: Mae,
     restore: [Mae; 2],
     drop: [Mae; 2],
+    blend_holes: [Mae; 5],
+    blend_whole: [Mae; 5],
 }
 
 fn score(model: &SpatialModel, image: &RangeImage, index: usize) -> ScanScore {
@@ -92,11 +101,21 @@ fn score(model: &SpatialModel, image: &RangeImage, index: usize) -> ScanScore {
     let (h, w) = (image.height, image.width);
     let truth = &image.range_m;
     let run = |rays: &[Ray]| decode(&model.net, &model.config, rays, &image.angles, &device);
-    let full = run(&rays_of(truth));
+    let all_rays = rays_of(truth);
+    let full = run(&all_rays);
     let mut seen = Mae::default();
     for k in (0..h * w).filter(|&k| truth[k] > 0.0) {
         seen.add(((full.depth_m[k] - truth[k]) / truth[k]).abs() as f64);
     }
+    let mut blend_whole = [Mae::default(); 5];
+    for (m, &wt) in blend_whole.iter_mut().zip(&WEIGHTS) {
+        let mut p = full.drop_prob.clone();
+        blend_with_row_rates(&mut p, &all_rays, w, wt);
+        for k in 0..h * w {
+            m.add(bernoulli_nll(1.0 - p[k], truth[k] > 0.0));
+        }
+    }
+    let mut blend_holes = [Mae::default(); 5];
     let mut holes = Vec::new();
     let mut drop = [Mae::default(); 2];
     for (n, kind) in HoleKind::ALL.iter().enumerate() {
@@ -114,6 +133,14 @@ fn score(model: &SpatialModel, image: &RangeImage, index: usize) -> ScanScore {
             }
         }
         if *kind == HoleKind::Medium {
+            let rays = rays_of(&observed);
+            for (m, &wt) in blend_holes.iter_mut().zip(&WEIGHTS) {
+                let mut p = out.drop_prob.clone();
+                blend_with_row_rates(&mut p, &rays, w, wt);
+                for k in (0..h * w).filter(|&k| cut[k]) {
+                    m.add(bernoulli_nll(1.0 - p[k], truth[k] > 0.0));
+                }
+            }
             let keep = row_keep_rates(&observed, &cut, h, w);
             for k in (0..h * w).filter(|&k| cut[k]) {
                 let ret = truth[k] > 0.0;
@@ -157,6 +184,8 @@ fn score(model: &SpatialModel, image: &RangeImage, index: usize) -> ScanScore {
         seen,
         restore,
         drop,
+        blend_holes,
+        blend_whole,
     }
 }
 
@@ -183,9 +212,36 @@ fn main() -> Result<()> {
             (f, 2048)
         }
         "heldout" => (kitti_heldout_files(&a.data)?, 512),
-        other => bail!("--set {other}: full-resolution or heldout"),
+        // Where the x_n weight is chosen: the drive held out of training, never evaluated on.
+        "validation" => (
+            kitti_validation_split(&a.data, &["kitti_raw_drive_g".to_string()])?
+                .1
+                .into_iter()
+                .step_by(3)
+                .collect(),
+            512,
+        ),
+        "validation-full-resolution" => (Vec::new(), 2048),
+        other => bail!(
+            "--set {other}: full-resolution, heldout, validation or validation-full-resolution"
+        ),
     };
-    let images = holed::project_all(&files, columns)?;
+    let images = if a.set == "validation-full-resolution" {
+        // The full-resolution drive's last frames, held out of training: every fourth.
+        let (_, held_out) = data::fullres_sources(&a.data)?;
+        held_out
+            .scans
+            .iter()
+            .step_by(4)
+            .map(|range| {
+                let mut image = RangeImage::empty(held_out.angles.clone());
+                image.range_m = range.clone();
+                image
+            })
+            .collect()
+    } else {
+        holed::project_all(&files, columns)?
+    };
     let started = std::time::Instant::now();
     let scores: Vec<ScanScore> = images
         .par_iter()
@@ -231,5 +287,13 @@ fn main() -> Result<()> {
         "| x_n NLL inside medium patches (per-beam rate) | {m:.4} | {r:.4} | {:.2}x |",
         m / r
     );
+    for (i, wt) in WEIGHTS.iter().enumerate() {
+        let hole = sum(&|s: &ScanScore| s.blend_holes[i]);
+        let whole = sum(&|s: &ScanScore| s.blend_whole[i]);
+        println!(
+            "| raydrop_prob = {wt} x_n + {} scan's own per-beam rate: NLL in medium holes / whole scan | {hole:.4} / {whole:.4} | | |",
+            1.0 - wt
+        );
+    }
     Ok(())
 }

@@ -305,6 +305,11 @@ fn bad_decoding_flags_are_clear_errors() {
         (vec!["--quality", "off", "--upsample", "2"], "need decoding"),
         (vec!["--restore-lines", "0"], "--restore-lines 0"),
         (vec!["--tune-steps", "4"], "--decoder gan"),
+        (vec!["--prior-free", "--channels", "x_d"], "--channels x_d"),
+        (
+            vec!["--target-sensor", "vlp16", "--target-sensor", "vlp16"],
+            "both named 'vlp16'",
+        ),
         (vec!["--restore-fraction", "1.5"], "fraction in (0, 1]"),
         (vec!["--model", "/nonexistent/model"], "/nonexistent/model"),
         (vec!["--target-sensor", "nosuchlidar"], "nosuchlidar"),

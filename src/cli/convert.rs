@@ -318,6 +318,8 @@ impl<'d> FileConverter<'d> {
         let known: Vec<String> = std::iter::once("range".to_string())
             .chain(decode_stage.iter().flat_map(|s| s.channel_names()))
             .chain(spatial_stage.iter().flat_map(|s| s.channel_names()))
+            // Without a model there is no decoded scene to write.
+            .filter(|c| !(args.decode.prior_free && c == "x_d"))
             .collect();
         // Upsampled grids are named by their size, which follows each sensor's grid.
         let upsampled = |c: &str| {

@@ -170,6 +170,21 @@ pub(crate) fn resolve(args: &DecodeArgs, channels: &[String]) -> anyhow::Result<
         .iter()
         .map(|s| SensorProfile::resolve(s).map_err(anyhow::Error::from))
         .collect::<anyhow::Result<Vec<_>>>()?;
+    // Each target grid is written as `depth_<name>`: two profiles of one name would share a
+    // channel, two images per scan at one log time.
+    for (i, p) in target_sensors.iter().enumerate() {
+        if let Some(j) = (0..i).find(|&j| target_sensors[j].name == p.name) {
+            bail!(
+                "--target-sensor {} and --target-sensor {} are both named '{}': their grids \
+                 would share the channels depth_{name}/points_{name}; give one of the profiles \
+                 another \"name\"",
+                args.target_sensor[j],
+                args.target_sensor[i],
+                p.name,
+                name = p.name,
+            );
+        }
+    }
     if args.decoder == DecoderArg::Spatial && !args.prior_free {
         refuse_gan_flags(args)?;
         let device = burn::tensor::Device::flex();

@@ -247,12 +247,22 @@ impl SensorProfile {
             ),
             None => None,
         };
-        // lidar_mode looks like "1024x10": columns x frequency.
+        // lidar_mode looks like "1024x10": columns x frequency; without a readable one,
+        // the data format's columns_per_frame says it (`import` reads the same).
         let columns = find_key(root, "lidar_mode")
             .and_then(|m| m.as_str())
             .and_then(|m| m.split('x').next())
             .and_then(|c| c.parse().ok())
-            .unwrap_or(1024);
+            .or_else(|| {
+                find_key(root, "columns_per_frame")
+                    .and_then(|c| c.as_u64())
+                    .map(|c| c as usize)
+            })
+            .ok_or_else(|| {
+                invalid(
+                    "neither lidar_mode (e.g. \"1024x10\") nor columns_per_frame gives the columns",
+                )
+            })?;
         let prod = find_key(root, "prod_line")
             .and_then(|v| v.as_str())
             .unwrap_or("ouster");
@@ -394,6 +404,27 @@ mod tests {
             err.contains("bottom_first.json")
                 && err.contains("elevation_deg")
                 && err.contains("top first"),
+            "{err}"
+        );
+    }
+
+    #[test]
+    fn ouster_metadata_without_a_lidar_mode_takes_its_columns_per_frame() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("meta.json");
+        let beams: Vec<f32> = (0..16).map(|i| 15.0 - 2.0 * i as f32).collect();
+        let meta = serde_json::json!({
+            "beam_altitude_angles": beams,
+            "lidar_mode": "unparsable",
+            "data_format": { "columns_per_frame": 2048 },
+        });
+        std::fs::write(&path, meta.to_string()).unwrap();
+        assert_eq!(SensorProfile::load(&path).unwrap().columns, 2048);
+        let meta = serde_json::json!({ "beam_altitude_angles": beams });
+        std::fs::write(&path, meta.to_string()).unwrap();
+        let err = SensorProfile::load(&path).unwrap_err().to_string();
+        assert!(
+            err.contains("meta.json") && err.contains("columns_per_frame"),
             "{err}"
         );
     }

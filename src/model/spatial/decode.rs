@@ -237,6 +237,31 @@ fn render_queries(host: &HostRenderer, encoded: &Encoded, at: &GridQueries) -> D
     Decoded { depth_m, drop_prob }
 }
 
+/// Each beam's drop rate among the rays of a scan that were fired and seen (returns and
+/// drops; unknown rays do not count), with one pseudo-count each way.
+pub fn row_drop_rates(rays: &[Ray], width: usize) -> Vec<f32> {
+    rays.chunks(width.max(1))
+        .map(|row| {
+            let dropped = row.iter().filter(|r| matches!(r, Ray::Dropped)).count();
+            let seen = row.iter().filter(|r| !matches!(r, Ray::Unknown)).count();
+            (dropped as f32 + 1.0) / (seen as f32 + 2.0)
+        })
+        .collect()
+}
+
+/// x_n blended with the scan's own per-beam drop rates ([`row_drop_rates`]): `weight` on x_n.
+/// Where x_n alone loses to the beam's rate (measured on the validation recordings, which
+/// chose the model's [`SpatialConfig::x_n_weight`]) the blend keeps the better of both.
+pub fn blend_with_row_rates(drop_prob: &mut [f32], rays: &[Ray], width: usize, weight: f32) {
+    if weight >= 1.0 {
+        return;
+    }
+    let rates = row_drop_rates(rays, width);
+    for (k, p) in drop_prob.iter_mut().enumerate() {
+        *p = weight * *p + (1.0 - weight) * rates[k / width.max(1)];
+    }
+}
+
 /// The rays of a range image (`range_m`, 0 or not finite = no return), every ray fired.
 pub fn rays_of(range_m: &[f32]) -> Vec<Ray> {
     range_m

@@ -50,6 +50,10 @@ pub struct SpatialConfig {
     pub min_range_m: f32,
     #[config(default = 250.0)]
     pub max_range_m: f32,
+    /// Weight of x_n against the scan's own per-beam drop rates in `raydrop_prob`
+    /// ([`decode::blend_with_row_rates`]); chosen on the validation recordings.
+    #[config(default = 1.0)]
+    pub x_n_weight: f32,
 }
 
 #[derive(Module, Debug)]
@@ -66,6 +70,13 @@ impl SpatialConfig {
         }
     }
 
+    /// A config from its JSON; settings it predates take their defaults.
+    fn from_json(saved: serde_json::Value) -> Result<Self> {
+        let mut value = serde_json::to_value(SpatialConfig::new())?;
+        crate::util::json::merge(&mut value, saved);
+        Ok(serde_json::from_value(value)?)
+    }
+
     /// Reads a model folder's `config.json`.
     pub fn load(path: &Path) -> Result<Self> {
         let text = std::fs::read_to_string(path)
@@ -78,7 +89,7 @@ impl SpatialConfig {
              --decoder gan)",
             path.display()
         );
-        let config: SpatialConfig = serde_json::from_value(value)
+        let config = SpatialConfig::from_json(value)
             .with_context(|| format!("'{}' is not a spatial model config", path.display()))?;
         anyhow::ensure!(
             config.family == "spatial",
@@ -226,7 +237,9 @@ impl SpatialModel {
 
     /// The weights shipped in `models/spatial`.
     pub fn shipped(device: &Device) -> Result<Self> {
-        let config: SpatialConfig = serde_json::from_str(SHIPPED_CONFIG)
+        let config = serde_json::from_str(SHIPPED_CONFIG)
+            .map_err(anyhow::Error::from)
+            .and_then(SpatialConfig::from_json)
             .context("the shipped spatial model's config.json")?;
         let record = ModuleRecord::from_bytes(Bytes::from_bytes_vec(SHIPPED_WEIGHTS.to_vec()))
             .map_err(|e| anyhow::anyhow!("the shipped spatial weights are unreadable: {e}"))?;
