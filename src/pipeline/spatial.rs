@@ -18,7 +18,8 @@ use crate::decode::prior_free::{FillCheck, complete_without_prior};
 use crate::decode::{Fill, Rendered, Sparsify, sample_masks, scan_seed};
 use crate::lidar::{AngleGrid, RangeImage, SensorProfile};
 use crate::model::spatial::decode::{
-    Decoded, GridQueries, blend_with_row_rates, encode, onto_queries, own_queries, render,
+    Decoded, GridQueries, blend_with_row_rates, checked_weight, encode, onto_queries, own_queries,
+    render,
 };
 use crate::model::spatial::host::HostRenderer;
 use crate::model::spatial::{Ray, SpatialModel};
@@ -128,7 +129,8 @@ impl SpatialStage {
         }
         let x_d = own.depth_m.clone();
         let mut own = own;
-        let weight = self.model.config.x_n_weight;
+        let max_weight = self.model.config.x_n_weight;
+        let weight = checked_weight(&own.drop_prob, &rays, grid.width, max_weight);
         blend_with_row_rates(&mut own.drop_prob, &rays, grid.width, weight);
         let rendered = Rendered {
             grid: grid.clone(),

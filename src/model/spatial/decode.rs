@@ -262,6 +262,38 @@ pub fn blend_with_row_rates(drop_prob: &mut [f32], rays: &[Ray], width: usize, w
     }
 }
 
+/// The weights of x_n against the scan's own per-beam rates a scan chooses among.
+pub const CHECKED_WEIGHTS: [f32; 5] = [1.0, 0.75, 0.5, 0.25, 0.0];
+
+/// A per-scan check of x_n: the weight of [`CHECKED_WEIGHTS`] (at most `max_weight`) whose
+/// blend with the scan's own per-beam rates explains the scan's own returns and drops best
+/// (mean Bernoulli NLL over its fired rays). Each ray's x_n was rendered without seeing the
+/// ray, so this is a held-out check; on a sensor or place where x_n loses to the scan's own
+/// rates, the rates take over.
+pub fn checked_weight(drop_prob: &[f32], rays: &[Ray], width: usize, max_weight: f32) -> f32 {
+    let nll = |weight: f32| {
+        let mut p = drop_prob.to_vec();
+        blend_with_row_rates(&mut p, rays, width, weight);
+        let (mut sum, mut n) = (0.0f64, 0usize);
+        for (q, r) in p.iter().zip(rays) {
+            let keep = f64::from(1.0 - q).clamp(1e-4, 1.0 - 1e-4);
+            match r {
+                Ray::Return(_) => sum -= keep.ln(),
+                Ray::Dropped => sum -= (1.0 - keep).ln(),
+                Ray::Unknown => continue,
+            }
+            n += 1;
+        }
+        sum / n.max(1) as f64
+    };
+    CHECKED_WEIGHTS
+        .into_iter()
+        .filter(|&w| w <= max_weight)
+        .map(|w| (w, nll(w)))
+        .min_by(|a, b| a.1.total_cmp(&b.1))
+        .map_or(0.0, |(w, _)| w)
+}
+
 /// The rays of a range image (`range_m`, 0 or not finite = no return), every ray fired.
 pub fn rays_of(range_m: &[f32]) -> Vec<Ray> {
     range_m
