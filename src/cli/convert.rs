@@ -311,7 +311,7 @@ impl<'d> FileConverter<'d> {
                 (Some(DecodeStage::new(decoder, outputs)?), None)
             }
             Some(Decoding::Spatial(model, outputs)) => {
-                (None, Some(SpatialStage::new(model.clone(), outputs)?))
+                (None, Some(SpatialStage::new((**model).clone(), outputs)?))
             }
             None => (None, None),
         };

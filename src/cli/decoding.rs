@@ -29,9 +29,9 @@ pub struct DecodeArgs {
     /// seconds per scan).
     #[arg(long, value_enum, default_value = "fast")]
     pub quality: QualityArg,
-    /// The model: a spatial model directory (config.json + spatial.bpk, or a `train-spatial`
+    /// The model: a spatial model directory (config.json and spatial.bpk, or a `train-spatial`
     /// run's `export/` or `best/`), or with `--decoder gan` a generator directory (config.json
-    /// + g_ema.bpk) or a GAN training run. Default: the shipped weights. The shipped GAN is
+    /// and g_ema.bpk) or a GAN training run. Default: the shipped weights. The shipped GAN is
     /// used only on topics whose sensor it covers; other topics get prior-free channels.
     #[arg(long)]
     pub model: Option<PathBuf>,
@@ -122,8 +122,8 @@ pub enum DecoderArg {
 
 /// The decoder a conversion runs, with its extra outputs.
 pub(crate) enum Decoding {
-    Spatial(SpatialModel, SpatialOutputs),
-    Gan(Decoder, DecodeOutputs),
+    Spatial(Box<SpatialModel>, SpatialOutputs),
+    Gan(Box<Decoder>, DecodeOutputs),
 }
 
 impl Decoding {
@@ -193,7 +193,7 @@ pub(crate) fn resolve(args: &DecodeArgs, channels: &[String]) -> anyhow::Result<
             None => SpatialModel::shipped(&device)?,
         };
         return Ok(Some(Decoding::Spatial(
-            model,
+            Box::new(model),
             SpatialOutputs {
                 mask_samples: args.mask_samples,
                 upsample: args.upsample.clone(),
@@ -233,7 +233,7 @@ pub(crate) fn resolve(args: &DecodeArgs, channels: &[String]) -> anyhow::Result<
     }
     let x_n_weight = x_n_weight(args, &decoder);
     Ok(Some(Decoding::Gan(
-        decoder,
+        Box::new(decoder),
         DecodeOutputs {
             mask_samples: args.mask_samples,
             upsample: args.upsample.clone(),

@@ -385,7 +385,9 @@ fn unknown_rays(h: usize, w: usize, rng: &mut Rng) -> Vec<bool> {
     } else if u < 0.85 {
         let every = [2, 4][rng.below(2)];
         let phase = rng.below(every);
-        (0..h * w).map(|k| (k / w + phase) % every != 0).collect()
+        (0..h * w)
+            .map(|k| !(k / w + phase).is_multiple_of(every))
+            .collect()
     } else {
         vec![false; h * w]
     }
