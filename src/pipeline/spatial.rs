@@ -15,7 +15,7 @@ use burn::tensor::Device;
 use super::stages::{Encoder, complete, extra_grids, suffix_of};
 use super::{ScanInput, Staged};
 use crate::decode::prior_free::{FillCheck, complete_without_prior};
-use crate::decode::{Fill, Rendered, Sparsify, sample_masks, scan_seed};
+use crate::decode::{Fill, Rendered, Sparsify, scan_seed};
 use crate::lidar::{AngleGrid, RangeImage, SensorProfile};
 use crate::model::spatial::decode::{
     Decoded, GridQueries, blend_with_row_rates, checked_weight, encode, onto_queries, own_queries,
@@ -151,19 +151,8 @@ impl SpatialStage {
         let mut channels = vec![
             out.image("depth", grid, &main.depth_m),
             out.image("x_d", grid, &x_d),
-            out.image("raydrop_prob", grid, &main.drop_prob),
         ];
-        for (i, mask) in sample_masks(&main.drop_prob, self.mask_samples, seed)
-            .iter()
-            .enumerate()
-        {
-            let suffix = match i {
-                0 => "raydrop_mask".to_string(),
-                i => format!("raydrop_mask_{i}"),
-            };
-            channels.push(out.mask(&suffix, grid, mask));
-        }
-        channels.push(out.points("points", &main));
+        channels.extend(out.drop_channels(&main, self.mask_samples, seed));
         for ((suffix, g, _), d) in grids.extra.iter().zip(on_extra) {
             let r = Rendered {
                 grid: g.clone(),

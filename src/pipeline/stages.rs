@@ -266,28 +266,11 @@ impl<'d> DecodeStage<'d> {
             out.image("depth", &main.grid, &main.depth_m),
             out.image("x_d", &main.grid, &x_d),
         ];
-        channels.extend(self.drop_channels(&main, decoded.seed, out));
+        channels.extend(out.drop_channels(&main, self.mask_samples, decoded.seed));
         for (suffix, r) in &extra {
             channels.push(out.image(&format!("depth_{suffix}"), &r.grid, &r.depth_m));
             channels.push(out.points(&format!("points_{suffix}"), r));
         }
-        channels
-    }
-
-    /// `raydrop_prob`, the masks and `points` of the sensor-grid result `main`.
-    fn drop_channels(&self, main: &Rendered, seed: u64, out: &Encoder) -> Vec<StageOutput> {
-        let mut channels = vec![out.image("raydrop_prob", &main.grid, &main.drop_prob)];
-        for (i, mask) in sample_masks(&main.drop_prob, self.mask_samples, seed)
-            .iter()
-            .enumerate()
-        {
-            let suffix = match i {
-                0 => "raydrop_mask".to_string(),
-                i => format!("raydrop_mask_{i}"),
-            };
-            channels.push(out.mask(&suffix, &main.grid, mask));
-        }
-        channels.push(out.points("points", main));
         channels
     }
 
@@ -323,7 +306,7 @@ impl<'d> DecodeStage<'d> {
             drop_prob,
         };
         let mut channels = vec![out.image("depth", &main.grid, &main.depth_m)];
-        channels.extend(self.drop_channels(&main, seed, out));
+        channels.extend(out.drop_channels(&main, self.mask_samples, seed));
         for (suffix, grid) in extra_grids(&image.angles, &self.upsample, &self.targets) {
             let depth_m = resample_by_surface(image, &grid, &rule, None).range_m;
             let r = Rendered {
@@ -407,6 +390,24 @@ impl Encoder {
                 values,
             ),
         }
+    }
+
+    /// `raydrop_prob`, `samples` masks drawn from it with `seed`, and `points` of the
+    /// sensor-grid result `main`.
+    pub fn drop_channels(&self, main: &Rendered, samples: usize, seed: u64) -> Vec<StageOutput> {
+        let mut channels = vec![self.image("raydrop_prob", &main.grid, &main.drop_prob)];
+        for (i, mask) in sample_masks(&main.drop_prob, samples, seed)
+            .iter()
+            .enumerate()
+        {
+            let suffix = match i {
+                0 => "raydrop_mask".to_string(),
+                i => format!("raydrop_mask_{i}"),
+            };
+            channels.push(self.mask(&suffix, &main.grid, mask));
+        }
+        channels.push(self.points("points", main));
+        channels
     }
 
     pub fn mask(&self, suffix: &str, grid: &AngleGrid, mask: &[bool]) -> StageOutput {
