@@ -30,7 +30,7 @@ use rangegan_mcap::model::data::{EVALUATION_FOLDERS, kitti_heldout_files, kitti_
 use rangegan_mcap::model::spatial::decode::{blend_with_row_rates, decode, rays_of};
 use rangegan_mcap::model::spatial::{Ray, SpatialModel};
 use rangegan_mcap::train::spatial::data;
-use rangegan_mcap::train::spatial::validate::{bernoulli_nll, row_keep_rates};
+use rangegan_mcap::train::spatial::validate::{self, bernoulli_nll, row_keep_rates};
 use rangegan_mcap::util::rng::Rng;
 use rayon::prelude::*;
 
@@ -133,7 +133,9 @@ fn score(model: &SpatialModel, image: &RangeImage, index: usize) -> ScanScore {
             }
         }
         if *kind == HoleKind::Medium {
-            let rays = rays_of(&observed);
+            // x_n where the decoder cannot see the answer: the patches are unknown to it.
+            let rays = validate::unknown_in(&observed, &cut);
+            let out = run(&rays);
             for (m, &wt) in blend_holes.iter_mut().zip(&WEIGHTS) {
                 let mut p = out.drop_prob.clone();
                 blend_with_row_rates(&mut p, &rays, w, wt);

@@ -155,6 +155,27 @@ fn a_folder_converts_like_each_file_alone_and_a_rerun_resumes() {
     let o = convert_dataset(&[s(&input), s(&out), "--json", "--force"]);
     let summary: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
     assert_eq!(summary["total"]["ok"], 3);
+
+    // A file a flag names is recorded with a digest of it: the same name with other
+    // contents is not up to date.
+    let profile = dir.path().join("sensor.json");
+    let hdl64e = rangegan_mcap::lidar::SensorProfile::kitti_hdl64e();
+    let ok = |args: &[&str]| {
+        let o = convert_dataset(args);
+        let summary: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+        summary["total"]["ok"].as_u64().unwrap()
+    };
+    let with_sensor = [s(&input), s(&out), "--json", "--sensor", s(&profile)];
+    std::fs::write(&profile, serde_json::to_string(&hdl64e).unwrap()).unwrap();
+    assert_eq!(ok(&with_sensor), 3);
+    assert_eq!(ok(&with_sensor), 0);
+    std::fs::write(&profile, serde_json::to_string_pretty(&hdl64e).unwrap()).unwrap();
+    assert_eq!(ok(&with_sensor), 3, "a changed --sensor file");
+    let args = manifest_lines(&manifest).last().unwrap()["args"].clone();
+    assert!(
+        args.as_str().unwrap().contains("sensor.json@blake3:"),
+        "{args}"
+    );
 }
 
 #[test]
@@ -261,6 +282,45 @@ fn dataset_flags_and_folders_are_checked() {
         assert!(!stderr(&o).contains("--force"), "{}", stderr(&o));
         assert_eq!(std::fs::read(sub.join("x.mcap")).unwrap(), b"an input");
     }
+    #[cfg(unix)]
+    links_at_the_outputs_are_named(&input, dir.path());
+}
+
+/// OUT as a symlink that points nowhere is named as such (folder and one-file form), and a
+/// manifest that links to an input recording is refused without touching the recording.
+#[cfg(unix)]
+fn links_at_the_outputs_are_named(input: &Path, dir: &Path) {
+    use std::os::unix::fs::symlink;
+    let nowhere = dir.join("nowhere");
+    let folder = dir.join("dangling-folder");
+    symlink(nowhere.join("o"), &folder).unwrap();
+    let o = convert_dataset(&[s(input), s(&folder)]);
+    assert!(!o.status.success());
+    assert!(
+        stderr(&o).contains("dangling-folder is a symlink")
+            && stderr(&o).contains("does not exist"),
+        "{}",
+        stderr(&o)
+    );
+    let file = dir.join("dangling.mcap");
+    symlink(nowhere.join("x.mcap"), &file).unwrap();
+    let o = convert_dataset(&[s(&input.join("x.mcap")), s(&file)]);
+    assert!(!o.status.success());
+    assert!(
+        stderr(&o).contains("dangling.mcap exists (a symlink"),
+        "{}",
+        stderr(&o)
+    );
+    assert!(std::fs::read_link(&file).is_ok(), "the link was replaced");
+    let out = dir.join("linked-manifest");
+    std::fs::create_dir_all(&out).unwrap();
+    let recording = input.join("x.mcap");
+    let before = std::fs::read(&recording).unwrap();
+    symlink(&recording, out.join("rangegan-manifest.jsonl")).unwrap();
+    let o = convert_dataset(&[s(input), s(&out)]);
+    assert!(!o.status.success());
+    assert!(stderr(&o).contains("is a symlink"), "{}", stderr(&o));
+    assert_eq!(std::fs::read(&recording).unwrap(), before);
 }
 
 /// The topics of a recording's messages.
@@ -334,6 +394,23 @@ fn chosen_channels_and_writer_settings() {
         sizes.push(std::fs::metadata(&path).unwrap().len());
     }
     assert!(sizes[0] < sizes[2] && sizes[1] < sizes[2], "{sizes:?}");
+    // A chosen grid size that no topic's grid gives is reported, naming the grids written.
+    let out = dir.path().join("upsampled.mcap");
+    let o = run(&[
+        "convert",
+        s(&input.join("x.mcap")),
+        s(&out),
+        "--upsample",
+        "2",
+        "--channels",
+        "depth,points_3x5",
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let err = stderr(&o);
+    assert!(
+        err.contains("--channels points_3x5 was not written") && !err.contains("--channels depth "),
+        "{err}"
+    );
 }
 
 /// Runs the shard command of each recipe in `deploy/` for every shard index (the Slurm script

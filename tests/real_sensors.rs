@@ -155,7 +155,7 @@ fn the_hesai_and_vls128_built_ins_match_real_calibrations() {
 /// profile, three moving frames, and a legacy-format OS-1-32) import as organized clouds
 /// whose beams are the unit's own (its metadata JSON, also a `--sensor` profile), every
 /// return on a pixel of that profile. A capture cut off mid-packet keeps the rotations
-/// before the cut, with a warning that names the byte offset.
+/// before the cut and the one in progress there, with a warning that names the byte offset.
 #[test]
 fn ouster_pcap_captures_import_as_the_units_own_beams() {
     let Some(root) = real_data("ouster_pcap_captures_import_as_the_units_own_beams") else {
@@ -245,10 +245,11 @@ fn ouster_pcap_captures_import_as_the_units_own_beams() {
     ]);
     assert!(o.status.success(), "{}", common::stderr(&o));
     let summary: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
-    assert_eq!(summary["scans"], 1, "{summary}");
+    // The rotation before the cut, and the one in progress there as a partial rotation.
+    assert_eq!(summary["scans"], 2, "{summary}");
     let err = common::stderr(&o);
     assert!(
-        err.contains("truncated") && err.contains("byte offset"),
+        err.contains("truncated") && err.contains("byte offset") && err.contains("partial"),
         "{err}"
     );
     // Without --metadata, a folder without the capture's JSON is asked for one.
@@ -263,5 +264,92 @@ fn ouster_pcap_captures_import_as_the_units_own_beams() {
         common::stderr(&o).contains("give --metadata"),
         "{}",
         common::stderr(&o)
+    );
+}
+
+/// (offset, captured length) of every record of a pcap file.
+fn pcap_records(bytes: &[u8]) -> Vec<(usize, usize)> {
+    let mut records = Vec::new();
+    let mut at = 24;
+    while at + 16 <= bytes.len() {
+        let len = u32::from_le_bytes(bytes[at + 8..at + 12].try_into().unwrap()) as usize;
+        records.push((at, len));
+        at += 16 + len;
+    }
+    records
+}
+
+/// Damage to a real Ouster capture costs no more than it touches: a capture cut a few bytes
+/// into its last packet keeps every rotation (the last one partial); one short packet in the
+/// first rotation loses that packet, not the rotation; `--strict` refuses both; metadata that
+/// names another UDP port says which ports the packets use; and metadata of half the columns
+/// says the returns it cannot place are lost.
+#[test]
+fn ouster_capture_damage_costs_no_more_than_it_touches() {
+    let Some(root) = real_data("ouster_capture_damage_costs_no_more_than_it_touches") else {
+        return;
+    };
+    let folder = root.join("other_sensors/ouster_os1_128_lb_3frames");
+    let whole = std::fs::read(folder.join("OS-1-128_v2.3.0_1024x10_lb_n3.pcap")).unwrap();
+    let meta_text = std::fs::read_to_string(folder.join("OS-1-128_v2.3.0_1024x10.json")).unwrap();
+    let dir = tempfile::tempdir().unwrap();
+    let import = |capture: &[u8], meta: &str, strict: bool| {
+        let (pcap, json) = (dir.path().join("c.pcap"), dir.path().join("c.json"));
+        let out = dir.path().join("c.mcap");
+        std::fs::write(&pcap, capture).unwrap();
+        std::fs::write(&json, meta).unwrap();
+        let _ = std::fs::remove_file(&out);
+        let mut args = vec![
+            "--json",
+            "import",
+            pcap.to_str().unwrap(),
+            out.to_str().unwrap(),
+        ];
+        args.extend(["--metadata", json.to_str().unwrap()]);
+        if strict {
+            args.push("--strict");
+        }
+        let o = common::run(&args);
+        let scans = serde_json::from_slice::<serde_json::Value>(&o.stdout)
+            .map(|v| v["scans"].as_u64().unwrap_or(0))
+            .unwrap_or(0);
+        (o.status.code(), scans, common::stderr(&o), out.exists())
+    };
+    let (code, intact, _, _) = import(&whole, &meta_text, false);
+    assert_eq!((code, intact), (Some(0), 3));
+    let records = pcap_records(&whole);
+    let (last, _) = *records.last().unwrap();
+    let cut = &whole[..last + 16 + 40];
+    let (code, scans, err, _) = import(cut, &meta_text, false);
+    assert_eq!((code, scans), (Some(0), 3), "{err}");
+    assert!(err.contains("partial"), "{err}");
+    let (code, _, err, written) = import(cut, &meta_text, true);
+    assert_eq!(code, Some(3), "{err}");
+    assert!(!written, "--strict left an output");
+    // Record 10 lies in the first rotation: 100 bytes short of a whole packet.
+    let (at, len) = records[10];
+    let mut short = whole[..at].to_vec();
+    let mut header = whole[at..at + 16].to_vec();
+    header[8..12].copy_from_slice(&((len - 100) as u32).to_le_bytes());
+    short.extend(&header);
+    short.extend(&whole[at + 16..at + 16 + len - 100]);
+    short.extend(&whole[at + 16 + len..]);
+    let (code, scans, err, _) = import(&short, &meta_text, false);
+    assert_eq!((code, scans), (Some(0), 3), "{err}");
+    assert!(err.contains("the packet is skipped"), "{err}");
+    let other_port = meta_text.replace("7502", "7777");
+    let (code, _, err, _) = import(&whole, &other_port, false);
+    assert_eq!(code, Some(1), "{err}");
+    assert!(
+        err.contains("port 7777") && err.contains("went to port 7502"),
+        "{err}"
+    );
+    let mut half: serde_json::Value = serde_json::from_str(&meta_text).unwrap();
+    half["data_format"]["columns_per_frame"] = 512.into();
+    half["lidar_mode"] = "512x10".into();
+    let (code, scans, err, _) = import(&whole, &half.to_string(), false);
+    assert!(
+        err.contains("past the metadata's columns_per_frame 512"),
+        "{code:?} {scans}: {err}"
     );
 }

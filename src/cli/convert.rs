@@ -130,10 +130,16 @@ fn flag_value(v: &impl ValueEnum) -> String {
 /// each output's metadata and the manifest, and compared by reruns. Paths of the recordings,
 /// threads, jobs and shards are left out: they do not change any output.
 pub(crate) fn output_settings(args: &ConvertArgs) -> String {
+    // A flag that names a file (or a model folder) is recorded with a digest of it, so a
+    // rerun after the file changed under the same name is not "up to date".
+    let named = |value: &str| match crate::dataset::manifest::path_digest(Path::new(value)) {
+        Some(digest) => format!("{value}@{digest}"),
+        None => value.to_string(),
+    };
     let mut parts = vec![
         format!("--decoder {}", flag_value(&args.decode.decoder)),
         format!("--quality {}", flag_value(&args.decode.quality)),
-        format!("--sensor {}", args.sensor),
+        format!("--sensor {}", named(&args.sensor)),
         format!("--projection {}", flag_value(&args.projection)),
         format!("--on-error {}", flag_value(&args.on_error)),
         format!("--compression {}", flag_value(&args.compression)),
@@ -144,14 +150,17 @@ pub(crate) fn output_settings(args: &ConvertArgs) -> String {
         ("--columns", args.columns.map(|v| v.to_string())),
         (
             "--model",
-            args.decode.model.as_ref().map(|p| p.display().to_string()),
+            args.decode
+                .model
+                .as_ref()
+                .map(|p| named(&p.display().to_string())),
         ),
         (
             "--encoder",
             args.decode
                 .encoder
                 .as_ref()
-                .map(|p| p.display().to_string()),
+                .map(|p| named(&p.display().to_string())),
         ),
         ("--w-steps", args.decode.w_steps.map(|v| v.to_string())),
         (
@@ -182,11 +191,24 @@ pub(crate) fn output_settings(args: &ConvertArgs) -> String {
     if args.decode.raw_raydrop {
         parts.push("--raw-raydrop".into());
     }
+    if args.decode.prior_free {
+        parts.push("--prior-free".into());
+    }
+    if args.decode.quality != QualityArg::Off {
+        parts.push(format!(
+            "--upsample-method {}",
+            flag_value(&args.decode.upsample_method)
+        ));
+    }
     let list = |v: &[String]| v.join(",");
-    let upsample: Vec<String> = args.decode.upsample.iter().map(|f| f.to_string()).collect();
+    let numbers = |v: &[usize]| v.iter().map(|f| f.to_string()).collect::<Vec<_>>();
     for (flag, values) in [
-        ("--upsample", upsample),
-        ("--target-sensor", args.decode.target_sensor.clone()),
+        ("--upsample", numbers(&args.decode.upsample)),
+        ("--coarse-steps", numbers(&args.decode.coarse_steps)),
+        (
+            "--target-sensor",
+            args.decode.target_sensor.iter().map(|t| named(t)).collect(),
+        ),
         ("--channels", args.channels.clone()),
     ] {
         if !values.is_empty() {
@@ -418,8 +440,13 @@ impl<'d> FileConverter<'d> {
                 Ok(Staged::Done(Vec::new()))
             }
         };
+        // Which chosen channels some scan wrote: a chosen one that none wrote is reported.
+        let written = std::sync::Mutex::new(std::collections::BTreeSet::new());
         let selected = |mut outputs: Vec<StageOutput>| {
             outputs.retain(|o| channel_selected(&self.channels, &o.suffix));
+            if let Ok(mut w) = written.lock() {
+                w.extend(outputs.iter().map(|o| o.suffix.clone()));
+            }
             outputs
         };
         let decode = |i: &pipeline::ScanInput<'_>| {
@@ -446,10 +473,45 @@ impl<'d> FileConverter<'d> {
         let rest = len.unwrap_or(last).saturating_sub(last);
         counters.bytes.fetch_add(rest, Ordering::Relaxed);
         counters.files_done.fetch_add(1, Ordering::Relaxed);
+        let mut report = result?;
+        let written = written.into_inner().unwrap_or_default();
+        report
+            .warnings
+            .extend(self.unwritten_channels(name, &written));
         Ok(Converted {
-            report: result?,
+            report,
             seconds: started.elapsed().as_secs_f64(),
         })
+    }
+
+    /// A warning for each channel `--channels` chose that no scan of the file wrote (an
+    /// upsampled grid whose size no topic's grid gives, say).
+    fn unwritten_channels(
+        &self,
+        name: &str,
+        written: &std::collections::BTreeSet<String>,
+    ) -> Vec<pipeline::Warning> {
+        let grids: Vec<&str> = written
+            .iter()
+            .filter_map(|s| s.strip_prefix("depth_"))
+            .collect();
+        self.channels
+            .iter()
+            .filter(|c| *c != "range")
+            .filter(|c| !written.iter().any(|s| channel_selected(std::slice::from_ref(c), s)))
+            .map(|c| pipeline::Warning {
+                topic: String::new(),
+                log_time_nanos: 0,
+                message: format!(
+                    "{name}: --channels {c} was not written: no scan gave it (the extra grids written: {})",
+                    if grids.is_empty() {
+                        "none".to_string()
+                    } else {
+                        grids.join(", ")
+                    }
+                ),
+            })
+            .collect()
     }
 }
 

@@ -7,7 +7,7 @@ use std::path::{Path, PathBuf};
 use std::sync::Mutex;
 use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
 
-use anyhow::bail;
+use anyhow::{Context, bail};
 use rayon::prelude::*;
 
 use super::convert::{self, ConvertArgs, Counters, FileConverter};
@@ -151,7 +151,7 @@ pub fn run(global: &GlobalArgs, args: &ConvertArgs) -> anyhow::Result<Outcome> {
     if args.dataset.dry_run {
         return dry_run(global, &planned);
     }
-    std::fs::create_dir_all(out)?;
+    create_output_folder(out)?;
     let todo: Vec<&Planned> = planned
         .iter()
         .filter(|p| !matches!(p.todo, Todo::UpToDate(_)))
@@ -341,6 +341,22 @@ fn convert_all(
     })
 }
 
+/// Creates an output folder (and those above it), with errors that name it; a symlink that
+/// points nowhere is named as such.
+fn create_output_folder(dir: &Path) -> anyhow::Result<()> {
+    if let Ok(target) = std::fs::read_link(dir)
+        && !dir.exists()
+    {
+        anyhow::bail!(
+            "{} is a symlink to {}, which does not exist; remove the link or create its target",
+            dir.display(),
+            target.display()
+        );
+    }
+    std::fs::create_dir_all(dir)
+        .with_context(|| format!("cannot create the output folder {}", dir.display()))
+}
+
 /// Converts one file of the dataset; its failure becomes its manifest line.
 fn convert_one(
     global: &GlobalArgs,
@@ -356,8 +372,7 @@ fn convert_one(
         (_, Todo::Refused(why)) => Err(anyhow::anyhow!("{why}")),
         _ => output
             .parent()
-            .map_or(Ok(()), std::fs::create_dir_all)
-            .map_err(anyhow::Error::from)
+            .map_or(Ok(()), create_output_folder)
             // An output that is its input through a link is refused, as in one-file form.
             .and_then(|_| crate::io::writer::refuse_overwriting_inputs(&output, &[&p.file.path]))
             .and_then(|_| converter.convert(&p.file.path, &p.file.rel, &output, true, counters)),

@@ -89,8 +89,13 @@ enum ScanFormat {
 }
 
 impl ScanFormat {
-    /// Reads one scan; KITTI's ring order becomes a ring field.
-    fn read(self, path: &Path, labels: Option<&Labels>) -> anyhow::Result<crate::lidar::Scan> {
+    /// Reads one scan, with what a user should know about it; KITTI's ring order becomes a
+    /// ring field.
+    fn read(
+        self,
+        path: &Path,
+        labels: Option<&Labels>,
+    ) -> anyhow::Result<(crate::lidar::Scan, Vec<String>)> {
         Ok(match self {
             ScanFormat::Kitti => {
                 let mut scan = match labels {
@@ -104,10 +109,10 @@ impl ScanFormat {
                         .map(|r| r.min(u16::MAX as u32) as u16)
                         .collect(),
                 );
-                scan
+                (scan, Vec::new())
             }
-            ScanFormat::NuScenes => nuscenes::read_bin(path)?,
-            ScanFormat::Pcd => pcd::read_pcd(path)?,
+            ScanFormat::NuScenes => (nuscenes::read_bin(path)?, Vec::new()),
+            ScanFormat::Pcd => pcd::read_pcd_noted(path)?,
         })
     }
 }
@@ -309,16 +314,22 @@ pub fn run(global: &GlobalArgs, args: ImportArgs) -> anyhow::Result<Outcome> {
         })
         .collect();
     crate::io::writer::refuse_overwriting_inputs(&args.out.output, &inputs)?;
-    let items = files.iter().map(|(bin, label)| Item {
-        source: bin.display().to_string(),
-        scan: format.read(bin, label.as_ref()),
-        labelled: label.is_some(),
-        warning: None,
+    let items = files.iter().map(|(bin, label)| {
+        let (scan, notes) = match format.read(bin, label.as_ref()) {
+            Ok((scan, notes)) => (Ok(scan), notes),
+            Err(e) => (Err(e), Vec::new()),
+        };
+        Item {
+            source: bin.display().to_string(),
+            scan,
+            labelled: label.is_some(),
+            warning: (!notes.is_empty()).then(|| notes.join("; ")),
+        }
     });
     let own = files
         .first()
         .and_then(|(first, _)| own_start_secs(&args.dir, first));
-    write(global, &args, files.len(), items, warnings, own)
+    write(global, &args, files.len(), items, warnings, own, 0)
 }
 
 /// The first scan's own time, where the files carry one: the first line of a KITTI drive's
@@ -397,39 +408,54 @@ fn run_pcap(global: &GlobalArgs, args: &ImportArgs) -> anyhow::Result<Outcome> {
     let bytes = std::fs::read(&args.dir)
         .with_context(|| format!("failed to read '{}'", args.dir.display()))?;
     let in_capture = |e: ouster_pcap::OusterError| anyhow::anyhow!("'{}': {e}", args.dir.display());
-    // A first pass counts the rotations up to any damage (a capture cut off mid-packet, say:
-    // what comes before it is kept, and the damage is a warning); the second decodes them
-    // one at a time, so one frame is in memory at once.
+    // A first pass counts the rotations and reports the damage: a bad packet is skipped, and
+    // damage to the capture's records keeps the rotation in progress as a partial rotation
+    // and ends the capture there. The second pass decodes them one at a time, so one frame
+    // is in memory at once.
     let mut total = 0usize;
+    let mut lost = 0usize;
+    let mut beyond = (0usize, 0usize);
     let mut warnings = Vec::new();
-    for frame in ouster_pcap::frames(&bytes, &meta).map_err(in_capture)? {
+    let mut first = ouster_pcap::frames(&bytes, &meta).map_err(in_capture)?;
+    for frame in first.by_ref() {
         match frame {
-            Ok(_) => total += 1,
+            Ok(frame) => {
+                total += 1;
+                if frame.columns_beyond > 0 {
+                    beyond = (beyond.0 + frame.columns_beyond, beyond.1 + 1);
+                }
+            }
             Err(e) => {
-                warnings.push(format!(
-                    "{}; the rotation in progress there and anything after it are not read",
-                    in_capture(e)
-                ));
-                break;
+                lost += 1;
+                let after = if e.ends_capture() {
+                    "the rotation in progress there is kept as a partial rotation; nothing after it can be read"
+                } else {
+                    "the packet is skipped"
+                };
+                warnings.push(format!("{}; {after}", in_capture(e)));
             }
         }
     }
+    warnings.extend(
+        first
+            .port_mismatch()
+            .map(|m| format!("'{}': {m}", args.dir.display())),
+    );
+    if beyond.0 > 0 {
+        lost += 1;
+        warnings.push(format!(
+            "'{}': {} columns in {} rotations carry a measurement id at or past the metadata's columns_per_frame {} ('{}' does not match this capture: its lidar_mode?); their returns are not written",
+            args.dir.display(),
+            beyond.0,
+            beyond.1,
+            meta.columns_per_frame,
+            meta_path.display()
+        ));
+    }
     let items = ouster_pcap::frames(&bytes, &meta)
         .map_err(in_capture)?
-        .take(total)
+        .filter_map(Result::ok)
         .map(|frame| {
-            let frame = match frame {
-                Ok(frame) => frame,
-                // Not reached: the first pass decoded the same bytes.
-                Err(e) => {
-                    return Item {
-                        source: args.dir.display().to_string(),
-                        scan: Err(in_capture(e)),
-                        labelled: false,
-                        warning: None,
-                    };
-                }
-            };
             let source = format!("{} frame {}", args.dir.display(), frame.frame_id);
             let warning = (!frame.is_complete()).then(|| {
                 format!(
@@ -444,14 +470,15 @@ fn run_pcap(global: &GlobalArgs, args: &ImportArgs) -> anyhow::Result<Outcome> {
                 warning,
             }
         });
-    write(global, args, total, items, warnings, None)
+    write(global, args, total, items, warnings, None, lost)
 }
 
 /// The largest Ouster capture `import` reads (it is read whole).
 const MAX_CAPTURE_BYTES: u64 = 4 << 30;
 
 /// Writes `items` (of `total`) as PointCloud2 messages at 10 Hz; unreadable and empty scans
-/// are warnings (with `--strict`, no output and exit 3).
+/// are warnings, as is data `lost` before the items (damaged packets, say): with `--strict`,
+/// either means no output and exit 3.
 fn write(
     global: &GlobalArgs,
     args: &ImportArgs,
@@ -459,6 +486,7 @@ fn write(
     items: impl Iterator<Item = Item>,
     mut warnings: Vec<String>,
     own_start_secs: Option<f64>,
+    lost: usize,
 ) -> anyhow::Result<Outcome> {
     let start_nanos = args.out.start_nanos(total as u64, own_start_secs)?;
     let mut out = args.out.create()?;
@@ -506,15 +534,20 @@ fn write(
     }
     if written == 0 {
         out.discard();
+        let why = if warnings.is_empty() {
+            "it holds no lidar data"
+        } else {
+            "see the warnings above"
+        };
         bail!(
-            "{}: none of its {total} scans could be written (see the warnings above); no output",
+            "{}: none of its {total} scans could be written ({why}); no output",
             args.dir.display(),
         );
     }
-    if args.strict && unreadable > 0 {
+    if args.strict && unreadable + lost > 0 {
         out.discard();
         eprintln!(
-            "{}: not written (--strict: {unreadable} scans could not be read)",
+            "{}: not written (--strict: {unreadable} scans could not be read, {lost} damaged parts of the input)",
             args.out.output.display()
         );
         return Ok(Outcome::DataSkipped);

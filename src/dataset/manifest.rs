@@ -85,6 +85,30 @@ pub fn hash_file(path: &Path) -> anyhow::Result<String> {
     Ok(format!("blake3:{}", hasher.finalize().to_hex()))
 }
 
+/// A short digest of what a flag's path names, so a rerun sees the file change under the same
+/// name: `blake3:<16 hex>` of a file, or of a folder's files (names and bytes, in name order,
+/// not recursive); `None` where the path names nothing (a built-in sensor's name).
+pub fn path_digest(path: &Path) -> Option<String> {
+    let mut hasher = blake3::Hasher::new();
+    if path.is_file() {
+        hasher.update(hash_file(path).ok()?.as_bytes());
+    } else if path.is_dir() {
+        let mut files: Vec<PathBuf> = std::fs::read_dir(path)
+            .ok()?
+            .filter_map(|e| e.ok().map(|e| e.path()))
+            .filter(|p| p.is_file())
+            .collect();
+        files.sort();
+        for f in files {
+            hasher.update(f.file_name()?.as_encoded_bytes());
+            hasher.update(hash_file(&f).ok()?.as_bytes());
+        }
+    } else {
+        return None;
+    }
+    Some(format!("blake3:{}", &hasher.finalize().to_hex()[..16]))
+}
+
 /// What a conversion of one file counted, as its manifest line records it.
 #[derive(Debug, Clone, Copy, Default, PartialEq)]
 pub struct Counts {
@@ -158,6 +182,7 @@ pub fn load_latest(dir: &Path) -> anyhow::Result<HashMap<String, Entry>> {
         .collect();
     names.sort();
     for path in names {
+        refuse_unsafe_manifest(&path)?;
         let bytes =
             std::fs::read(&path).with_context(|| format!("cannot read {}", path.display()))?;
         // A damaged line (torn, or not UTF-8) says nothing about any file: its file is
@@ -169,6 +194,41 @@ pub fn load_latest(dir: &Path) -> anyhow::Result<HashMap<String, Entry>> {
         }
     }
     Ok(latest)
+}
+
+/// Refuses a manifest path that is not a plain file of its own: a symlink or a hard link
+/// (appending would write into whatever file it shares, an input recording, say) or a
+/// FIFO or device (reading it would hang). A path that does not exist yet is fine.
+pub fn refuse_unsafe_manifest(path: &Path) -> anyhow::Result<()> {
+    let Ok(meta) = std::fs::symlink_metadata(path) else {
+        return Ok(());
+    };
+    let what = if meta.file_type().is_symlink() {
+        Some("a symlink")
+    } else if !meta.is_file() {
+        Some("not a regular file")
+    } else if links(&meta) > 1 {
+        Some("a hard link shared with another file")
+    } else {
+        None
+    };
+    match what {
+        Some(what) => anyhow::bail!(
+            "{} is {what}; a manifest is never written through a link or into a special file (remove it, or write to another folder)",
+            path.display()
+        ),
+        None => Ok(()),
+    }
+}
+
+#[cfg(unix)]
+fn links(meta: &std::fs::Metadata) -> u64 {
+    std::os::unix::fs::MetadataExt::nlink(meta)
+}
+
+#[cfg(not(unix))]
+fn links(_: &std::fs::Metadata) -> u64 {
+    1
 }
 
 /// Why an earlier line does not let a rerun skip its input, or `None` when it does.
@@ -205,6 +265,7 @@ impl ManifestWriter {
     /// Opens (or creates) `path` for appending; a torn last line left by a killed run is cut
     /// off first, so the next line starts on a line of its own.
     pub fn open(path: &Path) -> anyhow::Result<Self> {
+        refuse_unsafe_manifest(path)?;
         let mut file = OpenOptions::new()
             .read(true)
             .write(true)
@@ -410,5 +471,36 @@ mod tests {
                 .all(|l| serde_json::from_str::<Entry>(l).is_ok())
         );
         assert_eq!(load_latest(dir.path()).unwrap().len(), 40);
+    }
+
+    /// A manifest that is a symlink, a hard link or a FIFO is refused before it is read or
+    /// written, and the file it shares is left as it was.
+    #[cfg(unix)]
+    #[test]
+    fn a_manifest_through_a_link_or_a_fifo_is_refused() {
+        let dir = tempfile::tempdir().unwrap();
+        let input = dir.path().join("input.mcap");
+        std::fs::write(&input, b"recording bytes without a newline").unwrap();
+        let out = dir.path().join("out");
+        std::fs::create_dir(&out).unwrap();
+        let path = out.join(MANIFEST_NAME);
+        std::os::unix::fs::symlink(&input, &path).unwrap();
+        let err = ManifestWriter::open(&path).err().unwrap().to_string();
+        assert!(err.contains("a symlink"), "{err}");
+        assert!(load_latest(&out).is_err());
+        std::fs::remove_file(&path).unwrap();
+        std::fs::hard_link(&input, &path).unwrap();
+        let err = ManifestWriter::open(&path).err().unwrap().to_string();
+        assert!(err.contains("hard link"), "{err}");
+        std::fs::remove_file(&path).unwrap();
+        let made = std::process::Command::new("mkfifo").arg(&path).status();
+        if made.is_ok_and(|s| s.success()) {
+            let err = load_latest(&out).err().unwrap().to_string();
+            assert!(err.contains("not a regular file"), "{err}");
+        }
+        assert_eq!(
+            std::fs::read(&input).unwrap(),
+            b"recording bytes without a newline"
+        );
     }
 }

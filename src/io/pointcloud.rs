@@ -3,6 +3,7 @@
 //! layout into a [`Scan`] and packs a [`Scan`] (plus extra float channels) back.
 
 use crate::lidar::Scan;
+use crate::lidar::scan::ring_ids;
 
 /// A field's numeric type. ROS `PointField` and Foxglove `NumericType` number the
 /// integer types differently; [`Numeric::from_ros`] / [`Numeric::from_foxglove`]
@@ -302,36 +303,6 @@ impl CloudLayout {
     }
 }
 
-/// Ring ids from a ring field's raw values. Non-negative integers below 65 536 (every
-/// driver's numbering) are kept as they are. Other finite values (negative rings of a signed
-/// field, fractions, values past u16) are renumbered 0, 1, ... in the order of their values,
-/// so that no two rings merge: projection orders rings by their median elevation, so only
-/// which points share a ring matters. A non-finite value at a return leaves no usable ring
-/// field: `Err` with how many such returns there are. At a point without a return any value
-/// is harmless (it is never projected).
-fn ring_ids(values: &[f64], is_return: impl Fn(usize) -> bool) -> Result<Vec<u16>, usize> {
-    let bad = (0..values.len())
-        .filter(|&i| !values[i].is_finite() && is_return(i))
-        .count();
-    if bad > 0 {
-        return Err(bad);
-    }
-    let plain = |v: f64| (0.0..=u16::MAX as f64).contains(&v) && v.fract() == 0.0;
-    if values.iter().all(|&v| plain(v) || !v.is_finite()) {
-        return Ok(values.iter().map(|&v| v as u16).collect());
-    }
-    let mut distinct: Vec<f64> = values.iter().copied().filter(|v| v.is_finite()).collect();
-    distinct.sort_by(f64::total_cmp);
-    distinct.dedup();
-    Ok(values
-        .iter()
-        .map(|v| {
-            let rank = distinct.partition_point(|d| d < v);
-            rank.min(u16::MAX as usize) as u16
-        })
-        .collect())
-}
-
 /// Packs a scan's fields (x, y, z, then intensity, ring, time, label where present,
 /// then `extra` float channels) as little-endian records.
 pub fn encode(scan: &Scan, extra: &[(&str, &[f32])]) -> (CloudLayout, Vec<u8>) {
@@ -517,27 +488,6 @@ mod tests {
         assert!(
             err.contains("no \"x\" field") && err.contains("found: y, z"),
             "{err}"
-        );
-    }
-
-    /// Ring values of any sign or size keep their rings apart; unsigned ones are kept as
-    /// they are; a non-finite value at a return leaves no ring field, at a point without a
-    /// return it is harmless.
-    #[test]
-    fn ring_values_of_any_sign_keep_their_rings_apart() {
-        let all = |_: usize| true;
-        assert_eq!(ring_ids(&[3.0, 0.0, 63.0], all), Ok(vec![3, 0, 63]));
-        assert_eq!(
-            ring_ids(&[-16.0, 15.0, -1.0, 0.0, -16.0], all),
-            Ok(vec![0, 3, 1, 2, 0])
-        );
-        let min = i32::MIN as f64;
-        assert_eq!(ring_ids(&[min, 1.0, 2.0, min], all), Ok(vec![0, 1, 2, 0]));
-        assert_eq!(ring_ids(&[0.5, 1.5, 70_000.0], all), Ok(vec![0, 1, 2]));
-        assert_eq!(ring_ids(&[1.0, f64::NAN, 2.0], all), Err(1));
-        assert_eq!(
-            ring_ids(&[1.0, f64::NAN, 2.0], |i| i != 1),
-            Ok(vec![1, 0, 2])
         );
     }
 }

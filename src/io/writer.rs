@@ -137,8 +137,16 @@ impl McapOutput {
 
     /// [`create`](Self::create) with the given chunking and compression.
     pub fn create_with(path: &Path, force: bool, settings: WriterSettings) -> anyhow::Result<Self> {
-        if path.exists() && !force {
-            bail!("{} exists; pass --force to overwrite it", path.display());
+        if std::fs::symlink_metadata(path).is_ok() && !force {
+            match std::fs::read_link(path) {
+                // A symlink that points nowhere is still something standing at OUT.
+                Ok(target) if !path.exists() => bail!(
+                    "{} exists (a symlink to {}, which does not exist); pass --force to replace the link",
+                    path.display(),
+                    target.display()
+                ),
+                _ => bail!("{} exists; pass --force to overwrite it", path.display()),
+            }
         }
         let dir = path
             .parent()

@@ -50,6 +50,8 @@ mod tests;
 
 pub use metadata::{OusterMetadata, UdpProfile};
 
+use std::collections::BTreeMap;
+
 use crate::lidar::scan::Scan;
 use pcap::{Datagram, PcapReader};
 
@@ -81,6 +83,14 @@ pub enum OusterError {
     },
 }
 
+impl OusterError {
+    /// Whether nothing after this error can be read (damage to the pcap's own records, as
+    /// opposed to one bad packet that [`frames`] skips).
+    pub fn ends_capture(&self) -> bool {
+        matches!(self, OusterError::Pcap { .. })
+    }
+}
+
 /// One rotation (or the part of it present in the capture).
 #[derive(Debug, Clone, PartialEq)]
 pub struct OusterFrame {
@@ -93,6 +103,9 @@ pub struct OusterFrame {
     pub columns_seen: usize,
     /// Columns per frame from the metadata.
     pub columns: usize,
+    /// Valid columns whose measurement id lies past `columns` (metadata that does not match
+    /// the capture): their returns are not in the scan.
+    pub columns_beyond: usize,
 }
 
 impl OusterFrame {
@@ -125,18 +138,30 @@ pub fn frames<'a>(
         lut: Lut::new(meta),
         meta,
         current: None,
+        cut_off: false,
         finished: false,
+        lidar_packets: 0,
+        other_ports: BTreeMap::new(),
     })
 }
 
-/// Iterator returned by [`frames`]; stops after the first error.
+/// Iterator returned by [`frames`]. Damage costs no more than it touches: a bad lidar packet
+/// is an error item and reading goes on after it; damage to the pcap's records (a capture cut
+/// off mid-record) is an error item, then the rotation in progress as a partial frame, then
+/// the end.
 pub struct OusterFrames<'a> {
     reader: PcapReader<'a>,
     layout: PacketLayout,
     lut: Lut,
     meta: &'a OusterMetadata,
     current: Option<FrameBuilder>,
+    /// The pcap's records are damaged: nothing after the rotation in progress can be read.
+    cut_off: bool,
     finished: bool,
+    /// Lidar packets read so far.
+    lidar_packets: usize,
+    /// Datagrams of a lidar packet's size on other ports than the metadata's, per port.
+    other_ports: BTreeMap<u16, usize>,
 }
 
 impl Iterator for OusterFrames<'_> {
@@ -146,6 +171,10 @@ impl Iterator for OusterFrames<'_> {
         if self.finished {
             return None;
         }
+        if self.cut_off {
+            self.finished = true;
+            return self.finish_current().map(Ok);
+        }
         match self.advance() {
             Ok(Some(frame)) => Some(Ok(frame)),
             Ok(None) => {
@@ -153,7 +182,7 @@ impl Iterator for OusterFrames<'_> {
                 None
             }
             Err(e) => {
-                self.finished = true;
+                self.cut_off = e.ends_capture();
                 Some(Err(e))
             }
         }
@@ -161,12 +190,39 @@ impl Iterator for OusterFrames<'_> {
 }
 
 impl OusterFrames<'_> {
+    /// Where no lidar packet was read although packets of a lidar packet's size went to other
+    /// ports: which port the metadata names and which the packets use.
+    pub fn port_mismatch(&self) -> Option<String> {
+        if self.lidar_packets > 0 || self.other_ports.is_empty() {
+            return None;
+        }
+        let ports: Vec<String> = self
+            .other_ports
+            .iter()
+            .map(|(port, n)| format!("{port} ({n} packets)"))
+            .collect();
+        Some(format!(
+            "no lidar packet went to UDP port {} (the metadata's udp_port_lidar); packets of the lidar packet size ({} bytes) went to port {}",
+            self.meta.udp_port_lidar,
+            self.layout.size,
+            ports.join(", ")
+        ))
+    }
+
+    fn finish_current(&mut self) -> Option<OusterFrame> {
+        self.current.take().map(|b| b.finish(&self.lut, self.meta))
+    }
+
     /// Feeds packets until a frame is complete (id change or end of file).
     fn advance(&mut self) -> Result<Option<OusterFrame>, OusterError> {
         while let Some(datagram) = self.reader.next_datagram()? {
             let Some(packet) = self.lidar_payload(&datagram)? else {
+                if datagram.payload.len() == self.layout.size {
+                    *self.other_ports.entry(datagram.dst_port).or_default() += 1;
+                }
                 continue;
             };
+            self.lidar_packets += 1;
             let frame_id = self.layout.frame_id(packet);
             let done = match self.current.take() {
                 Some(b) if b.frame_id != frame_id => Some(b),
@@ -184,7 +240,7 @@ impl OusterFrames<'_> {
                 return Ok(Some(b.finish(&self.lut, self.meta)));
             }
         }
-        Ok(self.current.take().map(|b| b.finish(&self.lut, self.meta)))
+        Ok(self.finish_current())
     }
 
     /// The payload if this datagram is a lidar packet, `None` to skip it,
@@ -320,6 +376,7 @@ struct FrameBuilder {
     column_ts: Vec<u64>,
     column_seen: Vec<bool>,
     columns_seen: usize,
+    columns_beyond: usize,
     first_ts: Option<u64>,
 }
 
@@ -334,18 +391,23 @@ impl FrameBuilder {
             column_ts: vec![0; w],
             column_seen: vec![false; w],
             columns_seen: 0,
+            columns_beyond: 0,
             first_ts: None,
         }
     }
 
-    /// Copies every valid column. Invalid columns and measurement ids
-    /// beyond the frame width (misconfigured sensor) are dropped, as the
-    /// SDK does; a repeated column overwrites the earlier copy.
+    /// Copies every valid column. Invalid columns are dropped, as the SDK does, and so are
+    /// measurement ids beyond the frame width (metadata that does not match the capture),
+    /// which are counted; a repeated column overwrites the earlier copy.
     fn add_packet(&mut self, layout: &PacketLayout, packet: &[u8]) {
         for i in 0..layout.columns_per_packet {
             let col = layout.column(packet, i);
             let m = col.measurement_id;
-            if !col.valid || m >= self.width {
+            if !col.valid {
+                continue;
+            }
+            if m >= self.width {
+                self.columns_beyond += 1;
                 continue;
             }
             self.first_ts.get_or_insert(col.timestamp_ns);
@@ -399,6 +461,7 @@ impl FrameBuilder {
             },
             columns_seen: self.columns_seen,
             columns: w,
+            columns_beyond: self.columns_beyond,
         }
     }
 }

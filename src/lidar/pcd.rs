@@ -7,6 +7,7 @@ use std::path::Path;
 
 use super::Scan;
 use super::kitti::DatasetError;
+use super::scan::ring_ids;
 
 /// One PCD field: its name, byte size and type letter (`F`, `U`, `I`). Fields
 /// with COUNT > 1 are read at their first value.
@@ -42,6 +43,12 @@ impl Field {
 
 /// Reads a `.pcd` file into a [`Scan`] (organized when `HEIGHT > 1`).
 pub fn read_pcd(path: &Path) -> Result<Scan, DatasetError> {
+    read_pcd_noted(path).map(|(scan, _)| scan)
+}
+
+/// [`read_pcd`], with what a user should know about a file that is read anyway: data past
+/// `POINTS`, a ring field that could not be used.
+pub fn read_pcd_noted(path: &Path) -> Result<(Scan, Vec<String>), DatasetError> {
     let name = path.display().to_string();
     let bytes = std::fs::read(path).map_err(|source| DatasetError::Io {
         path: name.clone(),
@@ -53,7 +60,8 @@ pub fn read_pcd(path: &Path) -> Result<Scan, DatasetError> {
 /// Parses PCD bytes; errors are plain reasons, [`read_pcd`] adds the path. Header and data
 /// in one pass because the header decides how the data is laid out (ascii, binary, field
 /// sizes and counts), and every length is checked against the bytes before use.
-fn parse(bytes: &[u8]) -> Result<Scan, String> {
+fn parse(bytes: &[u8]) -> Result<(Scan, Vec<String>), String> {
+    let mut notes = Vec::new();
     let mut pos = 0usize;
     let (mut names, mut sizes, mut kinds, mut counts) =
         (Vec::new(), Vec::new(), Vec::new(), Vec::new());
@@ -197,15 +205,17 @@ fn parse(bytes: &[u8]) -> Result<Scan, String> {
                 let get = |f: &Field| f.decode(rec.get(f.offset..f.offset + f.size)?);
                 read_point(&get, &mut values).ok_or("unreadable binary record")?;
             }
+            if body.len() > need {
+                notes.push(format!(
+                    "{} bytes after the last of POINTS {n} ignored",
+                    body.len() - need
+                ));
+            }
         }
         "ascii" => {
             let text = std::str::from_utf8(body).map_err(|_| "ascii data is not text")?;
-            for (k, line) in text
-                .lines()
-                .filter(|l| !l.trim().is_empty())
-                .take(n)
-                .enumerate()
-            {
+            let mut lines = text.lines().filter(|l| !l.trim().is_empty());
+            for (k, line) in lines.by_ref().take(n).enumerate() {
                 let tokens: Vec<&str> = line.split_whitespace().collect();
                 let get = |f: &Field| tokens.get(f.column)?.parse::<f64>().ok();
                 read_point(&get, &mut values)
@@ -215,6 +225,12 @@ fn parse(bytes: &[u8]) -> Result<Scan, String> {
                 return Err(format!(
                     "ascii data holds {} points, the header says {n}",
                     values.len()
+                ));
+            }
+            let extra = lines.count();
+            if extra > 0 {
+                notes.push(format!(
+                    "{extra} lines after the last of POINTS {n} ignored"
                 ));
             }
         }
@@ -238,12 +254,15 @@ fn parse(bytes: &[u8]) -> Result<Scan, String> {
     if fi.is_some() {
         scan.intensity = Some(values.iter().map(|v| v[3] as f32).collect());
     }
-    if fring.is_some() {
-        let ring: Option<Vec<u16>> = values
-            .iter()
-            .map(|v| (v[4] >= 0.0 && v[4] <= f64::from(u16::MAX)).then_some(v[4] as u16))
-            .collect();
-        scan.ring = Some(ring.ok_or("ring/channel value out of 0..=65535")?);
+    if let Some(f) = &fring {
+        let ring: Vec<f64> = values.iter().map(|v| v[4]).collect();
+        match ring_ids(&ring, |i| scan.is_return(i)) {
+            Ok(ids) => scan.ring = Some(ids),
+            Err(bad) => notes.push(format!(
+                "ring field \"{}\" holds {bad} non-finite values at returns; rows taken from the cloud's order or elevation instead",
+                f.name
+            )),
+        }
     }
     if flabel.is_some() {
         scan.label = Some(
@@ -253,7 +272,7 @@ fn parse(bytes: &[u8]) -> Result<Scan, String> {
                 .collect(),
         );
     }
-    Ok(scan)
+    Ok((scan, notes))
 }
 
 #[cfg(test)]
@@ -265,7 +284,8 @@ mod tests {
     #[test]
     fn ascii_and_binary_give_the_same_scan() {
         let ascii = format!("{HEADER}DATA ascii\n1.5 -2 3 10 7\n4 5 -6.25 200 15\n");
-        let a = parse(ascii.as_bytes()).unwrap();
+        let (a, notes) = parse(ascii.as_bytes()).unwrap();
+        assert!(notes.is_empty(), "{notes:?}");
         let mut bin = format!("{HEADER}DATA binary\n").into_bytes();
         for (p, i, c) in [
             ([1.5f32, -2.0, 3.0], 10u8, 7u16),
@@ -276,7 +296,7 @@ mod tests {
             bin.push(i);
             bin.extend_from_slice(&c.to_le_bytes());
         }
-        let b = parse(&bin).unwrap();
+        let (b, _) = parse(&bin).unwrap();
         assert_eq!(a, b);
         assert_eq!(a.xyz, vec![[1.5, -2.0, 3.0], [4.0, 5.0, -6.25]]);
         assert_eq!(a.intensity, Some(vec![10.0, 200.0]));
@@ -316,5 +336,49 @@ mod tests {
         let path = dir.path().join("bad.pcd");
         std::fs::write(&path, lzf).unwrap();
         assert!(read_pcd(&path).unwrap_err().to_string().contains("bad.pcd"));
+    }
+
+    /// A float ring field of 0, 0.5, 1, ... keeps 32 rings apart, as do negative rings; a NaN
+    /// ring at a return leaves the field unused with a note; data past POINTS is noted.
+    #[test]
+    fn odd_rings_keep_their_beams_and_extra_data_is_noted() {
+        let header = |rings: &str, points: usize| {
+            format!(
+                "VERSION 0.7\nFIELDS x y z ring\nSIZE 4 4 4 4\nTYPE F F F F\nWIDTH {points}\nHEIGHT 1\nPOINTS {points}\nDATA ascii\n{rings}"
+            )
+        };
+        let lines = |rings: &[f32]| -> String {
+            rings
+                .iter()
+                .enumerate()
+                .map(|(k, r)| format!("{} 1 0.5 {r}\n", 5.0 + k as f32))
+                .collect()
+        };
+        let halves: Vec<f32> = (0..32).map(|k| k as f32 * 0.5).collect();
+        let (scan, notes) = parse(header(&lines(&halves), 32).as_bytes()).unwrap();
+        let mut rings = scan.ring.clone().unwrap();
+        rings.dedup();
+        assert_eq!(rings.len(), 32, "{rings:?}");
+        assert!(notes.is_empty());
+        let negative: Vec<f32> = (0..16).map(|k| k as f32 - 8.0).collect();
+        let (scan, _) = parse(header(&lines(&negative), 16).as_bytes()).unwrap();
+        assert_eq!(scan.ring.unwrap()[..3], [0, 1, 2]);
+        let nan = [1.0, f32::NAN, 2.0];
+        let (scan, notes) = parse(header(&lines(&nan), 3).as_bytes()).unwrap();
+        assert!(scan.ring.is_none());
+        assert!(notes[0].contains("non-finite"), "{notes:?}");
+        // Two lines more than POINTS.
+        let extra = header(&lines(&[0.0, 1.0, 2.0, 3.0]), 2);
+        let (scan, notes) = parse(extra.as_bytes()).unwrap();
+        assert_eq!(scan.len(), 2);
+        assert!(
+            notes[0].contains("2 lines after the last of POINTS 2"),
+            "{notes:?}"
+        );
+        let mut bin = HEADER.as_bytes().to_vec();
+        bin.extend_from_slice(b"DATA binary\n");
+        bin.extend(std::iter::repeat_n(0u8, 2 * 15 + 7));
+        let (_, notes) = parse(&bin).unwrap();
+        assert!(notes[0].contains("7 bytes after"), "{notes:?}");
     }
 }

@@ -75,6 +75,36 @@ impl Scan {
     }
 }
 
+/// Ring ids from a ring field's raw values. Non-negative integers below 65 536 (every
+/// driver's numbering) are kept as they are. Other finite values (negative rings of a signed
+/// field, fractions, values past u16) are renumbered 0, 1, ... in the order of their values,
+/// so that no two rings merge: projection orders rings by their median elevation, so only
+/// which points share a ring matters. A non-finite value at a return leaves no usable ring
+/// field: `Err` with how many such returns there are. At a point without a return any value
+/// is harmless (it is never projected).
+pub fn ring_ids(values: &[f64], is_return: impl Fn(usize) -> bool) -> Result<Vec<u16>, usize> {
+    let bad = (0..values.len())
+        .filter(|&i| !values[i].is_finite() && is_return(i))
+        .count();
+    if bad > 0 {
+        return Err(bad);
+    }
+    let plain = |v: f64| (0.0..=u16::MAX as f64).contains(&v) && v.fract() == 0.0;
+    if values.iter().all(|&v| plain(v) || !v.is_finite()) {
+        return Ok(values.iter().map(|&v| v as u16).collect());
+    }
+    let mut distinct: Vec<f64> = values.iter().copied().filter(|v| v.is_finite()).collect();
+    distinct.sort_by(f64::total_cmp);
+    distinct.dedup();
+    Ok(values
+        .iter()
+        .map(|v| {
+            let rank = distinct.partition_point(|d| d < v);
+            rank.min(u16::MAX as usize) as u16
+        })
+        .collect())
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -87,5 +117,26 @@ mod tests {
         assert!(!scan.is_return(2));
         assert_eq!(scan.returns(), 1);
         assert!(!scan.is_organized());
+    }
+
+    /// Ring values of any sign or size keep their rings apart; unsigned ones are kept as
+    /// they are; a non-finite value at a return leaves no ring field, at a point without a
+    /// return it is harmless.
+    #[test]
+    fn ring_values_of_any_sign_keep_their_rings_apart() {
+        let all = |_: usize| true;
+        assert_eq!(ring_ids(&[3.0, 0.0, 63.0], all), Ok(vec![3, 0, 63]));
+        assert_eq!(
+            ring_ids(&[-16.0, 15.0, -1.0, 0.0, -16.0], all),
+            Ok(vec![0, 3, 1, 2, 0])
+        );
+        let min = i32::MIN as f64;
+        assert_eq!(ring_ids(&[min, 1.0, 2.0, min], all), Ok(vec![0, 1, 2, 0]));
+        assert_eq!(ring_ids(&[0.5, 1.5, 70_000.0], all), Ok(vec![0, 1, 2]));
+        assert_eq!(ring_ids(&[1.0, f64::NAN, 2.0], all), Err(1));
+        assert_eq!(
+            ring_ids(&[1.0, f64::NAN, 2.0], |i| i != 1),
+            Ok(vec![1, 0, 2])
+        );
     }
 }

@@ -329,7 +329,49 @@ impl OusterMetadata {
                 self.lidar_packet_size()
             )));
         }
-        Ok(())
+        self.validate_geometry()
+    }
+
+    /// Angles and offsets a sensor can have: beam elevations within +-90 deg, azimuth
+    /// offsets within +-180 deg, beam origins within a metre of the lidar's axis, a finite
+    /// lidar-to-sensor transform. Anything else would give garbage points, not an error.
+    fn validate_geometry(&self) -> Result<(), OusterError> {
+        let within = |name: &str, values: &[f64], limit: f64, unit: &str| match values
+            .iter()
+            .position(|v| !v.is_finite() || v.abs() > limit)
+        {
+            Some(i) => Err(meta_err(format!(
+                "{name}[{i}] is {}{unit}, outside +-{limit}{unit}",
+                values[i]
+            ))),
+            None => Ok(()),
+        };
+        within(
+            "beam_altitude_angles",
+            &self.beam_altitude_angles,
+            90.0,
+            " deg",
+        )?;
+        within(
+            "beam_azimuth_angles",
+            &self.beam_azimuth_angles,
+            180.0,
+            " deg",
+        )?;
+        within(
+            "lidar_origin_to_beam_origin_mm",
+            &[self.lidar_origin_to_beam_origin_mm],
+            1000.0,
+            " mm",
+        )?;
+        within("beam_origin_z_mm", &[self.beam_origin_z_mm], 1000.0, " mm")?;
+        // Translations in mm; rotations within +-1.
+        within(
+            "lidar_to_sensor_transform",
+            &self.lidar_to_sensor_transform,
+            1e5,
+            "",
+        )
     }
 }
 

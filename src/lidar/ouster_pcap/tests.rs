@@ -315,6 +315,25 @@ fn metadata_defaults_and_errors() {
         Err(OusterError::Json(_))
     ));
     assert!(OusterMetadata::from_json("[]").is_err());
+    // Geometry no sensor has is refused, naming the field.
+    let good = flat_json("LEGACY");
+    for (from, to, field) in [
+        ("[10.0, 3.0,", "[1000.0, 3.0,", "beam_altitude_angles[0]"),
+        ("[10.0, 3.0,", "[1e308, 3.0,", "beam_altitude_angles[0]"),
+        ("[3.0, 1.0,", "[3.0, 400.0,", "beam_azimuth_angles[1]"),
+        (
+            "_mm\": 15.0",
+            "_mm\": -1e6",
+            "lidar_origin_to_beam_origin_mm",
+        ),
+    ] {
+        let bad = good.replacen(from, to, 1);
+        assert_ne!(bad, good);
+        match OusterMetadata::from_json(&bad) {
+            Err(OusterError::Metadata(m)) => assert!(m.contains(field), "{m}"),
+            other => panic!("{field}: {other:?}"),
+        }
+    }
 }
 
 #[test]

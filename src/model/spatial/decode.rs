@@ -12,8 +12,8 @@ use burn::tensor::Device;
 
 use super::host::{HostQueries, HostRenderer};
 use super::{
-    Observation, Query, RAY_FEATURES, Ray, SpatialConfig, SpatialNet, encoder_input, grid_queries,
-    ray_features,
+    OWN_FEATURES, Observation, Query, RAY_FEATURES, Ray, SpatialConfig, SpatialNet,
+    base_log_depths, encoder_input, grid_queries, own_features,
 };
 use crate::lidar::AngleGrid;
 use crate::lidar::range_image::azimuth_column;
@@ -45,8 +45,10 @@ pub fn wraps(angles: &AngleGrid) -> bool {
 /// A scan encoded by both passes: the latent grids `[2, latent, H'/2, W'/2]`, on the host.
 pub struct Encoded {
     latent: Vec<f32>,
-    /// What each pass showed of every ray of the observed grid, `[2, H W, RAY_FEATURES]`.
-    own_rays: Vec<f32>,
+    /// What each pass showed of every ray of the observed grid, `[2, H W, OWN_FEATURES]`.
+    own: Vec<f32>,
+    /// The log depth each pass's rendering of each ray corrects, `[2, H W]`.
+    base: Vec<f32>,
 }
 
 /// Encodes one scan: `rays` on `angles` (row-major), each pass hiding its stripes.
@@ -58,8 +60,9 @@ pub fn encode(
     device: &Device,
 ) -> Encoded {
     let w = angles.width;
+    let circular = wraps(angles);
     let mut inputs = Vec::new();
-    let mut own = Vec::with_capacity(2 * rays.len() * RAY_FEATURES);
+    let mut own = Vec::with_capacity(2 * rays.len() * OWN_FEATURES);
     let mut shape = [0, 0];
     for pass in 0..2 {
         let hidden: Vec<Ray> = rays
@@ -73,20 +76,23 @@ pub fn encode(
                 }
             })
             .collect();
-        let (x, s) = encoder_input(
+        let features = own_features(
             &Observation {
                 rays: &hidden,
                 angles,
+                circular,
             },
             config,
         );
+        let (x, s) = encoder_input(&features, angles);
         inputs.extend(x);
         shape = s;
-        own.extend(hidden.iter().flat_map(|&r| ray_features(r, config)));
+        own.extend(features);
     }
     Encoded {
-        latent: tensor_to_vec(net.encode(inputs, 2, shape, wraps(angles), device)),
-        own_rays: own,
+        latent: tensor_to_vec(net.encode(inputs, 2, shape, circular, device)),
+        base: base_log_depths(&own),
+        own,
     }
 }
 
@@ -110,8 +116,10 @@ pub struct GridQueries {
     queries: HostQueries,
     columns: Vec<usize>,
     outside: Vec<usize>,
-    /// The queries are the observed grid's own rays, in order.
-    own_grid: bool,
+    /// For queries between the observed rays: the two source rays (the rows above and below
+    /// at the nearest column) whose prior each query blends, with their weights. `None`: the
+    /// queries are the observed grid's own rays, in order.
+    between: Option<Vec<[(usize, f32); 2]>>,
 }
 
 /// The latent grid an observation on `grid` is encoded to: (rows, columns) of cells, and
@@ -132,7 +140,7 @@ pub fn own_queries(config: &SpatialConfig, grid: &AngleGrid) -> GridQueries {
         queries: HostQueries::new(&grid_queries(grid), cells, circular, &config.renderer),
         columns: (0..grid.len()).map(|k| k % grid.width).collect(),
         outside: Vec::new(),
-        own_grid: true,
+        between: None,
     }
 }
 
@@ -143,6 +151,7 @@ pub fn onto_queries(config: &SpatialConfig, source: &AngleGrid, target: &AngleGr
     let rows = row_elevations(source);
     let mut queries = Vec::with_capacity(target.len());
     let mut columns = Vec::with_capacity(target.len());
+    let mut between = Vec::with_capacity(target.len());
     let mut outside = Vec::new();
     for k in 0..target.len() {
         let (phi, theta) = (target.elevation_rad[k], target.azimuth_rad[k]);
@@ -154,7 +163,14 @@ pub fn onto_queries(config: &SpatialConfig, source: &AngleGrid, target: &AngleGr
             elevation: phi,
             azimuth: theta,
         });
-        columns.push((col.round() as usize) % source.width.max(1));
+        let column = (col.round() as usize) % source.width.max(1);
+        columns.push(column);
+        let last = rows.len().saturating_sub(1);
+        let above = (row.floor().max(0.0) as usize).min(last);
+        let below = (above + 1).min(last);
+        let t = (row - above as f32).clamp(0.0, 1.0);
+        let ray = |i: usize| i * source.width + column;
+        between.push([(ray(above), 1.0 - t), (ray(below), t)]);
         if !within {
             outside.push(k);
         }
@@ -164,7 +180,7 @@ pub fn onto_queries(config: &SpatialConfig, source: &AngleGrid, target: &AngleGr
         queries: HostQueries::new(&queries, cells, circular, &config.renderer),
         columns,
         outside,
-        own_grid: false,
+        between: Some(between),
     }
 }
 
@@ -215,14 +231,19 @@ fn row_of(rows: &[f32], phi: f32) -> (f32, bool) {
 fn render_queries(host: &HostRenderer, encoded: &Encoded, at: &GridQueries) -> Decoded {
     let n = at.queries.len();
     let per_pass = encoded.latent.len() / 2;
-    let own_per_pass = encoded.own_rays.len() / 2;
+    let rays = encoded.base.len() / 2;
     let passes: Vec<_> = (0..2)
         .map(|p| {
             let latent = &encoded.latent[p * per_pass..(p + 1) * per_pass];
-            let own = at
-                .own_grid
-                .then(|| &encoded.own_rays[p * own_per_pass..(p + 1) * own_per_pass]);
-            host.render(latent, &at.queries, own)
+            let own = &encoded.own[p * rays * OWN_FEATURES..(p + 1) * rays * OWN_FEATURES];
+            let base = &encoded.base[p * rays..(p + 1) * rays];
+            match &at.between {
+                None => host.render(latent, &at.queries, own, base),
+                Some(between) => {
+                    let own = blend_priors(own, between);
+                    host.render(latent, &at.queries, &own, &base_log_depths(&own))
+                }
+            }
         })
         .collect();
     let mut depth_m = Vec::with_capacity(n);
@@ -235,6 +256,22 @@ fn render_queries(host: &HostRenderer, encoded: &Encoded, at: &GridQueries) -> D
         drop_prob.push(1.0 - keep);
     }
     Decoded { depth_m, drop_prob }
+}
+
+/// What queries between the observed rays are shown: unknown rays, with the prior blended
+/// from the two source rays of each.
+fn blend_priors(own: &[f32], between: &[[(usize, f32); 2]]) -> Vec<f32> {
+    let mut out = vec![0.0f32; between.len() * OWN_FEATURES];
+    for (q, pair) in between.iter().enumerate() {
+        let dst = &mut out[q * OWN_FEATURES + RAY_FEATURES..(q + 1) * OWN_FEATURES];
+        for &(k, weight) in pair {
+            let src = &own[k * OWN_FEATURES + RAY_FEATURES..(k + 1) * OWN_FEATURES];
+            for (d, s) in dst.iter_mut().zip(src) {
+                *d += weight * s;
+            }
+        }
+    }
+    out
 }
 
 /// Each beam's drop rate among the rays of a scan that were fired and seen (returns and
@@ -318,7 +355,7 @@ mod tests {
     fn drop_probability_never_sees_its_own_ray() {
         let device = Device::flex();
         let config = SpatialConfig::new();
-        let net = config.init(&mut Rng::new(4), &device);
+        let net = config.init_for_test(&mut Rng::new(4), &device);
         let angles = SensorProfile::builtin("vlp16")
             .expect("vlp16")
             .with_columns(64)
@@ -350,7 +387,7 @@ mod tests {
     fn other_grids_render_like_the_own_grid_and_leave_other_beams_out() {
         let device = Device::flex();
         let config = SpatialConfig::new();
-        let net = config.init(&mut Rng::new(4), &device);
+        let net = config.init_for_test(&mut Rng::new(4), &device);
         let angles = SensorProfile::builtin("vlp16")
             .expect("vlp16")
             .with_columns(64)

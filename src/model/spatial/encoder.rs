@@ -16,8 +16,9 @@ use crate::util::init::conv2d;
 use crate::util::rng::Rng;
 use crate::util::tensor::upsample_nearest;
 
-/// Input channels of the encoder (see [`super::inputs`]).
-pub const INPUT_CHANNELS: usize = 6;
+/// Input channels of the encoder: what is known of each ray and its prior (9), and its angles
+/// (3); see [`super::encoder_input`].
+pub const INPUT_CHANNELS: usize = 12;
 
 /// Both image axes of the encoder's input must divide by this.
 pub const MULTIPLE: usize = 8;
@@ -27,7 +28,7 @@ const SLOPE: f64 = 0.2;
 #[derive(Config, Debug, PartialEq)]
 pub struct EncoderConfig {
     /// Channels at 1/2, 1/4 and 1/8 of the input resolution.
-    #[config(default = "[32, 48, 64]")]
+    #[config(default = "[24, 40, 56]")]
     pub widths: [usize; 3],
     /// Azimuth dilations of the residual convolutions at 1/8.
     #[config(default = "vec![1, 2, 4, 8]")]

@@ -4,8 +4,8 @@
 //! burn's autodiff; decoding needs no gradients, and rendering every ray of a full-resolution
 //! scan as whole-batch tensors spends most of its time moving activations through memory.
 
-use super::render::{LN_MID_DEPTH, LOG_DEPTH_SPAN, Renderer};
-use super::{Query, RAY_FEATURES, RendererConfig};
+use super::render::{CORRECTION_SPAN, Renderer};
+use super::{OWN_FEATURES, Query, RendererConfig};
 use crate::util::matmul::{View, matmul};
 use crate::util::tensor::tensor_to_vec;
 
@@ -95,13 +95,14 @@ impl HostRenderer {
     }
 
     /// Renders `queries` from one latent grid, channels-first `[latent, rows, cols]` as the
-    /// encoder gives it, with what was observed of each query's own ray (`[n, RAY_FEATURES]`;
-    /// `None`: queries between the observed rays, read as unknown).
+    /// encoder gives it, with what was shown of each query's own ray (`[n, OWN_FEATURES]`) and
+    /// the log depth it corrects (`[n]`).
     pub fn render(
         &self,
         latent: &[f32],
         queries: &HostQueries,
-        own: Option<&[f32]>,
+        own: &[f32],
+        base: &[f32],
     ) -> HostRendered {
         let (h, c) = (self.hidden, self.latent);
         let cells = latent.len() / c.max(1);
@@ -139,15 +140,13 @@ impl HostRenderer {
                 h1,
                 false,
             );
-            if let Some(own) = own {
-                let own = &own[start * RAY_FEATURES..(start + m) * RAY_FEATURES];
-                matmul(
-                    View::new(own, m, RAY_FEATURES),
-                    View::new(&self.own_w, RAY_FEATURES, h),
-                    h1,
-                    true,
-                );
-            }
+            let own = &own[start * OWN_FEATURES..(start + m) * OWN_FEATURES];
+            matmul(
+                View::new(own, m, OWN_FEATURES),
+                View::new(&self.own_w, OWN_FEATURES, h),
+                h1,
+                true,
+            );
             for q in 0..m {
                 let row = &mut h1[q * h..(q + 1) * h];
                 for (v, b) in row.iter_mut().zip(&self.position_b) {
@@ -174,7 +173,7 @@ impl HostRenderer {
             matmul(View::new(h2, m, h), View::new(&self.head_w, h, 2), o, false);
             for q in 0..m {
                 let d = (o[2 * q] + self.head_b[0]).tanh();
-                out.log_depth.push(LN_MID_DEPTH + LOG_DEPTH_SPAN * d);
+                out.log_depth.push(base[start + q] + CORRECTION_SPAN * d);
                 out.keep_logit.push(o[2 * q + 1] + self.head_b[1]);
             }
         }
@@ -198,7 +197,7 @@ mod tests {
     fn the_host_renderer_renders_what_the_network_renders() {
         let device = Device::flex();
         let config = SpatialConfig::new();
-        let net = config.init(&mut Rng::new(3), &device);
+        let net = config.init_for_test(&mut Rng::new(3), &device);
         let mut rng = Rng::new(8);
         let (c, rows, cols) = (config.encoder.latent, 4, 9);
         let latent = rng.normal_vec(c * rows * cols);
@@ -210,19 +209,18 @@ mod tests {
                 azimuth: rng.range(-3.1, 3.1),
             })
             .collect();
-        let own = rng.normal_vec(queries.len() * RAY_FEATURES);
+        let n = queries.len();
+        let own = rng.normal_vec(n * OWN_FEATURES);
+        let base = rng.normal_vec(n);
         let expected = net.render(
             tensor_from(latent.clone(), [1, c, rows, cols], &device),
             &Queries::new(&queries, (rows, cols), true, &config.renderer, &device),
-            Some(tensor_from(
-                own.clone(),
-                [1, queries.len(), RAY_FEATURES],
-                &device,
-            )),
+            tensor_from(own.clone(), [1, n, OWN_FEATURES], &device),
+            tensor_from(base.clone(), [1, n], &device),
         );
         let host = HostRenderer::from_net(&net.renderer, c);
         let placed = HostQueries::new(&queries, (rows, cols), true, &config.renderer);
-        let got = host.render(&latent, &placed, Some(&own));
+        let got = host.render(&latent, &placed, &own, &base);
         let close = |a: Vec<f32>, b: &[f32]| {
             a.iter()
                 .zip(b)

@@ -16,6 +16,7 @@
 pub mod decode;
 pub mod encoder;
 pub mod host;
+pub mod prior;
 pub mod render;
 
 use std::path::Path;
@@ -70,6 +71,17 @@ impl SpatialConfig {
         }
     }
 
+    /// A new network whose head is random rather than zero, for tests that must see through
+    /// it (a new model's zero head renders its prior and one half everywhere).
+    #[cfg(test)]
+    pub(crate) fn init_for_test(&self, rng: &mut Rng, device: &Device) -> SpatialNet {
+        let net = self.init(rng, device);
+        SpatialNet {
+            renderer: net.renderer.with_random_head(rng, device),
+            ..net
+        }
+    }
+
     /// A config from its JSON; settings it predates take their defaults.
     fn from_json(saved: serde_json::Value) -> Result<Self> {
         let mut value = serde_json::to_value(SpatialConfig::new())?;
@@ -109,36 +121,64 @@ pub enum Ray {
     Unknown,
 }
 
-/// An observed scan on its sensor's grid: one [`Ray`] per pixel, row-major, and the grid.
+/// An observed scan on its sensor's grid: one [`Ray`] per pixel, row-major, the grid, and
+/// whether the grid is a whole turn (its rows wrap around).
 #[derive(Debug, Clone)]
 pub struct Observation<'a> {
     pub rays: &'a [Ray],
     pub angles: &'a AngleGrid,
+    pub circular: bool,
 }
 
 /// Values per ray that describe what was observed of it: normalised log range of a return,
 /// "returned", "known" (all 0 for an unknown ray).
 pub const RAY_FEATURES: usize = 3;
 
+/// Values per ray the model is shown: its [`ray_features`], then its [`prior::prior`].
+pub const OWN_FEATURES: usize = RAY_FEATURES + prior::PRIOR_FEATURES;
+
+// The encoder reads each ray's own features and its angles (elevation, sin and cos azimuth).
+const _: () = assert!(INPUT_CHANNELS == OWN_FEATURES + 3);
+
 /// What was observed of one ray, as the encoder's first channels and the renderer's own-ray
 /// input see it.
 pub fn ray_features(ray: Ray, config: &SpatialConfig) -> [f32; RAY_FEATURES] {
     match ray {
-        Ray::Return(r) if r >= config.min_range_m && r <= config.max_range_m => [
-            (r.ln() - render::LN_MID_DEPTH) / render::LOG_DEPTH_SPAN,
-            1.0,
-            1.0,
-        ],
+        Ray::Return(r) if r >= config.min_range_m && r <= config.max_range_m => {
+            [prior::normalised_log(r), 1.0, 1.0]
+        }
         Ray::Return(_) | Ray::Dropped => [0.0, 0.0, 1.0],
         Ray::Unknown => [0.0; RAY_FEATURES],
     }
 }
 
-/// The encoder input of one observation, `[INPUT_CHANNELS, H', W']` with H' and W' rounded up
-/// to [`MULTIPLE`]; padding is unknown. Channels: normalised log range of a return, "returned",
-/// "known", elevation, sin and cos of azimuth.
-pub fn encoder_input(obs: &Observation, config: &SpatialConfig) -> (Vec<f32>, [usize; 2]) {
-    let (h, w) = (obs.angles.height, obs.angles.width);
+/// What the model is shown of every ray of an observation, `[H W, OWN_FEATURES]` row-major.
+pub fn own_features(obs: &Observation, config: &SpatialConfig) -> Vec<f32> {
+    let prior = prior::prior(obs.rays, obs.angles, obs.circular, config);
+    obs.rays
+        .iter()
+        .zip(prior.chunks_exact(prior::PRIOR_FEATURES))
+        .flat_map(|(&ray, p)| {
+            ray_features(ray, config)
+                .into_iter()
+                .chain(p.iter().copied())
+        })
+        .collect()
+}
+
+/// The log depth each ray's rendering corrects ([`prior::base_log_depth`]), from its own
+/// features.
+pub fn base_log_depths(own: &[f32]) -> Vec<f32> {
+    own.chunks_exact(OWN_FEATURES)
+        .map(|f| prior::base_log_depth(&f[RAY_FEATURES..]))
+        .collect()
+}
+
+/// The encoder input of one observation from its [`own_features`], `[INPUT_CHANNELS, H', W']`
+/// with H' and W' rounded up to [`MULTIPLE`]; padding is unknown. Channels: the own features,
+/// elevation, sin and cos of azimuth.
+pub fn encoder_input(own: &[f32], angles: &AngleGrid) -> (Vec<f32>, [usize; 2]) {
+    let (h, w) = (angles.height, angles.width);
     let (hp, wp) = (h.next_multiple_of(MULTIPLE), w.next_multiple_of(MULTIPLE));
     let plane = hp * wp;
     let mut x = vec![0.0f32; INPUT_CHANNELS * plane];
@@ -146,13 +186,16 @@ pub fn encoder_input(obs: &Observation, config: &SpatialConfig) -> (Vec<f32>, [u
         for j in 0..w {
             let k = i * w + j;
             let p = i * wp + j;
-            for (c, v) in ray_features(obs.rays[k], config).into_iter().enumerate() {
+            for (c, &v) in own[k * OWN_FEATURES..(k + 1) * OWN_FEATURES]
+                .iter()
+                .enumerate()
+            {
                 x[c * plane + p] = v;
             }
-            let (s, c) = obs.angles.azimuth_rad[k].sin_cos();
-            x[3 * plane + p] = 2.0 * obs.angles.elevation_rad[k];
-            x[4 * plane + p] = s;
-            x[5 * plane + p] = c;
+            let (s, c) = angles.azimuth_rad[k].sin_cos();
+            x[OWN_FEATURES * plane + p] = 2.0 * angles.elevation_rad[k];
+            x[(OWN_FEATURES + 1) * plane + p] = s;
+            x[(OWN_FEATURES + 2) * plane + p] = c;
         }
     }
     (x, [hp, wp])
@@ -200,9 +243,10 @@ impl SpatialNet {
         &self,
         latent: Tensor<4>,
         queries: &Queries,
-        own_rays: Option<Tensor<3>>,
+        own: Tensor<3>,
+        base: Tensor<2>,
     ) -> Rendered {
-        self.renderer.forward(latent, queries, own_rays)
+        self.renderer.forward(latent, queries, own, base)
     }
 }
 

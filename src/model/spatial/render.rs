@@ -4,10 +4,11 @@
 //! A query reads the four latent cells around its position on the grid, each through its own
 //! linear map and weighted bilinearly, adds a linear map of its offset inside the cell and of
 //! circular Fourier features of its own angles (DUSty v2's positional encoding, exactly
-//! 2pi-periodic in azimuth), and, where the query is a ray of the observed grid, a linear map
-//! of what was observed of that ray (its range, or that it was dropped or unknown), and runs
-//! the sum through a small MLP. The corner maps are applied to the cells before the gather,
-//! so their cost is paid per cell rather than per query.
+//! 2pi-periodic in azimuth) and a linear map of what was observed of the query's own ray and
+//! its interpolation prior ([`super::prior`]), and runs the sum through a small MLP. The log
+//! depth it outputs is a bounded correction of the prior's, so a model starts at
+//! interpolation. The corner maps are applied to the cells before the gather, so their cost is
+//! paid per cell rather than per query.
 
 use burn::config::Config;
 use burn::module::Module;
@@ -21,9 +22,11 @@ use crate::util::tensor::tensor_from;
 
 const SLOPE: f64 = 0.2;
 
-/// Log depth is `LN_MID_DEPTH + LOG_DEPTH_SPAN * tanh(output)`: 0.3 m to 330 m.
+/// Ranges are read as `(ln r - LN_MID_DEPTH) / LOG_DEPTH_SPAN`: 0.3 m to 330 m is -1 to 1.
 pub const LN_MID_DEPTH: f32 = std::f32::consts::LN_10;
 pub const LOG_DEPTH_SPAN: f32 = 3.5;
+/// Log depth is `base + CORRECTION_SPAN * tanh(output)`: at most a factor e^3 off the prior.
+pub const CORRECTION_SPAN: f32 = 3.0;
 
 #[derive(Config, Debug, PartialEq)]
 pub struct RendererConfig {
@@ -74,12 +77,15 @@ impl RendererConfig {
             ),
             position: linear(LinearConfig::new(self.position_features(), h), rng, device),
             own_ray: linear(
-                LinearConfig::new(super::RAY_FEATURES, h).with_bias(false),
+                LinearConfig::new(super::OWN_FEATURES, h).with_bias(false),
                 rng,
                 device,
             ),
             mid: linear(LinearConfig::new(h, h), rng, device),
-            head: linear(LinearConfig::new(h, 2), rng, device),
+            // Zero: an untrained model renders its prior and a drop probability of one half.
+            head: LinearConfig::new(h, 2)
+                .with_initializer(burn::nn::Initializer::Zeros)
+                .init(device),
         }
     }
 }
@@ -218,16 +224,26 @@ impl Renderer {
         )
     }
 
+    /// The same renderer with a random head, for tests that must see through it.
+    #[cfg(test)]
+    pub(crate) fn with_random_head(mut self, rng: &mut Rng, device: &Device) -> Self {
+        let h = self.mid.weight.dims()[1];
+        self.head = linear(LinearConfig::new(h, 2), rng, device);
+        self
+    }
+
     /// # Shapes
     /// - latent: `[batch, ch, rows, cols]`, the grid `queries` were placed on
-    /// - own_rays: `[batch, n, RAY_FEATURES]`, what each scan's encoder was shown of each
-    ///   query's own ray ([`super::ray_features`]); `None` for queries between the observed
-    ///   rays (another grid), which read as unknown
+    /// - own: `[batch, n, OWN_FEATURES]`, what each scan's encoder was shown of each query's
+    ///   own ray ([`super::own_features`]; queries between the observed rays read as unknown
+    ///   rays with their neighbours' prior)
+    /// - base: `[batch, n]`, the log depth each query corrects ([`super::base_log_depths`])
     pub fn forward(
         &self,
         latent: Tensor<4>,
         queries: &Queries,
-        own_rays: Option<Tensor<3>>,
+        own: Tensor<3>,
+        base: Tensor<2>,
     ) -> Rendered {
         let [b, c, rows, cols] = latent.dims();
         let cells = latent.permute([0, 2, 3, 1]).reshape([b, rows * cols, c]);
@@ -246,9 +262,7 @@ impl Renderer {
             let w = queries.weights.clone().narrow(1, k, 1).reshape([1, n, 1]);
             h = h + gathered * w;
         }
-        if let Some(own) = own_rays {
-            h = h + self.own_ray.forward(own);
-        }
+        h = h + self.own_ray.forward(own);
         let h = leaky_relu(h, SLOPE);
         let h = leaky_relu(self.mid.forward(h), SLOPE);
         let out = self.head.forward(h); // [b, n, 2]
@@ -257,8 +271,8 @@ impl Renderer {
             .narrow(2, 0, 1)
             .reshape([b, n])
             .tanh()
-            .mul_scalar(LOG_DEPTH_SPAN)
-            .add_scalar(LN_MID_DEPTH);
+            .mul_scalar(CORRECTION_SPAN)
+            + base;
         Rendered {
             log_depth,
             keep_logit: out.narrow(2, 1, 1).reshape([b, n]),

@@ -6,9 +6,10 @@
 //! held out for validation.
 //!
 //! Each training example hides some of the truth from the encoder: rays marked unknown (stripes
-//! of columns as in decoding, random rays, whole beams as in restoration) and holes that look
-//! like drops (patches, beams, sectors, object shapes), so completion is what it learns. Every
-//! true return is a target for x_d; the drop probability is scored on the unknown rays.
+//! of columns as in decoding, random rays, whole beams as in restoration) and holes (patches,
+//! beams, sectors, object shapes) that either look like drops or are unknown, so completion is
+//! what it learns. Every true return is a target for x_d; the drop probability is scored on
+//! the unknown rays.
 
 use std::path::{Path, PathBuf};
 
@@ -19,7 +20,8 @@ use crate::lidar::holes::HoleKind;
 use crate::lidar::{AngleGrid, SensorProfile, Strategy};
 use crate::model::spatial::decode::{STRIPE, hiding_pass};
 use crate::model::spatial::{
-    Observation, Query, RAY_FEATURES, Ray, SpatialConfig, encoder_input, grid_queries, ray_features,
+    OWN_FEATURES, Observation, Query, Ray, SpatialConfig, base_log_depths, encoder_input,
+    grid_queries, own_features,
 };
 use crate::sim::{SceneConfig, Simulator};
 use crate::util::rng::Rng;
@@ -230,8 +232,10 @@ pub struct Batch {
     pub circular: bool,
     pub queries: Vec<Query>,
     /// Per example and query: what the encoder was shown of the query's own ray,
-    /// `[size, queries, RAY_FEATURES]`.
+    /// `[size, queries, OWN_FEATURES]`.
     pub own_rays: Vec<f32>,
+    /// Per example and query: the log depth its rendering corrects.
+    pub base: Vec<f32>,
     /// Per example and query: ln(true range) where a true return, else 0.
     pub log_range: Vec<f32>,
     /// 1 where a true return the encoder saw.
@@ -247,8 +251,10 @@ pub struct Batch {
 /// How much of the truth a training example hides.
 #[derive(Debug, Clone, Copy)]
 pub struct Hiding {
-    /// Probability of holes that look like drops.
+    /// Probability of holes.
     pub cut: f32,
+    /// Share of holes that are unknown rather than drops (x_n learns inside them).
+    pub unknown_holes: f32,
     /// Share of the crop's rays that are queries (the rest are neither rendered nor scored).
     pub query_share: f32,
     /// Share of examples whose ranges are scaled by a factor from 0.15 to 1.2 (log-uniform):
@@ -285,7 +291,8 @@ pub fn batch(
         input_shape: [0, 0],
         circular: whole && crate::model::spatial::decode::wraps(&angles),
         queries: picked.iter().map(|&q| all_queries[q]).collect(),
-        own_rays: Vec::with_capacity(size * n * RAY_FEATURES),
+        own_rays: Vec::with_capacity(size * n * OWN_FEATURES),
+        base: Vec::with_capacity(size * n),
         log_range: Vec::with_capacity(size * n),
         seen_return: Vec::with_capacity(size * n),
         hidden_return: Vec::with_capacity(size * n),
@@ -301,13 +308,18 @@ pub fn batch(
         if rng.chance(0.5) {
             mirror(&mut range, h, w);
         }
-        let cut = if rng.chance(hiding.cut) {
+        let mut cut = if rng.chance(hiding.cut) {
             let kind = HoleKind::ALL[rng.below(HoleKind::ALL.len())];
             kind.cut(&range, h, w, rng)
         } else {
             vec![false; h * w]
         };
-        let unknown = unknown_rays(h, w, rng);
+        let mut unknown = unknown_rays(h, w, rng);
+        if rng.chance(hiding.unknown_holes) {
+            for (u, c) in unknown.iter_mut().zip(cut.iter_mut()) {
+                *u |= std::mem::take(c);
+            }
+        }
         let at = |q: usize| (q / crop) * w + (start + q % crop) % w;
         let returns = |k: usize| range[k] > config.min_range_m && range[k] <= config.max_range_m;
         let rays: Vec<Ray> = (0..h * crop)
@@ -322,8 +334,17 @@ pub fn batch(
                 }
             })
             .collect();
+        let observation = Observation {
+            rays: &rays,
+            angles: &angles,
+            circular: b.circular,
+        };
+        let own = own_features(&observation, config);
+        let base = base_log_depths(&own);
         for &q in &picked {
-            b.own_rays.extend(ray_features(rays[q], config));
+            b.own_rays
+                .extend_from_slice(&own[q * OWN_FEATURES..(q + 1) * OWN_FEATURES]);
+            b.base.push(base[q]);
             let k = at(q);
             let ret = returns(k);
             let hidden = unknown[k] || cut[k];
@@ -333,13 +354,7 @@ pub fn batch(
             b.unknown.push(f32::from(unknown[k] && source.real));
             b.returned.push(f32::from(ret));
         }
-        let (x, shape) = encoder_input(
-            &Observation {
-                rays: &rays,
-                angles: &angles,
-            },
-            config,
-        );
+        let (x, shape) = encoder_input(&own, &angles);
         b.inputs.extend(x);
         b.input_shape = shape;
     }
@@ -421,6 +436,7 @@ mod tests {
         let config = SpatialConfig::new();
         let hiding = Hiding {
             cut: 0.5,
+            unknown_holes: 0.5,
             query_share: 0.5,
             rescale: 0.3,
         };
@@ -428,7 +444,8 @@ mod tests {
         let n = b.queries.len();
         assert!(n > 300 && n < 700, "{n} queries of 1024");
         assert_eq!(b.input_shape, [16, 64]);
-        assert_eq!(b.inputs.len(), 4 * 6 * 16 * 64);
+        assert_eq!(b.inputs.len(), 4 * 12 * 16 * 64);
+        assert_eq!(b.own_rays.len(), 4 * n * OWN_FEATURES);
         for k in 0..4 * n {
             // A true return is either seen or hidden; never both.
             assert_eq!(b.seen_return[k] + b.hidden_return[k], b.returned[k]);

@@ -25,7 +25,7 @@ use serde::{Deserialize, Serialize};
 
 use super::Backend;
 use super::run_dir::{open_log, read_state, write_checkpoint};
-use crate::model::spatial::{Queries, RAY_FEATURES, SpatialConfig, SpatialNet, WEIGHTS};
+use crate::model::spatial::{OWN_FEATURES, Queries, SpatialConfig, SpatialNet, WEIGHTS};
 use crate::util::rng::Rng;
 use crate::util::tensor::tensor_from;
 use data::{Hiding, Source};
@@ -47,11 +47,14 @@ pub struct SpatialTrainConfig {
     #[config(default = 2.0)]
     pub hidden_weight: f32,
     /// Weight of the ray-drop likelihood.
-    #[config(default = 0.5)]
+    #[config(default = 1.0)]
     pub drop_weight: f32,
-    /// Share of examples with holes that look like drops.
-    #[config(default = 0.6)]
+    /// Share of examples with holes (patches, beams, sectors, object shapes).
+    #[config(default = 0.85)]
     pub cut: f32,
+    /// Share of those holes that are unknown to the encoder rather than drops.
+    #[config(default = 0.4)]
+    pub unknown_holes: f32,
     /// Share of a crop's rays rendered and scored per step (the same rays for every example
     /// of a batch): the loss is an unbiased estimate at a fraction of the renderer's cost.
     #[config(default = 0.35)]
@@ -268,6 +271,7 @@ impl Trainer {
         };
         let hiding = Hiding {
             cut: self.config.cut,
+            unknown_holes: self.config.unknown_holes,
             query_share: self.config.query_share,
             rescale: self.config.rescale,
         };
@@ -380,10 +384,10 @@ fn half_step(
         &config.model.renderer,
         ad,
     );
-    let own = tensor_from(b.own_rays, [b.size, queries.len, RAY_FEATURES], ad);
-    let out = net.render(latent, &queries, Some(own));
+    let own = tensor_from(b.own_rays, [b.size, queries.len, OWN_FEATURES], ad);
     let shape = [b.size, queries.len];
     let t = |v: Vec<f32>| tensor_from(v, shape, ad);
+    let out = net.render(latent, &queries, own, t(b.base));
     let err = (out.log_depth - t(b.log_range)).abs();
     let seen = masked_mean(err.clone(), t(b.seen_return));
     let hidden = masked_mean(err, t(b.hidden_return));

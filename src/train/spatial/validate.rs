@@ -1,7 +1,8 @@
 //! Scoring a spatial model on whole held-out scans, decoded as `convert` decodes them: x_d
-//! against the returns it saw, depth in medium patches cut into the scan against the truth,
-//! and x_n's likelihood of the true mask inside those patches beside the per-beam drop rate
-//! of the rest of the scan (the simple baseline x_n must beat).
+//! against the returns it saw, depth in medium patches cut into the scan (as drops, as a user's
+//! scan shows them) against the truth, and x_n's likelihood of the true mask inside those
+//! patches when they are unknown to the model, beside the per-beam drop rate of the rest of
+//! the scan (the simple baseline x_n must beat).
 
 use burn::tensor::Device;
 use serde::Serialize;
@@ -9,7 +10,7 @@ use serde::Serialize;
 use super::data::Source;
 use crate::lidar::holes::HoleKind;
 use crate::model::spatial::decode::{decode, rays_of};
-use crate::model::spatial::{SpatialConfig, SpatialNet};
+use crate::model::spatial::{Ray, SpatialConfig, SpatialNet};
 use crate::util::rng::Rng;
 
 /// Scans per validation source (spread over it).
@@ -74,6 +75,13 @@ fn score_source(
             .map(|(&r, &cut)| if cut { 0.0 } else { r })
             .collect();
         let out = decode(net, config, &rays_of(&observed), &source.angles, device);
+        let unseen = decode(
+            net,
+            config,
+            &unknown_in(&observed, &holes),
+            &source.angles,
+            device,
+        );
         let row_keep = row_keep_rates(&observed, &holes, h, w);
         for k in 0..h * w {
             let ret = truth[k] > config.min_range_m && truth[k] <= config.max_range_m;
@@ -87,7 +95,7 @@ fn score_source(
             if ret {
                 hole.add(rel(out.depth_m[k]));
             }
-            nll.add(bernoulli_nll(1.0 - out.drop_prob[k], ret));
+            nll.add(bernoulli_nll(1.0 - unseen.drop_prob[k], ret));
             base.add(bernoulli_nll(row_keep[k / w], ret));
         }
     }
@@ -99,6 +107,15 @@ fn score_source(
         hole_drop_nll: nll.get(),
         hole_row_rate_nll: base.get(),
     }
+}
+
+/// The rays of `observed` with those in `holes` unknown.
+pub fn unknown_in(observed: &[f32], holes: &[bool]) -> Vec<Ray> {
+    rays_of(observed)
+        .into_iter()
+        .zip(holes)
+        .map(|(r, &hole)| if hole { Ray::Unknown } else { r })
+        .collect()
 }
 
 /// Each beam's share of returns among its rays outside `holes`.
