@@ -42,6 +42,9 @@ pub struct Recording {
     pub metadata: BTreeMap<String, BTreeMap<String, String>>,
     /// Messages of the topic that could not be decoded or projected.
     pub skipped: Vec<String>,
+    /// The sensor that made the recording, where known: its `simulate` profile, or the
+    /// profile estimated from its first scan (whatever grid the scans were projected on).
+    pub own_sensor: Option<SensorProfile>,
 }
 
 impl Recording {
@@ -176,21 +179,26 @@ pub fn read_with(
             .map(|s| format!(": {s}"))
             .unwrap_or_default()
     );
+    let own_sensor = || -> anyhow::Result<SensorProfile> {
+        match Recording::simulated_profile(&metadata) {
+            Some(p) => Ok(p),
+            None => Ok(estimate_profile(std::slice::from_ref(&raws[0].cloud.scan))
+                .map_err(|e| {
+                    anyhow::anyhow!(
+                        "{}: cannot estimate the sensor from the first scan: {e}; give --sensor",
+                        Location::message(path, &topic_name, raws[0].log_time)
+                    )
+                })?
+                .profile),
+        }
+    };
+    let own = own_sensor();
     let profile = match grid {
         Grid::Fixed(p) => p.clone(),
         Grid::FromRecording { columns } => {
-            let p = match Recording::simulated_profile(&metadata) {
-                Some(p) => p,
-                None => {
-                    estimate_profile(std::slice::from_ref(&raws[0].cloud.scan))
-                        .map_err(|e| {
-                            anyhow::anyhow!(
-                                "{}: cannot estimate the sensor from the first scan: {e}; give --sensor",
-                                Location::message(path, &topic_name, raws[0].log_time)
-                            )
-                        })?
-                        .profile
-                }
+            let p = match &own {
+                Ok(p) => p.clone(),
+                Err(e) => anyhow::bail!("{e}"),
             };
             match columns {
                 Some(c) => p.with_columns(*c),
@@ -236,5 +244,6 @@ pub fn read_with(
         organized,
         metadata,
         skipped,
+        own_sensor: own.ok(),
     })
 }

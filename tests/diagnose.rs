@@ -634,3 +634,33 @@ fn a_recording_of_one_scan_is_checked_on_held_out_pixels() {
     assert!(o.status.success(), "{}", stderr(&o));
     assert!(stderr(&o).contains("has one scan"), "{}", stderr(&o));
 }
+
+/// A 64-beam simulation against a real VLP-16 recording (imported from its PCD file, no
+/// `simulate` metadata: its sensor is estimated from its scan) is refused, naming both
+/// sensors, instead of squeezing 16 beams onto 64 rows and "finding" dead beams.
+#[test]
+fn recordings_of_two_sensors_are_not_compared() {
+    let Some(root) = common::real_data("recordings_of_two_sensors_are_not_compared") else {
+        return;
+    };
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let sim = d.join("sim.mcap");
+    simulate(&sim, 5, "ideal", false);
+    let real = d.join("vlp16.mcap");
+    let o = run(&[
+        "import",
+        root.join("nebula").to_str().unwrap(),
+        real.to_str().unwrap(),
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let out = diagnose(&sim, &real, &d.join("r"), &[]);
+    assert!(!out.status.success());
+    let err = stderr(&out);
+    assert!(
+        // The VLP-16's count is estimated from one room scan: 15 or 16 beams.
+        err.contains("64-beam") && err.contains("vlp16.mcap a 1"),
+        "{err}"
+    );
+    assert!(!d.join("r").join("report.json").exists());
+}

@@ -176,6 +176,32 @@ fn refuse_report_over_inputs(args: &DiagnoseArgs) -> anyhow::Result<()> {
     Ok(())
 }
 
+/// Refuses to compare recordings of sensors with different beam counts: projected on one
+/// grid, the smaller one's rows would read as dropped beams, and the diagnosis would "find"
+/// a dropout the sensors never had.
+fn refuse_other_sensors(
+    args: &DiagnoseArgs,
+    sim: &recording::Recording,
+    real: &recording::Recording,
+) -> anyhow::Result<()> {
+    let (Some(a), Some(b)) = (&sim.own_sensor, &real.own_sensor) else {
+        return Ok(());
+    };
+    let (na, nb) = (a.beams().max(1), b.beams().max(1));
+    // Estimated beam counts can be off by the beams that saw nothing in the first scan (a
+    // real beam dropout among them): only a gap of half again is another sensor.
+    if 2 * na.max(nb) >= 3 * na.min(nb) {
+        anyhow::bail!(
+            "--sim {} is a {na}-beam sensor ({}) and --real {} a {nb}-beam one ({}): a diagnosis compares two recordings of one sensor; simulate the real sensor (`rangegan-mcap simulate --sensor ...`) and diagnose again",
+            args.sim.display(),
+            a.name,
+            args.real.display(),
+            b.name
+        );
+    }
+    Ok(())
+}
+
 pub fn run(global: &GlobalArgs, args: DiagnoseArgs) -> anyhow::Result<Outcome> {
     crate::lidar::profile::check_columns(args.columns).map_err(anyhow::Error::msg)?;
     refuse_report_over_inputs(&args)?;
@@ -206,6 +232,7 @@ pub fn run(global: &GlobalArgs, args: DiagnoseArgs) -> anyhow::Result<Outcome> {
         args.projection,
     )
     .with_context(|| format!("reading --real {}", args.real.display()))?;
+    refuse_other_sensors(&args, &sim, &real)?;
     let completion = match args.completion {
         CompletionArg::Neighbour => {
             anyhow::ensure!(
