@@ -55,9 +55,9 @@ fn main() -> Result<()> {
     let profile = SensorProfile::kitti_hdl64e().with_columns(COLUMNS);
     let scan = lidar::kitti::read_bin(&scan_path)?;
     let image = lidar::project(&scan, &profile, Strategy::Auto)?;
-    let (net, config) = (&model.net, &model.config);
+    let host = model.host();
     let rays = rays_of(&image.range_m);
-    let decoded = decode(net, config, &rays, &image.angles, &device);
+    let decoded = decode(&host, &rays, &image.angles);
     let mask = sample_masks(&decoded.drop_prob, 1, scan_seed("/velodyne_points", 0)).remove(0);
     let kept = Sparsify::kept_rows(16, 64);
     let sparse: Vec<Ray> = (rays.iter().enumerate())
@@ -69,7 +69,7 @@ fn main() -> Result<()> {
             }
         })
         .collect();
-    let restored = decode(net, config, &sparse, &image.angles, &device);
+    let restored = decode(&host, &sparse, &image.angles);
     let returns: Vec<usize> = (0..image.len())
         .filter(|&k| image.range_m[k] > 0.0)
         .collect();

@@ -97,10 +97,10 @@ struct ScanScore {
 }
 
 fn score(model: &SpatialModel, image: &RangeImage, index: usize) -> ScanScore {
-    let device = Device::flex();
+    let host = model.host();
     let (h, w) = (image.height, image.width);
     let truth = &image.range_m;
-    let run = |rays: &[Ray]| decode(&model.net, &model.config, rays, &image.angles, &device);
+    let run = |rays: &[Ray]| decode(&host, rays, &image.angles);
     let all_rays = rays_of(truth);
     let full = run(&all_rays);
     let mut seen = Mae::default();

@@ -81,6 +81,15 @@ impl Recording {
     }
 }
 
+/// Whether two sensor profiles are different sensors by their beam counts: projected on one
+/// grid, the smaller one's scans would leave rows empty that read as dead beams. Estimated
+/// counts can be off by the beams that saw nothing in one scan (a real beam dropout among
+/// them), so only counts half again apart tell two sensors apart.
+pub fn other_sensors(a: &SensorProfile, b: &SensorProfile) -> bool {
+    let (na, nb) = (a.beams().max(1), b.beams().max(1));
+    2 * na.max(nb) >= 3 * na.min(nb)
+}
+
 /// A message of the topic, kept until the grid is known.
 struct Raw {
     log_time: u64,

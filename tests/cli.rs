@@ -485,3 +485,42 @@ fn a_closed_stdout_ends_quietly() {
     assert!(!err.contains("panicked"), "{err}");
     assert_ne!(out.status.code(), Some(101), "{err}");
 }
+
+/// A folder holding recordings of two sensors (a 64-beam and a 16-beam simulation) is not
+/// squeezed onto one grid: `train` and `calibrate-raydrop` refuse, naming the recording and
+/// both sensors.
+#[test]
+fn training_on_two_sensors_at_once_is_refused() {
+    let dir = tempfile::tempdir().unwrap();
+    let data = dir.path().join("data");
+    std::fs::create_dir_all(&data).unwrap();
+    for (name, sensor) in [("a_hdl64e.mcap", "hdl64e"), ("b_vlp16.mcap", "vlp16")] {
+        let path = data.join(name);
+        let o = run(&[
+            "simulate",
+            "--sensor",
+            sensor,
+            "--columns",
+            "256",
+            "--scans",
+            "2",
+            path.to_str().unwrap(),
+        ]);
+        assert!(o.status.success(), "{}", stderr(&o));
+    }
+    let run_dir = dir.path().join("run");
+    let o = run(&[
+        "train",
+        run_dir.to_str().unwrap(),
+        "--data",
+        data.to_str().unwrap(),
+        "--total-images",
+        "8",
+    ]);
+    assert!(!o.status.success());
+    let err = stderr(&o);
+    assert!(
+        err.contains("b_vlp16.mcap") && err.contains("16-beam") && err.contains("64-beam"),
+        "{err}"
+    );
+}

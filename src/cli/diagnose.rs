@@ -187,10 +187,8 @@ fn refuse_other_sensors(
     let (Some(a), Some(b)) = (&sim.own_sensor, &real.own_sensor) else {
         return Ok(());
     };
-    let (na, nb) = (a.beams().max(1), b.beams().max(1));
-    // Estimated beam counts can be off by the beams that saw nothing in the first scan (a
-    // real beam dropout among them): only a gap of half again is another sensor.
-    if 2 * na.max(nb) >= 3 * na.min(nb) {
+    if recording::other_sensors(a, b) {
+        let (na, nb) = (a.beams(), b.beams());
         anyhow::bail!(
             "--sim {} is a {na}-beam sensor ({}) and --real {} a {nb}-beam one ({}): a diagnosis compares two recordings of one sensor; simulate the real sensor (`rangegan-mcap simulate --sensor ...`) and diagnose again",
             args.sim.display(),

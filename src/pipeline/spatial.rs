@@ -10,20 +10,16 @@
 
 use std::sync::{Arc, Mutex};
 
-use burn::tensor::Device;
-
 use super::stages::{Encoder, complete, extra_grids, suffix_of};
 use super::{ScanInput, Staged};
 use crate::decode::prior_free::{FillCheck, complete_without_prior};
 use crate::decode::{Fill, Rendered, Sparsify, scan_seed};
 use crate::lidar::{AngleGrid, RangeImage, SensorProfile};
 use crate::model::spatial::decode::{
-    Decoded, GridQueries, blend_with_row_rates, checked_weight, encode, onto_queries, own_queries,
-    render,
+    Decoded, GridQueries, HostModel, blend_with_row_rates, checked_weight, encode, onto_queries,
+    own_queries, render,
 };
-use crate::model::spatial::host::HostRenderer;
 use crate::model::spatial::{Ray, SpatialModel};
-use crate::util::pools::Pools;
 use crate::util::rng::Rng;
 
 /// A sensor grid's queries and those of its extra grids, prepared once.
@@ -39,10 +35,8 @@ struct SensorGrids {
 const PREPARED_GRIDS: usize = 16;
 
 pub struct SpatialStage {
-    model: SpatialModel,
-    host: HostRenderer,
-    device: Device,
-    pools: Pools,
+    /// The model prepared for decoding on the host: one scan per thread, no tensor library.
+    model: HostModel,
     mask_samples: usize,
     upsample: Vec<usize>,
     /// `(suffix, grid)` of each target sensor.
@@ -72,10 +66,7 @@ impl SpatialStage {
             anyhow::bail!("--upsample {f}: factors from 1 to 8 are supported");
         }
         Ok(SpatialStage {
-            host: HostRenderer::from_net(&model.net.renderer, model.config.encoder.latent),
-            model,
-            device: Device::flex(),
-            pools: Pools::new(rayon::current_num_threads())?,
+            model: HostModel::new(&model.net, &model.config),
             mask_samples: outputs.mask_samples,
             upsample: outputs.upsample.clone(),
             targets: (outputs.target_sensors.iter())
@@ -106,15 +97,11 @@ impl SpatialStage {
         let grid = &image.angles;
         let rays = self.observed_rays(&image.range_m, grid, seed);
         let grids = self.grids(grid);
-        let (own, on_extra) = self.pools.run(|| {
-            let (net, config) = (&self.model.net, &self.model.config);
-            let encoded = encode(net, config, &rays, grid, &self.device);
-            let own = render(&self.host, &encoded, &grids.own);
-            let extra: Vec<Decoded> = (grids.extra.iter())
-                .map(|(_, _, q)| render(&self.host, &encoded, q))
-                .collect();
-            (own, extra)
-        });
+        let encoded = encode(&self.model, &rays, grid);
+        let own = render(&self.model, &encoded, &grids.own);
+        let on_extra: Vec<Decoded> = (grids.extra.iter())
+            .map(|(_, _, q)| render(&self.model, &encoded, q))
+            .collect();
         let out = Encoder {
             family: input.family,
             stamp: input.cloud.stamp_nanos,
@@ -171,13 +158,12 @@ impl SpatialStage {
         if let Some(found) = prepared.iter().find(|g| g.grid == *own) {
             return found.clone();
         }
-        let config = &self.model.config;
         let grids = Arc::new(SensorGrids {
             grid: own.clone(),
-            own: own_queries(config, own),
+            own: own_queries(&self.model, own),
             extra: (extra_grids(own, &self.upsample, &self.targets).into_iter())
                 .map(|(suffix, g)| {
-                    let q = onto_queries(config, own, &g);
+                    let q = onto_queries(&self.model, own, &g);
                     (suffix, g, q)
                 })
                 .collect(),

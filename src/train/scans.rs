@@ -253,6 +253,18 @@ impl ScanSource {
                 &grid,
                 self.layout.strategy,
             )?;
+            if let Some(own) = &rec.own_sensor
+                && recording::other_sensors(own, profile)
+            {
+                bail!(
+                    "{} was made by a {}-beam sensor ({}), the scans are trained on a {}-beam grid ({}): one model learns one sensor's scans; give the recordings of one sensor",
+                    file.display(),
+                    own.beams(),
+                    own.name,
+                    profile.beams(),
+                    profile.name
+                );
+            }
             for skipped in &rec.skipped {
                 eprintln!("warning: left out of the training scans: {skipped}");
             }

@@ -5,19 +5,35 @@
 //! drop probability x_n from the pass that did not, so x_n is what the model predicts from the
 //! ray's surroundings, never a copy of whether the ray itself returned.
 //!
-//! The encoder runs in burn; the renderer on the host ([`super::host`]), prepared once per
-//! model ([`HostRenderer`]) and once per grid ([`GridQueries`]).
-
-use burn::tensor::Device;
+//! Both run on the host ([`super::host_encoder`], [`super::host`]), prepared once per model
+//! ([`HostModel`]) and once per grid ([`GridQueries`]).
 
 use super::host::{HostQueries, HostRenderer};
+use super::host_encoder::HostEncoder;
 use super::{
     OWN_FEATURES, Observation, Query, RAY_FEATURES, Ray, SpatialConfig, SpatialNet,
     base_log_depths, encoder_input, grid_queries, own_features,
 };
 use crate::lidar::AngleGrid;
 use crate::lidar::range_image::azimuth_column;
-use crate::util::tensor::tensor_to_vec;
+
+/// A trained model prepared for decoding on the host: its config, encoder and renderer.
+#[derive(Debug, Clone)]
+pub struct HostModel {
+    pub config: SpatialConfig,
+    encoder: HostEncoder,
+    renderer: HostRenderer,
+}
+
+impl HostModel {
+    pub fn new(net: &SpatialNet, config: &SpatialConfig) -> Self {
+        HostModel {
+            config: config.clone(),
+            encoder: HostEncoder::from_net(&net.encoder),
+            renderer: HostRenderer::from_net(&net.renderer, config.encoder.latent),
+        }
+    }
+}
 
 /// Columns per hidden stripe of the two passes.
 pub const STRIPE: usize = 4;
@@ -52,18 +68,12 @@ pub struct Encoded {
 }
 
 /// Encodes one scan: `rays` on `angles` (row-major), each pass hiding its stripes.
-pub fn encode(
-    net: &SpatialNet,
-    config: &SpatialConfig,
-    rays: &[Ray],
-    angles: &AngleGrid,
-    device: &Device,
-) -> Encoded {
+pub fn encode(model: &HostModel, rays: &[Ray], angles: &AngleGrid) -> Encoded {
+    let config = &model.config;
     let w = angles.width;
     let circular = wraps(angles);
-    let mut inputs = Vec::new();
+    let mut latent = Vec::new();
     let mut own = Vec::with_capacity(2 * rays.len() * OWN_FEATURES);
-    let mut shape = [0, 0];
     for pass in 0..2 {
         let hidden: Vec<Ray> = rays
             .iter()
@@ -84,29 +94,21 @@ pub fn encode(
             },
             config,
         );
-        let (x, s) = encoder_input(&features, angles);
-        inputs.extend(x);
-        shape = s;
+        let (x, shape) = encoder_input(&features, angles);
+        latent.extend(model.encoder.forward(&x, shape, circular));
         own.extend(features);
     }
     Encoded {
-        latent: tensor_to_vec(net.encode(inputs, 2, shape, circular, device)),
+        latent,
         base: base_log_depths(&own),
         own,
     }
 }
 
 /// Decodes one scan on its own grid.
-pub fn decode(
-    net: &SpatialNet,
-    config: &SpatialConfig,
-    rays: &[Ray],
-    angles: &AngleGrid,
-    device: &Device,
-) -> Decoded {
-    let encoded = encode(net, config, rays, angles, device);
-    let host = HostRenderer::from_net(&net.renderer, config.encoder.latent);
-    render(&host, &encoded, &own_queries(config, angles))
+pub fn decode(model: &HostModel, rays: &[Ray], angles: &AngleGrid) -> Decoded {
+    let encoded = encode(model, rays, angles);
+    render(model, &encoded, &own_queries(model, angles))
 }
 
 /// Where a grid's pixels are read from an encoding, prepared once per grid: the placed
@@ -134,10 +136,17 @@ fn cells_of(grid: &AngleGrid) -> ((usize, usize), bool) {
 }
 
 /// The queries of a scan's own grid, pixel for pixel.
-pub fn own_queries(config: &SpatialConfig, grid: &AngleGrid) -> GridQueries {
+pub fn own_queries(model: &HostModel, grid: &AngleGrid) -> GridQueries {
+    let config = &model.config;
     let (cells, circular) = cells_of(grid);
     GridQueries {
-        queries: HostQueries::new(&grid_queries(grid), cells, circular, &config.renderer),
+        queries: HostQueries::new(
+            &grid_queries(grid),
+            cells,
+            circular,
+            &config.renderer,
+            &model.renderer,
+        ),
         columns: (0..grid.len()).map(|k| k % grid.width).collect(),
         outside: Vec::new(),
         between: None,
@@ -147,7 +156,7 @@ pub fn own_queries(config: &SpatialConfig, grid: &AngleGrid) -> GridQueries {
 /// The queries of another grid (denser, or another sensor's) read from scans on `source`.
 /// Pixels more than [`OUTSIDE_RAD`] above or below the source's beams get depth 0 and drop
 /// probability 1: the scan says nothing of them.
-pub fn onto_queries(config: &SpatialConfig, source: &AngleGrid, target: &AngleGrid) -> GridQueries {
+pub fn onto_queries(model: &HostModel, source: &AngleGrid, target: &AngleGrid) -> GridQueries {
     let rows = row_elevations(source);
     let mut queries = Vec::with_capacity(target.len());
     let mut columns = Vec::with_capacity(target.len());
@@ -177,7 +186,13 @@ pub fn onto_queries(config: &SpatialConfig, source: &AngleGrid, target: &AngleGr
     }
     let (cells, circular) = cells_of(source);
     GridQueries {
-        queries: HostQueries::new(&queries, cells, circular, &config.renderer),
+        queries: HostQueries::new(
+            &queries,
+            cells,
+            circular,
+            &model.config.renderer,
+            &model.renderer,
+        ),
         columns,
         outside,
         between: Some(between),
@@ -185,8 +200,8 @@ pub fn onto_queries(config: &SpatialConfig, source: &AngleGrid, target: &AngleGr
 }
 
 /// Renders an encoded scan at prepared queries.
-pub fn render(host: &HostRenderer, encoded: &Encoded, at: &GridQueries) -> Decoded {
-    let mut out = render_queries(host, encoded, at);
+pub fn render(model: &HostModel, encoded: &Encoded, at: &GridQueries) -> Decoded {
+    let mut out = render_queries(&model.renderer, encoded, at);
     for &k in &at.outside {
         out.depth_m[k] = 0.0;
         out.drop_prob[k] = 1.0;
@@ -350,6 +365,7 @@ mod tests {
     use super::*;
     use crate::lidar::SensorProfile;
     use crate::util::rng::Rng;
+    use burn::tensor::Device;
 
     #[test]
     fn drop_probability_never_sees_its_own_ray() {
@@ -370,7 +386,8 @@ mod tests {
                 }
             })
             .collect();
-        let a = decode(&net, &config, &rays_of(&range), &angles, &device);
+        let model = HostModel::new(&net, &config);
+        let a = decode(&model, &rays_of(&range), &angles);
         assert_eq!(a.depth_m.len(), angles.len());
         assert!(a.depth_m.iter().all(|d| d.is_finite() && *d > 0.0));
         assert!(a.drop_prob.iter().all(|p| (0.0..=1.0).contains(p)));
@@ -378,7 +395,7 @@ mod tests {
         let k = 5 * angles.width + 17;
         let mut flipped = range.clone();
         flipped[k] = if range[k] > 0.0 { 0.0 } else { 12.0 };
-        let b = decode(&net, &config, &rays_of(&flipped), &angles, &device);
+        let b = decode(&model, &rays_of(&flipped), &angles);
         assert_eq!(a.drop_prob[k], b.drop_prob[k]);
         assert_ne!(a.depth_m[k], b.depth_m[k]);
     }
@@ -394,11 +411,11 @@ mod tests {
             .angle_grid();
         // Unknown rays: the own grid then reads nothing of its own rays either.
         let rays = vec![Ray::Unknown; angles.len()];
-        let own = decode(&net, &config, &rays, &angles, &device);
-        let encoded = encode(&net, &config, &rays, &angles, &device);
-        let host = HostRenderer::from_net(&net.renderer, config.encoder.latent);
+        let model = HostModel::new(&net, &config);
+        let own = decode(&model, &rays, &angles);
+        let encoded = encode(&model, &rays, &angles);
         let onto =
-            |target: &AngleGrid| render(&host, &encoded, &onto_queries(&config, &angles, target));
+            |target: &AngleGrid| render(&model, &encoded, &onto_queries(&model, &angles, target));
         let again = onto(&angles);
         for k in 0..angles.len() {
             assert!((own.depth_m[k] - again.depth_m[k]).abs() < 1e-3 * own.depth_m[k]);

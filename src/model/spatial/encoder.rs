@@ -23,7 +23,7 @@ pub const INPUT_CHANNELS: usize = 12;
 /// Both image axes of the encoder's input must divide by this.
 pub const MULTIPLE: usize = 8;
 
-const SLOPE: f64 = 0.2;
+pub(super) const SLOPE: f64 = 0.2;
 
 #[derive(Config, Debug, PartialEq)]
 pub struct EncoderConfig {
@@ -41,8 +41,8 @@ pub struct EncoderConfig {
 /// A 3x3 convolution with its azimuth dilation, padded by hand (circular or zero).
 #[derive(Module, Debug)]
 pub struct Conv3 {
-    conv: Conv2d,
-    dilation: usize,
+    pub(super) conv: Conv2d,
+    pub(super) dilation: usize,
 }
 
 impl Conv3 {
@@ -62,15 +62,15 @@ impl Conv3 {
 #[derive(Module, Debug)]
 pub struct Encoder {
     /// 2x2 stride-2 patch embedding to 1/2 resolution.
-    stem: Conv2d,
-    half: Vec<Conv3>,
-    down_quarter: Conv3,
-    quarter: Conv3,
-    down_eighth: Conv3,
-    eighth: Vec<Conv3>,
-    up_quarter: Conv3,
-    up_half: Conv3,
-    out: Conv2d,
+    pub(super) stem: Conv2d,
+    pub(super) half: Vec<Conv3>,
+    pub(super) down_quarter: Conv3,
+    pub(super) quarter: Conv3,
+    pub(super) down_eighth: Conv3,
+    pub(super) eighth: Vec<Conv3>,
+    pub(super) up_quarter: Conv3,
+    pub(super) up_half: Conv3,
+    pub(super) out: Conv2d,
 }
 
 impl EncoderConfig {

@@ -30,13 +30,14 @@ pub struct HostRenderer {
 }
 
 /// Queries placed on a latent grid, on the host: four cells and bilinear weights each, and
-/// the position features (offset in the cell, Fourier features of the angles).
+/// their position features (offset in the cell, Fourier features of the angles) already
+/// through the renderer's position layer, since they are the same for every scan of a grid.
 #[derive(Debug, Clone)]
 pub struct HostQueries {
     corners: Vec<[u32; 4]>,
     weights: Vec<[f32; 4]>,
-    features: Vec<f32>,
-    features_per_query: usize,
+    /// `[n, hidden]`: the position layer's output (bias included).
+    positions: Vec<f32>,
 }
 
 impl HostQueries {
@@ -45,13 +46,24 @@ impl HostQueries {
         cells: (usize, usize),
         circular: bool,
         config: &RendererConfig,
+        renderer: &HostRenderer,
     ) -> Self {
         let placed = super::render::place(queries, cells, circular, config);
+        let (n, f, h) = (queries.len(), config.position_features(), renderer.hidden);
+        let mut positions = vec![0.0f32; n * h];
+        for row in positions.chunks_exact_mut(h) {
+            row.copy_from_slice(&renderer.position_b);
+        }
+        matmul(
+            View::new(&placed.position, n, f),
+            View::new(&renderer.position_w, f, h),
+            &mut positions,
+            true,
+        );
         HostQueries {
             corners: placed.corners,
             weights: placed.weights,
-            features: placed.position,
-            features_per_query: config.position_features(),
+            positions,
         }
     }
 
@@ -122,7 +134,6 @@ impl HostRenderer {
         );
         drop(cell_major);
         let n = queries.len();
-        let f = queries.features_per_query;
         let mut out = HostRendered {
             log_depth: Vec::with_capacity(n),
             keep_logit: Vec::with_capacity(n),
@@ -133,13 +144,7 @@ impl HostRenderer {
         for start in (0..n).step_by(CHUNK) {
             let m = CHUNK.min(n - start);
             let (h1, h2, o) = (&mut h1[..m * h], &mut h2[..m * h], &mut o[..m * 2]);
-            let feats = &queries.features[start * f..(start + m) * f];
-            matmul(
-                View::new(feats, m, f),
-                View::new(&self.position_w, f, h),
-                h1,
-                false,
-            );
+            h1.copy_from_slice(&queries.positions[start * h..(start + m) * h]);
             let own = &own[start * OWN_FEATURES..(start + m) * OWN_FEATURES];
             matmul(
                 View::new(own, m, OWN_FEATURES),
@@ -149,9 +154,6 @@ impl HostRenderer {
             );
             for q in 0..m {
                 let row = &mut h1[q * h..(q + 1) * h];
-                for (v, b) in row.iter_mut().zip(&self.position_b) {
-                    *v += b;
-                }
                 let (idx, wts) = (queries.corners[start + q], queries.weights[start + q]);
                 for k in 0..4 {
                     let base = idx[k] as usize * 4 * h + k * h;
@@ -219,7 +221,7 @@ mod tests {
             tensor_from(base.clone(), [1, n], &device),
         );
         let host = HostRenderer::from_net(&net.renderer, c);
-        let placed = HostQueries::new(&queries, (rows, cols), true, &config.renderer);
+        let placed = HostQueries::new(&queries, (rows, cols), true, &config.renderer, &host);
         let got = host.render(&latent, &placed, &own, &base);
         let close = |a: Vec<f32>, b: &[f32]| {
             a.iter()

@@ -16,6 +16,7 @@
 pub mod decode;
 pub mod encoder;
 pub mod host;
+pub mod host_encoder;
 pub mod prior;
 pub mod render;
 
@@ -264,6 +265,11 @@ pub struct SpatialModel {
 }
 
 impl SpatialModel {
+    /// The model prepared for decoding on the host ([`decode::HostModel`]).
+    pub fn host(&self) -> decode::HostModel {
+        decode::HostModel::new(&self.net, &self.config)
+    }
+
     /// Loads `DIR/config.json` and `DIR/spatial.bpk`.
     pub fn load(dir: &Path, device: &Device) -> Result<Self> {
         let config = SpatialConfig::load(&dir.join("config.json"))?;

@@ -166,7 +166,6 @@ impl Sources {
 
 struct Trainer {
     config: SpatialTrainConfig,
-    inner: Device,
     ad: Device,
     net: SpatialNet,
     opt: ModuleOptimizer,
@@ -207,7 +206,6 @@ impl Trainer {
         }
         Ok(Trainer {
             config,
-            inner,
             ad,
             net,
             opt,
@@ -333,7 +331,7 @@ impl Trainer {
         log: &mut std::fs::File,
     ) -> Result<()> {
         let net = self.net.valid();
-        let scores = validate::score(&net, &self.config.model, &sources.validation, &self.inner);
+        let scores = validate::score(&net, &self.config.model, &sources.validation);
         let total = validate::selection_score(&scores);
         let line = serde_json::json!({
             "validation": { "step": self.state.step, "score": total, "sources": scores },

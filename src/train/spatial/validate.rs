@@ -4,12 +4,11 @@
 //! patches when they are unknown to the model, beside the per-beam drop rate of the rest of
 //! the scan (the simple baseline x_n must beat).
 
-use burn::tensor::Device;
 use serde::Serialize;
 
 use super::data::Source;
 use crate::lidar::holes::HoleKind;
-use crate::model::spatial::decode::{decode, rays_of};
+use crate::model::spatial::decode::{HostModel, decode, rays_of};
 use crate::model::spatial::{Ray, SpatialConfig, SpatialNet};
 use crate::util::rng::Rng;
 
@@ -31,16 +30,9 @@ pub struct SourceScore {
 }
 
 /// Scores `net` on each source.
-pub fn score(
-    net: &SpatialNet,
-    config: &SpatialConfig,
-    sources: &[Source],
-    device: &Device,
-) -> Vec<SourceScore> {
-    sources
-        .iter()
-        .map(|s| score_source(net, config, s, device))
-        .collect()
+pub fn score(net: &SpatialNet, config: &SpatialConfig, sources: &[Source]) -> Vec<SourceScore> {
+    let model = HostModel::new(net, config);
+    sources.iter().map(|s| score_source(&model, s)).collect()
 }
 
 /// What chooses between states: hole depth error plus the x_n likelihood ratio, summed over
@@ -52,12 +44,8 @@ pub fn selection_score(scores: &[SourceScore]) -> f64 {
         .sum()
 }
 
-fn score_source(
-    net: &SpatialNet,
-    config: &SpatialConfig,
-    source: &Source,
-    device: &Device,
-) -> SourceScore {
+fn score_source(model: &HostModel, source: &Source) -> SourceScore {
+    let config = &model.config;
     let (h, w) = (source.angles.height, source.angles.width);
     let picks: Vec<usize> = (0..SCANS.min(source.scans.len()))
         .map(|i| i * source.scans.len() / SCANS.min(source.scans.len()))
@@ -74,14 +62,8 @@ fn score_source(
             .zip(&holes)
             .map(|(&r, &cut)| if cut { 0.0 } else { r })
             .collect();
-        let out = decode(net, config, &rays_of(&observed), &source.angles, device);
-        let unseen = decode(
-            net,
-            config,
-            &unknown_in(&observed, &holes),
-            &source.angles,
-            device,
-        );
+        let out = decode(model, &rays_of(&observed), &source.angles);
+        let unseen = decode(model, &unknown_in(&observed, &holes), &source.angles);
         let row_keep = row_keep_rates(&observed, &holes, h, w);
         for k in 0..h * w {
             let ret = truth[k] > config.min_range_m && truth[k] <= config.max_range_m;
