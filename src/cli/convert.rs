@@ -408,6 +408,7 @@ impl<'d> FileConverter<'d> {
                     _ => crate::model::config::default_sensor(),
                 },
                 chain_stride: args.decode.chain_stride,
+                check_every_fill: matches!(decoding, Some(Decoding::Spatial(..))),
                 ..ConvertOptions::default()
             },
             writer: writer_settings(args)?,

@@ -73,6 +73,11 @@ pub struct ConvertOptions {
     pub model_sensor: SensorProfile,
     /// Scans of a topic in chains: scan k continues from scan k - stride (0: each scan alone).
     pub chain_stride: usize,
+    /// Check the prior-free hole fill on every converted topic's first scans in the first
+    /// pass ([`survey`]), not only where no model covers the sensor: a decoder whose `depth`
+    /// completes holes without its prior (the spatial model's) then reuses one check per
+    /// topic instead of probing every scan.
+    pub check_every_fill: bool,
 }
 
 /// Where the decoding stage uses its model.
@@ -118,6 +123,7 @@ impl Default for ConvertOptions {
             prior: None,
             model_sensor: crate::model::config::default_sensor(),
             chain_stride: DEFAULT_CHAIN_STRIDE,
+            check_every_fill: false,
         }
     }
 }
@@ -135,7 +141,8 @@ pub struct ScanInput<'a> {
     /// The recording's own drop counts on this topic's grid, where the first pass made them.
     pub census: Option<&'a DropCensus>,
     /// The check of the prior-free hole fill on the topic's first scans, where the first
-    /// pass made it (topics no model covers).
+    /// pass made it (topics no model covers, or every topic with
+    /// [`ConvertOptions::check_every_fill`]).
     pub fill_check: Option<&'a FillCheck>,
     /// The scan's chain, when scans are chained; its scans reach the stages in input order.
     pub chain: Option<&'a ChainState>,

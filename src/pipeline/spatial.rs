@@ -131,7 +131,13 @@ impl SpatialStage {
         let main = match self.fill {
             Fill::Gan => complete(&observed, rendered, self.fill, &self.reference_grid, seed),
             fill => Rendered {
-                depth_m: complete_without_prior(&observed, fill, &FillCheck::on(&observed, seed)),
+                depth_m: match input.fill_check {
+                    // The topic's first scans checked where the learned fill helps.
+                    Some(check) => complete_without_prior(&observed, fill, check),
+                    None => {
+                        complete_without_prior(&observed, fill, &FillCheck::on(&observed, seed))
+                    }
+                },
                 ..rendered
             },
         };

@@ -31,7 +31,7 @@ pub(super) fn survey(
     src: &mut (impl Read + Seek),
     file_len: Option<u64>,
 ) {
-    if processor.opts.prior.is_none() {
+    if processor.opts.prior.is_none() && !processor.opts.check_every_fill {
         return;
     }
     let mut table = ChannelTable::default();
@@ -39,6 +39,10 @@ pub(super) fn survey(
     let mut checks: HashMap<String, FillCheck> = HashMap::new();
     let mut waiting: Vec<Waiting> = Vec::new();
     let opts = processor.opts;
+    // The recording's own drop counts serve the GAN's ray drop; without it the first pass
+    // only checks the fill.
+    let census_wanted = opts.prior.is_some();
+    let mut queued: HashMap<String, usize> = HashMap::new();
     let proc_ref = &*processor;
     let visit = |record: &Record<'_>| {
         table.observe(record);
@@ -51,6 +55,14 @@ pub(super) fn survey(
         let Some(format) = Converter::converted(opts, channel) else {
             return Ok(());
         };
+        if !census_wanted {
+            // Only the fill check, on each topic's first scans: the others are not decoded.
+            let queued = queued.entry(channel.topic.clone()).or_insert(0usize);
+            if *queued >= FillCheck::SCANS {
+                return Ok(());
+            }
+            *queued += 1;
+        }
         waiting.push((
             channel.topic.clone(),
             header.log_time,
@@ -72,7 +84,8 @@ pub(super) fn survey(
 /// Counts the drops of the `waiting` scans: decoded in parallel, each topic's profile fixed
 /// in file order, projected in parallel, and added to their topics' counts in file order (a
 /// topic's first scan sets its grid); and checks the prior-free hole fill on the first
-/// scans of each topic no model covers (in parallel, merged in file order).
+/// scans of each topic no model covers, or of every topic where the options say (in
+/// parallel, merged in file order).
 fn count_drops(
     processor: &ScanProcessor<'_, '_>,
     waiting: &mut Vec<Waiting>,
@@ -97,7 +110,8 @@ fn count_drops(
     let mut wanted: HashMap<&str, usize> = HashMap::new();
     let to_check: Vec<bool> = (waiting.iter().zip(&images))
         .map(|((topic, ..), image)| {
-            if image.is_none() || processor.covered(topic) {
+            let checked = processor.opts.check_every_fill || !processor.covered(topic);
+            if image.is_none() || !checked {
                 return false;
             }
             let done = checks.get(topic.as_str()).map_or(0, FillCheck::scans);
@@ -116,7 +130,7 @@ fn count_drops(
         if let Some(check) = check {
             checks.entry(topic.clone()).or_default().merge(&check);
         }
-        if let Some(image) = image {
+        if let Some(image) = image.filter(|_| processor.opts.prior.is_some()) {
             (census.entry(topic))
                 .or_insert_with(|| DropCensus::new(image.height, image.width))
                 .add(&image);
