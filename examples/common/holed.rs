@@ -1,6 +1,7 @@
 //! What the completion examples share: scans with holes cut into them, written as an MCAP
 //! recording, converted by the built binary, and the channels read back.
 
+use rangegan_mcap::model::spatial::prior;
 use std::path::{Path, PathBuf};
 
 use anyhow::{Context, Result, bail};
@@ -119,47 +120,12 @@ pub fn convert(
 
 /// Each missing pixel of `observed` (0 = none) on a line between the nearest returns before
 /// and after it along rows (`along_rows`, circular) or along columns; the one neighbour
-/// where there is only one; 0 where the line holds no return.
+/// where there is only one; 0 where the line holds no return. The model's own
+/// interpolation prior ([`prior::interpolate`]), without its reach.
 #[allow(dead_code)] // not every example scores interpolation
 pub fn interpolate(observed: &[f32], h: usize, w: usize, along_rows: bool) -> Vec<f32> {
-    let mut out = observed.to_vec();
-    let (lines, len) = if along_rows { (h, w) } else { (w, h) };
-    let at = |line: usize, t: usize| {
-        if along_rows {
-            line * w + t
-        } else {
-            t * w + line
-        }
-    };
-    for line in 0..lines {
-        let hits: Vec<usize> = (0..len).filter(|&t| observed[at(line, t)] > 0.0).collect();
-        if hits.is_empty() {
-            continue;
-        }
-        for t in (0..len).filter(|&t| observed[at(line, t)] <= 0.0) {
-            let after = hits.partition_point(|&x| x < t);
-            let (before, next) = match (after.checked_sub(1), hits.get(after)) {
-                (Some(b), Some(&n)) => (Some(hits[b] as isize), Some(n as isize)),
-                (Some(b), None) if along_rows => {
-                    (Some(hits[b] as isize), Some((hits[0] + len) as isize))
-                }
-                (None, Some(&n)) if along_rows => (
-                    Some(hits[hits.len() - 1] as isize - len as isize),
-                    Some(n as isize),
-                ),
-                (b, n) => (b.map(|b| hits[b] as isize), n.map(|&n| n as isize)),
-            };
-            let value = |x: isize| observed[at(line, x.rem_euclid(len as isize) as usize)];
-            out[at(line, t)] = match (before, next) {
-                (Some(a), Some(b)) => {
-                    let f = (t as isize - a) as f32 / (b - a) as f32;
-                    value(a) * (1.0 - f) + value(b) * f
-                }
-                (Some(a), None) => value(a),
-                (None, Some(b)) => value(b),
-                (None, None) => 0.0,
-            };
-        }
-    }
-    out
+    prior::interpolate(observed, (h, w), along_rows, along_rows, |_, _, _| 0.0)
+        .into_iter()
+        .map(|line| line.map_or(0.0, |(r, _)| r))
+        .collect()
 }

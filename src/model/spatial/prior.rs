@@ -33,7 +33,7 @@ fn no_reach() -> f32 {
 }
 
 /// One interpolation of a ray: range (m) and reach (rad); `None` where its line has no return.
-type Line = Option<(f32, f32)>;
+pub type Line = Option<(f32, f32)>;
 
 /// The prior of every ray of an observation, `[H W, PRIOR_FEATURES]` row-major. Returns
 /// interpolate to themselves (reach 0); drops and unknown rays are interpolated over. Rows
@@ -113,7 +113,7 @@ fn column_step(angles: &AngleGrid) -> f32 {
 /// along rows (`along_rows`, wrapping when `circular`) or columns, with the reach that
 /// `reach(line, a, b)` gives for positions a < b; the one neighbour (reach doubled) where there
 /// is only one.
-fn interpolate(
+pub fn interpolate(
     range: &[f32],
     (h, w): (usize, usize),
     along_rows: bool,
