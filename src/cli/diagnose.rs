@@ -59,8 +59,9 @@ pub struct DiagnoseArgs {
     /// Most drop effects to add.
     #[arg(long, default_value_t = 3)]
     pub max_effects: usize,
-    /// Real ego speed, m/s, to turn a seam shift into a motion-distortion scale
-    /// (default: the real recording's `simulate` metadata, else unknown).
+    /// Real ego speed, m/s, to turn the motion measured at the seam into a motion-distortion
+    /// scale (default: the real recording's `simulate` metadata, else the speed measured at
+    /// the seam is the effect's).
     #[arg(long, value_parser = super::parse_speed_mps)]
     pub real_speed_mps: Option<f64>,
     /// How dropped pixels get their geometry before incidence and edges are

@@ -61,6 +61,9 @@ pub struct ScanFeatures {
     /// Angle between the ray and the completed surface normal, in [0, pi/2];
     /// NaN where the normal is undefined.
     pub incidence_rad: Vec<f32>,
+    /// Unit normal of the measured surface in the sensor frame (from the returns alone, not
+    /// the completion), facing the sensor; zero where it is undefined.
+    pub normal: Vec<[f32; 3]>,
     /// Pixel distance to the nearest depth edge, capped at
     /// [`FeatureOptions::max_edge_px`]; the cap where no edge is near or no geometry.
     pub edge_px: Vec<u8>,
@@ -91,6 +94,7 @@ impl ScanFeatures {
             elevation_rad: Vec::new(),
             range_m: Vec::new(),
             incidence_rad: Vec::new(),
+            normal: Vec::new(),
             edge_px: Vec::new(),
             row_edge_px: Vec::new(),
             class: Vec::new(),
@@ -183,7 +187,21 @@ impl ScanFeatures {
             }
         }
         let dirs: Vec<[f32; 3]> = (0..n).map(|k| image.angles.direction(k)).collect();
-        let incidence_rad = incidence(&grid, &range_m, &dirs);
+        let incidence_rad = (normals(&grid, &range_m, &dirs).iter().zip(&dirs))
+            .map(|(n, d)| {
+                if *n == [0.0; 3] {
+                    f32::NAN
+                } else {
+                    (-dot(*n, *d)).clamp(0.0, 1.0).acos()
+                }
+            })
+            .collect();
+        // The normals themselves from the returns alone: a fill beyond the last return of a
+        // column (the far ground under the sky) would stand the ground up as a wall.
+        let measured: Vec<f32> = (0..n)
+            .map(|k| if kept[k] { image.range_m[k] } else { f32::NAN })
+            .collect();
+        let normal = normals(&grid, &measured, &dirs);
         let edges = |axes| {
             edge_proximity(
                 &range_m,
@@ -203,6 +221,7 @@ impl ScanFeatures {
             elevation_rad: image.angles.elevation_rad.clone(),
             range_m,
             incidence_rad,
+            normal,
             edge_px,
             row_edge_px,
             class,
@@ -513,10 +532,10 @@ fn dot(a: [f32; 3], b: [f32; 3]) -> f32 {
     a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
 }
 
-/// Incidence from the normal of the completed depth. Along each image axis the
-/// tangent is the one-sided difference towards the neighbour with the smaller
+/// Unit normals of the completed depth, facing the sensor (zero where undefined). Along each
+/// image axis the tangent is the one-sided difference towards the neighbour with the smaller
 /// range jump, so a normal does not straddle a depth edge.
-fn incidence(grid: &Grid, range: &[f32], dirs: &[[f32; 3]]) -> Vec<f32> {
+fn normals(grid: &Grid, range: &[f32], dirs: &[[f32; 3]]) -> Vec<[f32; 3]> {
     let point = |k: usize| {
         let d = dirs[k];
         [range[k] * d[0], range[k] * d[1], range[k] * d[2]]
@@ -539,18 +558,23 @@ fn incidence(grid: &Grid, range: &[f32], dirs: &[[f32; 3]]) -> Vec<f32> {
     (0..range.len())
         .map(|k| {
             if range[k].is_nan() {
-                return f32::NAN;
+                return [0.0; 3];
             }
             let (i, j) = (k / grid.w, k % grid.w);
             let (Some(tu), Some(tv)) = (tangent(i, j, k, (0, 1)), tangent(i, j, k, (1, 0))) else {
-                return f32::NAN;
+                return [0.0; 3];
             };
             let normal = cross(tu, tv);
             let norm = dot(normal, normal).sqrt();
             if norm <= f32::EPSILON * range[k] * range[k] {
-                return f32::NAN;
+                return [0.0; 3];
             }
-            (dot(normal, dirs[k]).abs() / norm).clamp(0.0, 1.0).acos()
+            let facing = if dot(normal, dirs[k]) > 0.0 {
+                -1.0
+            } else {
+                1.0
+            };
+            normal.map(|c| c * facing / norm)
         })
         .collect()
 }

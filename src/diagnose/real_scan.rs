@@ -35,6 +35,7 @@ pub fn as_sim_scan(
             .iter()
             .map(|a| if a.is_finite() { *a } else { 0.0 })
             .collect(),
+        normal: f.normal,
         reflectivity: image.intensity.iter().map(|i| i.clamp(0.0, 1.0)).collect(),
         time_s: image
             .angles

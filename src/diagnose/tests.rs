@@ -21,7 +21,7 @@ use crate::physics::dropout::{
     BeamDropout, EdgeBand, EdgeDropout, IncidenceDropout, MaterialDropout, OcclusionSector,
     RangeDropout, SelfOcclusion, UniformDropout,
 };
-use crate::physics::perturb::{MixedPixels, MotionDistortion, RangeNoise};
+use crate::physics::perturb::{MixedPixels, RangeNoise};
 use crate::sim::Material;
 use crate::util::rng::uniform;
 
@@ -417,19 +417,6 @@ fn concealed_mixed_pixels() {
         let e = e.unwrap_or_else(|| panic!("mixed_pixels not named:\n{}", summary(&d)));
         assert!(e.fit.after < e.fit.before, "{:?}", e.fit);
         assert!(d.report.fit.after < d.report.fit.before);
-    }
-}
-
-#[test]
-fn concealed_motion_distortion() {
-    let effect = |case| -> Vec<Box<dyn Effect>> {
-        vec![Box::new(MotionDistortion {
-            enabled: true,
-            scale: 0.6 + 0.4 * u(case, 15),
-        })]
-    };
-    for (_, d) in diagnose_cases(171, 272, effect) {
-        assert_named_first(&d, "motion_distortion");
     }
 }
 

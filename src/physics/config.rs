@@ -193,7 +193,7 @@ fn realistic(beams: usize) -> PhysicsConfig {
         mixed_pixels: Some(MixedPixels { enabled: true, prob: 0.3, min_gap_m: 1.0 }),
         range_noise: Some(RangeNoise { enabled: true, sigma0_m: 0.02, k: 0.0005 }),
         range_quantization: Some(RangeQuantization { enabled: true, step_m: 0.002 }),
-        motion_distortion: Some(MotionDistortion { enabled: true, scale: 1.0 }),
+        motion_distortion: Some(MotionDistortion { enabled: true, scale: 1.0, speed_mps: None }),
         intensity_noise: Some(IntensityNoise { enabled: true, sigma_rel: 0.1 }),
     }
 }

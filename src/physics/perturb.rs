@@ -126,13 +126,15 @@ impl Effect for MixedPixels {
     }
 }
 
-/// `motion_distortion`: no de-skew. A point measured `t` after the sweep start is
-/// reported in the sensor frame of that instant, along the direction the sensor fired it:
-/// its range becomes the distance `|Rz(-w t) (p - v t)| = |p - v t|` from where the sensor
-/// then was, with the ego velocity `v` and yaw rate `w`, times `scale` (1 = full,
-/// 0 = de-skewed). A sensor fires at its own encoder angle whatever it does, so every
-/// return keeps its beam and column: only ranges move. The scan's first and last columns
-/// disagree by `v * period`: a seam.
+/// `motion_distortion`: no de-skew. A sensor fires every beam at its own encoder angle
+/// whatever it does, so a ray fired `t` after the sweep start leaves from where the sensor
+/// then is, displaced by `v t` (ego velocity `v`, in the sensor frame; a yaw turns the frame,
+/// not the distance), and meets the surface it hit farther along or short of where a sensor at
+/// rest met it: every return keeps its beam and column, only its range moves ([`moved_range`]).
+/// The ground under a sensor driving over it is met at the same range; a wall ahead comes
+/// nearer by `v t`. `scale` multiplies `t` (1 = full, 0 = de-skewed); `speed_mps`, where
+/// given, replaces the recording's speed, along its heading. Where a sweep's first and last
+/// columns meet, surfaces that face the motion step by `v * period`: a seam.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct MotionDistortion {
@@ -140,10 +142,56 @@ pub struct MotionDistortion {
     pub enabled: bool,
     #[serde(default = "unit_scale")]
     pub scale: f32,
+    /// Ego speed (m/s) in place of the recording's, along its heading (the sensor's +x where
+    /// it stands still): what a diagnosis measured where the recording does not say.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub speed_mps: Option<f32>,
 }
 
 fn unit_scale() -> f32 {
     1.0
+}
+
+/// Largest range change per metre of displacement: a surface met nearly edge-on would move
+/// its hit point without bound under the plane model, while real surfaces end.
+const MAX_RANGE_CHANGE_PER_M: f32 = 3.0;
+
+/// The range at which a ray of unit direction `dir`, fired from a sensor displaced by
+/// `shift`, meets the surface that a sensor at rest met at `range` with unit normal
+/// `normal`: the plane `n . (x - r d) = 0` is met at `r - n . s / n . d`. Without a normal
+/// the surface is taken to face the ray (`|r d - s|`).
+pub fn moved_range(range: f32, dir: [f32; 3], normal: [f32; 3], shift: [f32; 3]) -> f32 {
+    let dot = |a: [f32; 3], b: [f32; 3]| a[0] * b[0] + a[1] * b[1] + a[2] * b[2];
+    let limit = MAX_RANGE_CHANGE_PER_M * dot(shift, shift).sqrt();
+    let n_dot_d = dot(normal, dir);
+    let change = if n_dot_d.abs() > 1e-3 {
+        -dot(normal, shift) / n_dot_d
+    } else if dot(normal, normal) > 0.5 {
+        0.0 // a surface met edge-on: no plane model, no change
+    } else {
+        let p = dir.map(|c| c * range);
+        let q = [p[0] - shift[0], p[1] - shift[1], p[2] - shift[2]];
+        dot(q, q).sqrt() - range
+    };
+    (range + change.clamp(-limit, limit)).max(1e-3)
+}
+
+impl MotionDistortion {
+    /// The ego velocity in the sensor frame, m/s: along the sensor's level (x-y) plane, since
+    /// a vehicle follows the ground it stands on while a recording's velocity may be level
+    /// where its ground slopes (a velocity into a sloped road would move the road).
+    fn velocity(&self, scan: &SimScan) -> [f32; 3] {
+        let v = scan.pose.velocity_mps;
+        let world = crate::sim::geometry::v3(v[0], v[1], v[2]);
+        let sensor = scan.pose.to_sensor(world);
+        let level = crate::sim::geometry::v3(sensor.x, sensor.y, 0.0);
+        let heading = if level.length() > 1e-3 {
+            level.normalized()
+        } else {
+            crate::sim::geometry::v3(1.0, 0.0, 0.0)
+        };
+        (heading * self.speed_mps.unwrap_or(world.length())).to_array()
+    }
 }
 
 impl Effect for MotionDistortion {
@@ -151,19 +199,16 @@ impl Effect for MotionDistortion {
         "motion_distortion"
     }
     fn perturb(&self, scan: &mut SimScan, _ctx: &EffectContext) {
-        // A yaw turns the frame, not the distance, so only the velocity moves a range.
-        let v = scan.pose.velocity_mps;
+        let v = self.velocity(scan);
         for k in 0..scan.len() {
             if !scan.is_return(k) {
                 continue;
             }
             let t = scan.time_s[k] * self.scale;
-            let p = scan.image.xyz[k];
-            let q = [p[0] - v[0] * t, p[1] - v[1] * t, p[2] - v[2] * t];
-            scan.set_range(
-                k,
-                (q[0] * q[0] + q[1] * q[1] + q[2] * q[2]).sqrt().max(1e-3),
-            );
+            let r = scan.image.range_m[k];
+            let dir = scan.image.xyz[k].map(|c| c / r);
+            let shift = v.map(|c| c * t);
+            scan.set_range(k, moved_range(r, dir, scan.normal[k], shift));
         }
     }
 }
@@ -351,37 +396,56 @@ mod tests {
     }
 
     #[test]
-    fn motion_distortion_opens_a_seam_at_the_scan_start() {
+    fn motion_distortion_moves_surfaces_facing_the_motion_and_not_the_ground() {
         let (ideal, real) = before_after(
             Box::new(MotionDistortion {
                 enabled: true,
                 scale: 1.0,
+                speed_mps: None,
             }),
             4,
         );
         let v = ideal.pose.velocity_mps[0];
         assert!(v > 5.0);
-        let w = ideal.width();
-        // Shift of each return along x: -v t, so ~0 just after the start (azimuth 0,
-        // straight ahead, column w/2) and ~v * 0.1 s just before it.
-        let shift = |col: usize| {
-            let v: Vec<f32> = (0..ideal.height())
-                .map(|r| r * w + col)
-                .filter(|&k| ideal.is_return(k))
-                .map(|k| real.image.xyz[k][0] - ideal.image.xyz[k][0])
-                .collect();
-            v.iter().sum::<f32>() / v.len().max(1) as f32
-        };
-        let after_start = shift(w / 2 - 1); // azimuth just above 0
-        let before_end = shift(w / 2); // azimuth just below 0: measured last
-        assert!(after_start.abs() < 0.05, "{after_start}");
-        assert!(
-            (before_end + v * 0.1).abs() < 0.1,
-            "{before_end} vs {}",
-            -v * 0.1
-        );
-        // The rear (column 0, half a sweep) moved half as far.
-        assert!((shift(0) + v * 0.05).abs() < 0.1, "{}", shift(0));
+        // Range change of each return, and what the plane of its surface says: a ray fired
+        // `t` into the sweep from `v t` farther along meets it `-n_x v t / n . d` farther.
+        let facing_up = |k: usize| ideal.normal[k][2] > 0.99999;
+        let changes: Vec<(usize, f32, f32)> = (0..ideal.len())
+            .filter(|&k| ideal.is_return(k))
+            .map(|k| {
+                let (n, r) = (ideal.normal[k], ideal.image.range_m[k]);
+                let d = ideal.image.xyz[k].map(|c| c / r);
+                let n_dot_d = n[0] * d[0] + n[1] * d[1] + n[2] * d[2];
+                let want = -n[0] * v * ideal.time_s[k] / n_dot_d;
+                (
+                    k,
+                    real.image.range_m[k] - r,
+                    if n_dot_d.abs() > 0.5 { want } else { f32::NAN },
+                )
+            })
+            .collect();
+        // Level ground is met at the same range however far the sensor drove.
+        let ground: Vec<f32> = (changes.iter())
+            .filter(|(k, ..)| facing_up(*k))
+            .map(|(_, c, _)| *c)
+            .collect();
+        assert!(ground.len() > 1000);
+        assert!(ground.iter().all(|c| c.abs() < 1e-3), "the ground moved");
+        // Walls across the heading, met within 60 deg of head-on, move as their plane says,
+        // most of them by a good part of a sweep's motion.
+        let walls: Vec<(f32, f32)> = (changes.iter())
+            .filter(|(k, _, want)| ideal.normal[*k][0].abs() > 0.95 && want.is_finite())
+            .map(|(_, c, want)| (*c, *want))
+            .collect();
+        assert!(walls.len() > 50, "{}", walls.len());
+        for (c, want) in &walls {
+            assert!((c - want).abs() < 0.01 * v * 0.1, "{c} vs {want}");
+        }
+        let large = walls
+            .iter()
+            .filter(|(c, _)| c.abs() > 0.2 * v * 0.1)
+            .count();
+        assert!(2 * large > walls.len(), "{large} of {}", walls.len());
         // Every return keeps the direction it was fired in: its pixel.
         for k in (0..ideal.len()).filter(|&k| ideal.is_return(k)) {
             let (a, b) = (ideal.image.xyz[k], real.image.xyz[k]);
@@ -390,6 +454,26 @@ mod tests {
                 assert!((a[i] / ra - b[i] / rb).abs() < 1e-4, "pixel {k} turned");
             }
         }
+    }
+
+    #[test]
+    fn a_plane_is_met_where_the_moved_ray_crosses_it() {
+        // Ground 1.7 m below, a ray 10 deg down: moving 1 m forward keeps its range.
+        let (s, c) = (-10f32).to_radians().sin_cos();
+        let r = 1.7 / -s;
+        let up = [0.0, 0.0, 1.0];
+        assert!((moved_range(r, [c, 0.0, s], up, [1.0, 0.0, 0.0]) - r).abs() < 1e-5);
+        // A wall 20 m ahead met head-on comes 1 m nearer; seen 30 deg aside, 1 m / cos 30.
+        let back = [-1.0, 0.0, 0.0];
+        assert!((moved_range(20.0, [1.0, 0.0, 0.0], back, [1.0, 0.0, 0.0]) - 19.0).abs() < 1e-5);
+        let (s30, c30) = 30f32.to_radians().sin_cos();
+        let r30 = 20.0 / c30;
+        let want = r30 - 1.0 / c30;
+        assert!((moved_range(r30, [c30, s30, 0.0], back, [1.0, 0.0, 0.0]) - want).abs() < 1e-4);
+        // No normal: the surface faces the ray.
+        assert!(
+            (moved_range(20.0, [1.0, 0.0, 0.0], [0.0; 3], [1.0, 0.0, 0.0]) - 19.0).abs() < 1e-5
+        );
     }
 
     #[test]

@@ -125,6 +125,9 @@ pub struct SimScan {
     pub material: Vec<Material>,
     /// Angle between the ray and the surface normal, radians (0 = head-on).
     pub incidence_rad: Vec<f32>,
+    /// Unit normal of the surface hit in the sensor frame, facing the sensor; zero where no
+    /// surface was hit or its orientation is unknown.
+    pub normal: Vec<[f32; 3]>,
     /// Diffuse reflectivity of the surface hit.
     pub reflectivity: Vec<f32>,
     /// Time offset of the pixel's measurement from the sweep start.
@@ -223,6 +226,17 @@ impl SimScan {
     }
 }
 
+/// A unit surface normal turned to face a ray of direction `dir` (whichever side of a
+/// surface a ray hits, the normal that matters faces back along it).
+pub fn facing_sensor(normal: Vec3, dir: Vec3) -> [f32; 3] {
+    let n = normal.normalized();
+    if n.dot(dir) > 0.0 {
+        (n * -1.0).to_array()
+    } else {
+        n.to_array()
+    }
+}
+
 /// Casts every pixel ray of `profile` from `pose` in `scene` at time `t_s`.
 pub fn cast_scan(
     scene: &Scene,
@@ -244,6 +258,7 @@ pub fn cast_scan(
     let mut image = RangeImage::empty(angles);
     let mut material = vec![Material::None; n];
     let mut incidence_rad = vec![0.0f32; n];
+    let mut normal = vec![[0.0f32; 3]; n];
     let mut reflectivity = vec![0.0f32; n];
     let mut true_label = vec![0u32; n];
     let time_s: Vec<f32> = (0..n)
@@ -267,11 +282,15 @@ pub fn cast_scan(
             .zip(image.point_index.par_chunks_mut(w))
             .zip(material.par_chunks_mut(w))
             .zip(incidence_rad.par_chunks_mut(w))
+            .zip(normal.par_chunks_mut(w))
             .zip(reflectivity.par_chunks_mut(w))
             .zip(true_label.par_chunks_mut(w))
             .enumerate();
         rows.for_each(
-            |(row, ((((((((range, xyz), inten), label), pidx), mat), inc), refl), tlabel))| {
+            |(
+                row,
+                (((((((((range, xyz), inten), label), pidx), mat), inc), nrm), refl), tlabel),
+            )| {
                 let (sin_e, cos_e) = elevation[row];
                 for j in 0..w {
                     let k = row * w + j;
@@ -286,6 +305,7 @@ pub fn cast_scan(
                     let class = hit.surface.label | ((hit.instance as u32) << 16);
                     mat[j] = hit.surface.material;
                     inc[j] = cos_inc.acos();
+                    nrm[j] = facing_sensor(pose.to_sensor(hit.normal), d_sensor);
                     refl[j] = hit.surface.reflectivity;
                     tlabel[j] = class;
                     if hit.t < min_r {
@@ -305,6 +325,7 @@ pub fn cast_scan(
         image,
         material,
         incidence_rad,
+        normal,
         reflectivity,
         time_s,
         true_range_m,

@@ -9,7 +9,7 @@
 //! |---|---|---|
 //! | `range_noise` | second difference along a row, `r_k − (r_{k−1} + r_{k+1}) / 2`, off depth edges, by range | reference ⊛ N(0, 1.5 σ(d)²), `σ(d) = sigma0_m + k d` |
 //! | `mixed_pixels` | at a step edge along a row (two flat sides > 1.5 m apart): is the pixel strictly between them? | Bernoulli per gap class, `b_sim + (1 − b_sim) a`, `a` ≈ 0.8 × prob |
-//! | `motion_distortion` | range step across the scan seam, from the first fired return to the last where they are neighbours (the seam each cloud's firing order shows, else straight ahead) | the recording's own column steps near the seam, a share of them shifted by `−m`, `m = scale · v · 0.1 s` |
+//! | `motion_distortion` | range step across the scan seam, from the first fired return to the last where they are neighbours (the seam each cloud's firing order shows, else straight ahead), divided by the step a metre of forward motion makes on the surface there, on surfaces that face the motion | the recording's own divided column steps near the seam, a share of them shifted by `m`, the motion per sweep (speed `m / period`) |
 
 use serde_json::{Map, json};
 

@@ -98,6 +98,7 @@ pub fn draw_effect(id: &str, rng: &mut Rng, sensor: &Sensor) -> Box<dyn Effect> 
         "motion_distortion" => Box::new(MotionDistortion {
             enabled: true,
             scale: rng.range(0.5, 1.0),
+            speed_mps: None,
         }),
         other => panic!("no generator for {other}"),
     }

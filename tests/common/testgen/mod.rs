@@ -30,7 +30,7 @@ mod shapes;
 #[allow(unused_imports)]
 pub use effects::{EFFECTS, draw_effect};
 #[allow(unused_imports)]
-pub use pairs::{Pair, diagnose_pair, pair, pair_with, plan};
+pub use pairs::{Pair, diagnose_pair, pair, pair_on, pair_with, plan};
 #[allow(unused_imports)]
 pub use rng::Rng;
 #[allow(unused_imports)]

@@ -20,6 +20,8 @@ pub struct Pair {
     pub seed: u64,
     pub kind: Kind,
     pub sensor: Sensor,
+    /// The real side's ego speed, m/s (the diagnosis is not told it).
+    pub real_speed_mps: f32,
     /// The left-out effects (real side only), with their parameters.
     pub truth: Vec<String>,
     pub truth_params: Vec<String>,
@@ -36,6 +38,40 @@ pub struct Pair {
     /// uniform dropout and that effect alone, beside the uniform dropout alone); None for
     /// effects that drop no rays.
     pub effect_shares: Vec<Option<f64>>,
+    /// Where the pair hides motion distortion: how many of the real side's seam steps (a
+    /// row's first- and last-fired returns) it moved by 10 cm or more, with every other
+    /// effect left out. Motion moves only surfaces that face it, so over open road it can
+    /// leave nothing at the seam to see.
+    pub motion_seam_steps: Option<usize>,
+}
+
+/// Seam steps of `cast` (a row's first- and last-fired returns, both kept) whose last return
+/// `effect` alone moves by 10 cm or more.
+fn moved_seam_steps(cast: &[SimScan], effect: Box<dyn Effect>, seed: u64) -> usize {
+    let moved = applied(
+        cast,
+        &Physics {
+            effects: vec![effect],
+        },
+        seed,
+    );
+    cast.iter()
+        .zip(&moved)
+        .map(|(before, after)| {
+            let (h, w) = (before.image.height, before.image.width);
+            let by_time = |k: &usize, m: &usize| before.time_s[*k].total_cmp(&before.time_s[*m]);
+            let first = (0..w).min_by(by_time).unwrap_or(0);
+            let last = (0..w).max_by(by_time).unwrap_or(0);
+            (0..h)
+                .filter(|row| {
+                    let (a, b) = (row * w + first, row * w + last);
+                    before.is_return(a)
+                        && before.is_return(b)
+                        && (after.image.range_m[b] - before.image.range_m[b]).abs() >= 0.1
+                })
+                .count()
+        })
+        .sum()
 }
 
 fn cast(scene: &Scene, sensor: &Sensor) -> Vec<SimScan> {
@@ -83,12 +119,20 @@ pub fn pair(seed: u64, effects: &[&str], beams: usize) -> Pair {
 
 /// As [`pair`], the cloud organized or not as `organized` says (None: drawn).
 pub fn pair_with(seed: u64, effects: &[&str], beams: usize, organized: Option<bool>) -> Pair {
+    pair_on(seed, effects, beams, |sensor| {
+        if let Some(o) = organized {
+            sensor.organized = o;
+        }
+    })
+}
+
+/// As [`pair`], the drawn sensor changed by `setup` (how its driver writes the cloud, where
+/// its sweep starts).
+pub fn pair_on(seed: u64, effects: &[&str], beams: usize, setup: impl Fn(&mut Sensor)) -> Pair {
     let mut rng = Rng::new(seed);
     let kind = rng.pick(&Kind::ALL);
     let mut sensor = Sensor::random(&mut rng, beams);
-    if let Some(o) = organized {
-        sensor.organized = o;
-    }
+    setup(&mut sensor);
     let length = 30.0 * STRIDE_S * SCANS as f32;
     let real_scene = Scene::generate(kind, seed, length);
     let sim_scene = Scene::generate(kind, seed ^ 0x5151_5151, length);
@@ -124,7 +168,7 @@ pub fn pair_with(seed: u64, effects: &[&str], beams: usize, organized: Option<bo
     let r = drop_rate(&real);
     let uniform_rate = drop_rate(&applied(&real_cast, &uniform_only, seed));
     let effect_share = drops.then_some(r - uniform_rate);
-    let mut again = effects_rng;
+    let mut again = effects_rng.clone();
     let effect_shares = effects
         .iter()
         .map(|id| {
@@ -137,6 +181,17 @@ pub fn pair_with(seed: u64, effects: &[&str], beams: usize, organized: Option<bo
             })
         })
         .collect();
+    let motion_seam_steps = effects
+        .iter()
+        .position(|id| *id == "motion_distortion")
+        .map(|i| {
+            let mut again = effects_rng.clone();
+            let drawn: Vec<Box<dyn Effect>> = (effects[..=i].iter())
+                .map(|id| draw_effect(id, &mut again, &sensor))
+                .collect();
+            let motion = drawn.into_iter().last().expect("the motion effect");
+            moved_seam_steps(&real_cast, motion, seed)
+        });
     let sim_cast = cast(&sim_scene, &sensor);
     let ideal = applied(&sim_cast, &Physics::ideal(), seed ^ 1);
     let s0 = drop_rate(&ideal);
@@ -157,6 +212,8 @@ pub fn pair_with(seed: u64, effects: &[&str], beams: usize, organized: Option<bo
         drop_rate_real: r,
         effect_share,
         effect_shares,
+        motion_seam_steps,
+        real_speed_mps: real_scene.speed_mps,
         sim: sim.iter().map(|s| features(s, &sensor)).collect(),
         real: real.iter().map(|s| features(s, &sensor)).collect(),
         sensor,

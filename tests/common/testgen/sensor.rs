@@ -164,6 +164,7 @@ pub fn cast_scan(scene: &Scene, sensor: &Sensor, index: u32) -> SimScan {
     let n = h * w;
     let mut material = vec![Material::None; n];
     let mut incidence_rad = vec![0.0f32; n];
+    let mut normals = vec![[0.0f32; 3]; n];
     let mut reflectivity = vec![0.0f32; n];
     let mut true_label = vec![0u32; n];
     let period = 0.1f32;
@@ -180,6 +181,9 @@ pub fn cast_scan(scene: &Scene, sensor: &Sensor, index: u32) -> SimScan {
         let cos_inc = (-(normal[0] * d[0] + normal[1] * d[1] + normal[2] * d[2])).clamp(0.0, 1.0);
         material[k] = s.material;
         incidence_rad[k] = cos_inc.acos();
+        // The sensor's axes are the world's: the normal, turned to face the ray.
+        let facing = if cos_inc > 0.0 { 1.0 } else { -1.0 };
+        normals[k] = normal.map(|c| c * facing);
         reflectivity[k] = s.reflectivity;
         true_label[k] = s.label;
         if t_hit < profile.min_range_m {
@@ -196,6 +200,7 @@ pub fn cast_scan(scene: &Scene, sensor: &Sensor, index: u32) -> SimScan {
         image,
         material,
         incidence_rad,
+        normal: normals,
         reflectivity,
         time_s,
         true_range_m,
