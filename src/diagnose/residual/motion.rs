@@ -163,7 +163,8 @@ impl MotionFamily {
             let at = |c: usize| (c as isize + offset).rem_euclid(w as isize) as usize;
             let (first, last) = (at(first), at(last));
             let (a, b) = (row * w + first, row * w + last);
-            if !(f.kept[a] && f.kept[b] && !f.in_gap(a) && !f.in_gap(b)) {
+            let readable = |k: usize| f.kept[k] && !f.in_gap(k);
+            if !readable(a) || !readable(b) {
                 continue;
             }
             let dir = direction(f.elevation_rad[b], f.azimuth_rad[b]);
